@@ -1,0 +1,283 @@
+"""Configuration: the ``project.yaml`` model and helpers to load, override and write YAML.
+
+Every model forbids unknown keys (a typo is an error, never silently ignored), carries the
+unit in each field name, and documents its default once, here. The resolved configuration is
+written beside every output.
+
+Angles of the scanner boresight ``R_b_s`` are given as roll, pitch, yaw in degrees with
+``R_b_s = Rz(yaw) Ry(pitch) Rx(roll)`` (the same z-y-x order as the platform attitude).
+Lever arms are in the body frame ``b`` (forward-right-down), metres.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from georefine.errors import ConfigError
+
+Vector3 = tuple[float, float, float]
+
+
+class StrictModel(BaseModel):
+    """Base of all configuration models: unknown keys are errors, values are validated on assignment."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+
+
+class ReferencePoint(StrictModel):
+    """Origin of the mapping frame ``w`` (east-north-up). Default: the first GNSS fix."""
+
+    lat_deg: float = Field(ge=-90.0, le=90.0)
+    lon_deg: float = Field(ge=-180.0, le=180.0)
+    h_m: float
+
+
+class CrsConfig(StrictModel):
+    output_epsg: int = Field(25832, description="EPSG code of the output CRS; heights stay ellipsoidal.")
+    reference_point: ReferencePoint | None = None
+
+
+class GnssFileConfig(StrictModel):
+    files: list[str] = Field(min_length=1, description="RTKLIB .pos files, relative to the project folder.")
+    lever_arm_m: Vector3 = Field(description="Antenna phase centre in the body frame, p_b_a (m).")
+    min_quality: int = Field(
+        2, ge=1, le=6, description="Worst RTKLIB quality flag accepted (1 fix, 2 float, ... 6 PPP)."
+    )
+
+
+class ImuErrorSpec(StrictModel):
+    """IMU error specification in datasheet units (DESIGN §4.3 IMU model).
+
+    White noise: angle random walk (ARW) and velocity random walk (VRW). Biases: turn-on
+    (constant per run, 1 sigma) plus an in-run random walk whose strength follows from the
+    bias instability over ``bias_correlation_time_s``. Scale factors: 1 sigma, constant.
+    """
+
+    gyro_arw_deg_per_sqrt_h: float = Field(ge=0.0)
+    gyro_bias_instability_deg_per_h: float = Field(ge=0.0)
+    gyro_turn_on_bias_deg_per_h: float = Field(ge=0.0)
+    gyro_scale_factor_ppm: float = Field(ge=0.0)
+    acc_vrw_m_per_s_per_sqrt_h: float = Field(ge=0.0)
+    acc_bias_instability_ug: float = Field(ge=0.0)
+    acc_turn_on_bias_ug: float = Field(ge=0.0)
+    acc_scale_factor_ppm: float = Field(ge=0.0)
+    bias_correlation_time_s: float = Field(3600.0, gt=0.0)
+
+
+class ImuFileConfig(StrictModel):
+    file: str = Field(description="IMU data file relative to the project folder (.csv or .imr).")
+    format: Literal["csv", "imr"] = "csv"
+    rate_hz: float = Field(200.0, gt=0.0, description="Nominal sample rate.")
+    gps_week: int | None = Field(
+        None, ge=0, description="GPS week of .imr files (their time tags are seconds of week)."
+    )
+    errors: ImuErrorSpec
+
+
+class ChannelConfig(StrictModel):
+    id: int = Field(ge=0, le=3, description="LAS scanner_channel value.")
+    name: str
+    tilt_deg: float = Field(description="Nominal tilt of the view from nadir, positive forward.")
+
+
+def default_channels() -> list[ChannelConfig]:
+    return [
+        ChannelConfig(id=0, name="nadir", tilt_deg=0.0),
+        ChannelConfig(id=1, name="forward", tilt_deg=10.0),
+        ChannelConfig(id=2, name="backward", tilt_deg=-10.0),
+    ]
+
+
+class ScannerFileConfig(StrictModel):
+    files: list[str] = Field(min_length=1, description="LAS/LAZ strips in the scanner frame s.")
+    lever_arm_m: Vector3 = Field(description="Scanner origin in the body frame, p_b_s (m).")
+    boresight_deg: Vector3 = Field(
+        (0.0, 0.0, 0.0), description="Roll, pitch, yaw of R_b_s (deg), R_b_s = Rz(y) Ry(p) Rx(r)."
+    )
+    range_sigma_m: float = Field(0.005, gt=0.0)
+    channels: list[ChannelConfig] = Field(default_factory=default_channels)
+
+    @field_validator("channels")
+    @classmethod
+    def _unique_channels(cls, v: list[ChannelConfig]) -> list[ChannelConfig]:
+        ids = [c.id for c in v]
+        if len(set(ids)) != len(ids):
+            raise ValueError(f"channel ids must be unique, found {ids}")
+        return v
+
+
+class ReferenceConfig(StrictModel):
+    surfaces: str | None = Field(None, description="Reference surfaces CSV (evaluation only).")
+
+
+class ProjectConfig(StrictModel):
+    """``project.yaml``: where the sensor files are and how the system is built."""
+
+    name: str = "project"
+    crs: CrsConfig = Field(default_factory=CrsConfig)
+    gnss: GnssFileConfig
+    imu: ImuFileConfig
+    scanner: ScannerFileConfig
+    reference: ReferenceConfig = Field(default_factory=ReferenceConfig)
+
+
+def boresight_matrix(boresight_deg: Vector3) -> np.ndarray:
+    """``R_b_s`` from boresight roll, pitch, yaw in degrees (``Rz(yaw) Ry(pitch) Rx(roll)``)."""
+    from georefine.geometry.rotation import R_n_b_from_rph
+
+    r, p, y = np.radians(np.asarray(boresight_deg, dtype=float))
+    return R_n_b_from_rph(r, p, y)
+
+
+# ---------------------------------------------------------------------------------------------
+# YAML helpers
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping; errors name the file and line."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot read file: {exc.strerror}", path=path) from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else None
+        raise ConfigError(f"invalid YAML: {getattr(exc, 'problem', exc)}", path=path, line=line) from exc
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError("top level must be a mapping", path=path, expected="key: value pairs", found=type(data).__name__)
+    return data
+
+
+def _line_of_key(path: Path, loc: tuple) -> int | None:
+    """Best-effort 1-based line of a nested key path in a YAML file (for error messages)."""
+    try:
+        node = yaml.compose(path.read_text(encoding="utf-8"))
+    except Exception:  # noqa: BLE001 - only used to enrich an error message
+        return None
+    for key in loc:
+        if node is None:
+            return None
+        if isinstance(node, yaml.MappingNode):
+            found = None
+            for k, v in node.value:
+                if k.value == str(key):
+                    found = (k, v)
+                    break
+            if found is None:
+                return node.start_mark.line + 1
+            if key == loc[-1]:
+                return found[0].start_mark.line + 1
+            node = found[1]
+        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
+            node = node.value[key]
+        else:
+            return node.start_mark.line + 1
+    return node.start_mark.line + 1 if node is not None else None
+
+
+def validate_model(model: type[BaseModel], data: dict[str, Any], path: str | Path | None = None) -> BaseModel:
+    """Validate ``data`` against ``model``; the first error becomes a :class:`ConfigError`."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = tuple(err.get("loc", ()))
+        field = ".".join(str(x) for x in loc) or None
+        line = _line_of_key(Path(path), loc) if path is not None and loc else None
+        if err.get("type") == "extra_forbidden":
+            message = "unknown key"
+            expected = "one of " + ", ".join(sorted(_known_keys(model, loc[:-1]))) if loc else None
+            raise ConfigError(message, path=path, line=line, field=field, expected=expected, found=repr(loc[-1])) from exc
+        raise ConfigError(
+            err.get("msg", "invalid value"), path=path, line=line, field=field, found=repr(err.get("input"))
+        ) from exc
+
+
+def _known_keys(model: type[BaseModel], loc: tuple) -> list[str]:
+    current: Any = model
+    for key in loc:
+        if isinstance(key, int):
+            continue
+        field = getattr(current, "model_fields", {}).get(key)
+        if field is None:
+            return []
+        ann = field.annotation
+        for cand in getattr(ann, "__args__", (ann,)):
+            inner = getattr(cand, "__args__", (cand,))
+            for c in (cand, *inner):
+                if isinstance(c, type) and issubclass(c, BaseModel):
+                    current = c
+                    break
+    return list(getattr(current, "model_fields", {}).keys())
+
+
+def load_project(project_dir: str | Path) -> ProjectConfig:
+    """Load ``PROJECT/project.yaml`` (validated; unknown keys are errors)."""
+    path = Path(project_dir) / "project.yaml"
+    if not path.is_file():
+        raise ConfigError("no project.yaml in the project folder", path=path)
+    return validate_model(ProjectConfig, read_yaml(path), path)  # type: ignore[return-value]
+
+
+def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
+    """Apply ``key.sub=value`` overrides (values parsed as YAML scalars/lists) to a nested dict.
+
+    Returns a new dict; ``data`` is not modified.
+    """
+    import copy
+
+    out = copy.deepcopy(data)
+    for item in overrides:
+        if "=" not in item:
+            raise ConfigError("override must look like key.sub=value", field="--set", found=repr(item))
+        key, _, raw = item.partition("=")
+        parts = [p for p in key.strip().split(".") if p]
+        if not parts:
+            raise ConfigError("override has an empty key", field="--set", found=repr(item))
+        try:
+            value = yaml.safe_load(raw) if raw.strip() else None
+        except yaml.YAMLError as exc:
+            raise ConfigError("override value is not valid YAML", field=key, found=repr(raw)) from exc
+        node = out
+        for p in parts[:-1]:
+            child = node.get(p)
+            if child is None:
+                child = node[p] = {}
+            if not isinstance(child, dict):
+                raise ConfigError("cannot set a sub-key of a scalar", field=key, found=repr(child))
+            node = child
+        node[parts[-1]] = value
+    return out
+
+
+def deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
+    """Recursive dict merge (``update`` wins); returns a new dict."""
+    out = dict(base)
+    for k, v in update.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = deep_merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def write_yaml(path: str | Path, data: dict[str, Any] | BaseModel) -> None:
+    """Write YAML atomically (temporary name, then rename)."""
+    import os
+
+    path = Path(path)
+    if isinstance(data, BaseModel):
+        data = data.model_dump(mode="json")
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None), encoding="utf-8")
+    os.replace(tmp, path)

@@ -1,0 +1,149 @@
+"""The mapping frame ``w`` (local tangent plane, ENU) and the output CRS.
+
+``w`` is ECEF rotated and shifted to east-north-up at a reference point (DESIGN §4.1):
+``p_e = p_e_w + R_e_w p_w``. It is fixed to the Earth, so the Earth rate and normal gravity
+are the only extra terms of the physics written in it:
+
+``omega_ie_w = R_e_w^T [0, 0, omega_ie]``, ``g_w(p_w) = R_e_w^T g_e(p_e_w + R_e_w p_w)``.
+
+The output CRS (e.g. ETRS89 / UTM 32N, EPSG:25832) is reached through pyproj from
+geodetic WGS84 coordinates with ellipsoidal heights (EPSG:4979); heights stay ellipsoidal
+(the projected CRS is promoted to 3D with ``CRS.to_3d()``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from georefine.geometry import earth
+
+
+@dataclass(frozen=True)
+class LocalFrame:
+    """East-north-up frame ``w`` at geodetic ``lat0_rad, lon0_rad, h0_m``."""
+
+    lat0_rad: float
+    lon0_rad: float
+    h0_m: float
+
+    @classmethod
+    def from_degrees(cls, lat0_deg: float, lon0_deg: float, h0_m: float) -> "LocalFrame":
+        return cls(float(np.radians(lat0_deg)), float(np.radians(lon0_deg)), float(h0_m))
+
+    @cached_property
+    def R_e_w(self) -> np.ndarray:
+        """Rotation ENU at the reference point -> ECEF, ``(3, 3)``."""
+        return earth.R_e_enu(self.lat0_rad, self.lon0_rad)
+
+    @cached_property
+    def p_e_w(self) -> np.ndarray:
+        """ECEF position of the origin of ``w`` (m)."""
+        return earth.geodetic_to_ecef(self.lat0_rad, self.lon0_rad, self.h0_m)
+
+    @cached_property
+    def omega_ie_w(self) -> np.ndarray:
+        """Earth rate in ``w`` (rad/s)."""
+        return self.R_e_w.T @ earth.OMEGA_IE_E
+
+    def to_ecef(self, p_w: np.ndarray) -> np.ndarray:
+        """``p_e = p_e_w + R_e_w p_w`` for ``(..., 3)`` positions (m)."""
+        return np.asarray(p_w, dtype=float) @ self.R_e_w.T + self.p_e_w
+
+    def from_ecef(self, p_e: np.ndarray) -> np.ndarray:
+        """``p_w = R_e_w^T (p_e - p_e_w)``."""
+        return (np.asarray(p_e, dtype=float) - self.p_e_w) @ self.R_e_w
+
+    def to_geodetic(self, p_w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Latitude, longitude (rad) and ellipsoidal height (m) of ``w`` positions."""
+        return earth.ecef_to_geodetic(self.to_ecef(p_w))
+
+    def from_geodetic(self, lat: np.ndarray, lon: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """``w`` positions of geodetic coordinates (rad, rad, m)."""
+        return self.from_ecef(earth.geodetic_to_ecef(lat, lon, h))
+
+    def gravity_w(self, p_w: np.ndarray) -> np.ndarray:
+        """Normal gravity vector in ``w`` (m/s^2) at ``w`` positions ``(..., 3)``."""
+        return earth.gravity_e(self.to_ecef(p_w)) @ self.R_e_w
+
+    def R_w_n(self, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+        """Rotation from the local NED frame at ``(lat, lon)`` to ``w``: ``R_e_w^T R_e_n``."""
+        return self.R_e_w.T @ earth.R_e_n(lat, lon)
+
+    def R_w_n_at(self, p_w: np.ndarray) -> np.ndarray:
+        """Rotation from the local NED frame at ``w`` positions ``(..., 3)`` to ``w``."""
+        lat, lon, _ = self.to_geodetic(p_w)
+        return self.R_w_n(lat, lon)
+
+    def rph_from_R_w_b(self, p_w: np.ndarray, R_w_b: np.ndarray) -> np.ndarray:
+        """NED roll, pitch, heading (rad) of body attitudes ``R_w_b`` at positions ``p_w``."""
+        from georefine.geometry.rotation import rph_from_R_n_b
+
+        R_n_w = np.swapaxes(self.R_w_n_at(p_w), -1, -2)
+        return rph_from_R_n_b(R_n_w @ R_w_b)
+
+    def R_w_b_from_rph(self, p_w: np.ndarray, rph: np.ndarray) -> np.ndarray:
+        """Body attitudes ``R_w_b`` from NED roll, pitch, heading (rad) at positions ``p_w``."""
+        from georefine.geometry.rotation import R_n_b_from_rph
+
+        rph = np.asarray(rph, dtype=float)
+        return self.R_w_n_at(p_w) @ R_n_b_from_rph(rph[..., 0], rph[..., 1], rph[..., 2])
+
+
+@dataclass(frozen=True)
+class OutputCRS:
+    """Transformations between geodetic WGS84 (ellipsoidal heights) and an output CRS.
+
+    Parameters
+    ----------
+    epsg
+        EPSG code of the output CRS (e.g. 25832, ETRS89 / UTM zone 32N). A 2D projected CRS
+        is promoted to 3D, so heights pass through as ellipsoidal heights. Note that the
+        datum shift WGS84 -> ETRS89 is treated as identity (PROJ's default, ~0.5 m in 2025;
+        the simulator and the pipeline use the same transformation, so results are
+        consistent).
+    """
+
+    epsg: int
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def _transformers(self):
+        if not self._cache:
+            from pyproj import CRS, Transformer
+
+            target = CRS.from_epsg(self.epsg)
+            if not target.is_geographic and len(target.axis_info) == 2:
+                target = target.to_3d()
+            geodetic = CRS.from_epsg(4979)
+            self._cache["crs"] = target
+            self._cache["fwd"] = Transformer.from_crs(geodetic, target, always_xy=True)
+            self._cache["inv"] = Transformer.from_crs(target, geodetic, always_xy=True)
+        return self._cache
+
+    @property
+    def crs(self):
+        """The (3D) ``pyproj.CRS`` of the output."""
+        return self._transformers()["crs"]
+
+    def from_geodetic(self, lat: np.ndarray, lon: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Output-CRS coordinates ``(..., 3)`` (easting, northing, ellipsoidal height) of geodetic (rad)."""
+        t = self._transformers()["fwd"]
+        x, y, z = t.transform(np.degrees(lon), np.degrees(lat), np.asarray(h, dtype=float))
+        return np.stack([np.asarray(x), np.asarray(y), np.asarray(z)], axis=-1)
+
+    def to_geodetic(self, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Geodetic latitude, longitude (rad) and ellipsoidal height (m) of output-CRS points."""
+        xyz = np.asarray(xyz, dtype=float)
+        t = self._transformers()["inv"]
+        lon, lat, h = t.transform(xyz[..., 0], xyz[..., 1], xyz[..., 2])
+        return np.radians(np.asarray(lat)), np.radians(np.asarray(lon)), np.asarray(h)
+
+    def from_w(self, frame: LocalFrame, p_w: np.ndarray) -> np.ndarray:
+        """Output-CRS coordinates of ``w`` positions."""
+        return self.from_geodetic(*frame.to_geodetic(p_w))
+
+    def to_w(self, frame: LocalFrame, xyz: np.ndarray) -> np.ndarray:
+        """``w`` positions of output-CRS coordinates."""
+        return frame.from_geodetic(*self.to_geodetic(xyz))
