@@ -273,11 +273,9 @@ def deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
 
 def write_yaml(path: str | Path, data: dict[str, Any] | BaseModel) -> None:
     """Write YAML atomically (temporary name, then rename)."""
-    import os
+    from georefine.io._common import atomic_output
 
-    path = Path(path)
     if isinstance(data, BaseModel):
         data = data.model_dump(mode="json")
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(yaml.safe_dump(data, sort_keys=False, default_flow_style=None), encoding="utf-8")
-    os.replace(tmp, path)
+    with atomic_output(path, "w") as fh:
+        fh.write(yaml.safe_dump(data, sort_keys=False, default_flow_style=None))

@@ -1,0 +1,431 @@
+"""LAS 1.4 / LAZ point clouds: scanner-frame strips and georeferenced clouds.
+
+Conventions (DESIGN §3):
+
+* ``gps_time`` in the file is *adjusted standard GPS time* (GPS seconds − 1e9)
+  and the LAS 1.4 global-encoding GPS-time-type bit must be set; in memory
+  ``time_gps`` is GPS seconds (``gps_time + 1e9``).
+* ``x, y, z``: scanner frame ``s`` coordinates (metres) for raw strips, output
+  CRS coordinates for georeferenced clouds.
+* ``scanner_channel`` = view direction (0 nadir, 1 forward, 2 backward),
+  ``point_source_id`` = strip id.
+* Point format 6 or higher (LAS 1.4). Extra float dimensions (LAS extra bytes)
+  are read and written by name, e.g. ``range_error_m``.
+
+Files can be larger than memory: :func:`iter_las_chunks` streams them with
+``laspy.open(...).chunk_iterator(n)`` and :class:`LasWriter` writes chunk by
+chunk with ``writer.write_points`` to a temporary name that is renamed on
+:meth:`LasWriter.close`. LAZ uses the lazrs backend.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import tempfile
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from georefine.errors import InputError
+from georefine.io._common import PathLike, check_output_path
+
+__all__ = ["PointCloud", "ScanChunk", "LasInfo", "LasWriter", "read_las_info", "iter_las_chunks", "read_las",
+           "write_las", "GPS_TIME_OFFSET_S"]
+
+_log = logging.getLogger(__name__)
+
+GPS_TIME_OFFSET_S = 1.0e9
+"""Adjusted standard GPS time = GPS seconds − this offset."""
+
+_MIN_POINT_FORMAT = 6
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """A chunk of points (struct of arrays, leading axis N).
+
+    Attributes
+    ----------
+    time_gps
+        (N,) float64 GPS seconds (not necessarily increasing).
+    xyz
+        (N,3) float64 coordinates, metres (scanner frame or output CRS).
+    intensity
+        (N,) uint16.
+    scanner_channel
+        (N,) uint8, 0..3 (view direction).
+    point_source_id
+        (N,) uint16 (strip id).
+    return_number, number_of_returns
+        (N,) uint8, 0..15.
+    extra
+        Extra float dimensions by name, each (N,) float64.
+    """
+
+    time_gps: np.ndarray
+    xyz: np.ndarray
+    intensity: np.ndarray
+    scanner_channel: np.ndarray
+    point_source_id: np.ndarray
+    return_number: np.ndarray
+    number_of_returns: np.ndarray
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        t = np.ascontiguousarray(self.time_gps, dtype=np.float64)
+        if t.ndim != 1:
+            raise ValueError(f"time_gps must be 1-D, got shape {t.shape}")
+        n = t.shape[0]
+        xyz = np.ascontiguousarray(self.xyz, dtype=np.float64)
+        if xyz.shape != (n, 3):
+            raise ValueError(f"xyz must have shape {(n, 3)}, got {xyz.shape}")
+        if not (np.all(np.isfinite(t)) and np.all(np.isfinite(xyz))):
+            raise ValueError("time_gps and xyz must be finite")
+        object.__setattr__(self, "time_gps", t)
+        object.__setattr__(self, "xyz", xyz)
+        for name, dtype, hi in (("intensity", np.uint16, 65535), ("scanner_channel", np.uint8, 3),
+                                ("point_source_id", np.uint16, 65535), ("return_number", np.uint8, 15),
+                                ("number_of_returns", np.uint8, 15)):
+            a = np.asarray(getattr(self, name))
+            if a.shape != (n,):
+                raise ValueError(f"{name} must have shape {(n,)}, got {a.shape}")
+            if a.size and (np.min(a) < 0 or np.max(a) > hi):
+                raise ValueError(f"{name} must be in 0..{hi}")
+            object.__setattr__(self, name, np.ascontiguousarray(a, dtype=dtype))
+        extra = {}
+        for name, a in self.extra.items():
+            a = np.ascontiguousarray(a, dtype=np.float64)
+            if a.shape != (n,):
+                raise ValueError(f"extra dimension {name!r} must have shape {(n,)}, got {a.shape}")
+            extra[name] = a
+        object.__setattr__(self, "extra", extra)
+
+    def __len__(self) -> int:
+        return self.time_gps.shape[0]
+
+    @classmethod
+    def concatenate(cls, chunks: Sequence[PointCloud]) -> PointCloud:
+        """One cloud from several chunks with the same extra dimensions."""
+        if not chunks:
+            raise ValueError("no chunks to concatenate")
+        names = list(chunks[0].extra)
+        return cls(
+            time_gps=np.concatenate([c.time_gps for c in chunks]),
+            xyz=np.concatenate([c.xyz for c in chunks]),
+            intensity=np.concatenate([c.intensity for c in chunks]),
+            scanner_channel=np.concatenate([c.scanner_channel for c in chunks]),
+            point_source_id=np.concatenate([c.point_source_id for c in chunks]),
+            return_number=np.concatenate([c.return_number for c in chunks]),
+            number_of_returns=np.concatenate([c.number_of_returns for c in chunks]),
+            extra={k: np.concatenate([c.extra[k] for c in chunks]) for k in names},
+        )
+
+
+ScanChunk = PointCloud
+"""A chunk of a scanner-frame strip: the same structure as :class:`PointCloud`."""
+
+
+@dataclass(frozen=True)
+class LasInfo:
+    """Header facts of a LAS/LAZ file."""
+
+    path: Path
+    point_count: int
+    point_format: int
+    version: str
+    scales: np.ndarray
+    offsets: np.ndarray
+    mins: np.ndarray
+    maxs: np.ndarray
+    extra_dims: tuple[str, ...]
+    crs_wkt: str | None
+    compressed: bool
+
+
+def _open_reader(path: Path):
+    import laspy  # deferred: heavy import
+
+    if not path.is_file():
+        raise InputError("file not found", path=path)
+    try:
+        return laspy.open(path)
+    except Exception as exc:  # laspy/lazrs raise many types for corrupt files
+        raise InputError(f"cannot open as LAS/LAZ: {exc}", path=path, expected="a LAS 1.4 or LAZ file") from exc
+
+
+def _validate_header(path: Path, header) -> None:
+    from laspy.header import GpsTimeType
+
+    pf = header.point_format.id
+    if pf < _MIN_POINT_FORMAT:
+        raise InputError("point format not supported", path=path, field="point_format",
+                         expected=f"{_MIN_POINT_FORMAT} or higher (LAS 1.4)", found=str(pf))
+    if header.global_encoding.gps_time_type != GpsTimeType.STANDARD:
+        raise InputError("GPS time type bit not set", path=path, field="global_encoding",
+                         expected="adjusted standard GPS time (bit 0 set)", found="GPS week time (bit 0 clear)")
+    names = set(header.point_format.dimension_names)
+    for required in ("X", "Y", "Z", "gps_time", "intensity", "scanner_channel", "point_source_id",
+                     "return_number", "number_of_returns"):
+        if required not in names:
+            raise InputError("required dimension missing", path=path, field=required, expected="present",
+                             found="absent")
+
+
+def read_las_info(path: PathLike) -> LasInfo:
+    """Open, validate and describe a LAS/LAZ file without reading its points."""
+    path = Path(path)
+    with _open_reader(path) as reader:
+        h = reader.header
+        _validate_header(path, h)
+        try:
+            crs = h.parse_crs()
+        except Exception:  # an unreadable CRS VLR is not fatal for reading points
+            _log.warning("%s: CRS VLR could not be parsed", path)
+            crs = None
+        return LasInfo(
+            path=path, point_count=int(h.point_count), point_format=h.point_format.id, version=str(h.version),
+            scales=np.array(h.scales, float), offsets=np.array(h.offsets, float),
+            mins=np.array(h.mins, float), maxs=np.array(h.maxs, float),
+            extra_dims=tuple(h.point_format.extra_dimension_names),
+            crs_wkt=None if crs is None else crs.to_wkt(), compressed=h.are_points_compressed,
+        )
+
+
+def _chunk_from_record(rec, extra_names: Sequence[str]) -> PointCloud:
+    return PointCloud(
+        time_gps=np.asarray(rec.gps_time, dtype=np.float64) + GPS_TIME_OFFSET_S,
+        xyz=np.column_stack([np.asarray(rec.x), np.asarray(rec.y), np.asarray(rec.z)]),
+        intensity=np.asarray(rec.intensity), scanner_channel=np.asarray(rec.scanner_channel),
+        point_source_id=np.asarray(rec.point_source_id), return_number=np.asarray(rec.return_number),
+        number_of_returns=np.asarray(rec.number_of_returns),
+        extra={k: np.asarray(rec[k], dtype=np.float64) for k in extra_names},
+    )
+
+
+def iter_las_chunks(
+    path: PathLike, chunk_size: int = 1_000_000, extra_dims: Sequence[str] | None = None
+) -> Iterator[PointCloud]:
+    """Stream a LAS/LAZ file in chunks of at most ``chunk_size`` points.
+
+    Parameters
+    ----------
+    extra_dims
+        Extra dimensions to return; default all extra dimensions of the file.
+
+    Raises
+    ------
+    InputError
+        The file does not open, the point format is below 6, the GPS time type
+        bit is not set, a required dimension or a requested extra dimension is
+        missing, or the point data are corrupt/truncated (with the point range).
+    """
+    path = Path(path)
+    with _open_reader(path) as reader:
+        h = reader.header
+        _validate_header(path, h)
+        available = tuple(h.point_format.extra_dimension_names)
+        names = available if extra_dims is None else tuple(extra_dims)
+        for name in names:
+            if name not in available:
+                raise InputError("extra dimension missing", path=path, field=name,
+                                 expected="present", found=f"extra dimensions {list(available)}")
+        total, done = int(h.point_count), 0
+        it = reader.chunk_iterator(chunk_size)
+        while True:
+            try:
+                rec = next(it)
+            except StopIteration:
+                break
+            except Exception as exc:
+                raise InputError(
+                    f"corrupt or truncated point data: {exc}", path=path, record_kind="record",
+                    line=done + 1, expected=f"{total} points", found=f"{done} points readable",
+                ) from exc
+            if len(rec) == 0:
+                break
+            done += len(rec)
+            yield _chunk_from_record(rec, names)
+        if done != total:
+            raise InputError("truncated point data", path=path, expected=f"{total} points (header)",
+                             found=f"{done} points")
+
+
+def read_las(path: PathLike, extra_dims: Sequence[str] | None = None) -> PointCloud:
+    """Read a whole LAS/LAZ file (see :func:`iter_las_chunks` for validation)."""
+    chunks = list(iter_las_chunks(path, extra_dims=extra_dims))
+    if not chunks:
+        info = read_las_info(path)
+        return PointCloud(np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0), np.empty(0), np.empty(0),
+                          np.empty(0), {k: np.empty(0) for k in (extra_dims or info.extra_dims)})
+    return PointCloud.concatenate(chunks)
+
+
+class LasWriter:
+    """Chunked LAS 1.4 / LAZ writer (point format 6) with an atomic rename on close.
+
+    Parameters
+    ----------
+    path
+        Destination; ``.laz`` is compressed (lazrs) unless ``compress`` says otherwise.
+    scale
+        Coordinate resolution in metres (scalar or (3,)); default 0.0001 m.
+    offset
+        Header offsets (3,); default from the first chunk: its centre rounded to
+        a multiple of 1000 m (0 for scanner-frame data near the origin).
+    crs
+        Optional coordinate reference system (``pyproj.CRS``, WKT, EPSG code or
+        "EPSG:xxxx"); written as a WKT VLR.
+    extra_dims
+        Extra float dimensions to write: names (float32) or ``{name: dtype}``.
+    system_identifier, generating_software
+        Header texts; both default to Georefine.
+    protect
+        Input files/folders that must not be written into.
+
+    Notes
+    -----
+    Use as a context manager: on an exception the temporary file is removed and
+    ``path`` is left untouched. Header bounds and counts are updated by laspy.
+    """
+
+    def __init__(
+        self,
+        path: PathLike,
+        *,
+        scale: float | Sequence[float] = 1e-4,
+        offset: Sequence[float] | None = None,
+        crs=None,
+        extra_dims: Sequence[str] | Mapping[str, type] = (),
+        compress: bool | None = None,
+        system_identifier: str = "Georefine",
+        generating_software: str | None = None,
+        protect: Sequence[PathLike] = (),
+    ) -> None:
+        self.path = check_output_path(path, protect)
+        self._compress = self.path.suffix.lower() == ".laz" if compress is None else bool(compress)
+        self._scale = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy()
+        self._offset = None if offset is None else np.asarray(offset, dtype=np.float64).reshape(3)
+        self._crs = crs
+        self._extra = dict(extra_dims) if isinstance(extra_dims, Mapping) else {k: np.float32 for k in extra_dims}
+        self._system_identifier = system_identifier
+        if generating_software is None:
+            from georefine import __version__
+
+            generating_software = f"Georefine {__version__}"
+        self._software = generating_software
+        self._writer = None
+        self._fh = None
+        self._tmp: Path | None = None
+        self._closed = False
+        self._aborted = False
+        self.point_count = 0
+
+    def __enter__(self) -> LasWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        elif not self._closed:
+            self.abort()
+
+    def _make_header(self, first: PointCloud):
+        import laspy
+        from laspy.header import GpsTimeType
+
+        header = laspy.LasHeader(version="1.4", point_format=6)
+        header.global_encoding.gps_time_type = GpsTimeType.STANDARD
+        if self._extra:
+            header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=np.dtype(t)) for k, t in self._extra.items()])
+        if self._crs is not None:
+            import pyproj
+
+            header.add_crs(pyproj.CRS.from_user_input(self._crs))
+            header.global_encoding.wkt = True
+        if self._offset is None:
+            centre = 0.5 * (first.xyz.min(axis=0) + first.xyz.max(axis=0)) if len(first) else np.zeros(3)
+            self._offset = np.round(centre / 1000.0) * 1000.0
+        header.scales = self._scale
+        header.offsets = self._offset
+        header.system_identifier = self._system_identifier[:32]
+        header.generating_software = self._software[:32]
+        return header
+
+    def write(self, chunk: PointCloud) -> None:
+        """Append a chunk of points (its extra dimensions must include the writer's)."""
+        import laspy
+
+        if self._closed:
+            raise ValueError("LasWriter is closed")
+
+        missing = [k for k in self._extra if k not in chunk.extra]
+        if missing:
+            raise ValueError(f"chunk lacks extra dimensions {missing}")
+        if self._writer is None:
+            header = self._make_header(chunk)
+            fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=self.path.parent)
+            os.close(fd)
+            self._tmp = Path(name)
+            self._fh = open(self._tmp, "wb")
+            self._writer = laspy.open(self._fh, mode="w", header=header, do_compress=self._compress, closefd=False)
+        counts = (chunk.xyz - self._offset) / self._scale
+        if np.any(np.abs(counts) > np.iinfo(np.int32).max - 1):
+            raise ValueError("coordinates out of the int32 range of the chosen scale/offset; pass offset=")
+        rec = laspy.ScaleAwarePointRecord.zeros(len(chunk), header=self._writer.header)
+        rec.x, rec.y, rec.z = chunk.xyz[:, 0], chunk.xyz[:, 1], chunk.xyz[:, 2]
+        rec.gps_time = chunk.time_gps - GPS_TIME_OFFSET_S
+        rec.intensity = chunk.intensity
+        rec.scanner_channel = chunk.scanner_channel
+        rec.point_source_id = chunk.point_source_id
+        rec.return_number = chunk.return_number
+        rec.number_of_returns = chunk.number_of_returns
+        for k in self._extra:
+            rec[k] = chunk.extra[k]
+        self._writer.write_points(rec)
+        self.point_count += len(chunk)
+
+    def close(self) -> Path:
+        """Finish the file and rename it to ``path``. Returns ``path``."""
+        if self._aborted:
+            raise ValueError("LasWriter was aborted; nothing was written")
+        if self._closed:
+            return self.path
+        if self._writer is None:  # nothing written: still produce a valid, empty file
+            self.write(PointCloud(np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0), np.empty(0),
+                                  np.empty(0), np.empty(0), {k: np.empty(0) for k in self._extra}))
+        try:
+            self._writer.close()
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+            self._fh.close()
+            os.replace(self._tmp, self.path)
+        except BaseException:
+            self.abort()
+            raise
+        self._closed = True
+        _log.info("wrote %d points to %s", self.point_count, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Discard the temporary file; ``path`` is left untouched."""
+        for closer in (getattr(self._writer, "close", None), getattr(self._fh, "close", None)):
+            try:
+                if closer is not None:
+                    closer()
+            except Exception:  # already failing; the temp file is removed below
+                pass
+        if self._tmp is not None and self._tmp.exists():
+            self._tmp.unlink()
+        self._writer = None
+        self._closed = self._aborted = True
+
+
+def write_las(path: PathLike, cloud: PointCloud, **kwargs) -> Path:
+    """Write one cloud in one go (keyword arguments as :class:`LasWriter`)."""
+    with LasWriter(path, extra_dims=kwargs.pop("extra_dims", tuple(cloud.extra)), **kwargs) as writer:
+        writer.write(cloud)
+    return Path(path)
+
