@@ -1,0 +1,173 @@
+"""Tests of the multi-view scanner simulation (georefine.sim.scanner)."""
+
+import numpy as np
+import pydantic
+import pytest
+from scipy.spatial.transform import Rotation
+
+from georefine.sim.scanner import FACET_SWEEP_RAD, ScanChunk, ScannerConfig, scan
+from georefine.sim.scene import SceneConfig, build_scene
+
+H_AGL, SPEED = 160.0, 18.0
+# body x forward = south (-y), y right = west (-x), z down: columns of R_w_b
+R_SOUTH = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+T0 = 1000.0  # times are relative to the dataset epoch, not zero at the start
+
+
+def level_flight(y0, z, wobble=0.0):
+    """Straight flight heading south at height z; optional small roll/pitch/yaw wobble [rad]."""
+
+    def pose_fn(t):
+        t = np.asarray(t, float)
+        p = np.column_stack([np.zeros_like(t), y0 - SPEED * (t - T0), np.full_like(t, z)])
+        rv = wobble * np.column_stack([np.sin(2.1 * t), np.cos(1.3 * t), np.sin(0.7 * t + 1)])
+        return p, R_SOUTH @ Rotation.from_rotvec(rv).as_matrix()
+
+    return pose_fn
+
+
+@pytest.fixture(scope="module")
+def flat_scene():
+    cfg = SceneConfig(length_m=600.0, width_m=500.0, end_margin_m=100.0, side_rise_m=0.0,
+                      undulation_m=0.0, floor_slope_m_per_m=0.0, settlement_count=0,
+                      scattered_building_count=0, power_line=False, vegetation_per_ha=0.0)
+    return build_scene(cfg, np.random.default_rng(5))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    cfg = SceneConfig(length_m=600.0, width_m=500.0, end_margin_m=100.0, settlement_count=2,
+                      buildings_per_settlement=8, scattered_building_count=2)
+    return build_scene(cfg, np.random.default_rng(6))
+
+
+def concat(chunks):
+    chunks = list(chunks)
+    assert all(isinstance(c, ScanChunk) for c in chunks)
+    return {name: np.concatenate([getattr(c, name) for c in chunks]) for name in
+            ("time", "xyz_s", "channel", "scan_angle_rad", "intensity", "range_error_m",
+             "face_id", "xyz_w_true")}
+
+
+@pytest.fixture(scope="module")
+def realistic(scene):
+    cfg = ScannerConfig()
+    p_b_s = np.array([0.35, -0.12, 0.48])
+    R_b_s = Rotation.from_rotvec([0.004, -0.006, 0.01]).as_matrix()
+    z = np.mean(scene.axis_w[:, 2]) + H_AGL
+    pose_fn = level_flight(400.0, z, wobble=0.03)
+    pts = concat(scan(pose_fn, T0, T0 + 2.0, scene, cfg, p_b_s, R_b_s, np.random.default_rng(7),
+                      chunk_duration_s=0.5))
+    return pts, pose_fn, p_b_s, R_b_s, cfg
+
+
+def test_measurements_consistent_with_pose(realistic, scene):
+    pts, pose_fn, p_b_s, R_b_s, cfg = realistic
+    assert len(pts["time"]) > 0.9 * 2.0 * cfg.pulse_rate_hz * 100 / 120
+    p_w_b, R_w_b = pose_fn(pts["time"])
+    p_w_s = p_w_b + R_w_b @ p_b_s
+    true_range = np.linalg.norm(pts["xyz_w_true"] - p_w_s, axis=1)
+    d_w = (pts["xyz_w_true"] - p_w_s) / true_range[:, None]
+    # |xyz_s| = true range + noise
+    np.testing.assert_allclose(np.linalg.norm(pts["xyz_s"], axis=1),
+                               true_range + pts["range_error_m"], atol=1e-6)
+    # georeferencing with the true pose reproduces the true point plus the noise
+    x_w = p_w_b + np.einsum("nij,nj->ni", R_w_b, pts["xyz_s"] @ R_b_s.T + p_b_s)
+    np.testing.assert_allclose(x_w, pts["xyz_w_true"] + pts["range_error_m"][:, None] * d_w,
+                               atol=1e-6)
+    # the true point is on the surface that was hit
+    v0 = np.asarray(scene.mesh.vertices)[np.asarray(scene.mesh.faces)[pts["face_id"], 0]]
+    dist = np.einsum("ij,ij->i", pts["xyz_w_true"] - v0, scene.surface_normal(pts["face_id"]))
+    assert np.max(np.abs(dist)) < 1e-6
+    # the beam leaves the scanner in the commanded direction
+    d_s = pts["xyz_s"] / np.linalg.norm(pts["xyz_s"], axis=1, keepdims=True)
+    tau = np.radians(np.array(cfg.facet_tilt_deg))[pts["channel"]]
+    np.testing.assert_allclose(d_s[:, 0], np.sin(tau), atol=1e-12)
+    np.testing.assert_allclose(np.arctan2(d_s[:, 1], d_s[:, 2]), pts["scan_angle_rad"], atol=1e-12)
+
+
+def test_noise_and_intensity(realistic):
+    pts, *_, cfg = realistic
+    err = pts["range_error_m"]
+    assert abs(np.mean(err)) < 3e-4 and abs(np.std(err) / cfg.range_sigma_m - 1) < 0.02
+    inten = pts["intensity"]
+    assert inten.dtype == np.uint16 and inten.min() >= 1
+    assert 500 < np.median(inten) < 20000
+
+
+def test_channels_cycle_per_line(realistic):
+    pts, *_, cfg = realistic
+    t = pts["time"]
+    assert np.all(np.diff(t) > 0) and t[0] >= T0 and t[-1] < T0 + 2.0
+    line = np.floor(t * cfg.line_rate_hz).astype(np.int64)
+    np.testing.assert_array_equal(pts["channel"], line % 3)
+    first = np.r_[True, np.diff(line) > 0]
+    seq = pts["channel"][first]
+    np.testing.assert_array_equal(np.diff(seq.astype(int)) % 3, 1)  # 0 -> 1 -> 2 -> 0 ...
+    assert np.max(np.abs(pts["scan_angle_rad"])) <= np.radians(cfg.field_of_view_deg) / 2
+
+
+@pytest.fixture(scope="module")
+def flat_points(flat_scene):
+    cfg = ScannerConfig()
+    pose_fn = level_flight(450.0, H_AGL)
+    pts = concat(scan(pose_fn, T0, T0 + 6.0, flat_scene, cfg, np.zeros(3), np.eye(3),
+                      np.random.default_rng(8)))
+    return pts, pose_fn, cfg
+
+
+def test_view_footprints_separated_along_track(flat_points):
+    pts, pose_fn, cfg = flat_points
+    p_w_b, _ = pose_fn(pts["time"])
+    near_nadir = np.abs(pts["scan_angle_rad"]) < 0.02
+    along = pts["xyz_w_true"][:, 1] - p_w_b[:, 1]
+    offset = {c: np.median(along[near_nadir & (pts["channel"] == c)]) for c in range(3)}
+    ahead = H_AGL * np.tan(np.radians(10.0))  # 28.2 m; heading south: forward is -y
+    assert abs(offset[0]) < 0.05
+    assert abs(offset[1] + ahead) < 0.1 and abs(offset[2] - ahead) < 0.1
+    assert abs((offset[2] - offset[1]) - 2 * H_AGL * np.tan(np.radians(10.0))) < 0.1  # ~56.4 m
+    # positive scan angles look right = west (-x) when heading south
+    right = pts["scan_angle_rad"] > 0.3
+    assert np.all(pts["xyz_w_true"][right, 0] < 0)
+    # swath width of the nadir view: +-h tan(50 deg)
+    x0 = pts["xyz_w_true"][pts["channel"] == 0, 0]
+    assert abs(x0.max() - H_AGL * np.tan(np.radians(50.0))) < 1.0
+
+
+def test_point_density_per_view(flat_points):
+    pts, pose_fn, cfg = flat_points
+    # a window seen by all three views during the 6 s pass (body y from 450 to 342)
+    y_lo, y_hi, half_x = 375.0, 417.0, 10.0
+    xyz = pts["xyz_w_true"]
+    inside = (np.abs(xyz[:, 0]) < half_x) & (xyz[:, 1] > y_lo) & (xyz[:, 1] < y_hi)
+    # lines per metre along: line_rate / (3 v); pulses per radian: pulse_rate / line_rate / 120 deg
+    expected = ((y_hi - y_lo) * cfg.line_rate_hz / (3 * SPEED) * 2 * np.arctan(half_x / H_AGL)
+                * cfg.pulse_rate_hz / cfg.line_rate_hz / FACET_SWEEP_RAD)
+    area = 2 * half_x * (y_hi - y_lo)
+    for c in range(3):
+        count = np.count_nonzero(inside & (pts["channel"] == c))
+        assert abs(count / expected - 1) < 0.03, (c, count, expected)
+        assert count / area > 10.0  # >= ~5 points/m^2 per view required; ~11 at nadir
+
+
+def test_chunking_does_not_change_geometry(flat_scene):
+    cfg = ScannerConfig(pulse_rate_hz=50_000.0, line_rate_hz=90.0)
+    pose_fn = level_flight(300.0, H_AGL, wobble=0.02)
+    a = concat(scan(pose_fn, T0 + 0.123, T0 + 1.5, flat_scene, cfg, np.zeros(3), np.eye(3),
+                    np.random.default_rng(1), chunk_duration_s=0.37))
+    b = concat(scan(pose_fn, T0 + 0.123, T0 + 1.5, flat_scene, cfg, np.zeros(3), np.eye(3),
+                    np.random.default_rng(1), chunk_duration_s=5.0))
+    np.testing.assert_array_equal(a["time"], b["time"])
+    np.testing.assert_array_equal(a["xyz_w_true"], b["xyz_w_true"])
+
+
+def test_max_range_and_arguments(flat_scene):
+    cfg = ScannerConfig(max_range_m=120.0)
+    chunks = list(scan(level_flight(300.0, H_AGL), T0, T0 + 0.3, flat_scene, cfg, np.zeros(3),
+                       np.eye(3), np.random.default_rng(0), chunk_duration_s=0.1))
+    assert len(chunks) == 3 and sum(len(c) for c in chunks) == 0
+    with pytest.raises(ValueError):
+        scan(level_flight(300.0, H_AGL), T0, T0 + 1, flat_scene, cfg, np.zeros(3), 2 * np.eye(3),
+             np.random.default_rng(0))
+    with pytest.raises(pydantic.ValidationError):
+        ScannerConfig(pulse_rate=1.0)
