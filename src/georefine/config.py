@@ -54,8 +54,9 @@ class ImuErrorSpec(StrictModel):
     """IMU error specification in datasheet units (DESIGN §4.3 IMU model).
 
     White noise: angle random walk (ARW) and velocity random walk (VRW). Biases: turn-on
-    (constant per run, 1 sigma) plus an in-run random walk whose strength follows from the
-    bias instability over ``bias_correlation_time_s``. Scale factors: 1 sigma, constant.
+    (constant per run, 1 sigma) plus an in-run random walk of density
+    ``q = B sqrt(2 / tau)`` from the bias instability ``B`` over the correlation time ``tau``
+    (``*_bias_correlation_time_s``). Scale factors: 1 sigma, constant.
     """
 
     gyro_arw_deg_per_sqrt_h: float = Field(ge=0.0)
@@ -66,7 +67,8 @@ class ImuErrorSpec(StrictModel):
     acc_bias_instability_ug: float = Field(ge=0.0)
     acc_turn_on_bias_ug: float = Field(ge=0.0)
     acc_scale_factor_ppm: float = Field(ge=0.0)
-    bias_correlation_time_s: float = Field(3600.0, gt=0.0)
+    gyro_bias_correlation_time_s: float = Field(3600.0, gt=0.0)
+    acc_bias_correlation_time_s: float = Field(3600.0, gt=0.0)
 
 
 class ImuFileConfig(StrictModel):

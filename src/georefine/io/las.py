@@ -401,6 +401,7 @@ class LasWriter:
             self._fh.flush()
             os.fsync(self._fh.fileno())
             self._fh.close()
+            os.chmod(self._tmp, 0o644)  # mkstemp made it private
             os.replace(self._tmp, self.path)
         except BaseException:
             self.abort()

@@ -105,6 +105,9 @@ class ScanChunk:
         Scene face hit.
     xyz_w_true : ndarray (N, 3)
         Noiseless hit point in ``w`` [m].
+    beam_w : ndarray (N, 3)
+        Unit beam direction in ``w``; the measured point in ``w`` is
+        ``xyz_w_true + range_error_m * beam_w``.
     """
 
     time: np.ndarray
@@ -115,13 +118,14 @@ class ScanChunk:
     range_error_m: np.ndarray
     face_id: np.ndarray
     xyz_w_true: np.ndarray
+    beam_w: np.ndarray
 
     def __post_init__(self):
         n = len(self.time)
         for name in ("channel", "scan_angle_rad", "intensity", "range_error_m", "face_id"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"ScanChunk.{name} must have shape ({n},)")
-        for name in ("xyz_s", "xyz_w_true"):
+        for name in ("xyz_s", "xyz_w_true", "beam_w"):
             if getattr(self, name).shape != (n, 3):
                 raise ValueError(f"ScanChunk.{name} must have shape ({n}, 3)")
 
@@ -240,7 +244,7 @@ def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> Sc
     if len(hit) == 0:
         z = np.zeros(0)
         return ScanChunk(z, np.zeros((0, 3)), np.zeros(0, np.uint8), z, np.zeros(0, np.uint16),
-                         z, np.zeros(0, np.int64), np.zeros((0, 3)))
+                         z, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
     r, face, d_w, d_s = range_m[hit], face_id[hit], d_w[hit], d_s[hit]
     d_w = d_w / np.linalg.norm(d_w, axis=1, keepdims=True)  # as used by the ray cast
     xyz_w_true = p_w_s[hit] + r[:, None] * d_w
@@ -251,4 +255,4 @@ def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> Sc
     inten = (cfg.intensity_at_reference * rho * cos_inc * (cfg.intensity_reference_range_m / r) ** 2
              * (1.0 + cfg.intensity_noise_rel * rng.standard_normal(len(hit))))
     inten = np.clip(np.rint(inten), 1, 65535).astype(np.uint16)
-    return ScanChunk(t[hit], xyz_s, channel[hit], alpha[hit], inten, err, face, xyz_w_true)
+    return ScanChunk(t[hit], xyz_s, channel[hit], alpha[hit], inten, err, face, xyz_w_true, d_w)

@@ -1,0 +1,265 @@
+"""IMU error models from published datasheets and the IMU measurement simulator (DESIGN §6).
+
+Measurement model (the one the adjustment inverts, DESIGN §4.3), per sample time ``t_k``::
+
+    gyro_k = (I + S_g) omega_ib_b(t_k) + b_g(t_k) + n_g,k     n_g ~ N(0, (ARW sqrt(rate))^2)
+    acc_k  = (I + S_f) f_ib_b(t_k)     + b_f(t_k) + n_f,k     n_f ~ N(0, (VRW sqrt(rate))^2)
+
+Samples are *instantaneous* values at the sample times (not interval averages). ``S`` is
+diagonal and constant, drawn from the datasheet scale-factor figure (1 sigma).
+
+Bias process
+    ``b(t) = b_on + w(t)``: a turn-on constant ``b_on ~ N(0, turn_on^2)`` plus an in-run
+    random walk ``w(0) = 0``, ``w' = q xi`` (white, unit PSD), generated exactly on the
+    sample grid by a cumulative sum (``w_k+1 = w_k + q sqrt(dt) N(0, 1)``).
+
+    Mapping of the datasheet *bias instability* ``B`` (the flicker floor of the Allan
+    deviation) to ``q``: bias instability is customarily represented by a first-order
+    Gauss-Markov process with standard deviation ``B`` and correlation time ``tau``, whose
+    driving noise has ``q = B sqrt(2 / tau)`` (e.g. Groves 2013, Ch. 4 and 14). Over spans
+    shorter than ``tau`` the Gauss-Markov process *is* this random walk, which is also the
+    model of the estimator (piecewise-linear biases with random-walk pseudo-observations,
+    DESIGN §4.3): ``q`` is exactly what the estimator's ``q`` should be set to.
+    ``tau`` is ``*_bias_correlation_time_s`` (datasheets do not state it; 1 h for
+    FOG/RLG units, 1000 s for MEMS, where the Allan minimum typically lies at 100-1000 s).
+
+Noise densities: ARW [deg/sqrt(h)] / 60 -> deg/sqrt(s) = deg/s/sqrt(Hz); VRW [m/s/sqrt(h)] / 60
+-> m/s^2/sqrt(Hz). White-noise standard deviation per sample = density * sqrt(rate_hz).
+Micro-g use standard gravity ``g0 = 9.80665 m/s^2``.
+
+Presets (:data:`IMU_PRESETS`)
+    ``navigation``  Honeywell HG9900 (RLG), brochure N61-1638-000-000: gyro bias 0.003 deg/h,
+                    ARW 0.002 deg/sqrt(h), gyro scale factor 5 ppm; accelerometer bias
+                    25 ug, scale factor 100 ppm. VRW is not in the brochure: assumed
+                    0.002 m/s/sqrt(h) (typical of RLG navigation IMUs).
+    ``tactical``    Honeywell HG1700 (AG58 class, RLG), brochure N61-1619-000-001: gyro bias
+                    1 deg/h, ARW 0.125 deg/sqrt(h), scale factor 150 ppm; accelerometer bias
+                    1 mg, VRW 0.065 ft/s/sqrt(h) = 0.0198 m/s/sqrt(h), scale factor 300 ppm.
+                    The brochure states one bias figure: it is used for turn-on and in-run.
+    ``mems``        Safran Sensonor STIM300 (high-end MEMS, 10 g accelerometers), datasheet
+                    TS1524 (r9): gyro bias instability 0.5 deg/h, ARW 0.15 deg/sqrt(h),
+                    scale-factor accuracy 500 ppm, bias over static temperature 5 deg/h rms
+                    (used as turn-on); accelerometer bias instability 0.05 mg, VRW
+                    0.06 m/s/sqrt(h), scale factor 300 ppm, bias on/off repeatability 0.75 mg.
+    ``ideal``       all errors zero.
+    (Figures as transcribed in the IS4S NavToolkit ``ImuModel`` documentation, which cites
+    the manufacturers' datasheets.)
+
+Default grade: ``mems`` (:data:`DEFAULT_IMU_GRADE`). Paper 000's G/I solution differs from
+the G/I/L reference by 8 / 4 / 20 mdeg RMS (roll / pitch / yaw) on a helicopter system with
+an integrated ALS-class navigation unit. On a straight corridor leg heading is unobservable
+from GNSS positions, so between the heading-observable manoeuvre/turns it random-walks
+with the ARW: a smoothed (two-sided) solution has an RMS error of ``ARW sqrt(T / 6)`` over
+a leg of duration ``T``; for the simulator's shortened corridors (legs of 200-300 s) the
+STIM300's 0.15 deg/sqrt(h) gives 14-18 mdeg, plus a few mdeg from the in-run gyro random
+walk: the paper's ~20 mdeg. Roll and pitch are limited by the accelerometer biases that
+cannot be separated from tilt in straight flight (tilt error ~ b_f / g): the in-run
+0.05 mg and the residual of the 0.75 mg turn-on bias give 3-8 mdeg, as in the paper. A
+tactical RLG unit (HG1700) gives similar yaw but larger tilt errors (1 mg in-run); a
+navigation-grade unit shows almost no heading drift, which would leave nothing to correct.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+G0 = 9.80665
+"""Standard gravity (m/s^2) for micro-g conversions."""
+_DEG_PER_H = np.pi / 180.0 / 3600.0  # deg/h -> rad/s
+_UG = G0 * 1e-6  # micro-g -> m/s^2
+
+
+class ImuGrade(BaseModel):
+    """IMU error specification in datasheet units (all 1 sigma).
+
+    ``*_bias_instability_*`` with ``*_bias_correlation_time_s`` define the in-run random
+    walk density ``q = B sqrt(2 / tau)`` (module docstring); the properties give SI values.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    name: str = "custom"
+    source: str = Field("", description="datasheet the figures come from")
+    rate_hz: float = Field(200.0, gt=0)
+    gyro_arw_deg_per_sqrt_h: float = Field(0.0, ge=0)
+    gyro_bias_instability_deg_per_h: float = Field(0.0, ge=0)
+    gyro_bias_correlation_time_s: float = Field(3600.0, gt=0)
+    gyro_turn_on_bias_deg_per_h: float = Field(0.0, ge=0)
+    gyro_scale_factor_ppm: float = Field(0.0, ge=0)
+    acc_vrw_m_per_s_per_sqrt_h: float = Field(0.0, ge=0)
+    acc_bias_instability_ug: float = Field(0.0, ge=0)
+    acc_bias_correlation_time_s: float = Field(3600.0, gt=0)
+    acc_turn_on_bias_ug: float = Field(0.0, ge=0)
+    acc_scale_factor_ppm: float = Field(0.0, ge=0)
+
+    @property
+    def gyro_noise_density(self) -> float:
+        """Gyro white-noise density (rad/s/sqrt(Hz) = rad/sqrt(s))."""
+        return np.radians(self.gyro_arw_deg_per_sqrt_h) / 60.0
+
+    @property
+    def acc_noise_density(self) -> float:
+        """Accelerometer white-noise density (m/s^2/sqrt(Hz) = m/s/sqrt(s))."""
+        return self.acc_vrw_m_per_s_per_sqrt_h / 60.0
+
+    @property
+    def gyro_bias_rw_density(self) -> float:
+        """Gyro bias random-walk density ``q`` (rad/s/sqrt(s))."""
+        return self.gyro_bias_instability_deg_per_h * _DEG_PER_H * np.sqrt(
+            2.0 / self.gyro_bias_correlation_time_s)
+
+    @property
+    def acc_bias_rw_density(self) -> float:
+        """Accelerometer bias random-walk density ``q`` (m/s^2/sqrt(s))."""
+        return self.acc_bias_instability_ug * _UG * np.sqrt(2.0 / self.acc_bias_correlation_time_s)
+
+    @property
+    def gyro_turn_on_bias(self) -> float:
+        """Gyro turn-on bias sigma (rad/s)."""
+        return self.gyro_turn_on_bias_deg_per_h * _DEG_PER_H
+
+    @property
+    def acc_turn_on_bias(self) -> float:
+        """Accelerometer turn-on bias sigma (m/s^2)."""
+        return self.acc_turn_on_bias_ug * _UG
+
+
+IMU_PRESETS: dict[str, ImuGrade] = {
+    "navigation": ImuGrade(
+        name="navigation",
+        source="Honeywell HG9900 IMU brochure N61-1638-000-000 (VRW assumed)",
+        gyro_arw_deg_per_sqrt_h=0.002,
+        gyro_bias_instability_deg_per_h=0.003,
+        gyro_turn_on_bias_deg_per_h=0.003,
+        gyro_scale_factor_ppm=5.0,
+        acc_vrw_m_per_s_per_sqrt_h=0.002,
+        acc_bias_instability_ug=25.0,
+        acc_turn_on_bias_ug=25.0,
+        acc_scale_factor_ppm=100.0,
+    ),
+    "tactical": ImuGrade(
+        name="tactical",
+        source="Honeywell HG1700 IMU brochure N61-1619-000-001 (AG58 class)",
+        gyro_arw_deg_per_sqrt_h=0.125,
+        gyro_bias_instability_deg_per_h=1.0,
+        gyro_turn_on_bias_deg_per_h=1.0,
+        gyro_scale_factor_ppm=150.0,
+        acc_vrw_m_per_s_per_sqrt_h=0.065 * 0.3048,
+        acc_bias_instability_ug=1000.0,
+        acc_turn_on_bias_ug=1000.0,
+        acc_scale_factor_ppm=300.0,
+    ),
+    "mems": ImuGrade(
+        name="mems",
+        source="Safran Sensonor STIM300 datasheet TS1524 r9 (10 g accelerometers)",
+        gyro_arw_deg_per_sqrt_h=0.15,
+        gyro_bias_instability_deg_per_h=0.5,
+        gyro_bias_correlation_time_s=1000.0,
+        gyro_turn_on_bias_deg_per_h=5.0,
+        gyro_scale_factor_ppm=500.0,
+        acc_vrw_m_per_s_per_sqrt_h=0.06,
+        acc_bias_instability_ug=50.0,
+        acc_bias_correlation_time_s=1000.0,
+        acc_turn_on_bias_ug=750.0,
+        acc_scale_factor_ppm=300.0,
+    ),
+    "ideal": ImuGrade(name="ideal", source="no errors"),
+}
+"""IMU grades by name; see the module docstring for sources."""
+
+DEFAULT_IMU_GRADE = "mems"
+"""Default grade (STIM300 class high-end MEMS): reproduces paper 000's G/I attitude errors."""
+
+
+def imu_grade(name: str) -> ImuGrade:
+    """Preset by name (``navigation``, ``tactical``, ``mems``, ``ideal``)."""
+    try:
+        return IMU_PRESETS[name]
+    except KeyError:
+        raise ValueError(f"unknown IMU grade {name!r}; expected one of {sorted(IMU_PRESETS)}") from None
+
+
+@dataclass(frozen=True)
+class SimulatedImu:
+    """Simulated IMU samples and the truth of their errors.
+
+    Attributes
+    ----------
+    time : ndarray (N,)
+        Sample times (s, relative to the epoch ``t0_gps``), uniform at ``grade.rate_hz``.
+    gyro : ndarray (N, 3)
+        Measured angular rate ``omega_ib_b`` (rad/s), body FRD, instantaneous.
+    acc : ndarray (N, 3)
+        Measured specific force ``f_ib_b`` (m/s^2), body FRD, instantaneous.
+    bias_gyro, bias_acc : ndarray (N, 3)
+        True biases (rad/s, m/s^2) at the sample times (turn-on + random walk).
+    scale_gyro, scale_acc : ndarray (3,)
+        True scale-factor errors (dimensionless, diagonal of ``S``).
+    t0_gps : float
+        Dataset epoch (GPS seconds).
+    grade : ImuGrade
+    """
+
+    time: np.ndarray
+    gyro: np.ndarray
+    acc: np.ndarray
+    bias_gyro: np.ndarray
+    bias_acc: np.ndarray
+    scale_gyro: np.ndarray
+    scale_acc: np.ndarray
+    t0_gps: float
+    grade: ImuGrade
+
+    def __post_init__(self):
+        n = len(self.time)
+        for name in ("gyro", "acc", "bias_gyro", "bias_acc"):
+            if getattr(self, name).shape != (n, 3):
+                raise ValueError(f"{name} must have shape ({n}, 3)")
+        if n > 1 and not np.all(np.diff(self.time) > 0):
+            raise ValueError("IMU times must increase strictly")
+
+
+def _bias(rng, n, dt, turn_on, q):
+    b = np.broadcast_to(rng.normal(0.0, 1.0, 3) * turn_on, (n, 3)).copy()
+    if q > 0 and n > 1:
+        steps = rng.normal(0.0, q * np.sqrt(dt), (n - 1, 3))
+        b[1:] += np.cumsum(steps, axis=0)
+    return b
+
+
+def simulate_imu(traj, grade: ImuGrade, t_start: float, t_end: float,
+                 rng: np.random.Generator) -> SimulatedImu:
+    """Simulate IMU samples of ``traj`` on ``[t_start, t_end]`` (s rel. epoch).
+
+    Parameters
+    ----------
+    traj : TrueTrajectory
+        Provides ``imu(t) -> (omega_ib_b, f_ib_b)`` and ``t0_gps``.
+    grade : ImuGrade
+        Error specification (e.g. ``imu_grade("mems")``); sample rate ``grade.rate_hz``.
+    t_start, t_end : float
+        Sample times are ``t_start + k / rate_hz <= t_end``.
+    rng : numpy.random.Generator
+        Seeded generator; draws turn-on biases, scale factors, random walks and noise.
+
+    Returns
+    -------
+    SimulatedImu
+    """
+    if not t_end > t_start:
+        raise ValueError(f"need t_start < t_end, got {t_start}, {t_end}")
+    dt = 1.0 / grade.rate_hz
+    n = int(np.floor((t_end - t_start) * grade.rate_hz + 1e-9)) + 1
+    time = t_start + np.arange(n) * dt
+    w_true, f_true = traj.imu(time)
+    scale_g = rng.normal(0.0, grade.gyro_scale_factor_ppm * 1e-6, 3)
+    scale_f = rng.normal(0.0, grade.acc_scale_factor_ppm * 1e-6, 3)
+    b_g = _bias(rng, n, dt, grade.gyro_turn_on_bias, grade.gyro_bias_rw_density)
+    b_f = _bias(rng, n, dt, grade.acc_turn_on_bias, grade.acc_bias_rw_density)
+    sq = np.sqrt(grade.rate_hz)
+    gyro = (1.0 + scale_g) * w_true + b_g + rng.normal(0.0, grade.gyro_noise_density * sq, (n, 3))
+    acc = (1.0 + scale_f) * f_true + b_f + rng.normal(0.0, grade.acc_noise_density * sq, (n, 3))
+    return SimulatedImu(time, gyro, acc, b_g, b_f, scale_g, scale_f, float(traj.t0_gps), grade)

@@ -1,0 +1,313 @@
+"""Named simulation scenarios and the writer of a simulated project folder.
+
+A scenario is a :class:`ScenarioConfig`: every parameter of the scene, the flight, the IMU,
+the GNSS and the scanner, with defaults per scenario name. The user overrides any of them
+with a YAML file (same nesting) and ``key.sub=value`` strings; unknown keys are errors.
+
+:func:`simulate_project` writes what a real helicopter LiDAR system delivers (DESIGN §3),
+plus the truth:
+
+``project.yaml``, ``gnss/rover.pos``, ``imu/imu.csv`` (and ``imu/imu.imr`` on request),
+``scans/strip_<id>.laz`` (scanner frame), ``reference/surfaces.csv`` (surveyed corners with
+survey noise), ``truth/trajectory.sbet`` (true IMU trajectory at IMU rate, seconds of GPS week),
+``truth/strip_<id>.laz`` (every return georeferenced with the true trajectory, output CRS,
+same point order as the scan file, extra dimension ``range_error_m``),
+``truth/reference_surfaces.csv`` (exact corners), ``truth/imu_errors.npz``,
+``truth/gnss_errors.npz`` and ``truth/scenario.yaml`` (every parameter used and the true
+sensor errors).
+
+The whole folder is written under a temporary name next to ``out`` and renamed when complete.
+Independent random streams (``SeedSequence(seed).spawn``) drive the scene, IMU, GNSS, scanner
+and survey, so changing one sensor's parameters leaves the others' errors unchanged.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import time as _time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+from pydantic import Field
+
+from georefine.config import (
+    ChannelConfig,
+    CrsConfig,
+    GnssFileConfig,
+    ImuErrorSpec,
+    ImuFileConfig,
+    ProjectConfig,
+    ReferenceConfig,
+    ReferencePoint,
+    ScannerFileConfig,
+    StrictModel,
+    apply_overrides,
+    boresight_matrix,
+    deep_merge,
+    read_yaml,
+    validate_model,
+    write_yaml,
+)
+from georefine.errors import ConfigError, InputError
+from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.sim.flight import FlightConfig, TrueTrajectory, simulate_flight
+from georefine.sim.gnss import GnssConfig, simulate_gnss
+from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade, simulate_imu
+from georefine.sim.scanner import ScannerConfig, scan
+from georefine.sim.scene import SceneConfig, build_scene
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[str, float, float], None]
+
+
+def _no_progress(name: str, done: float, total: float) -> None:
+    return None
+
+
+class ScenarioConfig(StrictModel):
+    """Every parameter of a simulated project."""
+
+    name: str
+    description: str = ""
+    reference_point: ReferencePoint = Field(
+        default_factory=lambda: ReferencePoint(lat_deg=46.70, lon_deg=11.65, h_m=600.0),
+        description="Origin of the scene (w frame); default in the Eisacktal, South Tyrol.",
+    )
+    output_epsg: int = Field(25832, description="Output CRS of truth and reference files.")
+    scene: SceneConfig = Field(default_factory=SceneConfig)
+    flight: FlightConfig = Field(default_factory=FlightConfig)
+    imu: ImuGrade = Field(default_factory=lambda: IMU_PRESETS[DEFAULT_IMU_GRADE])
+    gnss: GnssConfig = Field(default_factory=GnssConfig)
+    scanner: ScannerConfig = Field(default_factory=ScannerConfig)
+    gnss_lever_arm_m: tuple[float, float, float] = Field(
+        (-0.85, 0.12, -1.45), description="Antenna in the body frame (FRD): behind and above the IMU."
+    )
+    scanner_lever_arm_m: tuple[float, float, float] = Field(
+        (0.18, 0.0, 0.22), description="Scanner origin in the body frame (FRD)."
+    )
+    boresight_deg: tuple[float, float, float] = Field(
+        (0.012, -0.021, 0.034), description="True boresight roll, pitch, yaw (deg); project.yaml states the same."
+    )
+    project_boresight_deg: tuple[float, float, float] | None = Field(
+        None, description="Boresight written to project.yaml if it differs from the truth (calibration error)."
+    )
+    reference_survey_sigma_m: float = Field(0.003, ge=0.0, description="RTK survey noise of the reference corners.")
+    laz: bool = Field(True, description="Compress strips (LAZ) or not (LAS).")
+
+
+def _scenario_defaults(name: str) -> dict[str, Any]:
+    """Default parameters of a named scenario, as a plain dict (before overrides)."""
+    if name == "corridor":
+        return {
+            "name": "corridor",
+            "description": "Helicopter power-line corridor, two passes N->S and S->N at 160 m AGL and 18 m/s "
+            "(paper 000 at reduced length and point rate).",
+        }
+    if name == "corridor-tiny":
+        return {
+            "name": "corridor-tiny",
+            "description": "Small corridor for tests: 600 m, low pulse rate, short manoeuvre.",
+            "scene": {"length_m": 600.0, "width_m": 500.0},
+            "flight": {"static_duration_s": 5.0, "manoeuvre": "s_turns"},
+            "scanner": {"pulse_rate_hz": 20000.0, "line_rate_hz": 60.0},
+        }
+    raise ConfigError("unknown scenario", field="SCENARIO", expected="one of " + ", ".join(SCENARIOS), found=repr(name))
+
+
+SCENARIOS = ("corridor", "corridor-tiny")
+
+
+def resolve_scenario(
+    name: str,
+    *,
+    seed_overrides: list[str] | None = None,
+    config_file: str | Path | None = None,
+    imu_grade: str | None = None,
+    gnss_grade: str | None = None,
+) -> ScenarioConfig:
+    """Scenario defaults <- YAML file <- grade options <- ``key=value`` overrides, validated."""
+    data = _scenario_defaults(name)
+    if config_file is not None:
+        data = deep_merge(data, read_yaml(config_file))
+    if imu_grade is not None:
+        if imu_grade not in IMU_PRESETS:
+            raise ConfigError("unknown IMU grade", field="--imu-grade", expected="one of " + ", ".join(IMU_PRESETS), found=repr(imu_grade))
+        data["imu"] = IMU_PRESETS[imu_grade].model_dump()
+    if gnss_grade is not None:
+        data = deep_merge(data, {"gnss": {"grade": gnss_grade}})
+    if seed_overrides:
+        data = apply_overrides(data, seed_overrides)
+    if isinstance(data.get("imu"), str):  # `--set imu=tactical` selects a preset by name
+        preset = data["imu"]
+        if preset not in IMU_PRESETS:
+            raise ConfigError("unknown IMU grade", field="imu", expected="one of " + ", ".join(IMU_PRESETS), found=repr(preset))
+        data["imu"] = IMU_PRESETS[preset].model_dump()
+    return validate_model(ScenarioConfig, data, config_file)  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class SimulationResult:
+    """What :func:`simulate_project` wrote."""
+
+    out: Path
+    scenario: ScenarioConfig
+    seed: int
+    duration_s: float
+    points_per_strip: dict[int, int]
+    n_imu: int
+    n_gnss: int
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def summary(self) -> str:
+        pts = ", ".join(f"strip {k}: {v:,}" for k, v in self.points_per_strip.items())
+        t = ", ".join(f"{k} {v:.1f} s" for k, v in self.timings_s.items())
+        return (
+            f"Simulated '{self.scenario.name}' (seed {self.seed}) into {self.out}\n"
+            f"  flight {self.duration_s:.0f} s, IMU {self.n_imu:,} samples, GNSS {self.n_gnss:,} epochs\n"
+            f"  points: {pts}\n  timings: {t}"
+        )
+
+
+def _prepare_output(out: Path) -> Path:
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError("output folder exists and is not empty", path=out, expected="a new or empty folder")
+    parent = out.resolve().parent
+    if not parent.is_dir():
+        raise InputError("parent folder of the output does not exist", path=out)
+    tmp = parent / f".{out.name}.part-{np.random.default_rng().integers(1 << 32):08x}"
+    tmp.mkdir()
+    for sub in ("gnss", "imu", "scans", "reference", "truth"):
+        (tmp / sub).mkdir()
+    return tmp
+
+
+def simulate_project(
+    scenario: str,
+    out: str | Path,
+    *,
+    seed: int = 42,
+    overrides: list[str] | None = None,
+    config_file: str | Path | None = None,
+    imu_grade: str | None = None,
+    gnss_grade: str | None = None,
+    write_imr: bool = False,
+    progress: Progress = _no_progress,
+) -> SimulationResult:
+    """Simulate scenario ``scenario`` and write a project folder at ``out`` (see module docstring)."""
+    cfg = resolve_scenario(
+        scenario, seed_overrides=overrides, config_file=config_file, imu_grade=imu_grade, gnss_grade=gnss_grade
+    )
+    out = Path(out)
+    tmp = _prepare_output(out)
+    try:
+        result = _simulate_into(cfg, tmp, seed, write_imr, progress)
+        tmp.rename(out) if not out.exists() else _replace_empty_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return SimulationResult(out=out, **{k: v for k, v in result.items()})
+
+
+def _replace_empty_dir(tmp: Path, out: Path) -> None:
+    out.rmdir()
+    tmp.rename(out)
+
+
+def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, progress: Progress) -> dict:
+    from georefine.sim import writers
+
+    timings: dict[str, float] = {}
+    rng_scene, rng_imu, rng_gnss, rng_scan, rng_survey = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)
+    )
+    rp = cfg.reference_point
+    frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
+    crs = OutputCRS(cfg.output_epsg)
+
+    t = _time.perf_counter()
+    progress("scene", 0, 1)
+    scene = build_scene(cfg.scene, rng_scene)
+    progress("scene", 1, 1)
+    timings["scene"] = _time.perf_counter() - t
+
+    t = _time.perf_counter()
+    traj: TrueTrajectory = simulate_flight(cfg.flight, frame, cfg.scene.length_m, scene.terrain_height)
+    imu = simulate_imu(traj, cfg.imu, 0.0, traj.duration_s, rng_imu)
+    p_b_a = np.asarray(cfg.gnss_lever_arm_m)
+    gnss = simulate_gnss(traj, p_b_a, cfg.gnss, 0.0, traj.duration_s, rng_gnss)
+    timings["flight and sensors"] = _time.perf_counter() - t
+
+    t = _time.perf_counter()
+    writers.write_gnss(root / "gnss" / "rover.pos", gnss)
+    writers.write_imu(root / "imu" / "imu.csv", imu, imr_path=root / "imu" / "imu.imr" if write_imr else None)
+    writers.write_truth_trajectory(root / "truth" / "trajectory.sbet", traj, imu.time)
+    writers.write_reference(root, scene.reference_surfaces, frame, crs, cfg.reference_survey_sigma_m, rng_survey)
+    np.savez_compressed(
+        root / "truth" / "imu_errors.npz", time_gps=imu.t0_gps + imu.time, bias_gyro=imu.bias_gyro,
+        bias_acc=imu.bias_acc, scale_gyro=imu.scale_gyro, scale_acc=imu.scale_acc,
+    )
+    np.savez_compressed(root / "truth" / "gnss_errors.npz", time_gps=gnss.t0_gps + gnss.time, error_ned=gnss.error_ned)
+    timings["write navigation files"] = _time.perf_counter() - t
+
+    t = _time.perf_counter()
+    p_b_s = np.asarray(cfg.scanner_lever_arm_m)
+    R_b_s = boresight_matrix(cfg.boresight_deg)
+    ext = "laz" if cfg.laz else "las"
+    points: dict[int, int] = {}
+    total = sum(t1 - t0 for _, t0, t1 in traj.passes)
+    done = 0.0
+    for strip_id, t0, t1 in traj.passes:
+        chunks = scan(traj.pose, t0, t1, scene, cfg.scanner, p_b_s, R_b_s, rng_scan)
+
+        def tick(t_chunk_end: float, _t0=t0, _done=done) -> None:
+            progress("scanning", _done + (t_chunk_end - _t0), total)
+
+        points[strip_id] = writers.write_strip(
+            root / "scans" / f"strip_{strip_id}.{ext}",
+            root / "truth" / f"strip_{strip_id}.{ext}",
+            chunks, strip_id, traj.t0_gps, frame, crs, tick,
+        )
+        done += t1 - t0
+    timings["scanning"] = _time.perf_counter() - t
+
+    errors = ImuErrorSpec(**{k: v for k, v in cfg.imu.model_dump().items() if k in ImuErrorSpec.model_fields})
+    project = ProjectConfig(
+        name=cfg.name,
+        crs=CrsConfig(output_epsg=cfg.output_epsg),
+        gnss=GnssFileConfig(files=["gnss/rover.pos"], lever_arm_m=cfg.gnss_lever_arm_m),
+        imu=ImuFileConfig(file="imu/imu.csv", format="csv", rate_hz=cfg.imu.rate_hz, errors=errors),
+        scanner=ScannerFileConfig(
+            files=[f"scans/strip_{s}.{ext}" for s in points],
+            lever_arm_m=cfg.scanner_lever_arm_m,
+            boresight_deg=cfg.project_boresight_deg or cfg.boresight_deg,
+            range_sigma_m=cfg.scanner.range_sigma_m,
+            channels=[
+                ChannelConfig(id=i, name=n, tilt_deg=tilt)
+                for i, (n, tilt) in enumerate(zip(("nadir", "forward", "backward"), cfg.scanner.facet_tilt_deg))
+            ],
+        ),
+        reference=ReferenceConfig(surfaces="reference/surfaces.csv"),
+    )
+    write_yaml(root / "project.yaml", project)
+    truth = {
+        "seed": seed,
+        "t0_gps": traj.t0_gps,
+        "duration_s": traj.duration_s,
+        "passes": [{"strip_id": s, "t_start_s": a, "t_end_s": b} for s, a, b in traj.passes],
+        "phases": [{"name": n, "t_start_s": a, "t_end_s": b} for n, a, b in traj.phases],
+        "imu_scale_gyro_ppm": (imu.scale_gyro * 1e6).tolist(),
+        "imu_scale_acc_ppm": (imu.scale_acc * 1e6).tolist(),
+        "imu_bias_gyro_start_deg_per_h": np.degrees(imu.bias_gyro[0] * 3600).tolist(),
+        "imu_bias_acc_start_ug": (imu.bias_acc[0] / 9.80665e-6).tolist(),
+        "points_per_strip": points,
+        "scenario": cfg.model_dump(mode="json"),
+    }
+    write_yaml(root / "truth" / "scenario.yaml", truth)
+    return dict(
+        scenario=cfg, seed=seed, duration_s=traj.duration_s, points_per_strip=points,
+        n_imu=imu.time.size, n_gnss=gnss.time.size, timings_s=timings,
+    )

@@ -1,0 +1,131 @@
+"""Write simulated sensor data through the same file formats as real data (DESIGN §3).
+
+Each function converts one simulator product to its :mod:`georefine.io` container and writes
+it atomically. The formats are those of real systems, so the whole pipeline runs on the
+simulation unchanged.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Iterable
+
+import numpy as np
+
+from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.io._common import week_from_gps_seconds
+from georefine.io.gnss import GnssSolution, write_pos
+from georefine.io.imu import ImuData, write_imr, write_imu_csv
+from georefine.io.las import LasWriter, PointCloud
+from georefine.io.reference import ReferenceSurfaces, write_reference_surfaces
+from georefine.io.trajectory import SbetData, write_sbet
+from georefine.sim.flight import TrueTrajectory
+from georefine.sim.gnss import SimulatedGnss
+from georefine.sim.imu import SimulatedImu
+from georefine.sim.scanner import ScanChunk
+
+LAS_SCALE_M = 1e-4
+"""Coordinate resolution of scan and truth strips (0.1 mm, far below the ranging noise)."""
+
+
+def write_gnss(path: Path, gnss: SimulatedGnss) -> None:
+    """RTKLIB ``.pos`` (GPST calendar time, lat/lon/ellipsoidal height, diagonal NEU sd)."""
+    n = gnss.time.size
+    sd = gnss.sd_neu
+    cov_enu = np.zeros((n, 3, 3))
+    cov_enu[:, 0, 0] = sd[:, 1] ** 2
+    cov_enu[:, 1, 1] = sd[:, 0] ** 2
+    cov_enu[:, 2, 2] = sd[:, 2] ** 2
+    solution = GnssSolution.from_geodetic(
+        gnss.t0_gps + gnss.time, gnss.lat, gnss.lon, gnss.h, cov_enu, gnss.quality, gnss.num_sats,
+        age_s=np.zeros(n), ratio=np.full(n, 999.9),
+    )
+    write_pos(path, solution, time_format="calendar", position_format="llh", time_decimals=3)
+
+
+def write_imu(path: Path, imu: SimulatedImu, imr_path: Path | None = None) -> None:
+    """IMU CSV (instantaneous rates, body FRD) and optionally a NovAtel ``.imr`` file."""
+    data = ImuData(
+        time_gps=imu.t0_gps + imu.time, gyro=imu.gyro, acc=imu.acc, rate_hz=imu.grade.rate_hz, kind="rates"
+    )
+    write_imu_csv(path, data)
+    if imr_path is not None:
+        week, _ = week_from_gps_seconds(imu.t0_gps)
+        # IMR stores increments; the rates are sampled instantaneously, so the increment of
+        # each interval is approximated by rate * dt (documented in io.imu).
+        write_imr(imr_path, data, gps_week=int(week), delta=True)
+
+
+def write_truth_trajectory(path: Path, traj: TrueTrajectory, time: np.ndarray) -> None:
+    """The true IMU trajectory as an SBET (seconds of GPS week, wander angle 0) at ``time``."""
+    state = traj.state(time)
+    frame = traj.frame
+    lat, lon, h = frame.to_geodetic(state.p_w_b)
+    R_w_n = frame.R_w_n(lat, lon)
+    R_n_w = np.swapaxes(R_w_n, 1, 2)
+    v_n = np.einsum("nij,nj->ni", R_n_w, state.v_w_b)
+    rph = frame.rph_from_R_w_b(state.p_w_b, state.R_w_b)
+    omega_ib_b, f_ib_b = traj.imu(time)
+    sbet = SbetData(
+        time_gps=traj.t0_gps + time, lat_rad=lat, lon_rad=lon, h_m=h, velocity_wander=v_n,
+        roll_rad=rph[:, 0], pitch_rad=rph[:, 1], heading_rad=rph[:, 2], wander_rad=np.zeros(time.size),
+        accel_b=f_ib_b, angular_rate_b=omega_ib_b,
+    )
+    write_sbet(path, sbet, time_scale="week")
+
+
+def write_reference(
+    root: Path, surfaces, frame: LocalFrame, crs: OutputCRS, survey_sigma_m: float, rng: np.random.Generator
+) -> None:
+    """Reference surfaces: surveyed corners (with survey noise) and the exact corners (truth)."""
+    sid = np.repeat([s.surface_id for s in surfaces], 4)
+    pid = np.array([f"{s.surface_id}-{k + 1}" for s in surfaces for k in range(4)])
+    corners_w = np.concatenate([s.corners_w for s in surfaces])
+    exact = crs.from_w(frame, corners_w)
+    surveyed = exact + rng.normal(0.0, survey_sigma_m, exact.shape)
+    write_reference_surfaces(root / "reference" / "surfaces.csv", ReferenceSurfaces(sid, pid, np.round(surveyed, 4)))
+    write_reference_surfaces(root / "truth" / "reference_surfaces.csv", ReferenceSurfaces(sid, pid, exact))
+
+
+def write_strip(
+    scan_path: Path,
+    truth_path: Path,
+    chunks: Iterable[ScanChunk],
+    strip_id: int,
+    t0_gps: float,
+    frame: LocalFrame,
+    crs: OutputCRS,
+    tick: Callable[[float], None] | None = None,
+) -> int:
+    """Write one strip: scanner-frame points and their true georeferenced positions.
+
+    The truth file holds the *measured* point (with its range noise) georeferenced with the
+    true trajectory, in the output CRS, in the same order; ``range_error_m`` gives the noise,
+    so the noiseless surface point is ``truth - range_error_m * beam direction``.
+    Returns the number of points written.
+    """
+    n = 0
+    with LasWriter(scan_path, scale=LAS_SCALE_M, offset=(0.0, 0.0, 0.0)) as scans, LasWriter(
+        truth_path, scale=LAS_SCALE_M, crs=crs.crs, extra_dims={"range_error_m": np.float32}
+    ) as truth:
+        for chunk in chunks:
+            m = chunk.time.size
+            if m == 0:
+                continue
+            ones = np.ones(m, dtype=np.uint8)
+            sid = np.full(m, strip_id, dtype=np.uint16)
+            t_gps = t0_gps + chunk.time
+            scans.write(PointCloud(t_gps, chunk.xyz_s, chunk.intensity, chunk.channel, sid, ones, ones))
+            # Measured point georeferenced with the true pose: the true hit moved by the
+            # range noise along the beam (exactly what the scanner model measured).
+            measured_w = chunk.xyz_w_true + chunk.range_error_m[:, None] * chunk.beam_w
+            xyz = crs.from_w(frame, measured_w)
+            truth.write(
+                PointCloud(t_gps, xyz, chunk.intensity, chunk.channel, sid, ones, ones,
+                           extra={"range_error_m": chunk.range_error_m})
+            )
+            n += m
+            if tick is not None:
+                tick(float(chunk.time[-1]))
+    return n
+

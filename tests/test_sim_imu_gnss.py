@@ -1,0 +1,141 @@
+"""IMU and GNSS simulators: error statistics match their specification; truth is exact."""
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from georefine.geometry import earth
+from georefine.geometry.frames import LocalFrame
+from georefine.sim.flight import FlightConfig, simulate_flight
+from georefine.sim.gnss import GnssConfig, _gauss_markov, gnss_epochs, simulate_gnss
+from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade, imu_grade, simulate_imu
+
+P_B_A = np.array([0.3, -0.2, -1.1])
+
+
+@pytest.fixture(scope="module")
+def flight():
+    frame = LocalFrame.from_degrees(46.7, 11.65, 600.0)
+    return simulate_flight(FlightConfig(), frame, 600.0, lambda x, y: 500.0 + 0.01 * np.asarray(y))
+
+
+# ---------------------------------------------------------------------------- IMU
+def test_presets():
+    assert set(IMU_PRESETS) == {"navigation", "tactical", "mems", "ideal"}
+    assert DEFAULT_IMU_GRADE in IMU_PRESETS
+    for name, g in IMU_PRESETS.items():
+        assert g.name == name and g.source and g.rate_hz == 200.0
+    ideal = imu_grade("ideal")
+    assert ideal.gyro_noise_density == 0 and ideal.acc_bias_rw_density == 0 and ideal.acc_turn_on_bias == 0
+    # ordering of the grades by ARW and bias
+    nav, tac, mems = (imu_grade(n) for n in ("navigation", "tactical", "mems"))
+    assert nav.gyro_noise_density < tac.gyro_noise_density <= mems.gyro_noise_density
+    assert nav.gyro_bias_instability_deg_per_h < mems.gyro_bias_instability_deg_per_h
+    # unit conversions: 0.15 deg/sqrt(h) = 0.0025 deg/sqrt(s); 50 ug = 4.9e-4 m/s^2
+    assert mems.gyro_noise_density == pytest.approx(np.radians(0.0025))
+    assert mems.acc_noise_density == pytest.approx(0.001)
+    assert mems.acc_bias_rw_density == pytest.approx(50e-6 * 9.80665 * np.sqrt(2 / 1000))
+    with pytest.raises(ValueError):
+        imu_grade("consumer")
+    with pytest.raises(ValidationError):
+        ImuGrade(gyro_arw=0.1)
+
+
+def test_ideal_imu_is_the_truth(flight):
+    imu = simulate_imu(flight, imu_grade("ideal"), 5.0, 25.0, np.random.default_rng(0))
+    np.testing.assert_allclose(np.diff(imu.time), 0.005, atol=1e-12)
+    assert imu.time[0] == 5.0 and imu.time[-1] == pytest.approx(25.0) and len(imu.time) == 4001
+    w, f = flight.imu(imu.time)
+    np.testing.assert_array_equal(imu.gyro, w)
+    np.testing.assert_array_equal(imu.acc, f)
+    assert imu.t0_gps == flight.t0_gps
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_imu_error_statistics(flight, seed):
+    grade = imu_grade("mems")
+    imu = simulate_imu(flight, grade, 0.0, flight.duration_s, np.random.default_rng(seed))
+    w, f = flight.imu(imu.time)
+    n_g = imu.gyro - (1.0 + imu.scale_gyro) * w - imu.bias_gyro
+    n_f = imu.acc - (1.0 + imu.scale_acc) * f - imu.bias_acc
+    for noise, density in ((n_g, grade.gyro_noise_density), (n_f, grade.acc_noise_density)):
+        sigma = density * np.sqrt(grade.rate_hz)
+        np.testing.assert_allclose(noise.std(axis=0), sigma, rtol=0.03)
+        assert np.abs(noise.mean(axis=0)).max() < 4 * sigma / np.sqrt(len(noise))
+        # Allan-type check of white noise: averages over m samples scale as 1/sqrt(m)
+        m = 200
+        avg = noise[: len(noise) // m * m].reshape(-1, m, 3).mean(axis=1)
+        np.testing.assert_allclose(avg.std(axis=0), sigma / np.sqrt(m), rtol=0.2)
+    dt = 1.0 / grade.rate_hz
+    for bias, q, on in ((imu.bias_gyro, grade.gyro_bias_rw_density, grade.gyro_turn_on_bias),
+                        (imu.bias_acc, grade.acc_bias_rw_density, grade.acc_turn_on_bias)):
+        np.testing.assert_allclose(np.diff(bias, axis=0).std(axis=0), q * np.sqrt(dt), rtol=0.03)
+        assert np.abs(bias[0]).max() < 5 * on
+    assert np.abs(imu.scale_gyro).max() < 5e-6 * grade.gyro_scale_factor_ppm
+    assert np.abs(imu.scale_acc).max() < 5e-6 * grade.acc_scale_factor_ppm
+
+
+def test_turn_on_bias_and_scale_factor_spread(flight):
+    grade = ImuGrade(gyro_turn_on_bias_deg_per_h=10.0, acc_scale_factor_ppm=300.0)
+    draws = [simulate_imu(flight, grade, 0.0, 0.1, np.random.default_rng(s)) for s in range(300)]
+    b0 = np.array([d.bias_gyro[0] for d in draws])
+    s_f = np.array([d.scale_acc for d in draws])
+    np.testing.assert_allclose(b0.std(), grade.gyro_turn_on_bias, rtol=0.1)
+    np.testing.assert_allclose(s_f.std(), 300e-6, rtol=0.1)
+    d = draws[0]
+    assert np.all(d.bias_gyro == d.bias_gyro[0])  # no random walk configured
+    w, f = flight.imu(d.time)
+    np.testing.assert_allclose(d.acc, (1.0 + d.scale_acc) * f, rtol=0, atol=1e-14)
+
+
+# ---------------------------------------------------------------------------- GNSS
+def test_ideal_gnss_is_the_true_antenna(flight):
+    g = simulate_gnss(flight, P_B_A, GnssConfig(grade="ideal"), 0.0, flight.duration_s,
+                      np.random.default_rng(0))
+    p, R = flight.pose(g.time)
+    p_e = flight.frame.to_ecef(p + np.einsum("nij,j->ni", R, P_B_A))
+    np.testing.assert_allclose(earth.geodetic_to_ecef(g.lat, g.lon, g.h), p_e, rtol=0, atol=1e-6)
+    assert np.all(g.error_ned == 0.0) and np.all(g.quality == 1)
+
+
+def test_gnss_epochs_rate_and_outages(flight):
+    cfg = GnssConfig(outages=[(100.0, 130.0)], rate_hz=2.0)
+    g = simulate_gnss(flight, P_B_A, cfg, 3.3, 300.0, np.random.default_rng(1))
+    t_gps = g.time + g.t0_gps
+    np.testing.assert_allclose(t_gps * 2.0, np.round(t_gps * 2.0), atol=1e-6)  # whole epochs
+    assert g.time[0] == pytest.approx(3.5) and g.time[-1] == pytest.approx(300.0)
+    assert not np.any((g.time >= 100.0) & (g.time <= 130.0))
+    assert len(g.time) == len(np.arange(3.5, 300.01, 0.5)) - 61
+    # epochs for an epoch t0 that is not a whole multiple of the period
+    t = gnss_epochs(1000.05, 5.0, 0.0, 1.0)
+    np.testing.assert_allclose((t + 1000.05) * 5.0, np.round((t + 1000.05) * 5.0), atol=1e-9)
+    assert len(t) == 5
+    with pytest.raises(ValidationError):
+        GnssConfig(outages=[(10.0, 5.0)])
+
+
+def test_gnss_errors_and_reported_sd(flight):
+    cfg = GnssConfig(gm_sigma_horizontal_m=0.0, gm_sigma_up_m=0.0, rate_hz=10.0)
+    g = simulate_gnss(flight, P_B_A, cfg, 0.0, flight.duration_s, np.random.default_rng(2))
+    np.testing.assert_allclose(g.error_ned.std(axis=0), [0.01, 0.01, 0.02], rtol=0.05)
+    np.testing.assert_allclose(g.sd_neu, np.broadcast_to([0.01, 0.01, 0.02], g.sd_neu.shape))
+    # the error is measured - true, in NED at the true antenna
+    p, R = flight.pose(g.time)
+    p_e = flight.frame.to_ecef(p + np.einsum("nij,j->ni", R, P_B_A))
+    lat, lon, _ = earth.ecef_to_geodetic(p_e)
+    d_e = earth.geodetic_to_ecef(g.lat, g.lon, g.h) - p_e
+    np.testing.assert_allclose(np.einsum("nji,nj->ni", earth.R_e_n(lat, lon), d_e), g.error_ned, atol=1e-7)
+    default = GnssConfig()
+    np.testing.assert_allclose(default.sigma_total_neu, np.hypot([0.01, 0.01, 0.02], [0.015, 0.015, 0.03]))
+
+
+def test_gauss_markov_statistics():
+    dt, tau, sigma = 0.2, 2.0, np.array([0.015, 0.015, 0.03])
+    x = _gauss_markov(np.random.default_rng(3), 200_000, dt, sigma, tau)
+    np.testing.assert_allclose(x.std(axis=0), sigma, rtol=0.03)
+    for lag in (1, int(tau / dt)):
+        rho = np.array([np.corrcoef(x[:-lag, i], x[lag:, i])[0, 1] for i in range(3)])
+        np.testing.assert_allclose(rho, np.exp(-lag * dt / tau), atol=0.03)
+    # stationary from the first sample: the spread across realisations at k = 0 is sigma
+    x0 = np.array([_gauss_markov(np.random.default_rng(s), 2, dt, sigma, 300.0)[0] for s in range(2000)])
+    np.testing.assert_allclose(x0.std(axis=0), sigma, rtol=0.08)
