@@ -27,7 +27,7 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
 )
 console = Console(stderr=True)
-stdout = Console()
+stdout = Console(soft_wrap=True)
 
 
 def _version_callback(value: bool) -> None:
@@ -111,6 +111,19 @@ def simulate(
                 progress=report,
             )
     stdout.print(result.summary())
+
+
+@app.command()
+def check(
+    project: Path = typer.Argument(..., help="Project folder with project.yaml."),
+) -> None:
+    """Validate a project: project.yaml and every sensor file it names, and their time spans."""
+    with _user_errors():
+        from georefine.io.project import inspect_project
+
+        with _progress() as report:
+            summary = inspect_project(project, progress=report)
+    stdout.print(summary.summary())
 
 
 @app.command()

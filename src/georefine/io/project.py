@@ -1,0 +1,190 @@
+"""Open a project folder and validate every input it names (``georefine check``).
+
+Reads ``project.yaml`` and each sensor file with the strict readers of :mod:`georefine.io`,
+then checks what only the files together can tell: GNSS and IMU time spans overlap, the scans
+fall inside the navigation data, every scan point has a configured ``scanner_channel``.
+Scans are streamed in chunks, so files larger than memory are fine. Nothing is written.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from georefine.config import ProjectConfig, load_project
+from georefine.errors import InputError
+from georefine.io.gnss import GnssSolution, read_pos
+from georefine.io.imu import ImuData, check_rate_gaps, read_imr, read_imu_csv
+from georefine.io.las import iter_las_chunks, read_las_info
+from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces
+
+
+@dataclass(frozen=True)
+class StripSummary:
+    """One scan strip: file, point count, time span (GPS s), points per channel, points outside the IMU span."""
+
+    path: Path
+    point_count: int
+    time_span_gps: tuple[float, float]
+    points_per_channel: dict[int, int]
+    strip_ids: tuple[int, ...]
+    outside_navigation: int
+
+
+@dataclass(frozen=True)
+class ProjectSummary:
+    """What :func:`inspect_project` found."""
+
+    root: Path
+    config: ProjectConfig
+    gnss_epochs: int
+    gnss_usable_epochs: int
+    gnss_span_gps: tuple[float, float]
+    imu_samples: int
+    imu_rate_hz: float
+    imu_span_gps: tuple[float, float]
+    imu_gaps: np.ndarray
+    strips: tuple[StripSummary, ...]
+    reference_surfaces: int = 0
+    warnings: tuple[str, ...] = field(default_factory=tuple)
+
+    def summary(self) -> str:
+        g0, g1 = self.gnss_span_gps
+        i0, i1 = self.imu_span_gps
+        lines = [
+            f"Project {self.config.name!r} at {self.root}",
+            f"  GNSS: {self.gnss_epochs:,} epochs ({self.gnss_usable_epochs:,} usable), {g1 - g0:.1f} s",
+            f"  IMU:  {self.imu_samples:,} samples at {self.imu_rate_hz:g} Hz, {i1 - i0:.1f} s, {len(self.imu_gaps)} gaps",
+        ]
+        for s in self.strips:
+            per = ", ".join(f"ch{k}: {v:,}" for k, v in sorted(s.points_per_channel.items()))
+            lines.append(
+                f"  {s.path.name}: {s.point_count:,} points over {s.time_span_gps[1] - s.time_span_gps[0]:.1f} s ({per})"
+            )
+        if self.reference_surfaces:
+            lines.append(f"  reference surfaces: {self.reference_surfaces}")
+        lines += [f"  warning: {w}" for w in self.warnings]
+        return "\n".join(lines)
+
+
+def read_project_gnss(root: Path, cfg: ProjectConfig) -> GnssSolution:
+    """Read and concatenate the project's ``.pos`` files (time-ordered, no duplicates)."""
+    parts = [read_pos(root / f) for f in cfg.gnss.files]
+    if len(parts) == 1:
+        return parts[0]
+    order = np.argsort(np.concatenate([p.time_gps for p in parts]), kind="stable")
+    cat = {
+        name: np.concatenate([getattr(p, name) for p in parts])[order]
+        for name in ("time_gps", "position_ecef", "covariance_ecef", "quality", "num_sats", "age_s", "ratio")
+    }
+    if np.any(np.diff(cat["time_gps"]) <= 0):
+        raise InputError(
+            "GNSS files overlap in time", path=root / cfg.gnss.files[1], field="time", expected="disjoint files"
+        )
+    return GnssSolution(**cat)
+
+
+def read_project_imu(root: Path, cfg: ProjectConfig) -> ImuData:
+    """Read the project's IMU file in the configured format."""
+    path = root / cfg.imu.file
+    if cfg.imu.format == "imr":
+        return read_imr(path, gps_week=cfg.imu.gps_week)
+    return read_imu_csv(path, rate_hz=cfg.imu.rate_hz)
+
+
+def inspect_project(
+    project_dir: str | Path,
+    *,
+    chunk_size: int = 2_000_000,
+    progress: Callable[[str, float, float], None] | None = None,
+) -> ProjectSummary:
+    """Validate a project folder: configuration, every sensor file, and their consistency.
+
+    Raises
+    ------
+    InputError
+        On the first problem, naming the file, line or record, field, expected and found.
+    """
+    root = Path(project_dir)
+    if not root.is_dir():
+        raise InputError("project folder not found", path=root)
+    cfg = load_project(root)
+    warnings: list[str] = []
+
+    gnss = read_project_gnss(root, cfg)
+    usable = gnss.quality <= cfg.gnss.min_quality
+    if not np.any(usable):
+        raise InputError(
+            "no epoch of sufficient quality",
+            path=root / cfg.gnss.files[0],
+            field="Q",
+            expected=f"Q <= {cfg.gnss.min_quality} (gnss.min_quality)",
+            found=f"best Q = {int(gnss.quality.min())}",
+        )
+    imu = read_project_imu(root, cfg)
+    gaps = check_rate_gaps(imu)
+    if len(gaps):
+        warnings.append(f"IMU has {len(gaps)} sampling gaps, the longest {float(np.max(gaps[:, 1] - gaps[:, 0])):.3f} s")
+
+    g_span = (float(gnss.time_gps[usable][0]), float(gnss.time_gps[usable][-1]))
+    i_span = (float(imu.time_gps[0]), float(imu.time_gps[-1]))
+    if g_span[1] <= i_span[0] or i_span[1] <= g_span[0]:
+        raise InputError(
+            "GNSS and IMU time spans do not overlap",
+            path=root / cfg.imu.file,
+            field="time",
+            expected=f"overlap with GNSS {g_span[0]:.3f} .. {g_span[1]:.3f} GPS s",
+            found=f"{i_span[0]:.3f} .. {i_span[1]:.3f} GPS s",
+        )
+
+    channels = {c.id for c in cfg.scanner.channels}
+    nav = (max(g_span[0], i_span[0]), min(g_span[1], i_span[1]))
+    strips = []
+    for rel in cfg.scanner.files:
+        path = root / rel
+        info = read_las_info(path)
+        per: dict[int, int] = {}
+        ids: set[int] = set()
+        t_min, t_max, outside, done = np.inf, -np.inf, 0, 0
+        for chunk in iter_las_chunks(path, chunk_size):
+            ch, cnt = np.unique(chunk.scanner_channel, return_counts=True)
+            unknown = ch[~np.isin(ch, list(channels))]
+            if unknown.size:
+                first = done + int(np.flatnonzero(np.isin(chunk.scanner_channel, unknown))[0]) + 1
+                raise InputError(
+                    "point with a scanner_channel not configured in project.yaml",
+                    path=path, line=first, record_kind="point", field="scanner_channel",
+                    expected="one of " + ", ".join(map(str, sorted(channels))), found=str(int(unknown[0])),
+                )
+            for c, k in zip(ch.tolist(), cnt.tolist()):
+                per[c] = per.get(c, 0) + k
+            ids.update(np.unique(chunk.point_source_id).tolist())
+            if len(chunk):
+                t_min = min(t_min, float(chunk.time_gps.min()))
+                t_max = max(t_max, float(chunk.time_gps.max()))
+                outside += int(np.count_nonzero((chunk.time_gps < nav[0]) | (chunk.time_gps > nav[1])))
+            done += len(chunk)
+            if progress is not None:
+                progress(f"check {path.name}", done, info.point_count)
+        if done == 0:
+            raise InputError("strip has no points", path=path)
+        if outside:
+            warnings.append(f"{path.name}: {outside:,} points outside the GNSS/IMU time span (they will be left out)")
+        missing = channels - set(per)
+        if missing:
+            warnings.append(f"{path.name}: no points of channel(s) {sorted(missing)}")
+        strips.append(StripSummary(path, done, (t_min, t_max), per, tuple(sorted(ids)), outside))
+
+    n_ref = 0
+    if cfg.reference.surfaces:
+        surfaces: ReferenceSurfaces = read_reference_surfaces(root / cfg.reference.surfaces)
+        n_ref = len(surfaces.surface_ids())
+
+    return ProjectSummary(
+        root=root, config=cfg, gnss_epochs=int(gnss.time_gps.size), gnss_usable_epochs=int(usable.sum()),
+        gnss_span_gps=g_span, imu_samples=int(imu.time_gps.size), imu_rate_hz=float(imu.rate_hz),
+        imu_span_gps=i_span, imu_gaps=gaps, strips=tuple(strips), reference_surfaces=n_ref, warnings=tuple(warnings),
+    )
