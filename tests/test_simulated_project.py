@@ -19,7 +19,7 @@ import yaml
 from georefine.geometry import earth
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import log_so3
-from georefine.io.imu import read_imu_csv
+from georefine.io.imu import read_imr, read_imu_csv
 from georefine.io.trajectory import read_sbet
 from georefine.sim.scenarios import simulate_project
 from georefine.sim.verify import verify_project
@@ -129,14 +129,26 @@ def test_scans_georeferenced_with_true_trajectory_reproduce_truth(ideal_project)
     assert result.max_error_m < 1e-3
 
 
-def test_same_seed_same_files(tmp_path):
-    args = dict(seed=5, overrides=["flight.passes=1", "scanner.pulse_rate_hz=5000"])
+def test_same_seed_same_files_and_imr_matches_csv(tmp_path):
+    args = dict(seed=5, overrides=["flight.passes=1", "scanner.pulse_rate_hz=5000"], write_imr=True)
     simulate_project("corridor-tiny", tmp_path / "a", **args)
     simulate_project("corridor-tiny", tmp_path / "b", **args)
-    for rel in ("gnss/rover.pos", "imu/imu.csv", "scans/strip_1.laz", "reference/surfaces.csv"):
+    for rel in ("gnss/rover.pos", "imu/imu.csv", "imu/imu.imr", "scans/strip_1.laz", "reference/surfaces.csv"):
         assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
+    assert not (tmp_path / "a" / "scans" / "strip_2.laz").exists()
     cfg = yaml.safe_load((tmp_path / "a" / "truth" / "scenario.yaml").read_text())["scenario"]
     assert cfg["flight"]["passes"] == 1 and cfg["scanner"]["pulse_rate_hz"] == 5000
+    csv = read_imu_csv(tmp_path / "a" / "imu" / "imu.csv")
+    imr = read_imr(tmp_path / "a" / "imu" / "imu.imr", gps_week=int(csv.time_gps[0] // 604800))
+    np.testing.assert_allclose(imr.time_gps, csv.time_gps, atol=1e-6)
+    np.testing.assert_allclose(imr.gyro, csv.gyro, atol=1e-7)  # int32 quantisation
+    np.testing.assert_allclose(imr.acc, csv.acc, atol=1e-6)
+
+
+def test_demo_runs_on_the_tiny_scenario(tmp_path):
+    run = _georefine("demo", "--scenario", "corridor-tiny", "--out", str(tmp_path / "demo"))
+    assert run.returncode == 0, run.stderr
+    assert "max" in run.stdout and (tmp_path / "demo" / "project" / "project.yaml").is_file()
 
 
 # ------------------------------------------------------------------------------ bad input

@@ -139,8 +139,10 @@ def demo(
     estimation and evaluation stages join as they are implemented.
     """
     with _user_errors():
-        from georefine.sim.scenarios import simulate_project, verify_project
+        from georefine.sim.scenarios import simulate_project
+        from georefine.sim.verify import verify_project
 
+        out.mkdir(parents=True, exist_ok=True)
         with _progress() as report:
             result = simulate_project(scenario, out / "project", seed=seed, progress=report)
             check = verify_project(out / "project", progress=report)

@@ -29,12 +29,11 @@ east, north and up unit vectors in ECEF (as RTKLIB's ``covecef``). Writing the
 llh form applies the inverse rotation.
 
 The in-memory solution is always held in ECEF (:class:`GnssSolution`); the
-geodetic coordinates are derived through pyproj (EPSG:4978 <-> EPSG:4979).
+geodetic coordinates are derived with :mod:`georefine.geometry.earth` (WGS84, tested against pyproj).
 """
 
 from __future__ import annotations
 
-import functools
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +42,7 @@ from typing import Literal
 import numpy as np
 
 from georefine.errors import InputError
+from georefine.geometry import earth
 from georefine.io._common import (
     PathLike,
     atomic_output,
@@ -71,33 +71,11 @@ _MIN_FIELDS = 8  # position, Q, ns and the three standard deviations
 _LEGEND = "Q=1:fix,2:float,3:sbas,4:dgps,5:single,6:ppp,ns=# of satellites"
 
 
-@functools.lru_cache(maxsize=2)
-def _transformer(forward: bool):
-    from pyproj import Transformer  # deferred: pyproj import is slow
-
-    src, dst = ("EPSG:4979", "EPSG:4978") if forward else ("EPSG:4978", "EPSG:4979")
-    return Transformer.from_crs(src, dst, always_xy=True)
-
-
-def _geodetic_to_ecef(lat_rad: np.ndarray, lon_rad: np.ndarray, h_m: np.ndarray) -> np.ndarray:
-    x, y, z = _transformer(True).transform(np.degrees(lon_rad), np.degrees(lat_rad), h_m)
-    return np.stack([x, y, z], axis=-1)
-
-
-def _ecef_to_geodetic(p_e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    lon, lat, h = _transformer(False).transform(p_e[..., 0], p_e[..., 1], p_e[..., 2])
-    return np.radians(lat), np.radians(lon), np.asarray(h, dtype=np.float64)
-
-
-def enu_rotation(lat_rad: np.ndarray, lon_rad: np.ndarray) -> np.ndarray:
-    """``R_e_enu`` (N,3,3): columns are the east, north, up unit vectors in ECEF."""
-    sl, cl = np.sin(lat_rad), np.cos(lat_rad)
-    so, co = np.sin(lon_rad), np.cos(lon_rad)
-    zero = np.zeros_like(sl)
-    east = np.stack([-so, co, zero], axis=-1)
-    north = np.stack([-sl * co, -sl * so, cl], axis=-1)
-    up = np.stack([cl * co, cl * so, sl], axis=-1)
-    return np.stack([east, north, up], axis=-1)
+# One implementation of the WGS84 conversions for the whole package (geometry.earth).
+_geodetic_to_ecef = earth.geodetic_to_ecef
+_ecef_to_geodetic = earth.ecef_to_geodetic
+enu_rotation = earth.R_e_enu
+"""``R_e_enu`` (N,3,3): columns are the east, north, up unit vectors in ECEF."""
 
 
 def _sqvar(c: np.ndarray) -> np.ndarray:

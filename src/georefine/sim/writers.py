@@ -51,9 +51,9 @@ def write_imu(path: Path, imu: SimulatedImu, imr_path: Path | None = None) -> No
     write_imu_csv(path, data)
     if imr_path is not None:
         week, _ = week_from_gps_seconds(imu.t0_gps)
-        # IMR stores increments; the rates are sampled instantaneously, so the increment of
-        # each interval is approximated by rate * dt (documented in io.imu).
-        write_imr(imr_path, data, gps_week=int(week), delta=True)
+        # The simulated samples are instantaneous rates, so they are written as rates
+        # (bDeltaTheta = bDeltaVelocity = 0), not as approximate increments.
+        write_imr(imr_path, data, gps_week=int(week), delta=False)
 
 
 def write_truth_trajectory(path: Path, traj: TrueTrajectory, time: np.ndarray) -> None:
