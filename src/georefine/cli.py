@@ -150,6 +150,64 @@ def demo(
     stdout.print(check.summary())
 
 
+# ---------------------------------------------------------------------------
+# georefine evaluate ...
+# ---------------------------------------------------------------------------
+
+evaluate_app = typer.Typer(
+    help="Evaluate results against a reference (trajectory differences, ...).",
+    no_args_is_help=True,
+)
+app.add_typer(evaluate_app, name="evaluate")
+
+
+@evaluate_app.command("trajectory")
+def evaluate_trajectory(
+    estimate: Path = typer.Argument(..., help="Estimated trajectory (SBET)."),
+    reference: Path = typer.Option(..., "--reference", "-r", help="Reference trajectory (SBET)."),
+    out: Optional[Path] = typer.Option(
+        None, "--out", "-o",
+        help="Folder for trajectory_comparison.json and the difference plots (created if needed).",
+    ),
+    gps_week: Optional[int] = typer.Option(
+        None, "--gps-week",
+        help="GPS week of SBETs that store seconds of week. Without it such a file is assumed to be in the "
+        "same week as the other file (both seconds of week: compared as seconds of week).",
+    ),
+    span: Optional[tuple[float, float]] = typer.Option(
+        None, "--span", metavar="START END",
+        help="Only compare inside this time window: seconds of week (< 604800) or GPS seconds.",
+    ),
+) -> None:
+    """Roll/pitch/yaw and position differences of ESTIMATE minus a reference (paper 000, Fig. 9).
+
+    The common times are the samples of the sparser trajectory; the other is interpolated (position linear, attitude geodesic).
+    Differences are estimate minus reference; angle differences are wrapped to (-180, 180] deg.
+    """
+    with _user_errors():
+        from georefine.evaluation.trajectory import compare_sbet_files, write_trajectory_evaluation
+
+        comparison = compare_sbet_files(estimate, reference, gps_week=gps_week, time_window=span)
+        files = (
+            write_trajectory_evaluation(out, comparison, protect=(estimate, reference)).all()
+            if out is not None else ()
+        )
+    from rich.table import Table
+
+    table = Table(title=f"{estimate.name} - {reference.name}: {len(comparison)} epochs, "
+                  f"{comparison.time[-1]:.1f} s ({comparison.time_base} time base)")
+    for column in ("quantity", "unit", "RMSE", "mean", "std", "max |d|"):
+        table.add_column(column, justify="left" if column in ("quantity", "unit") else "right")
+    for name, unit, *values in comparison.table():
+        fmt = "{:.2f}" if unit == "mdeg" else "{:.4f}"
+        table.add_row(name, unit, *(fmt.format(v) for v in values))
+    stdout.print(table)
+    for note in comparison.notes:
+        stdout.print(f"note: {note}")
+    for path in files:
+        stdout.print(f"wrote {path}")
+
+
 def run() -> None:  # pragma: no cover - console entry point
     app()
 
