@@ -170,7 +170,6 @@ def _step(p, v, R, w0, f0, wm, fm, w1, f1, dt, R_e_w, p_e_w, w_ie, p_out, v_out,
     th = np.empty(3)
     E = np.empty((3, 3))
     Ri = np.empty((3, 3))
-    vi = np.empty(3)
     pi = np.empty(3)
     v2, v3, v4 = np.empty(3), np.empty(3), np.empty(3)
 
