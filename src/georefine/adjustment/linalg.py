@@ -1,0 +1,345 @@
+"""Sparse Cholesky factorisation of symmetric positive definite normal matrices.
+
+Three backends, chosen by :func:`cholesky` (``backend="auto"`` takes the first available):
+
+``"cholmod"``
+    scikit-sparse (``sksparse.cholmod.cholesky``), optional extra ``georefine[fast]``.
+    CHOLMOD with its default ordering strategy (AMD, METIS/NESDIS when AMD fills badly) and
+    automatic simplicial/supernodal choice. Reads the lower triangle of a CSC matrix.
+``"cholespy"``
+    cholespy (``cholespy.CholeskySolverD``), the default installed dependency. It wraps
+    CHOLMOD too: the matrix is copied into a CHOLMOD matrix with ``stype = -1``, i.e. **only
+    the lower triangle (row >= column) is read and the strictly upper part is silently
+    ignored** -- passing only the upper triangle gives a wrong factor without any error. The
+    fill-reducing ordering is chosen inside CHOLMOD (the cholespy source selects nested
+    dissection, METIS-based, which is compiled in); the installed 2.2.0 factorises simplicial
+    ``LL^T`` (its errors come from CHOLMOD's row-oriented simplicial code). The symbolic
+    analysis is redone on every construction. COO and CSR input is copied and converted to CSC
+    (duplicates summed); CSC input is used in place (sorted and ``realloc``-ed in the caller's
+    buffers, per the source), so we always hand over CSR of the lower triangle with freshly
+    allocated ``int32`` index arrays. Indices are 32-bit: matrices with more than 2^31 - 1
+    stored entries go to another backend. A matrix that is not positive definite raises
+    ``ValueError("Matrix is not positive definite!")`` (CHOLMOD also writes a warning to
+    stderr). ``solve(b, x)`` takes C-contiguous float64 ``b`` of shape ``(n,)`` or ``(n, k)``
+    and writes the solution into ``x`` of the same shape (no implicit conversion). Measured:
+    the cost per right-hand side is flat beyond about 4 columns (~10 ms per column for 300k
+    unknowns and 13.5M non-zeros in ``N``), so batching bounds memory but does not make many
+    columns cheaper.
+``"scipy"``
+    Last resort without CHOLMOD: SuperLU (``scipy.sparse.linalg.splu``) in symmetric mode
+    (minimum degree on ``A^T + A``, diagonal pivoting), positive definiteness checked from the
+    pivots. Several times slower and more memory-hungry on large systems.
+
+All backends return a :class:`Factorization` with ``solve(B)`` for one ``(n,)`` or many
+``(n, k)`` right-hand sides.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import logging
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from georefine.errors import GeorefineError
+
+__all__ = [
+    "BlockTriplets",
+    "assemble_block_coo",
+    "normal_equations",
+    "Factorization",
+    "NotPositiveDefiniteError",
+    "available_backends",
+    "cholesky",
+    "marginal_covariance_blocks",
+]
+
+logger = logging.getLogger(__name__)
+
+_BACKEND_ORDER = ("cholmod", "cholespy", "scipy")
+_INT32_MAX = np.iinfo(np.int32).max
+
+
+class NotPositiveDefiniteError(GeorefineError, np.linalg.LinAlgError):
+    """The matrix to factorise is not (numerically) positive definite.
+
+    In an adjustment this means a rank-deficient normal matrix: an undetermined datum
+    (gauge), parameters without observations, or observations that cannot separate them.
+    """
+
+
+class Factorization(Protocol):
+    """Cholesky factor of an ``n x n`` symmetric positive definite matrix ``A``."""
+
+    backend: str
+    n: int
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        """Return ``A^-1 B`` for ``B`` of shape ``(n,)`` or ``(n, k)``."""
+        ...
+
+
+def available_backends() -> tuple[str, ...]:
+    """Backends importable in this environment, in the order ``backend="auto"`` tries them."""
+    found = []
+    if importlib.util.find_spec("sksparse") is not None:
+        found.append("cholmod")
+    if importlib.util.find_spec("cholespy") is not None:
+        found.append("cholespy")
+    found.append("scipy")
+    return tuple(found)
+
+
+def cholesky(A: sp.spmatrix | sp.sparray, *, lower: bool = False, backend: str = "auto") -> Factorization:
+    """Factorise a sparse symmetric positive definite matrix.
+
+    Parameters
+    ----------
+    A
+        ``(n, n)`` sparse matrix. With ``lower=False`` the full symmetric matrix; with
+        ``lower=True`` only its lower triangle including the diagonal (entries above the
+        diagonal must be absent; this halves the memory handed to CHOLMOD).
+    lower
+        Whether ``A`` holds only the lower triangle.
+    backend
+        ``"auto"``, ``"cholmod"``, ``"cholespy"`` or ``"scipy"`` (see the module docstring).
+
+    Returns
+    -------
+    Factorization
+        Object with ``solve(B)``.
+
+    Raises
+    ------
+    NotPositiveDefiniteError
+        When the matrix is not positive definite.
+    ValueError
+        For an unknown or unavailable backend, or a non-square matrix.
+    """
+    if A.shape[0] != A.shape[1]:
+        raise ValueError(f"cholesky: matrix must be square, found shape {A.shape}")
+    n = A.shape[0]
+    A_lower = sp.csr_matrix(A) if lower else sp.tril(A, format="csr")
+    available = available_backends()
+    if backend == "auto":
+        candidates = list(available)
+        if A_lower.nnz > _INT32_MAX and "cholespy" in candidates:
+            candidates.remove("cholespy")
+        backend = candidates[0]
+    elif backend not in _BACKEND_ORDER:
+        raise ValueError(f"unknown linear-algebra backend {backend!r} (expected auto, {', '.join(_BACKEND_ORDER)})")
+    elif backend not in available:
+        raise ValueError(f"linear-algebra backend {backend!r} is not installed (available: {', '.join(available)})")
+    if n == 0:
+        return _EmptyFactorization(backend=backend, n=0)
+    if backend == "cholmod":
+        return _cholmod(A_lower, n)
+    if backend == "cholespy":
+        return _cholespy(A_lower, n)
+    return _superlu(A_lower, n)
+
+
+@dataclass
+class _EmptyFactorization:
+    backend: str
+    n: int
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        return np.array(B, dtype=float, copy=True)
+
+
+@dataclass
+class _CholespyFactorization:
+    backend: str
+    n: int
+    _solver: Any
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        b = np.ascontiguousarray(B, dtype=np.float64)
+        if b.shape[0] != self.n or b.ndim not in (1, 2):
+            raise ValueError(f"solve: right-hand side must have shape ({self.n},) or ({self.n}, k), found {b.shape}")
+        x = np.empty_like(b)
+        if b.size:
+            self._solver.solve(b, x)
+        return x
+
+
+def _cholespy(A_lower: sp.csr_matrix, n: int) -> Factorization:
+    import cholespy
+
+    if A_lower.nnz > _INT32_MAX:
+        raise ValueError("cholespy backend: more than 2^31 - 1 stored entries; use backend 'cholmod' or 'scipy'")
+    A_lower.sum_duplicates()
+    indptr = np.array(A_lower.indptr, dtype=np.int32)  # fresh copies: the extension may sort in place
+    indices = np.array(A_lower.indices, dtype=np.int32)
+    data = np.array(A_lower.data, dtype=np.float64)
+    try:
+        solver = cholespy.CholeskySolverD(n, indptr, indices, data, cholespy.MatrixType.CSR)
+    except ValueError as exc:
+        if "positive definite" in str(exc):
+            raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is not positive definite") from exc
+        raise
+    return _CholespyFactorization(backend="cholespy", n=n, _solver=solver)
+
+
+@dataclass
+class _CholmodFactorization:
+    backend: str
+    n: int
+    _factor: Any
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        b = np.asarray(B, dtype=np.float64)
+        if b.shape[0] != self.n or b.ndim not in (1, 2):
+            raise ValueError(f"solve: right-hand side must have shape ({self.n},) or ({self.n}, k), found {b.shape}")
+        return np.asarray(self._factor(b), dtype=np.float64).reshape(b.shape)
+
+
+def _cholmod(A_lower: sp.csr_matrix, n: int) -> Factorization:
+    from sksparse import cholmod
+
+    not_pd = getattr(cholmod, "CholmodNotPositiveDefiniteError", cholmod.CholmodError)
+    try:
+        factor = cholmod.cholesky(sp.csc_matrix(A_lower), beta=0, mode="auto")
+    except not_pd as exc:
+        raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is not positive definite") from exc
+    return _CholmodFactorization(backend="cholmod", n=n, _factor=factor)
+
+
+@dataclass
+class _SuperLUFactorization:
+    backend: str
+    n: int
+    _lu: Any
+
+    def solve(self, B: np.ndarray) -> np.ndarray:
+        b = np.asarray(B, dtype=np.float64)
+        if b.shape[0] != self.n or b.ndim not in (1, 2):
+            raise ValueError(f"solve: right-hand side must have shape ({self.n},) or ({self.n}, k), found {b.shape}")
+        if b.size == 0:
+            return b.copy()
+        return self._lu.solve(b)
+
+
+def _superlu(A_lower: sp.csr_matrix, n: int) -> Factorization:
+    diag = sp.diags(A_lower.diagonal())
+    A = sp.csc_matrix(A_lower + A_lower.T - diag)
+    if np.any(A.diagonal() <= 0):
+        raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) has non-positive diagonal entries")
+    try:
+        lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+    except RuntimeError as exc:  # "Factor is exactly singular"
+        raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is singular") from exc
+    # With symmetric diagonal pivoting the pivots are the D of L D L^T: all positive iff A is SPD.
+    pivots = lu.U.diagonal()
+    if not np.all(pivots > 0) or not np.all(np.isfinite(pivots)):
+        raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is not positive definite")
+    return _SuperLUFactorization(backend="scipy", n=n, _lu=lu)
+
+
+@dataclass(frozen=True)
+class BlockTriplets:
+    """Dense ``m x d`` sub-blocks of a sparse matrix, ``n`` of them.
+
+    Entry ``(k, i, j)`` goes to row ``rows[k, i] + row_offset`` and column ``col_start[k] + j``,
+    value ``values[k, i, j] * row_scale[rows[k, i]]`` (``row_scale`` optional, indexed by the
+    un-offset row).
+    """
+
+    rows: np.ndarray  # (n, m) int
+    col_start: np.ndarray  # (n,) int
+    values: np.ndarray  # (n, m, d)
+    row_offset: int = 0
+    row_scale: np.ndarray | None = None
+
+
+def assemble_block_coo(pieces: list[BlockTriplets], shape: tuple[int, int]) -> sp.csr_matrix:
+    """CSR matrix from dense sub-blocks, written straight into preallocated COO arrays.
+
+    Duplicates are kept (scipy's products and ``@`` sum them); 32-bit indices when possible.
+    """
+    index_dtype = np.int32 if max(shape) < _INT32_MAX else np.int64
+    total = sum(p.values.size for p in pieces)
+    if total == 0:
+        return sp.csr_matrix(shape)
+    row_idx = np.empty(total, dtype=index_dtype)
+    col_idx = np.empty(total, dtype=index_dtype)
+    data = np.empty(total, dtype=np.float64)
+    pos = 0
+    for p in pieces:
+        n, m, d = p.values.shape
+        size = n * m * d
+        out_r = row_idx[pos : pos + size].reshape(n, m, d)
+        out_c = col_idx[pos : pos + size].reshape(n, m, d)
+        out_v = data[pos : pos + size].reshape(n, m, d)
+        out_r[...] = (p.rows + p.row_offset)[:, :, None]
+        out_c[...] = (p.col_start[:, None] + np.arange(d))[:, None, :]
+        if p.row_scale is None:
+            out_v[...] = p.values
+        else:
+            np.multiply(p.values, p.row_scale[p.rows][:, :, None], out=out_v)
+        pos += size
+    return sp.csr_matrix((data, (row_idx, col_idx)), shape=shape)
+
+
+def normal_equations(J: sp.csr_matrix, r: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:
+    """``N = J^T J`` (full symmetric CSR) and ``g = J^T r``."""
+    Jt = J.T.tocsr()
+    return (Jt @ J).tocsr(), Jt @ r
+
+
+def marginal_covariance_blocks(
+    factor: Factorization,
+    col_start: np.ndarray,
+    dim: int,
+    *,
+    max_rhs: int = 256,
+    max_workspace_doubles: int = 32_000_000,
+) -> np.ndarray:
+    """Diagonal ``dim x dim`` blocks of ``A^-1`` for chosen groups of consecutive columns.
+
+    Solves ``A X = E`` for the unit vectors ``E`` of the requested columns in batches of at
+    most ``max_rhs`` columns and at most ``max_workspace_doubles`` entries of ``X``
+    (memory-bounded), and keeps only the diagonal blocks.
+
+    Parameters
+    ----------
+    factor
+        Factorisation of ``A`` (``n x n``).
+    col_start
+        ``(K,)`` int: first column of each requested element; the element owns columns
+        ``col_start[k] ... col_start[k] + dim - 1``. Negative entries (constant elements)
+        give zero blocks.
+    dim
+        Tangent dimension of the elements.
+    max_rhs, max_workspace_doubles
+        Batch limits.
+
+    Returns
+    -------
+    np.ndarray
+        ``(K, dim, dim)`` symmetric blocks.
+    """
+    col_start = np.asarray(col_start, dtype=np.int64).reshape(-1)
+    out = np.zeros((col_start.size, dim, dim))
+    free = np.flatnonzero(col_start >= 0)
+    n = factor.n
+    if free.size == 0 or dim == 0:
+        return out
+    per_batch = max(1, min(max_rhs // dim, max_workspace_doubles // max(1, n * dim)))
+    offsets = np.arange(dim)
+    for first in range(0, free.size, per_batch):
+        sel = free[first : first + per_batch]
+        cols = (col_start[sel][:, None] + offsets).reshape(-1)
+        E = np.zeros((n, cols.size))
+        E[cols, np.arange(cols.size)] = 1.0
+        X = factor.solve(E)
+        k = sel.size
+        sub = X[cols, :].reshape(k, dim, k, dim)
+        blocks = np.einsum("iaib->iab", sub)
+        out[sel] = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
+    return out

@@ -1,0 +1,631 @@
+"""Levenberg-Marquardt for sparse non-linear least squares on manifolds (DESIGN §4.4).
+
+Minimises ``F(x) = 1/2 sum_groups sum_i rho_g(||r_i(x)||^2)`` over all non-constant elements
+of the parameter blocks, ``r_i`` the whitened residual rows of observation ``i`` and
+``rho_g`` the group's robust loss (``rho(s) = s`` without one).
+
+Each iteration
+    1. Every group linearises at the current values (vectorised, COO triplets).
+    2. IRLS: the rows of observation ``i`` are scaled by ``sqrt(rho'(s_i))`` (see
+       :mod:`georefine.adjustment.robust`), giving ``J`` and ``r`` with the exact gradient
+       ``g = J^T r`` of ``F``.
+    3. ``J`` is assembled as one scipy CSR matrix from the triplets of all groups (columns only
+       for non-constant elements; duplicates summed), ``N = J^T J``.
+    4. ``(N + lambda D) delta = -g`` with ``D = clip(diag(N), 1e-6, 1e32)`` (Marquardt's
+       scaling with a floor, as in Ceres) is solved by sparse Cholesky
+       (:mod:`georefine.adjustment.linalg`), and the step applied through the retraction.
+    5. Gain ratio ``rho = (F(x) - F(x')) / (L(0) - L(delta))`` with the model decrease
+       ``L(0) - L(delta) = 1/2 delta^T (lambda D delta - g)``. Accepted if
+       ``rho > 1e-3``; then ``lambda *= max(1/3, 1 - (2 rho - 1)^3)`` and ``nu = 2``, else
+       ``lambda *= nu``, ``nu *= 2`` (Nielsen 1999; Madsen, Nielsen & Tingleff 2004, §3.2).
+
+Termination (Ceres Solver's criteria)
+    ``function_tolerance``: an accepted step with ``(F - F') / F <= function_tolerance``;
+    ``parameter_tolerance``: ``||delta|| <= parameter_tolerance (||x|| + parameter_tolerance)``,
+    ``||x||`` over the free Euclidean values plus one per free rotation;
+    ``gradient_tolerance``: ``max |g| <= gradient_tolerance``;
+    ``max_iterations`` (every trial step counts, accepted or not); ``no_progress`` when
+    ``lambda`` exceeds 1e16 without an acceptable step.
+
+Statistics (:class:`SolveResult`) refer to the final estimate and its robust weights ``w``:
+redundancy ``r = rows - unknowns``; a-posteriori variance factor
+``sigma0^2 = sum w r^2 / redundancy``; per group the RMS of the (unweighted) whitened
+residuals, the share of the cost, and ``sum w r^2 / rows`` as an *approximate* variance factor
+of the group (the exact one divides by the group's share of the redundancy,
+``rows - trace(J_g N^-1 J_g^T)``, which is not computed).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any, Literal
+
+import numpy as np
+import scipy.sparse as sp
+
+from georefine.adjustment.linalg import (
+    BlockTriplets,
+    NotPositiveDefiniteError,
+    assemble_block_coo,
+    available_backends,
+    cholesky,
+    normal_equations,
+)
+from georefine.adjustment.problem import ColumnLayout, Linearization, ObservationGroup, ParameterBlock
+from georefine.adjustment.robust import irls_weights
+
+__all__ = [
+    "SolverOptions",
+    "IterationSummary",
+    "GroupStatistics",
+    "Timings",
+    "SolveResult",
+    "run_levenberg_marquardt",
+]
+
+logger = logging.getLogger(__name__)
+
+_MIN_DIAGONAL = 1e-6
+_MAX_DIAGONAL = 1e32
+_MIN_LAMBDA = 1e-15
+_MAX_LAMBDA = 1e16
+_MIN_GAIN_RATIO = 1e-3
+_CONVERGED = ("function_tolerance", "parameter_tolerance", "gradient_tolerance", "no_unknowns")
+
+
+@dataclass(frozen=True)
+class SolverOptions:
+    """Levenberg-Marquardt settings.
+
+    Attributes
+    ----------
+    max_iterations
+        Maximum number of trial steps (accepted or rejected).
+    function_tolerance
+        Stop when an accepted step decreases the cost by less than this fraction.
+    parameter_tolerance
+        Stop when ``||delta|| <= parameter_tolerance * (||x|| + parameter_tolerance)``.
+    gradient_tolerance
+        Stop when the largest gradient component ``|J^T r|`` is below this.
+    initial_lambda
+        Initial damping (relative to ``diag(J^T J)``).
+    robust
+        Apply the groups' robust losses (``False``: plain least squares everywhere).
+    verbose
+        Log every iteration at INFO instead of DEBUG.
+    linear_solver
+        Sparse Cholesky backend: ``"auto"``, ``"cholmod"``, ``"cholespy"`` or ``"scipy"``.
+    """
+
+    max_iterations: int = 50
+    function_tolerance: float = 1e-8
+    parameter_tolerance: float = 1e-10
+    gradient_tolerance: float = 1e-10
+    initial_lambda: float = 1e-4
+    robust: bool = True
+    verbose: bool = False
+    linear_solver: Literal["auto", "cholmod", "cholespy", "scipy"] = "auto"
+
+    def __post_init__(self) -> None:
+        if self.max_iterations < 0:
+            raise ValueError(f"max_iterations must be >= 0, found {self.max_iterations}")
+        for name in ("function_tolerance", "parameter_tolerance", "gradient_tolerance"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, found {getattr(self, name)}")
+        if not self.initial_lambda > 0:
+            raise ValueError(f"initial_lambda must be > 0, found {self.initial_lambda}")
+
+
+@dataclass(frozen=True)
+class IterationSummary:
+    """One trial step, passed to the ``progress`` callback.
+
+    ``cost`` is the cost after the iteration (unchanged when the step was rejected),
+    ``cost_change`` the actual decrease of the trial, ``gain_ratio`` actual / predicted
+    decrease, ``step_norm`` ``||delta||``, ``gradient_max_norm`` ``max |g|`` at the start.
+    """
+
+    iteration: int
+    cost: float
+    cost_change: float
+    gain_ratio: float
+    step_norm: float
+    gradient_max_norm: float
+    lambda_: float
+    accepted: bool
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class GroupStatistics:
+    """Per observation group at the solution.
+
+    Attributes
+    ----------
+    name
+        Group name.
+    robust_loss
+        Name of the loss applied, ``None`` for plain least squares.
+    n_observations, n_residuals
+        Number of observations and of residual rows.
+    rms
+        RMS of the whitened residuals (before robust weighting).
+    cost, cost_share
+        The group's part of the cost ``1/2 sum rho(s)`` and its fraction of the total.
+    variance_factor
+        ``sum w r^2 / n_residuals``: approximate (ignores the group's share of the redundancy,
+        so it is biased low by about ``unknowns / rows``).
+    n_downweighted
+        Observations whose robust weight ``rho'(s)`` is below 0.5.
+    """
+
+    name: str
+    robust_loss: str | None
+    n_observations: int
+    n_residuals: int
+    rms: float
+    cost: float
+    cost_share: float
+    variance_factor: float
+    n_downweighted: int
+
+
+@dataclass(frozen=True)
+class Timings:
+    """Wall-clock seconds: group evaluation, sparse assembly (J, J^T J), factorisation+solve, total."""
+
+    evaluation_s: float
+    assembly_s: float
+    factorization_s: float
+    total_s: float
+
+
+@dataclass(frozen=True)
+class SolveResult:
+    """Outcome and statistics of one adjustment.
+
+    Attributes
+    ----------
+    termination
+        ``function_tolerance``, ``parameter_tolerance``, ``gradient_tolerance``,
+        ``max_iterations``, ``no_progress`` or ``no_unknowns``.
+    iterations, successful_iterations
+        Trial steps and accepted steps.
+    initial_cost, final_cost, cost_history
+        Cost ``1/2 sum rho`` at the start, at the end, and after every accepted step.
+    final_lambda
+        Damping at the end.
+    n_unknowns, n_observations, n_residuals
+        Free tangent dimensions (columns), observations and residual rows.
+    redundancy
+        ``n_residuals - n_unknowns``.
+    variance_factor
+        A-posteriori ``sigma0^2 = sum w r^2 / redundancy`` (NaN without redundancy).
+    groups
+        :class:`GroupStatistics` per group.
+    timings
+        :class:`Timings`.
+    backend
+        Sparse Cholesky backend used.
+    """
+
+    termination: str
+    iterations: int
+    successful_iterations: int
+    initial_cost: float
+    final_cost: float
+    cost_history: tuple[float, ...]
+    final_lambda: float
+    n_unknowns: int
+    n_observations: int
+    n_residuals: int
+    redundancy: int
+    variance_factor: float
+    groups: tuple[GroupStatistics, ...]
+    timings: Timings
+    backend: str
+
+    @property
+    def converged(self) -> bool:
+        """Whether a convergence criterion (not an iteration limit or failure) ended the solve."""
+        return self.termination in _CONVERGED
+
+    @property
+    def sigma0(self) -> float:
+        """A-posteriori standard deviation of unit weight ``sqrt(sigma0^2)``."""
+        return math.sqrt(self.variance_factor) if self.variance_factor >= 0 else math.nan
+
+    def group(self, name: str) -> GroupStatistics:
+        """Statistics of one group by name."""
+        for stats in self.groups:
+            if stats.name == name:
+                return stats
+        raise KeyError(f"no group {name!r} in the result")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-serialisable dictionary (non-finite numbers become ``None``)."""
+        out = _jsonable(asdict(self))
+        out["converged"] = self.converged
+        out["sigma0"] = _jsonable(self.sigma0)
+        return out
+
+    def summary(self) -> str:
+        """A few lines for logs and reports."""
+        lines = [
+            f"{self.termination} after {self.iterations} iterations ({self.successful_iterations} accepted), "
+            f"cost {self.initial_cost:.6g} -> {self.final_cost:.6g}",
+            f"unknowns {self.n_unknowns}, residuals {self.n_residuals}, redundancy {self.redundancy}, "
+            f"sigma0^2 {self.variance_factor:.4g}, {self.timings.total_s:.2f} s ({self.backend})",
+        ]
+        for g in self.groups:
+            lines.append(
+                f"  {g.name}: {g.n_observations} obs, {g.n_residuals} rows, rms {g.rms:.4g}, "
+                f"cost share {g.cost_share:.1%}, s0^2~{g.variance_factor:.4g}, downweighted {g.n_downweighted}"
+            )
+        return "\n".join(lines)
+
+
+def _jsonable(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {k: _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+# ---------------------------------------------------------------------------------------------
+# Layout, evaluation and assembly
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _GroupEvaluation:
+    linearization: Linearization
+    row_sqrt_weight: np.ndarray | None  # (M,) sqrt(rho'), None for plain LS
+    loss_name: str | None
+    n_observations: int
+    cost: float
+    sum_r2: float
+    sum_wr2: float
+    n_downweighted: int
+
+
+@dataclass
+class _Evaluation:
+    groups: list[_GroupEvaluation]
+    cost: float
+    finite: bool
+    has_jacobians: bool
+    seconds: float
+
+    @property
+    def n_rows(self) -> int:
+        return sum(g.linearization.residuals.size for g in self.groups)
+
+
+def _evaluate(
+    groups: Sequence[ObservationGroup], values: Mapping[str, np.ndarray], jacobians: bool, robust: bool
+) -> _Evaluation:
+    t0 = time.perf_counter()
+    out, total, finite = [], 0.0, True
+    for group in groups:
+        lin = group.linearize(values, jacobians)
+        if not isinstance(lin, Linearization):
+            raise TypeError(f"group {group.name!r}: linearize() returned {type(lin).__name__}, not a Linearization")
+        r = lin.residuals
+        if not np.all(np.isfinite(r)):
+            finite = False
+            out.append(_GroupEvaluation(lin, None, None, 0, math.inf, math.inf, math.inf, 0))
+            total = math.inf
+            continue
+        loss = getattr(group, "loss", None) if robust else None
+        w = irls_weights(loss, lin.observation, r)
+        name = None if loss is None else getattr(loss, "name", type(loss).__name__)
+        n_down = int(np.count_nonzero(w.weight < 0.5))
+        out.append(_GroupEvaluation(lin, w.row_sqrt_weight, name, w.s.size, w.cost, w.sum_s, w.sum_ws, n_down))
+        total += w.cost
+    return _Evaluation(out, total, finite and math.isfinite(total), jacobians, time.perf_counter() - t0)
+
+
+def _assemble_jacobian(evaluation: _Evaluation, layout: ColumnLayout) -> tuple[sp.csr_matrix, np.ndarray]:
+    """Global whitened, robustly weighted ``J`` (CSR, rows x free columns) and ``r``.
+
+    Validates every JacobianBlock, drops the entries of constant elements and writes all
+    triplets at once (:func:`~georefine.adjustment.linalg.assemble_block_coo`).
+    """
+    pieces, residuals = [], []
+    offset = 0
+    for ge in evaluation.groups:
+        lin = ge.linearization
+        m_group = lin.residuals.size
+        sqrt_w = ge.row_sqrt_weight
+        residuals.append(lin.residuals if sqrt_w is None else lin.residuals * sqrt_w)
+        for jb in lin.jacobians:
+            starts_block = layout.col_start.get(jb.block)
+            if starts_block is None:
+                raise KeyError(f"group Jacobian refers to unknown parameter block {jb.block!r}")
+            d = layout.dims[jb.block]
+            if jb.values.shape[2] != d:
+                raise ValueError(
+                    f"JacobianBlock for {jb.block!r}: last axis must be the tangent dimension {d}, "
+                    f"found {jb.values.shape[2]}"
+                )
+            if jb.elements.size == 0:
+                continue
+            if jb.elements.min() < 0 or jb.elements.max() >= starts_block.size:
+                raise IndexError(f"JacobianBlock for {jb.block!r}: element index out of range [0, {starts_block.size})")
+            if jb.rows.min() < 0 or jb.rows.max() >= m_group:
+                raise IndexError(f"JacobianBlock for {jb.block!r}: row index out of range [0, {m_group})")
+            starts = starts_block[jb.elements]
+            keep = starts >= 0
+            if not keep.any():
+                continue
+            rows, vals = jb.rows, jb.values
+            if not keep.all():
+                rows, vals, starts = rows[keep], vals[keep], starts[keep]
+            pieces.append(BlockTriplets(rows, starts, vals, offset, sqrt_w))
+        offset += m_group
+    r = np.concatenate(residuals) if residuals else np.zeros(0)
+    return assemble_block_coo(pieces, (evaluation.n_rows, layout.n_cols)), r
+
+
+@dataclass
+class _Normal:
+    N: sp.csr_matrix
+    N_lower: sp.csr_matrix
+    g: np.ndarray
+    D: np.ndarray
+    seconds: float
+
+
+def _normal_equations(evaluation: _Evaluation, layout: ColumnLayout) -> _Normal:
+    t0 = time.perf_counter()
+    J, r = _assemble_jacobian(evaluation, layout)
+    N, g = normal_equations(J, r)
+    del J
+    diag = N.diagonal()
+    D = np.clip(diag, _MIN_DIAGONAL, _MAX_DIAGONAL)
+    N_lower = sp.tril(N, format="csr")
+    return _Normal(N, N_lower, g, D, time.perf_counter() - t0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Levenberg-Marquardt
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class LMOutcome:
+    """What :meth:`Problem.solve` needs back: result, final values and the normal matrix.
+
+    The normal matrix at the solution is assembled lazily (:meth:`normal_matrix`) when the
+    last accepted step ended the iteration, so a solve without covariance queries saves one
+    assembly.
+    """
+
+    result: SolveResult
+    values: dict[str, np.ndarray]
+    col_start: dict[str, np.ndarray]
+    _normal: sp.csr_matrix | None
+    _evaluation: _Evaluation | None
+    _layout: ColumnLayout
+
+    def normal_matrix(self) -> sp.csr_matrix:
+        """``N = J^T W J`` at the solution (full symmetric CSR)."""
+        if self._normal is None:
+            self._normal = _normal_equations(self._evaluation, self._layout).N
+            self._evaluation = None
+        return self._normal
+
+
+def _strip_jacobians(evaluation: _Evaluation) -> _Evaluation:
+    """Drop the Jacobian arrays (kept: residuals and weights for the statistics) to free memory."""
+    groups = []
+    for ge in evaluation.groups:
+        lin = ge.linearization
+        stripped = Linearization(lin.residuals, [], lin.observation)
+        groups.append(_GroupEvaluation(stripped, *(getattr(ge, f) for f in _GROUP_FIELDS)))
+    return _Evaluation(groups, evaluation.cost, evaluation.finite, False, evaluation.seconds)
+
+
+_GROUP_FIELDS = ("row_sqrt_weight", "loss_name", "n_observations", "cost", "sum_r2", "sum_wr2", "n_downweighted")
+
+
+def run_levenberg_marquardt(
+    blocks: Mapping[str, ParameterBlock],
+    groups: Sequence[ObservationGroup],
+    options: SolverOptions,
+    progress: Callable[[IterationSummary], None] | None = None,
+) -> LMOutcome:
+    """Run Levenberg-Marquardt from the blocks' current values (the blocks are not modified).
+
+    Use :meth:`georefine.adjustment.problem.Problem.solve`; this is its engine.
+    """
+    t_start = time.perf_counter()
+    log = logger.info if options.verbose else logger.debug
+    layout = ColumnLayout.build(blocks)
+    values: dict[str, np.ndarray] = {}
+    for name, block in blocks.items():
+        arr = block.values.copy()
+        arr.setflags(write=False)
+        values[name] = arr
+    t_eval = t_asm = t_fac = 0.0
+
+    current = _evaluate(groups, values, True, options.robust)
+    t_eval += current.seconds
+    if not current.finite:
+        bad = [g.name for g, ge in zip(groups, current.groups) if not math.isfinite(ge.cost)]
+        raise ValueError(f"non-finite residuals at the initial values in group(s): {', '.join(bad)}")
+    normal = _normal_equations(current, layout)
+    t_asm += normal.seconds
+    normal_is_current = True
+    current = _strip_jacobians(current)
+    unobserved = int(np.count_nonzero(normal.N.diagonal() == 0))
+    if unobserved:
+        logger.warning("%d unknown(s) have no observations; the normal matrix is singular", unobserved)
+
+    initial_cost = cost = current.cost
+    history = [cost]
+    lam, nu = options.initial_lambda, 2.0
+    iterations = accepted_steps = 0
+    backend_used = options.linear_solver
+    termination = "max_iterations"
+    log("LM start: cost %.6g, %d unknowns, %d residuals", cost, layout.n_cols, current.n_rows)
+    if layout.n_cols == 0:
+        termination = "no_unknowns"
+
+    while termination != "no_unknowns":
+        g_max = float(np.max(np.abs(normal.g), initial=0.0))
+        if g_max <= options.gradient_tolerance:
+            termination = "gradient_tolerance"
+            break
+        if iterations >= options.max_iterations:
+            termination = "max_iterations"
+            break
+        iterations += 1
+        t0 = time.perf_counter()
+        try:
+            A = normal.N_lower + sp.diags(lam * normal.D, format="csr")
+            factor = cholesky(A, lower=True, backend=options.linear_solver)
+            backend_used = factor.backend
+            delta = factor.solve(-normal.g)
+            solved = bool(np.all(np.isfinite(delta)))
+        except NotPositiveDefiniteError:
+            solved = False
+        t_fac += time.perf_counter() - t0
+        if not solved:
+            lam, nu = lam * nu, nu * 2.0
+            log("iter %3d: factorisation failed, lambda -> %.3g", iterations, lam)
+            _report(progress, iterations, cost, 0.0, -math.inf, math.nan, g_max, lam, False, t_start)
+            if lam > _MAX_LAMBDA:
+                termination = "no_progress"
+                break
+            continue
+
+        step_norm = float(np.linalg.norm(delta))
+        x_norm = layout.parameter_norm(values)
+        if step_norm <= options.parameter_tolerance * (x_norm + options.parameter_tolerance):
+            termination = "parameter_tolerance"
+            _report(progress, iterations, cost, 0.0, math.nan, step_norm, g_max, lam, False, t_start)
+            break
+
+        trial_values = layout.apply_step(values, delta)
+        # Jacobians of the trial are computed right away unless the last step was rejected.
+        want_jac = nu <= 2.0
+        trial = _evaluate(groups, trial_values, want_jac, options.robust)
+        t_eval += trial.seconds
+        predicted = 0.5 * float(delta @ (lam * normal.D * delta - normal.g))
+        actual = cost - trial.cost if trial.finite else -math.inf
+        gain = actual / predicted if predicted > 0 else -math.inf
+
+        if trial.finite and gain > _MIN_GAIN_RATIO:
+            accepted_steps += 1
+            values = trial_values
+            if not trial.has_jacobians:
+                trial = _evaluate(groups, values, True, options.robust)
+                t_eval += trial.seconds
+            current, cost = trial, trial.cost
+            history.append(cost)
+            lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
+            nu = 2.0
+            converged = actual <= options.function_tolerance * (cost + actual)
+            normal_is_current = False
+            if not converged:  # else N at the solution is assembled only if covariances are asked for
+                normal = _normal_equations(current, layout)
+                t_asm += normal.seconds
+                normal_is_current = True
+                current = _strip_jacobians(current)
+            trial = None  # free the Jacobians before the next trial evaluation
+            log(
+                "iter %3d: cost %.9g  change %.3g  gain %.3f  |step| %.3g  max|g| %.3g  lambda %.3g",
+                iterations, cost, actual, gain, step_norm, g_max, lam,
+            )
+            _report(progress, iterations, cost, actual, gain, step_norm, g_max, lam, True, t_start)
+            if converged:
+                termination = "function_tolerance"
+                break
+        else:
+            lam, nu = lam * nu, nu * 2.0
+            log("iter %3d: rejected (gain %.3g), lambda -> %.3g", iterations, gain, lam)
+            _report(progress, iterations, cost, actual, gain, step_norm, g_max, lam, False, t_start)
+            if lam > _MAX_LAMBDA:
+                termination = "no_progress"
+                break
+
+    if backend_used == "auto":
+        backend_used = available_backends()[0]
+    result = _statistics(
+        groups, current, layout, termination, iterations, accepted_steps, initial_cost, history, lam,
+        Timings(t_eval, t_asm, t_fac, time.perf_counter() - t_start), backend_used,
+    )
+    log("LM end: %s", result.summary())
+    return LMOutcome(
+        result,
+        {k: np.array(v) for k, v in values.items()},
+        layout.col_start,
+        normal.N if normal_is_current else None,
+        None if normal_is_current else current,
+        layout,
+    )
+
+
+def _report(progress, iteration, cost, change, gain, step, g_max, lam, accepted, t_start) -> None:
+    if progress is not None:
+        progress(
+            IterationSummary(
+                iteration, float(cost), float(change), float(gain), float(step), float(g_max), float(lam),
+                bool(accepted), time.perf_counter() - t_start,
+            )
+        )
+
+
+def _statistics(
+    groups, evaluation: _Evaluation, layout: ColumnLayout, termination, iterations, accepted, initial_cost,
+    history, lam, timings: Timings, backend: str,
+) -> SolveResult:
+    total_cost = evaluation.cost
+    stats, n_obs, n_rows, sum_wr2 = [], 0, 0, 0.0
+    for group, ge in zip(groups, evaluation.groups):
+        m = ge.linearization.residuals.size
+        stats.append(
+            GroupStatistics(
+                name=group.name,
+                robust_loss=ge.loss_name,
+                n_observations=ge.n_observations,
+                n_residuals=m,
+                rms=math.sqrt(ge.sum_r2 / m) if m else math.nan,
+                cost=ge.cost,
+                cost_share=ge.cost / total_cost if total_cost > 0 else math.nan,
+                variance_factor=ge.sum_wr2 / m if m else math.nan,
+                n_downweighted=ge.n_downweighted,
+            )
+        )
+        n_obs += ge.n_observations
+        n_rows += m
+        sum_wr2 += ge.sum_wr2
+    redundancy = n_rows - layout.n_cols
+    return SolveResult(
+        termination=termination,
+        iterations=iterations,
+        successful_iterations=accepted,
+        initial_cost=initial_cost,
+        final_cost=total_cost,
+        cost_history=tuple(float(c) for c in history),
+        final_lambda=lam,
+        n_unknowns=layout.n_cols,
+        n_observations=n_obs,
+        n_residuals=n_rows,
+        redundancy=redundancy,
+        variance_factor=sum_wr2 / redundancy if redundancy > 0 else math.nan,
+        groups=tuple(stats),
+        timings=timings,
+        backend=backend,
+    )

@@ -1,0 +1,662 @@
+"""Sparse NLS engine: Levenberg-Marquardt, robust losses, hold-constant, covariance, backends.
+
+Every observation group below has its Jacobians checked against central differences through
+the retraction (``georefine.adjustment.testing.check_jacobians``).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+import numpy as np
+import pytest
+import scipy.optimize
+import scipy.sparse as sp
+
+from georefine.adjustment import linalg
+from georefine.adjustment.linalg import NotPositiveDefiniteError, cholesky, marginal_covariance_blocks
+from georefine.adjustment.problem import JacobianBlock, Linearization, Problem
+from georefine.adjustment.robust import CauchyLoss, HuberLoss, TrivialLoss, make_loss
+from georefine.adjustment.solver import SolverOptions
+from georefine.adjustment.testing import check_jacobians
+from georefine.geometry.rotation import exp_so3, log_so3, right_jacobian_inv
+
+SEEDS = [0, 1, 2]
+
+
+# ---------------------------------------------------------------------------------------------
+# Observation groups used by the tests
+# ---------------------------------------------------------------------------------------------
+
+
+class LinearGroup:
+    """r = (A x - b) / sigma for one Euclidean element ``x`` (block ``block``, element 0)."""
+
+    def __init__(self, A, b, sigma, block="x", name="linear", loss=None):
+        self.A, self.b, self.sigma = np.asarray(A, float), np.asarray(b, float), np.asarray(sigma, float)
+        self.block, self.name, self.loss = block, name, loss
+
+    def linearize(self, values, jacobians=True):
+        x = values[self.block][0]
+        r = (self.A @ x - self.b) / self.sigma
+        jac = []
+        if jacobians:
+            m = r.size
+            J = (self.A / self.sigma[:, None])[:, None, :]
+            jac = [JacobianBlock(self.block, np.arange(m)[:, None], np.zeros(m, int), J)]
+        return Linearization(r, jac, np.arange(r.size))
+
+
+class ExpCurveGroup:
+    """y = a exp(b t) + c, theta = (a, b, c) in block ``theta`` (one element)."""
+
+    name = "curve"
+    loss = None
+
+    def __init__(self, t, y, sigma):
+        self.t, self.y, self.sigma = t, y, sigma
+
+    def linearize(self, values, jacobians=True):
+        a, b, c = values["theta"][0]
+        e = np.exp(b * self.t)
+        r = (a * e + c - self.y) / self.sigma
+        jac = []
+        if jacobians:
+            J = np.stack([e, a * self.t * e, np.ones_like(e)], axis=1) / self.sigma
+            # one JacobianBlock holding all rows of the single element
+            jac = [JacobianBlock("theta", np.arange(r.size)[None, :], np.zeros(1, int), J[None])]
+        return Linearization(r, jac)
+
+
+class AbsoluteRotationGroup:
+    """r_i = Log(Rm_i^T R_{idx_i}) / sigma: direct rotation measurements (3 rows per observation)."""
+
+    loss = None
+
+    def __init__(self, idx, R_meas, sigma, name="abs"):
+        self.idx, self.R_meas, self.sigma, self.name = np.asarray(idx), R_meas, sigma, name
+
+    def linearize(self, values, jacobians=True):
+        R = values["R"][self.idx]
+        phi = log_so3(np.swapaxes(self.R_meas, 1, 2) @ R)
+        r = (phi / self.sigma).reshape(-1)
+        n = self.idx.size
+        rows = np.arange(3 * n).reshape(n, 3)
+        jac = [JacobianBlock("R", rows, self.idx, right_jacobian_inv(phi) / self.sigma)] if jacobians else []
+        return Linearization(r, jac, np.repeat(np.arange(n), 3))
+
+
+class RelativeRotationGroup:
+    """r = Log(Rm_ij^T R_i^T R_j) / sigma for pairs (i, j)."""
+
+    loss = None
+
+    def __init__(self, i, j, R_meas, sigma, name="rel"):
+        self.i, self.j, self.R_meas, self.sigma, self.name = np.asarray(i), np.asarray(j), R_meas, sigma, name
+
+    def linearize(self, values, jacobians=True):
+        Ri, Rj = values["R"][self.i], values["R"][self.j]
+        phi = log_so3(np.swapaxes(self.R_meas, 1, 2) @ np.swapaxes(Ri, 1, 2) @ Rj)
+        r = (phi / self.sigma).reshape(-1)
+        n = self.i.size
+        rows = np.arange(3 * n).reshape(n, 3)
+        jac = []
+        if jacobians:
+            Jinv = right_jacobian_inv(phi) / self.sigma
+            jac = [
+                JacobianBlock("R", rows, self.j, Jinv),
+                JacobianBlock("R", rows, self.i, -Jinv @ np.swapaxes(Rj, 1, 2) @ Ri),
+            ]
+        return Linearization(r, jac, np.repeat(np.arange(n), 3))
+
+
+class LineGroup:
+    """y_k = m x_k + q; theta = (m, q)."""
+
+    name = "line"
+
+    def __init__(self, x, y, sigma, loss=None):
+        self.x, self.y, self.sigma, self.loss = x, y, sigma, loss
+
+    def linearize(self, values, jacobians=True):
+        m, q = values["theta"][0]
+        r = (m * self.x + q - self.y) / self.sigma
+        jac = []
+        if jacobians:
+            J = np.stack([self.x, np.ones_like(self.x)], axis=1) / self.sigma
+            jac = [JacobianBlock("theta", np.arange(r.size)[:, None], np.zeros(r.size, int), J[:, None, :])]
+        return Linearization(r, jac)
+
+
+class SplineGroup:
+    """Banded 'spline' observations: z_k = sum_{l<4} w_kl x_{i_k + l} + 0.05 |x_{i_k}|^2 (3-D).
+
+    Mildly non-linear, each 3-row observation touches four consecutive 3-D elements.
+    """
+
+    loss = None
+
+    def __init__(self, first, w, z, sigma, name="spline"):
+        self.first, self.w, self.z, self.sigma, self.name = first, w, z, sigma, name
+
+    def linearize(self, values, jacobians=True):
+        x = values["x"]
+        n = self.first.size
+        idx = self.first[:, None] + np.arange(4)
+        xs = x[idx]  # (n, 4, 3)
+        x0 = xs[:, 0]
+        model = np.einsum("nl,nld->nd", self.w, xs) + 0.05 * np.sum(x0 * x0, axis=1, keepdims=True)
+        r = ((model - self.z) / self.sigma).reshape(-1)
+        jac = []
+        if jacobians:
+            rows = np.arange(3 * n).reshape(n, 3)
+            eye = np.eye(3)
+            for l in range(4):
+                J = self.w[:, l, None, None] * eye
+                if l == 0:
+                    J = J + 0.1 * np.broadcast_to(x0[:, None, :], (n, 3, 3))
+                jac.append(JacobianBlock("x", rows, idx[:, l], J / self.sigma))
+        return Linearization(r, jac, np.repeat(np.arange(n), 3))
+
+
+class DifferenceGroup:
+    """Smoothness: (x_{i+1} - x_i) / sigma for all consecutive elements."""
+
+    loss = None
+    name = "smooth"
+
+    def __init__(self, n, sigma):
+        self.n, self.sigma = n, sigma
+
+    def linearize(self, values, jacobians=True):
+        x = values["x"]
+        r = ((x[1:] - x[:-1]) / self.sigma).reshape(-1)
+        k = self.n - 1
+        jac = []
+        if jacobians:
+            rows = np.arange(3 * k).reshape(k, 3)
+            I = np.broadcast_to(np.eye(3) / self.sigma, (k, 3, 3))
+            jac = [JacobianBlock("x", rows, np.arange(1, self.n), I), JacobianBlock("x", rows, np.arange(k), -I)]
+        return Linearization(r, jac, np.repeat(np.arange(k), 3))
+
+
+def random_rotations(rng, n, max_angle=np.pi):
+    axis = rng.normal(size=(n, 3))
+    axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+    return exp_so3(axis * rng.uniform(0, max_angle, size=(n, 1)))
+
+
+def noisy(rng, R, sigma):
+    return R @ exp_so3(rng.normal(scale=sigma, size=R.shape[:-2] + (3,)))
+
+
+# ---------------------------------------------------------------------------------------------
+# (1) linear least squares vs numpy lstsq
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_linear_least_squares_matches_lstsq(seed):
+    rng = np.random.default_rng(seed)
+    m, p = 60, 5
+    A = rng.normal(size=(m, p))
+    sigma = rng.uniform(0.5, 2.0, m)
+    b = A @ rng.normal(size=p) + rng.normal(size=m) * sigma
+    group = LinearGroup(A, b, sigma)
+    chk = check_jacobians(group, {"x": np.zeros((1, p))}, {"x": "euclidean"})
+    assert chk.max_rel_error < 1e-8 and chk.residual_mismatch == 0
+
+    problem = Problem()
+    problem.add_block("x", rng.normal(size=(1, p)) * 10)
+    problem.add_group(group)
+    result = problem.solve()
+    assert result.converged
+
+    Aw, bw = A / sigma[:, None], b / sigma
+    x_ref, *_ = np.linalg.lstsq(Aw, bw, rcond=None)
+    np.testing.assert_allclose(problem.values("x")[0], x_ref, rtol=1e-9, atol=1e-10)
+    res = Aw @ x_ref - bw
+    s0 = res @ res / (m - p)
+    assert result.redundancy == m - p
+    assert result.variance_factor == pytest.approx(s0, rel=1e-9)
+    cov_ref = s0 * np.linalg.inv(Aw.T @ Aw)
+    np.testing.assert_allclose(problem.covariance("x")[0], cov_ref, rtol=1e-8)
+    np.testing.assert_allclose(problem.covariance("x", scale_by_variance_factor=False)[0], cov_ref / s0, rtol=1e-8)
+
+
+def test_marginal_covariance_blocks_batches_match_dense_inverse():
+    rng = np.random.default_rng(3)
+    n = 60
+    B = sp.random(n, n, density=0.1, random_state=3)
+    A = (B @ B.T + sp.eye(n) * 2.0).tocsr()
+    inv = np.linalg.inv(A.toarray())
+    starts = np.array([0, 9, -1, 30, 57])
+    blocks = marginal_covariance_blocks(cholesky(A), starts, 3, max_rhs=4)
+    for k, s in enumerate(starts):
+        expected = np.zeros((3, 3)) if s < 0 else inv[s : s + 3, s : s + 3]
+        np.testing.assert_allclose(blocks[k], expected, atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# (2) non-linear Euclidean problem from a poor start
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("start", [[10.0, -0.05, -5.0], [0.1, -4.0, -1.0]])
+def test_exponential_curve_fit_from_poor_start(seed, start):
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 4.0, 80)
+    theta_true = np.array([2.5, -0.8, 0.7])
+    sigma = 0.02
+    y = theta_true[0] * np.exp(theta_true[1] * t) + theta_true[2] + rng.normal(scale=sigma, size=t.size)
+    group = ExpCurveGroup(t, y, sigma)
+    # Amplitude 4x or 25x off, rate 16x too slow or 5x too fast, offset of the wrong sign. (A start
+    # with a growing exponential runs into the degenerate valley b -> 0, a -> -inf, c -> +inf,
+    # where MINPACK's LM ends up as well.)
+    start = np.array([start])
+    chk = check_jacobians(group, {"theta": start}, {"theta": "euclidean"})
+    assert chk.max_rel_error < 1e-7
+
+    problem = Problem()
+    problem.add_block("theta", start)
+    problem.add_group(group)
+    result = problem.solve(SolverOptions(max_iterations=200))
+    assert result.converged, result.termination
+    ref = scipy.optimize.least_squares(
+        lambda th: (th[0] * np.exp(th[1] * t) + th[2] - y) / sigma, theta_true, xtol=1e-15, ftol=1e-15
+    ).x
+    np.testing.assert_allclose(problem.values("theta")[0], ref, rtol=1e-6, atol=1e-8)
+    sd = np.sqrt(np.diagonal(problem.covariance("theta")[0]))
+    assert np.all(np.abs(problem.values("theta")[0] - theta_true) < 5 * sd)
+    assert result.final_cost < 1e-3 * result.initial_cost
+    assert result.final_cost == pytest.approx(0.5 * result.redundancy, abs=3.0 * np.sqrt(2.0 * result.redundancy))
+    assert list(result.cost_history) == sorted(result.cost_history, reverse=True)
+
+
+# ---------------------------------------------------------------------------------------------
+# (3) SO(3): rotation averaging, convergence and Monte-Carlo covariance consistency
+# ---------------------------------------------------------------------------------------------
+
+
+def _rotation_chain(rng, R_true, sigma_abs, sigma_rel, abs_idx):
+    n = R_true.shape[0]
+    i = np.concatenate([np.arange(n - 1), np.arange(n - 2)])
+    j = np.concatenate([np.arange(1, n), np.arange(2, n)])
+    rel = noisy(rng, np.swapaxes(R_true[i], 1, 2) @ R_true[j], sigma_rel)
+    ab = noisy(rng, R_true[abs_idx], sigma_abs)
+    return AbsoluteRotationGroup(abs_idx, ab, sigma_abs), RelativeRotationGroup(i, j, rel, sigma_rel)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_rotation_jacobians_through_retraction(seed):
+    rng = np.random.default_rng(seed)
+    R = random_rotations(rng, 6)
+    g_abs, g_rel = _rotation_chain(rng, R, 0.3, 0.3, np.array([0, 2, 5]))
+    R_lin = noisy(rng, R, 0.5)  # far from the measurements: Jr^-1 matters
+    for group in (g_abs, g_rel):
+        chk = check_jacobians(group, {"R": R_lin}, {"R": "so3"})
+        assert chk.max_rel_error < 1e-7, chk
+
+
+def test_rotation_averaging_converges_and_covariance_matches_monte_carlo():
+    rng = np.random.default_rng(42)
+    n, sigma_abs, sigma_rel = 8, 0.02, 0.005
+    R_true = random_rotations(rng, n)
+    abs_idx = np.array([0, 4, 7])
+    runs, errors, covs = 150, [], None
+    for run in range(runs):
+        g_abs, g_rel = _rotation_chain(rng, R_true, sigma_abs, sigma_rel, abs_idx)
+        problem = Problem()
+        problem.add_block("R", noisy(rng, R_true, 0.3), manifold="so3")  # ~17 deg start error
+        problem.add_group(g_abs)
+        problem.add_group(g_rel)
+        result = problem.solve()
+        assert result.converged, result.termination
+        R_est = problem.values("R")
+        np.testing.assert_allclose(R_est @ np.swapaxes(R_est, 1, 2), np.broadcast_to(np.eye(3), (n, 3, 3)), atol=1e-12)
+        # covariance of delta in R_true = R_est Exp(delta)
+        errors.append(log_so3(np.swapaxes(R_est, 1, 2) @ R_true))
+        if covs is None:
+            covs = problem.covariance("R", scale_by_variance_factor=False)
+    errors = np.asarray(errors)  # (runs, n, 3)
+    assert np.abs(errors).max() < 0.05
+    empirical = np.einsum("kni,knj->nij", errors, errors) / runs
+    ratio = np.trace(empirical, axis1=1, axis2=2) / np.trace(covs, axis1=1, axis2=2)
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio
+    # Normalised estimation errors: mean of e^T C^-1 e should be ~3 per element.
+    nees = np.einsum("kni,nij,knj->kn", errors, np.linalg.inv(covs), errors).mean()
+    assert 2.4 < nees < 3.6
+
+
+# ---------------------------------------------------------------------------------------------
+# (4) robust losses
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("loss", [TrivialLoss(), HuberLoss(1.5), CauchyLoss(2.0)])
+def test_robust_loss_derivatives(loss):
+    s = np.concatenate([np.linspace(0.0, 30.0, 301), [1e-12, 1e4]])
+    rho, drho = loss.evaluate(s)
+    h = 1e-6
+    num = (loss.evaluate(s + h)[0] - loss.evaluate(np.maximum(s - h, 0.0))[0]) / (s + h - np.maximum(s - h, 0.0))
+    np.testing.assert_allclose(drho, num, rtol=1e-5, atol=1e-7)
+    assert rho[0] == 0 and drho[0] == pytest.approx(1.0)
+    assert np.all(drho > 0) and np.all(drho <= 1.0 + 1e-15)
+
+
+def test_make_loss():
+    assert make_loss(None) is None and make_loss("none") is None
+    assert make_loss("huber", 2.0) == HuberLoss(2.0)
+    assert make_loss("Cauchy") == CauchyLoss()
+    with pytest.raises(ValueError):
+        make_loss("tukey")
+    with pytest.raises(ValueError):
+        HuberLoss(-1.0)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_robust_line_fit_rejects_gross_outliers(seed):
+    rng = np.random.default_rng(seed)
+    n, sigma = 200, 0.1
+    x = rng.uniform(0.0, 10.0, n)
+    m_true, q_true = 0.7, -1.2
+    y = m_true * x + q_true + rng.normal(scale=sigma, size=n)
+    bad = rng.choice(n, size=n // 10, replace=False)
+    y[bad] += rng.uniform(3.0, 8.0, bad.size) * np.where(x[bad] > 5, 1.0, 0.3)  # one-sided, leverage
+    truth = np.array([m_true, q_true])
+    chk = check_jacobians(LineGroup(x, y, sigma), {"theta": np.zeros((1, 2))}, {"theta": "euclidean"})
+    assert chk.max_rel_error < 1e-8
+
+    estimates, results = {}, {}
+    for name, loss in [("ls", None), ("huber", HuberLoss(1.345)), ("cauchy", CauchyLoss(2.385))]:
+        problem = Problem()
+        problem.add_block("theta", np.zeros((1, 2)))
+        problem.add_group(LineGroup(x, y, sigma, loss))
+        results[name] = problem.solve(SolverOptions(max_iterations=100))
+        assert results[name].converged, (name, results[name].termination)
+        estimates[name] = problem.values("theta")[0]
+    # a clean-data fit has sigma_m ~ 0.0025, sigma_q ~ 0.015
+    assert np.abs(estimates["ls"] - truth).max() > 0.1
+    assert np.all(np.abs(estimates["huber"] - truth) < [0.02, 0.1])
+    assert np.all(np.abs(estimates["cauchy"] - truth) < [0.01, 0.05])
+    stats = results["cauchy"].group("line")
+    assert stats.robust_loss == "cauchy" and stats.n_downweighted >= 0.8 * bad.size
+    # robust=False switches the loss off
+    problem = Problem()
+    problem.add_block("theta", np.zeros((1, 2)))
+    problem.add_group(LineGroup(x, y, sigma, CauchyLoss()))
+    problem.solve(SolverOptions(robust=False))
+    np.testing.assert_allclose(problem.values("theta")[0], estimates["ls"], rtol=1e-7)
+
+
+# ---------------------------------------------------------------------------------------------
+# (5) hold constant / datum
+# ---------------------------------------------------------------------------------------------
+
+
+def test_constant_element_fixes_gauge_of_relative_rotations():
+    rng = np.random.default_rng(5)
+    n = 10
+    R_true = random_rotations(rng, n)
+    _, g_rel = _rotation_chain(rng, R_true, 0.01, 0.01, np.array([0]))
+    start = noisy(rng, R_true, 0.2)
+    start[3] = R_true[3]
+    problem = Problem()
+    problem.add_block("R", start, manifold="so3", constant=np.arange(n) == 3)
+    problem.add_group(g_rel)
+    result = problem.solve()
+    assert result.converged
+    assert result.n_unknowns == 3 * (n - 1)
+    np.testing.assert_array_equal(problem.values("R")[3], start[3])  # bit-identical
+    err = np.linalg.norm(log_so3(np.swapaxes(problem.values("R"), 1, 2) @ R_true), axis=1)
+    assert err.max() < 0.05
+    cov = problem.covariance("R")
+    assert np.all(cov[3] == 0)
+    assert np.all(np.linalg.eigvalsh(np.delete(cov, 3, axis=0)) > 0)
+    # the covariance grows with the distance from the datum element
+    tr = np.trace(cov, axis1=1, axis2=2)
+    assert tr[9] > tr[5] > tr[4] and tr[0] > tr[2]
+
+
+def test_without_datum_covariance_reports_singular_normal_matrix():
+    rng = np.random.default_rng(6)
+    R_true = random_rotations(rng, 5)
+    _, g_rel = _rotation_chain(rng, R_true, 0.01, 0.01, np.array([0]))
+    problem = Problem()
+    problem.add_block("R", noisy(rng, R_true, 0.1), manifold="so3")
+    problem.add_group(g_rel)
+    result = problem.solve()  # LM damping still finds a (gauge-free) minimum
+    assert result.converged
+    # 7 relative rotations (21 rows), 15 unknowns of which 3 are gauge: chi^2 with 9 dof
+    assert result.final_cost < 15.0 < 1e-2 * result.initial_cost
+    with pytest.raises(NotPositiveDefiniteError):
+        problem.covariance("R", scale_by_variance_factor=False)
+
+
+def test_constant_block_adds_no_columns_and_jacobians_to_it_are_dropped():
+    rng = np.random.default_rng(7)
+    A1, A2 = rng.normal(size=(30, 3)), rng.normal(size=(30, 2))
+    x1, x2 = rng.normal(size=3), rng.normal(size=2)
+    b = A1 @ x1 + A2 @ x2 + rng.normal(scale=0.01, size=30)
+
+    class TwoBlockGroup:
+        name, loss = "two", None
+
+        def linearize(self, values, jacobians=True):
+            r = (A1 @ values["a"][0] + A2 @ values["b"][0] - b) / 0.01
+            rows = np.arange(30)[:, None]
+            jac = [
+                JacobianBlock("a", rows, np.zeros(30, int), A1[:, None, :] / 0.01),
+                JacobianBlock("b", rows, np.zeros(30, int), A2[:, None, :] / 0.01),
+            ] if jacobians else []
+            return Linearization(r, jac)
+
+    assert check_jacobians(TwoBlockGroup(), {"a": np.zeros((1, 3)), "b": np.zeros((1, 2))},
+                           {"a": "euclidean", "b": "euclidean"}).max_rel_error < 1e-8
+    problem = Problem()
+    problem.add_block("a", np.zeros((1, 3)))
+    problem.add_block("b", x2[None])
+    problem.set_constant("b", True)
+    problem.add_group(TwoBlockGroup())
+    result = problem.solve()
+    assert result.n_unknowns == 3 and result.redundancy == 27
+    np.testing.assert_array_equal(problem.values("b")[0], x2)
+    np.testing.assert_allclose(problem.values("a")[0], np.linalg.lstsq(A1, b - A2 @ x2, rcond=None)[0], rtol=1e-8)
+    assert np.all(problem.covariance("b") == 0)
+    problem.set_constant("b", False)
+    problem.set_constant("a", np.array([True]))
+    result = problem.solve()
+    assert result.n_unknowns == 2
+
+
+def test_all_constant_problem_reports_no_unknowns():
+    problem = Problem()
+    problem.add_block("theta", np.array([[0.7, -1.2]]), constant=True)
+    problem.add_group(LineGroup(np.arange(5.0), 0.7 * np.arange(5.0) - 1.2, 0.1))
+    result = problem.solve()
+    assert result.termination == "no_unknowns" and result.converged and result.n_unknowns == 0
+    assert result.final_cost == pytest.approx(0.0, abs=1e-20)
+
+
+# ---------------------------------------------------------------------------------------------
+# (6) linear-algebra backends
+# ---------------------------------------------------------------------------------------------
+
+
+def _random_spd(rng, n, density=0.02):
+    B = sp.random(n, n, density=density, random_state=rng.integers(1 << 31))
+    return (B @ B.T + sp.eye(n) * 0.1).tocsr()
+
+
+def test_backends_agree_on_the_same_system():
+    rng = np.random.default_rng(8)
+    A = _random_spd(rng, 400)
+    B = rng.normal(size=(400, 7))
+    ref = np.linalg.solve(A.toarray(), B)
+    backends = linalg.available_backends()
+    assert "cholespy" in backends and backends[-1] == "scipy"
+    for backend in backends:
+        for lower in (False, True):
+            M = sp.tril(A, format="csr") if lower else A
+            f = cholesky(M, lower=lower, backend=backend)
+            assert f.backend == backend and f.n == 400
+            np.testing.assert_allclose(f.solve(B), ref, rtol=1e-9, atol=1e-11)
+            np.testing.assert_allclose(f.solve(B[:, 0]), ref[:, 0], rtol=1e-9, atol=1e-11)
+    # Full solve: same estimate with either backend
+    estimates = []
+    for backend in ("cholespy", "scipy"):
+        r = np.random.default_rng(9)
+        R_true = random_rotations(r, 12)
+        g_abs, g_rel = _rotation_chain(r, R_true, 0.02, 0.01, np.array([0, 11]))
+        problem = Problem()
+        problem.add_block("R", noisy(r, R_true, 0.2), manifold="so3")
+        problem.add_group(g_abs)
+        problem.add_group(g_rel)
+        result = problem.solve(SolverOptions(linear_solver=backend))
+        assert result.backend == backend
+        estimates.append((problem.values("R"), problem.covariance("R")))
+    np.testing.assert_allclose(estimates[0][0], estimates[1][0], atol=1e-10)
+    np.testing.assert_allclose(estimates[0][1], estimates[1][1], rtol=1e-7)
+
+
+@pytest.mark.parametrize("backend", ["cholespy", "scipy"])
+def test_backends_reject_indefinite_matrices(backend):
+    A = sp.csr_matrix(np.array([[2.0, 3.0, 0.0], [3.0, 2.0, 0.0], [0.0, 0.0, 1.0]]))
+    with pytest.raises(NotPositiveDefiniteError):
+        cholesky(A, backend=backend)
+    with pytest.raises(ValueError):
+        cholesky(A, backend="mumps")
+
+
+def test_cholespy_reads_only_the_lower_triangle():
+    """Documents the pitfall the linalg wrapper avoids: cholespy silently ignores the upper part."""
+    cholespy = pytest.importorskip("cholespy")
+    rng = np.random.default_rng(10)
+    A = _random_spd(rng, 50, 0.1)
+    b = rng.normal(size=50)
+    upper = sp.triu(A, format="coo")
+    solver = cholespy.CholeskySolverD(
+        50, upper.row.astype(np.int32), upper.col.astype(np.int32), upper.data, cholespy.MatrixType.COO
+    )
+    x = np.zeros(50)
+    solver.solve(b, x)
+    assert np.abs(A @ x - b).max() > 1e-3  # wrong: only the diagonal was used
+    np.testing.assert_allclose(A @ cholesky(A, backend="cholespy").solve(b), b, atol=1e-10)
+
+
+# ---------------------------------------------------------------------------------------------
+# (7) a-posteriori variance factor and statistics
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_variance_factor_is_one_for_correct_weights(seed):
+    rng = np.random.default_rng(seed)
+    n = 200
+    R_true = random_rotations(rng, n)
+    g_abs, g_rel = _rotation_chain(rng, R_true, 0.01, 0.003, np.arange(0, n, 4))
+    problem = Problem()
+    problem.add_block("R", noisy(rng, R_true, 0.05), manifold="so3")
+    problem.add_group(g_abs)
+    problem.add_group(g_rel)
+    result = problem.solve()
+    f = result.redundancy
+    assert f == 3 * (50 + (n - 1) + (n - 2)) - 3 * n
+    assert abs(result.variance_factor - 1.0) < 4.0 * np.sqrt(2.0 / f)
+    assert result.n_observations == 50 + 2 * n - 3 and result.n_residuals == 3 * result.n_observations
+    stats = {g.name: g for g in result.groups}
+    assert stats["abs"].n_observations == 50 and stats["rel"].n_residuals == 3 * (2 * n - 3)
+    assert sum(g.cost_share for g in result.groups) == pytest.approx(1.0)
+    assert sum(g.cost for g in result.groups) == pytest.approx(result.final_cost)
+    for g in result.groups:
+        assert 0.5 < g.rms < 1.1 and g.variance_factor == pytest.approx(g.rms**2)
+    payload = json.loads(json.dumps(result.to_dict()))
+    assert payload["termination"] == result.termination and payload["groups"][0]["name"] == "abs"
+    assert payload["timings"]["total_s"] >= payload["timings"]["factorization_s"] >= 0
+    assert "sigma0^2" in result.summary()
+
+
+def test_progress_callback_and_iteration_limit():
+    rng = np.random.default_rng(11)
+    t = np.linspace(0.0, 4.0, 50)
+    y = 2.0 * np.exp(-0.5 * t) + 0.3 + rng.normal(scale=0.01, size=t.size)
+    problem = Problem()
+    problem.add_block("theta", np.array([[0.5, 0.5, -1.0]]))
+    problem.add_group(ExpCurveGroup(t, y, 0.01))
+    seen = []
+    result = problem.solve(SolverOptions(max_iterations=3), progress=seen.append)
+    assert result.termination == "max_iterations" and not result.converged
+    assert result.iterations == 3 and [s.iteration for s in seen] == [1, 2, 3]
+    assert len(result.cost_history) == result.successful_iterations + 1
+
+
+def test_problem_validation_errors():
+    problem = Problem()
+    with pytest.raises(ValueError):
+        problem.add_block("R", np.ones((2, 3, 3)), manifold="so3")
+    with pytest.raises(ValueError):
+        problem.add_block("x", np.zeros(4))
+    with pytest.raises(ValueError):
+        problem.add_block("x", np.zeros((4, 2)), manifold="se3")
+    problem.add_block("x", np.zeros((4, 2)))
+    with pytest.raises(ValueError):
+        problem.add_block("x", np.zeros((4, 2)))
+    with pytest.raises(ValueError):
+        problem.set_constant("x", np.array([True, False]))
+    with pytest.raises(KeyError):
+        problem.values("y")
+    with pytest.raises(RuntimeError):
+        problem.covariance("x")
+    with pytest.raises(ValueError):
+        JacobianBlock("x", np.zeros((3, 2), int), np.zeros(3, int), np.zeros((3, 1, 2)))
+
+
+# ---------------------------------------------------------------------------------------------
+# (8) scale
+# ---------------------------------------------------------------------------------------------
+
+
+def _spline_problem(rng, n_elements, obs_per_element=2):
+    x_true = np.cumsum(rng.normal(scale=0.1, size=(n_elements, 3)), axis=0)
+    n_obs = obs_per_element * n_elements
+    first = rng.integers(0, n_elements - 3, n_obs)
+    w = rng.uniform(0.1, 1.0, (n_obs, 4))
+    sigma = 0.01
+    x0 = x_true[first]
+    z = np.einsum("nl,nld->nd", w, x_true[first[:, None] + np.arange(4)]) + 0.05 * np.sum(x0 * x0, 1, keepdims=True)
+    z += rng.normal(scale=sigma, size=z.shape)
+    # the random walk of x_true is exactly what the smoothness pseudo-observations assume
+    return x_true, SplineGroup(first, w, z, sigma), DifferenceGroup(n_elements, 0.1)
+
+
+def test_spline_group_jacobians():
+    rng = np.random.default_rng(12)
+    x_true, spline, smooth = _spline_problem(rng, 12)
+    x = x_true + rng.normal(scale=0.3, size=x_true.shape)
+    for group in (spline, smooth):
+        assert check_jacobians(group, {"x": x}, {"x": "euclidean"}).max_rel_error < 1e-7
+    chk = check_jacobians(spline, {"x": x}, {"x": "euclidean"}, constant={"x": np.arange(12) < 3}, max_elements=4)
+    assert chk.max_rel_error < 1e-7
+
+
+def test_scale_100k_unknowns_solves_in_seconds():
+    rng = np.random.default_rng(13)
+    n_elements = 33_400  # 100,200 unknowns
+    x_true, spline, smooth = _spline_problem(rng, n_elements)
+    problem = Problem()
+    problem.add_block("x", x_true + rng.normal(scale=0.05, size=x_true.shape))
+    problem.add_group(spline)
+    problem.add_group(smooth)
+    t0 = time.perf_counter()
+    result = problem.solve()
+    elapsed = time.perf_counter() - t0
+    assert result.converged, result.termination
+    assert result.n_unknowns == 3 * n_elements
+    assert abs(result.variance_factor - 1.0) < 0.05
+    err = problem.values("x") - x_true
+    assert np.sqrt(np.mean(err**2)) < 0.02
+    assert elapsed < 20.0, result.summary()
+    cov = problem.covariance("x", elements=np.arange(0, n_elements, 1000))
+    assert cov.shape == (34, 3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)

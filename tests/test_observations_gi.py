@@ -1,0 +1,102 @@
+"""GNSS, IMU, bias and prior observation groups: Jacobians against manifold finite differences."""
+
+import numpy as np
+import pytest
+
+from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
+from georefine.adjustment.observations.gnss import GnssPositionObservation
+from georefine.adjustment.observations.imu import ImuObservation, make_imu_windows
+from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
+from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
+from georefine.adjustment.testing import check_jacobians
+from georefine.geometry.frames import LocalFrame
+from georefine.geometry.rotation import exp_so3
+from georefine.trajectory.spline import KnotGrid
+
+SEEDS = [0, 1, 2]
+FRAME = LocalFrame.from_degrees(46.7, 11.65, 600.0)
+B = TrajectoryBlocks()
+TRAJ_BLOCKS = {B.position: "euclidean", B.velocity: "euclidean", B.acceleration: "euclidean",
+               B.attitude: "so3", B.rate: "euclidean"}
+
+
+def random_knots(rng, K):
+    t = np.arange(K) * 0.1
+    P = np.column_stack([100 + 18 * t, 50 - 3 * t, 160 + np.sin(t)]) + rng.normal(0, 0.01, (K, 3))
+    V = np.column_stack([np.full(K, 18.0), np.full(K, -3.0), np.cos(t)]) + rng.normal(0, 0.1, (K, 3))
+    A = rng.normal(0, 0.5, (K, 3))
+    R = exp_so3(np.column_stack([0.05 * np.sin(t), 0.02 * np.cos(t), 1.2 + 0.1 * t]) + rng.normal(0, 0.01, (K, 3)))
+    W = rng.normal(0, 0.2, (K, 3))
+    return {B.position: P, B.velocity: V, B.acceleration: A, B.attitude: R, B.rate: W}
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_gnss_jacobians(seed):
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    t = np.sort(rng.uniform(0, grid.t_end, 20))
+    A = rng.normal(size=(20, 3, 3)) * 0.01
+    cov = A @ np.swapaxes(A, 1, 2) + np.eye(3) * 1e-4
+    lever = np.array([-0.8, 0.1, -1.4])
+    z = GnssPositionObservation(grid, t, np.zeros((20, 3)), cov, lever).predict(values) + rng.normal(0, 0.01, (20, 3))
+    group = GnssPositionObservation(grid, t, z, cov, lever)
+    # Step 1e-4: the residuals are whitened by sigma ~ 1 cm, so smaller steps only add roundoff.
+    chk = check_jacobians(group, values, TRAJ_BLOCKS, eps=1e-4)
+    assert chk.max_rel_error < 1e-5, chk
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("window_samples", [1, 10])
+def test_imu_jacobians(seed, window_samples):
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    rate = 200.0
+    t = np.arange(0.01, grid.t_end - 0.01, 1 / rate)
+    wins = make_imu_windows(t, rng.normal(0, 0.1, (t.size, 3)), rng.normal(0, 1, (t.size, 3)) + [0, 0, -9.8],
+                            rate, window_samples / rate)
+    bg_a = BiasGrid(0.0, 0.5, 4)
+    bg_g = BiasGrid(0.0, 0.5, 4)
+    values |= {"acc_bias": rng.normal(0, 0.01, (4, 3)), "gyro_bias": rng.normal(0, 1e-4, (4, 3)),
+               "acc_scale": rng.normal(0, 1e-3, (1, 3)), "gyro_scale": rng.normal(0, 1e-3, (1, 3))}
+    group = ImuObservation(grid, wins, FRAME, bg_a, bg_g, sigma_acc=0.01, sigma_gyro=1e-4,
+                           nodes=1 if window_samples == 1 else 3)
+    blocks = dict(TRAJ_BLOCKS, acc_bias="euclidean", gyro_bias="euclidean", acc_scale="euclidean", gyro_scale="euclidean")
+    chk = check_jacobians(group, values, blocks, eps=1e-4)
+    assert chk.max_rel_error < 1e-6, chk
+
+
+def test_imu_windows_average_and_respect_gaps():
+    t = np.concatenate([np.arange(0, 1, 0.005), np.arange(1.1, 2, 0.005)])
+    g = np.column_stack([t, 2 * t, -t])
+    w = make_imu_windows(t, g, g, 200.0, 0.05)
+    assert np.all(w.n_samples <= 10)
+    assert not np.any((w.t_start < 1.05) & (w.t_end > 1.05))  # no window across the gap
+    k = 3
+    np.testing.assert_allclose(w.gyro[k], g[10 * k:10 * k + 10].mean(axis=0))
+    np.testing.assert_allclose(w.t_start[k], t[10 * k] - 0.0025)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_bias_random_walk_and_priors(seed):
+    rng = np.random.default_rng(seed)
+    values = {"b": rng.normal(size=(6, 3)), "R": exp_so3(rng.normal(size=(4, 3)))}
+    rw = BiasRandomWalk("rw", "b", BiasGrid(0.0, 10.0, 6), q=[1e-3, 2e-3, 3e-3])
+    chk = check_jacobians(rw, values, {"b": "euclidean"})
+    assert chk.max_rel_error < 1e-7
+    lin = rw.linearize(values, False)
+    np.testing.assert_allclose(lin.residuals[:3], (values["b"][1] - values["b"][0]) / (np.array([1, 2, 3]) * 1e-3 * np.sqrt(10)))
+    prior = EuclideanPrior("p", "b", [0, 5], values["b"][[0, 5]] + 0.1, sigma=0.05)
+    assert check_jacobians(prior, values, {"b": "euclidean"}).max_rel_error < 1e-7
+    rp = RotationPrior("rp", "R", [1, 3], exp_so3(rng.normal(size=(2, 3)) * 0.3), sigma=[0.01, 0.02, 0.03])
+    assert check_jacobians(rp, values, {"R": "so3"}).max_rel_error < 1e-5
+
+
+def test_bias_grid_interpolates_linearly():
+    grid = BiasGrid.covering(0.0, 25.0, 10.0)
+    assert grid.n_knots == 4
+    b = np.arange(12.0).reshape(4, 3)
+    np.testing.assert_allclose(grid.evaluate(b, np.array([0.0, 5.0, 30.0])), [b[0], (b[0] + b[1]) / 2, b[3]])
