@@ -117,6 +117,65 @@ class ReferenceConfig(StrictModel):
     surfaces: str | None = Field(None, description="Reference surfaces CSV (evaluation only).")
 
 
+class FilterConfig(StrictModel):
+    """Initialisation filter settings (defaults for a helicopter/aircraft survey flight)."""
+
+    covariance_rate_hz: float = Field(20.0, gt=0, description="covariance propagation (filter epochs)")
+    gnss_gate_probability: float = Field(
+        0.9999, gt=0, le=1, description="chi-square (3 dof) gate; 1 disables gating")
+    gnss_gate_reset_s: float = Field(10.0, gt=0, description="open the gate after this long rejected")
+    gnss_sigma_scale: float = Field(1.0, gt=0, description="factor on the reported GNSS sigmas")
+    alignment_speed_mps: float = Field(5.0, gt=0, description="horizontal speed for heading alignment")
+    alignment_hold_s: float = Field(1.0, ge=0, description="speed must stay above the threshold")
+    static_window_s: float = Field(8.0, gt=0, description="levelling window at the start")
+    static_max_speed_mps: float = Field(0.05, gt=0, description="GNSS speed below which at rest")
+    initial_velocity_sigma_mps: float = Field(0.3, gt=0)
+    initial_tilt_sigma_deg: float = Field(2.0, gt=0, description="roll/pitch after in-motion alignment")
+    coarse_window_s: float = Field(2.0, gt=0, description="GNSS/IMU window of the in-motion alignment")
+    levelling_sigma_deg: float = Field(0.005, gt=0, description="levelling error beyond the acc bias")
+    initial_heading_sigma_deg: float = Field(10.0, gt=0, description="after in-motion alignment")
+    gyro_arw_floor_deg_per_sqrt_h: float = Field(0.002, gt=0)
+    acc_vrw_floor_m_per_s_per_sqrt_h: float = Field(0.002, gt=0)
+    gyro_bias_floor_deg_per_h: float = Field(0.003, gt=0, description="turn-on and instability floor")
+    acc_bias_floor_ug: float = Field(10.0, gt=0, description="turn-on and instability floor")
+    estimate_scale_factors: bool = Field(True, description="else the scale factors are held at 0")
+    scale_factor_floor_ppm: float = Field(1.0, gt=0, description="prior floor when estimated")
+
+
+class TrajectoryAdjustmentConfig(StrictModel):
+    """GNSS/IMU(/LiDAR) adjustment of the spline trajectory (DESIGN §4.2-4.4, §4.6)."""
+
+    knot_interval_s: float = Field(0.1, gt=0.0, le=1.0, description="Spline knot spacing.")
+    imu_window_s: float = Field(
+        0.05, gt=0.0, le=1.0, description="IMU samples are averaged over windows of this length (down-sampling)."
+    )
+    quadrature_nodes: int = Field(3, ge=1, le=5, description="Gauss-Legendre nodes per IMU window.")
+    bias_knot_interval_s: float = Field(10.0, gt=0.0, description="Knot spacing of the piecewise-linear biases.")
+    estimate_scale_factors: bool = True
+    gnss_loss: Literal["huber", "cauchy", "none"] = "huber"
+    gnss_loss_scale: float = Field(3.0, gt=0.0, description="Huber delta / Cauchy c in units of sigma.")
+    max_iterations: int = Field(30, ge=1)
+    covariance_interval_s: float = Field(
+        1.0, gt=0.0, description="Posterior roll/pitch/yaw sigma are computed at knots this far apart."
+    )
+    min_gyro_noise_deg_per_sqrt_h: float = Field(
+        0.001, gt=0.0, description="Floor of the gyro ARW used for weighting (an ideal IMU spec is all zeros)."
+    )
+    min_acc_noise_m_per_s_per_sqrt_h: float = Field(0.0005, gt=0.0, description="Floor of the VRW used for weighting.")
+    min_gyro_bias_rw_deg_per_h_per_sqrt_h: float = Field(0.001, gt=0.0, description="Floor of the gyro bias random walk.")
+    min_acc_bias_rw_ug_per_sqrt_h: float = Field(1.0, gt=0.0, description="Floor of the accelerometer bias random walk.")
+    min_turn_on_gyro_deg_per_h: float = Field(0.01, gt=0.0, description="Floor of the gyro turn-on bias prior.")
+    min_turn_on_acc_ug: float = Field(10.0, gt=0.0, description="Floor of the accelerometer turn-on bias prior.")
+    min_scale_factor_ppm: float = Field(1.0, gt=0.0, description="Floor of the scale-factor prior.")
+
+
+class ProcessingConfig(StrictModel):
+    """Processing options (all optional; defaults documented in each model)."""
+
+    filter: FilterConfig = Field(default_factory=FilterConfig)
+    trajectory: TrajectoryAdjustmentConfig = Field(default_factory=TrajectoryAdjustmentConfig)
+
+
 class ProjectConfig(StrictModel):
     """``project.yaml``: where the sensor files are and how the system is built."""
 
@@ -126,6 +185,7 @@ class ProjectConfig(StrictModel):
     imu: ImuFileConfig
     scanner: ScannerFileConfig
     reference: ReferenceConfig = Field(default_factory=ReferenceConfig)
+    processing: ProcessingConfig = Field(default_factory=ProcessingConfig)
 
 
 def boresight_matrix(boresight_deg: Vector3) -> np.ndarray:
