@@ -127,6 +127,26 @@ def check(
 
 
 @app.command()
+def trajectory(
+    project: Path = typer.Argument(..., help="Project folder with project.yaml."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
+    filter_only: bool = typer.Option(False, "--filter-only", help="Stop after the initialisation filter (step 1)."),
+) -> None:
+    """Estimate the trajectory from GNSS and IMU (workflow steps 1-2).
+
+    Writes trajectory.sbet (IMU rate), trajectory.csv (output CRS, roll/pitch/heading and
+    posterior sigma), adjustment.json (statistics, IMU errors, timings) and the resolved
+    configuration.
+    """
+    with _user_errors():
+        from georefine.pipeline import run_trajectory
+
+        with _progress() as report:
+            result = run_trajectory(project, out, filter_only=filter_only, progress=report)
+    stdout.print(result.summary())
+
+
+@app.command()
 def demo(
     out: Path = typer.Option(Path("georefine-demo"), "--out", "-o", help="Output folder."),
     scenario: str = typer.Option("corridor", "--scenario", help="Scenario to simulate."),

@@ -16,7 +16,7 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from georefine.errors import ConfigError
 
@@ -147,7 +147,7 @@ class TrajectoryAdjustmentConfig(StrictModel):
 
     knot_interval_s: float = Field(0.1, gt=0.0, le=1.0, description="Spline knot spacing.")
     imu_window_s: float = Field(
-        0.05, gt=0.0, le=1.0, description="IMU samples are averaged over windows of this length (down-sampling)."
+        0.02, gt=0.0, le=1.0, description="IMU samples are averaged over windows of this length (down-sampling)."
     )
     quadrature_nodes: int = Field(3, ge=1, le=5, description="Gauss-Legendre nodes per IMU window.")
     bias_knot_interval_s: float = Field(10.0, gt=0.0, description="Knot spacing of the piecewise-linear biases.")
@@ -156,7 +156,7 @@ class TrajectoryAdjustmentConfig(StrictModel):
     gnss_loss_scale: float = Field(3.0, gt=0.0, description="Huber delta / Cauchy c in units of sigma.")
     max_iterations: int = Field(30, ge=1)
     covariance_interval_s: float = Field(
-        1.0, gt=0.0, description="Posterior roll/pitch/yaw sigma are computed at knots this far apart."
+        5.0, gt=0.0, description="Posterior roll/pitch/yaw sigma are computed at knots this far apart."
     )
     min_gyro_noise_deg_per_sqrt_h: float = Field(
         0.001, gt=0.0, description="Floor of the gyro ARW used for weighting (an ideal IMU spec is all zeros)."
@@ -167,6 +167,18 @@ class TrajectoryAdjustmentConfig(StrictModel):
     min_turn_on_gyro_deg_per_h: float = Field(0.01, gt=0.0, description="Floor of the gyro turn-on bias prior.")
     min_turn_on_acc_ug: float = Field(10.0, gt=0.0, description="Floor of the accelerometer turn-on bias prior.")
     min_scale_factor_ppm: float = Field(1.0, gt=0.0, description="Floor of the scale-factor prior.")
+
+    @model_validator(mode="after")
+    def _enough_imu_windows(self) -> "TrajectoryAdjustmentConfig":
+        # The quintic position spline has 3 free states per axis and knot interval, the
+        # orientation spline 2; each IMU window observes one value per axis. With fewer than
+        # four windows per interval (GNSS adds < 1) the normal equations are singular.
+        if self.knot_interval_s < 4.0 * self.imu_window_s - 1e-12:
+            raise ValueError(
+                f"imu_window_s ({self.imu_window_s}) must be at most a quarter of knot_interval_s "
+                f"({self.knot_interval_s}): each knot interval needs >= 4 IMU windows"
+            )
+        return self
 
 
 class ProcessingConfig(StrictModel):

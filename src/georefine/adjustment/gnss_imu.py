@@ -1,0 +1,261 @@
+"""The GNSS/IMU adjustment of a continuous-time trajectory (DESIGN §4.5 step 2).
+
+Parameters: the spline knots (positions, velocities, accelerations, attitudes, body rates),
+piecewise-linear accelerometer and gyro biases, and constant diagonal scale factors.
+Observations: GNSS antenna positions (robust loss), window-averaged IMU readings, the bias
+random walk, and priors on the turn-on biases and the scale factors from the datasheet.
+The same problem later receives the LiDAR plane observations (step 5), so the builder
+returns the :class:`~georefine.adjustment.problem.Problem` for further groups.
+"""
+
+from __future__ import annotations
+
+import time as _time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
+from georefine.adjustment.observations.gnss import GnssPositionObservation
+from georefine.adjustment.observations.imu import ImuObservation, make_imu_windows
+from georefine.adjustment.observations.prior import EuclideanPrior
+from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
+from georefine.adjustment.problem import Problem
+from georefine.adjustment.robust import make_loss
+from georefine.adjustment.solver import SolverOptions, SolveResult
+from georefine.config import ImuErrorSpec, TrajectoryAdjustmentConfig
+from georefine.errors import InputError
+from georefine.geometry.frames import LocalFrame
+from georefine.geometry.rotation import rph_from_R_n_b
+from georefine.trajectory.spline import KnotGrid, SplineTrajectory
+
+DEG_PER_H = np.pi / 180.0 / 3600.0
+MICRO_G = 9.80665e-6
+
+
+@dataclass(frozen=True)
+class GnssImuData:
+    """Inputs of the adjustment, in the mapping frame and relative times.
+
+    Attributes
+    ----------
+    frame : LocalFrame
+    t0_gps : float
+        Dataset epoch (GPS s); all times are relative to it.
+    imu_time : (N,) s; imu_gyro (N,3) rad/s; imu_acc (N,3) m/s²; imu_rate_hz : float
+    gnss_time : (G,) s; gnss_p_w (G,3) m; gnss_cov_w (G,3,3) m²
+    p_b_a : (3,) antenna lever arm (m)
+    """
+
+    frame: LocalFrame
+    t0_gps: float
+    imu_time: np.ndarray
+    imu_gyro: np.ndarray
+    imu_acc: np.ndarray
+    imu_rate_hz: float
+    gnss_time: np.ndarray
+    gnss_p_w: np.ndarray
+    gnss_cov_w: np.ndarray
+    p_b_a: np.ndarray
+
+
+@dataclass(frozen=True)
+class ImuErrorEstimate:
+    """Estimated IMU errors: biases on their knots and scale factors, with 1-sigma."""
+
+    bias_grid: BiasGrid
+    acc_bias: np.ndarray
+    gyro_bias: np.ndarray
+    acc_scale: np.ndarray
+    gyro_scale: np.ndarray
+    acc_bias_sigma: np.ndarray | None = None
+    gyro_bias_sigma: np.ndarray | None = None
+    acc_scale_sigma: np.ndarray | None = None
+    gyro_scale_sigma: np.ndarray | None = None
+
+    def to_dict(self) -> dict:
+        def arr(x, f=1.0):
+            return None if x is None else (np.asarray(x) * f).tolist()
+
+        return {
+            "bias_knot_times_s": self.bias_grid.times.tolist(),
+            "acc_bias_ug": arr(self.acc_bias, 1 / MICRO_G),
+            "gyro_bias_deg_per_h": arr(self.gyro_bias, 1 / DEG_PER_H),
+            "acc_bias_sigma_ug": arr(self.acc_bias_sigma, 1 / MICRO_G),
+            "gyro_bias_sigma_deg_per_h": arr(self.gyro_bias_sigma, 1 / DEG_PER_H),
+            "acc_scale_ppm": arr(self.acc_scale, 1e6),
+            "gyro_scale_ppm": arr(self.gyro_scale, 1e6),
+            "acc_scale_sigma_ppm": arr(self.acc_scale_sigma, 1e6),
+            "gyro_scale_sigma_ppm": arr(self.gyro_scale_sigma, 1e6),
+        }
+
+
+@dataclass(frozen=True)
+class GnssImuResult:
+    """The adjusted trajectory, IMU errors, statistics and posterior attitude sigma."""
+
+    spline: SplineTrajectory
+    imu_errors: ImuErrorEstimate
+    solve: SolveResult
+    sigma_time: np.ndarray
+    sigma_rph_rad: np.ndarray
+    sigma_position_m: np.ndarray
+    timings_s: dict = field(default_factory=dict)
+
+
+@dataclass
+class GnssImuProblem:
+    """A built problem and what is needed to read its solution."""
+
+    problem: Problem
+    grid: KnotGrid
+    bias_grid: BiasGrid
+    blocks: TrajectoryBlocks
+    data: GnssImuData
+    cfg: TrajectoryAdjustmentConfig
+    estimate_scale: bool
+
+    def spline(self) -> SplineTrajectory:
+        p = self.problem
+        b = self.blocks
+        return SplineTrajectory(
+            self.grid, p.values(b.position), p.values(b.velocity), p.values(b.acceleration),
+            p.values(b.attitude), p.values(b.rate), t0_gps=self.data.t0_gps,
+        )
+
+
+def _densities(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> dict[str, float]:
+    """White-noise and bias random-walk densities in SI units, with the configured floors."""
+    arw = max(spec.gyro_arw_deg_per_sqrt_h, cfg.min_gyro_noise_deg_per_sqrt_h)
+    vrw = max(spec.acc_vrw_m_per_s_per_sqrt_h, cfg.min_acc_noise_m_per_s_per_sqrt_h)
+    q_g = spec.gyro_bias_instability_deg_per_h * DEG_PER_H * np.sqrt(2.0 / spec.gyro_bias_correlation_time_s)
+    q_a = spec.acc_bias_instability_ug * MICRO_G * np.sqrt(2.0 / spec.acc_bias_correlation_time_s)
+    return {
+        "gyro_noise": np.radians(arw) / 60.0,  # rad/s/sqrt(Hz)
+        "acc_noise": vrw / 60.0,  # m/s²/sqrt(Hz)
+        "gyro_rw": max(q_g, cfg.min_gyro_bias_rw_deg_per_h_per_sqrt_h * DEG_PER_H / 60.0),
+        "acc_rw": max(q_a, cfg.min_acc_bias_rw_ug_per_sqrt_h * MICRO_G / 60.0),
+        "gyro_turn_on": max(spec.gyro_turn_on_bias_deg_per_h, cfg.min_turn_on_gyro_deg_per_h) * DEG_PER_H,
+        "acc_turn_on": max(spec.acc_turn_on_bias_ug, cfg.min_turn_on_acc_ug) * MICRO_G,
+        "gyro_scale": max(spec.gyro_scale_factor_ppm, cfg.min_scale_factor_ppm) * 1e-6,
+        "acc_scale": max(spec.acc_scale_factor_ppm, cfg.min_scale_factor_ppm) * 1e-6,
+    }
+
+
+def build_gnss_imu_problem(
+    data: GnssImuData,
+    spec: ImuErrorSpec,
+    cfg: TrajectoryAdjustmentConfig,
+    initial: SplineTrajectory,
+    acc_bias0: np.ndarray | None = None,
+    gyro_bias0: np.ndarray | None = None,
+) -> GnssImuProblem:
+    """Build the G/I problem on ``initial.grid`` from starting values (e.g. the smoothed filter).
+
+    ``acc_bias0``/``gyro_bias0`` are starting biases, either (3,) or sampled at the bias knots
+    ((J, 3)); zero by default.
+    """
+    grid = initial.grid
+    span = (grid.t_start, grid.t_end)
+    inside = (data.imu_time - 0.5 / data.imu_rate_hz >= span[0]) & (data.imu_time + 0.5 / data.imu_rate_hz <= span[1])
+    if inside.sum() < 2:
+        raise InputError("no IMU samples inside the trajectory span", field="time")
+    d = _densities(spec, cfg)
+    windows = make_imu_windows(
+        data.imu_time[inside], data.imu_gyro[inside], data.imu_acc[inside], data.imu_rate_hz, cfg.imu_window_s
+    )
+    sigma_g = d["gyro_noise"] * np.sqrt(data.imu_rate_hz / windows.n_samples)
+    sigma_a = d["acc_noise"] * np.sqrt(data.imu_rate_hz / windows.n_samples)
+    bias_grid = BiasGrid.covering(span[0], span[1], cfg.bias_knot_interval_s)
+
+    blocks = TrajectoryBlocks()
+    problem = Problem()
+    problem.add_block(blocks.position, initial.p_w_b.copy())
+    problem.add_block(blocks.velocity, initial.v_w_b.copy())
+    problem.add_block(blocks.acceleration, initial.a_w_b.copy())
+    problem.add_block(blocks.attitude, initial.R_w_b.copy(), manifold="so3")
+    problem.add_block(blocks.rate, initial.omega_wb_b.copy())
+    J = bias_grid.n_knots
+    for name, b0 in (("acc_bias", acc_bias0), ("gyro_bias", gyro_bias0)):
+        b = np.zeros((J, 3)) if b0 is None else np.broadcast_to(np.asarray(b0, dtype=float), (J, 3)).copy()
+        problem.add_block(name, b)
+    problem.add_block("acc_scale", np.zeros((1, 3)), constant=not cfg.estimate_scale_factors)
+    problem.add_block("gyro_scale", np.zeros((1, 3)), constant=not cfg.estimate_scale_factors)
+
+    g_in = (data.gnss_time >= span[0]) & (data.gnss_time <= span[1])
+    if not np.any(g_in):
+        raise InputError("no GNSS epoch inside the trajectory span", field="time")
+    problem.add_group(
+        GnssPositionObservation(
+            grid, data.gnss_time[g_in], data.gnss_p_w[g_in], data.gnss_cov_w[g_in], data.p_b_a,
+            loss=make_loss(cfg.gnss_loss, cfg.gnss_loss_scale), blocks=blocks,
+        )
+    )
+    problem.add_group(
+        ImuObservation(
+            grid, windows, data.frame, bias_grid, bias_grid, sigma_acc=sigma_a, sigma_gyro=sigma_g,
+            nodes=cfg.quadrature_nodes if np.any(windows.n_samples > 1) else 1, blocks=blocks,
+        )
+    )
+    problem.add_group(BiasRandomWalk("acc_bias_random_walk", "acc_bias", bias_grid, q=d["acc_rw"]))
+    problem.add_group(BiasRandomWalk("gyro_bias_random_walk", "gyro_bias", bias_grid, q=d["gyro_rw"]))
+    problem.add_group(EuclideanPrior("acc_bias_turn_on", "acc_bias", [0], np.zeros(3), d["acc_turn_on"]))
+    problem.add_group(EuclideanPrior("gyro_bias_turn_on", "gyro_bias", [0], np.zeros(3), d["gyro_turn_on"]))
+    if cfg.estimate_scale_factors:
+        problem.add_group(EuclideanPrior("acc_scale_prior", "acc_scale", [0], np.zeros(3), d["acc_scale"]))
+        problem.add_group(EuclideanPrior("gyro_scale_prior", "gyro_scale", [0], np.zeros(3), d["gyro_scale"]))
+    return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors)
+
+
+def _euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
+    """``E^-1`` with ``omega_nb_b = E(rph) d(rph)/dt``: maps a body rotation to Euler-angle changes."""
+    r, p = rph[:, 0], rph[:, 1]
+    sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
+    E = np.zeros((rph.shape[0], 3, 3))
+    E[:, 0, 0] = 1.0
+    E[:, 0, 2] = -sp
+    E[:, 1, 1] = cr
+    E[:, 1, 2] = sr * cp
+    E[:, 2, 1] = -sr
+    E[:, 2, 2] = cr * cp
+    return np.linalg.inv(E)
+
+
+def solve_gnss_imu(built: GnssImuProblem, options: SolverOptions | None = None, progress=None) -> GnssImuResult:
+    """Solve the built problem and read out trajectory, IMU errors and posterior sigma."""
+    cfg = built.cfg
+    t = _time.perf_counter()
+    options = options or SolverOptions(max_iterations=cfg.max_iterations)
+    result = built.problem.solve(options, progress=progress)
+    timings = {"solve": _time.perf_counter() - t}
+
+    t = _time.perf_counter()
+    p = built.problem
+    grid = built.grid
+    step = max(1, int(round(cfg.covariance_interval_s / grid.dt)))
+    knots = np.arange(0, grid.n_knots, step)
+    if knots[-1] != grid.n_knots - 1:
+        knots = np.append(knots, grid.n_knots - 1)
+    cov_R = p.covariance(built.blocks.attitude, knots)
+    cov_p = p.covariance(built.blocks.position, knots)
+    spline = built.spline()
+    tk = grid.knot_times[knots]
+    p_w, R_w_b = spline.pose(tk)
+    rph = rph_from_R_n_b(np.swapaxes(built.data.frame.R_w_n_at(p_w), 1, 2) @ R_w_b)
+    Einv = _euler_rate_inverse(rph)
+    cov_rph = Einv @ cov_R @ np.swapaxes(Einv, 1, 2)
+    sigma_rph = np.sqrt(np.clip(np.diagonal(cov_rph, axis1=1, axis2=2), 0.0, None))
+    sigma_p = np.sqrt(np.clip(np.diagonal(cov_p, axis1=1, axis2=2), 0.0, None))
+
+    def sig(name):
+        c = p.covariance(name)
+        return np.sqrt(np.clip(np.diagonal(c, axis1=1, axis2=2), 0.0, None))
+
+    errors = ImuErrorEstimate(
+        built.bias_grid, p.values("acc_bias"), p.values("gyro_bias"), p.values("acc_scale")[0], p.values("gyro_scale")[0],
+        acc_bias_sigma=sig("acc_bias"), gyro_bias_sigma=sig("gyro_bias"),
+        acc_scale_sigma=sig("acc_scale")[0] if built.estimate_scale else None,
+        gyro_scale_sigma=sig("gyro_scale")[0] if built.estimate_scale else None,
+    )
+    timings["covariance"] = _time.perf_counter() - t
+    return GnssImuResult(spline, errors, result, tk, sigma_rph, sigma_p, timings)

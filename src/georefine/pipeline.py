@@ -1,0 +1,250 @@
+"""The georeferencing workflow of paper 000 (Fig. 1), one function per step (DESIGN §4.5).
+
+Implemented so far: loading and validating the navigation data, step 1 (initialisation
+filter and spline fit) and step 2 (GNSS/IMU adjustment), with their products:
+``trajectory.sbet`` (IMU rate), ``trajectory.csv`` (output CRS, roll/pitch/heading and
+posterior sigma) and ``adjustment.json`` (per-group statistics, iterations, cost, estimated
+IMU errors, timings). Each step is a plain function returning a frozen result.
+"""
+
+from __future__ import annotations
+
+import logging
+import time as _time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from georefine.adjustment.gnss_imu import (
+    GnssImuData,
+    GnssImuResult,
+    build_gnss_imu_problem,
+    solve_gnss_imu,
+)
+from georefine.config import ProjectConfig, load_project, write_yaml
+from georefine.errors import InputError
+from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.io.imu import ImuData, check_rate_gaps
+from georefine.io.project import read_project_gnss, read_project_imu
+from georefine.products import body_kinematics, write_csv_product, write_json, write_sbet_product
+from georefine.trajectory.ekf import FilterResult, gnss_in_w, run_filter
+from georefine.trajectory.spline import KnotGrid
+from georefine.trajectory.spline_fit import fit_spline
+
+log = logging.getLogger(__name__)
+Progress = Callable[[str, float, float], None]
+
+
+def _no_progress(name: str, done: float, total: float) -> None:
+    return None
+
+
+@dataclass(frozen=True)
+class NavigationData:
+    """GNSS and IMU of a project in the mapping frame, validated."""
+
+    config: ProjectConfig
+    root: Path
+    frame: LocalFrame
+    t0_gps: float
+    imu: ImuData
+    gnss: GnssImuData
+
+
+def load_navigation(project_dir: str | Path) -> NavigationData:
+    """Read and validate GNSS and IMU; define ``w`` at the first usable GNSS fix.
+
+    Raises
+    ------
+    InputError
+        No usable GNSS epoch, GNSS and IMU spans that do not overlap, or an IMU sampling gap.
+    """
+    root = Path(project_dir)
+    cfg = load_project(root)
+    gnss = read_project_gnss(root, cfg)
+    usable = gnss.quality <= cfg.gnss.min_quality
+    if not np.any(usable):
+        raise InputError(
+            "no epoch of sufficient quality", path=root / cfg.gnss.files[0], field="Q",
+            expected=f"Q <= {cfg.gnss.min_quality} (gnss.min_quality)", found=f"best Q = {int(gnss.quality.min())}",
+        )
+    imu = read_project_imu(root, cfg)
+    gaps = check_rate_gaps(imu)
+    if len(gaps):
+        k = int(np.searchsorted(imu.time_gps, gaps[0, 0]))
+        raise InputError(
+            f"IMU sampling gap of {gaps[0, 1] - gaps[0, 0]:.4f} s ({len(gaps)} gaps in all)",
+            path=root / cfg.imu.file, line=k + 3 if cfg.imu.format == "csv" else k + 2,
+            record_kind="line" if cfg.imu.format == "csv" else "record", field="time",
+            expected=f"samples every {1.0 / imu.rate_hz:.4f} s", found=f"{gaps[0, 0]:.6f} -> {gaps[0, 1]:.6f} GPS s",
+        )
+    g_t = gnss.time_gps[usable]
+    if g_t[-1] <= imu.time_gps[0] or imu.time_gps[-1] <= g_t[0]:
+        raise InputError(
+            "GNSS and IMU time spans do not overlap", path=root / cfg.imu.file, field="time",
+            expected=f"overlap with GNSS {g_t[0]:.3f} .. {g_t[-1]:.3f} GPS s",
+            found=f"{imu.time_gps[0]:.3f} .. {imu.time_gps[-1]:.3f} GPS s",
+        )
+    if cfg.crs.reference_point is not None:
+        rp = cfg.crs.reference_point
+        frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
+    else:
+        lat, lon, h = gnss.geodetic()
+        i = int(np.flatnonzero(usable)[0])
+        frame = LocalFrame(float(lat[i]), float(lon[i]), float(h[i]))
+    t0 = float(np.floor(imu.time_gps[0]))
+    gt, gp, gc = gnss_in_w(frame, t0, gnss, cfg.gnss.min_quality)
+    data = GnssImuData(
+        frame=frame, t0_gps=t0, imu_time=imu.time_gps - t0, imu_gyro=imu.gyro, imu_acc=imu.acc,
+        imu_rate_hz=float(imu.rate_hz), gnss_time=gt, gnss_p_w=gp, gnss_cov_w=gc,
+        p_b_a=np.asarray(cfg.gnss.lever_arm_m, dtype=float),
+    )
+    return NavigationData(cfg, root, frame, t0, imu, data)
+
+
+@dataclass(frozen=True)
+class TrajectoryRunResult:
+    """What :func:`run_trajectory` computed and wrote."""
+
+    out: Path
+    filter: FilterResult
+    adjustment: GnssImuResult | None
+    timings_s: dict = field(default_factory=dict)
+
+    def summary(self) -> str:
+        lines = [f"Trajectory written to {self.out}"]
+        f = self.filter
+        lines.append(f"  filter: {f.n_gnss_updates} GNSS updates, {f.n_gnss_rejected} rejected")
+        if self.adjustment is not None:
+            s = self.adjustment.solve
+            lines.append(
+                f"  G/I adjustment: {s.iterations} iterations ({s.termination}), sigma0 {s.sigma0:.3f}, "
+                f"{s.n_unknowns:,} unknowns"
+            )
+            for g in s.groups:
+                lines.append(f"    {g.name:<24} n={g.n_observations:>8,}  RMS {g.rms:.3f}")
+        lines.append("  timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in self.timings_s.items()))
+        return "\n".join(lines)
+
+
+def step_initialise(nav: NavigationData) -> FilterResult:
+    """Step 1: error-state EKF with in-motion alignment and RTS smoother."""
+    d = nav.gnss
+    return run_filter(
+        nav.frame, nav.t0_gps, nav.imu, d.gnss_time, d.gnss_p_w, d.gnss_cov_w, d.p_b_a,
+        nav.config.imu.errors, nav.config.processing.filter,
+    )
+
+
+def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Progress = _no_progress) -> GnssImuResult:
+    """Step 2: fit the spline to the smoothed filter and adjust GNSS + IMU."""
+    tcfg = nav.config.processing.trajectory
+    t_first = max(float(filt.time[0]), float(nav.gnss.gnss_time[0]))
+    t_last = min(float(filt.time[-1]), float(nav.gnss.gnss_time[-1]))
+    n = int(np.floor((t_last - t_first) / tcfg.knot_interval_s + 1e-9)) + 1
+    grid = KnotGrid(t_first, tcfg.knot_interval_s, n)
+    sel = (filt.time >= grid.t_start) & (filt.time <= grid.t_end)
+    s_g = getattr(filt, "scale_gyro", np.zeros(3))
+    imu_sel = np.isin(nav.gnss.imu_time, filt.time[sel])
+    gyro = nav.gnss.imu_gyro[imu_sel]
+    R = filt.R_w_b[sel]
+    omega_wb = (gyro - filt.bias_gyro[sel]) / (1.0 + s_g) - np.swapaxes(R, 1, 2) @ nav.frame.omega_ie_w
+    spline0 = fit_spline(
+        grid, filt.time[sel], filt.p_w_b[sel], R, filt.v_w_b[sel], omega_wb if omega_wb.shape[0] == R.shape[0] else None,
+        t0_gps=nav.t0_gps,
+    )
+    built = build_gnss_imu_problem(nav.gnss, nav.config.imu.errors, tcfg, spline0)
+    # Start the IMU errors from the filter's estimates.
+    tb = built.bias_grid.times
+    for name, series in (("acc_bias", filt.bias_acc), ("gyro_bias", filt.bias_gyro)):
+        built.problem.set_values(name, np.column_stack([np.interp(tb, filt.time, series[:, i]) for i in range(3)]))
+    if tcfg.estimate_scale_factors:
+        built.problem.set_values("acc_scale", np.asarray(filt.scale_acc, dtype=float).reshape(1, 3))
+        built.problem.set_values("gyro_scale", np.asarray(filt.scale_gyro, dtype=float).reshape(1, 3))
+
+    def report(it) -> None:
+        progress("G/I adjustment", min(getattr(it, "iteration", 0), tcfg.max_iterations), tcfg.max_iterations)
+
+    return solve_gnss_imu(built, progress=report)
+
+
+def _filter_sigma_rph(nav: NavigationData, filt: FilterResult) -> np.ndarray:
+    """Filter attitude sigma (body-frame tangent) mapped to roll/pitch/heading sigma."""
+    from georefine.adjustment.gnss_imu import _euler_rate_inverse
+
+    rph = nav.frame.rph_from_R_w_b(filt.p_w_b, filt.R_w_b)
+    Einv = _euler_rate_inverse(rph)
+    cov = np.zeros((rph.shape[0], 3, 3))
+    cov[:, np.arange(3), np.arange(3)] = filt.sigma[:, 6:9] ** 2
+    return np.sqrt(np.diagonal(Einv @ cov @ np.swapaxes(Einv, 1, 2), axis1=1, axis2=2))
+
+
+def run_trajectory(
+    project_dir: str | Path,
+    out: str | Path,
+    *,
+    filter_only: bool = False,
+    progress: Progress = _no_progress,
+) -> TrajectoryRunResult:
+    """Steps 1-2 on a project folder; write the trajectory products into ``out``."""
+    timings: dict[str, float] = {}
+    t = _time.perf_counter()
+    nav = load_navigation(project_dir)
+    timings["read"] = _time.perf_counter() - t
+    out = Path(out)
+    if out.resolve() == nav.root.resolve() or nav.root.resolve() in out.resolve().parents:
+        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    out.mkdir(parents=True, exist_ok=True)
+    crs = OutputCRS(nav.config.crs.output_epsg)
+
+    progress("initialisation filter", 0, 1)
+    t = _time.perf_counter()
+    filt = step_initialise(nav)
+    timings["filter"] = _time.perf_counter() - t
+    progress("initialisation filter", 1, 1)
+
+    adj = None
+    if filter_only:
+        imu_f = nav.imu.gyro[np.isin(nav.gnss.imu_time, filt.time)]
+        write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, filt.time, filt.p_w_b, filt.v_w_b, filt.R_w_b,
+                           None, imu_f if imu_f.shape[0] == filt.time.size else None)
+        dec = slice(None, None, max(1, int(round(nav.imu.rate_hz / 10))))
+        write_csv_product(out / "trajectory.csv", nav.frame, crs, nav.t0_gps, filt.time[dec], filt.p_w_b[dec],
+                          filt.R_w_b[dec], _filter_sigma_rph(nav, filt)[dec], filt.sigma[dec, 0:3])
+    else:
+        t = _time.perf_counter()
+        adj = step_adjust_gnss_imu(nav, filt, progress)
+        timings["adjustment"] = _time.perf_counter() - t
+        t = _time.perf_counter()
+        spline = adj.spline
+        t_imu = nav.gnss.imu_time
+        t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
+        p, v, R, f, w = body_kinematics(nav.frame, spline, t_imu)
+        write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, t_imu, p, v, R, f, w)
+        tk = spline.grid.knot_times
+        pk, Rk = spline.pose(tk)
+        sig_rph = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_rph_rad[:, i]) for i in range(3)])
+        sig_p = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_position_m[:, i]) for i in range(3)])
+        write_csv_product(out / "trajectory.csv", nav.frame, crs, nav.t0_gps, tk, pk, Rk, sig_rph, sig_p)
+        timings["products"] = _time.perf_counter() - t
+
+    report = {
+        "project": str(nav.root),
+        "t0_gps": nav.t0_gps,
+        "frame": {"lat_deg": float(np.degrees(nav.frame.lat0_rad)), "lon_deg": float(np.degrees(nav.frame.lon0_rad)),
+                  "h_m": nav.frame.h0_m},
+        "filter": {
+            "gnss_updates": filt.n_gnss_updates, "gnss_rejected": filt.n_gnss_rejected,
+            "alignment_time_s": getattr(filt, "alignment_time", None),
+        },
+        "timings_s": timings,
+    }
+    if adj is not None:
+        report["adjustment"] = adj.solve.to_dict()
+        report["imu_errors"] = adj.imu_errors.to_dict()
+        report["timings_s"] = dict(timings, **{f"adjustment_{k}": v for k, v in adj.timings_s.items()})
+    write_json(out / "adjustment.json", report)
+    write_yaml(out / "config.resolved.yaml", nav.config)
+    return TrajectoryRunResult(out, filt, adj, timings)
