@@ -29,7 +29,6 @@ from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
     orientation_jacobians,
-    position_jacobians,
 )
 from georefine.adjustment.problem import JacobianBlock, Linearization
 from georefine.adjustment.robust import RobustLoss
