@@ -228,7 +228,7 @@ def test_linear_least_squares_matches_lstsq(seed):
 def test_marginal_covariance_blocks_batches_match_dense_inverse():
     rng = np.random.default_rng(3)
     n = 60
-    B = sp.random(n, n, density=0.1, random_state=3)
+    B = sp.random(n, n, density=0.1, random_state=rng)
     A = (B @ B.T + sp.eye(n) * 2.0).tocsr()
     inv = np.linalg.inv(A.toarray())
     starts = np.array([0, 9, -1, 30, 57])
