@@ -147,6 +147,22 @@ def trajectory(
 
 
 @app.command()
+def georeference(
+    project: Path = typer.Argument(..., help="Project folder with project.yaml."),
+    trajectory_file: Path = typer.Option(..., "--trajectory", help="Trajectory SBET (IMU, WGS84)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder for the LAZ strips."),
+    gps_week: Optional[int] = typer.Option(None, "--gps-week", help="GPS week of an SBET in seconds of week."),
+) -> None:
+    """Georeference the project's strips with a trajectory (LAZ 1.4 in the output CRS)."""
+    with _user_errors():
+        from georefine.pipeline import run_georeference
+
+        with _progress() as report:
+            result = run_georeference(project, trajectory_file, out, gps_week=gps_week, progress=report)
+    stdout.print(result.summary())
+
+
+@app.command()
 def demo(
     out: Path = typer.Option(Path("georefine-demo"), "--out", "-o", help="Output folder."),
     scenario: str = typer.Option("corridor", "--scenario", help="Scenario to simulate."),

@@ -248,3 +248,62 @@ def run_trajectory(
     write_json(out / "adjustment.json", report)
     write_yaml(out / "config.resolved.yaml", nav.config)
     return TrajectoryRunResult(out, filt, adj, timings)
+
+
+@dataclass(frozen=True)
+class GeoreferenceRunResult:
+    """Strips georeferenced by :func:`run_georeference`."""
+
+    out: Path
+    strips: tuple
+
+    def summary(self) -> str:
+        lines = [f"Point clouds written to {self.out}"]
+        for s in self.strips:
+            extra = f", {s.points_outside:,} outside the trajectory (left out)" if s.points_outside else ""
+            lines.append(f"  {s.output.name}: {s.points_written:,} points{extra}")
+        return "\n".join(lines)
+
+
+def run_georeference(
+    project_dir: str | Path,
+    trajectory_path: str | Path,
+    out: str | Path,
+    *,
+    gps_week: int | None = None,
+    progress: Progress = _no_progress,
+) -> GeoreferenceRunResult:
+    """Georeference every strip of a project with a trajectory SBET into ``out/*.laz``."""
+    from georefine.config import boresight_matrix
+    from georefine.io.las import iter_las_chunks
+    from georefine.io.trajectory import read_sbet
+    from georefine.lidar.georeference import georeference_strip
+    from georefine.trajectory.sampled import trajectory_from_sbet
+
+    root = Path(project_dir)
+    cfg = load_project(root)
+    out = Path(out)
+    if out.resolve() == root.resolve() or root.resolve() in out.resolve().parents:
+        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    if gps_week is None:
+        first = next(iter_las_chunks(root / cfg.scanner.files[0], 1), None)
+        if first is None or len(first) == 0:
+            raise InputError("strip has no points", path=root / cfg.scanner.files[0])
+        gps_week = int(first.time_gps[0] // 604800)
+    sbet = read_sbet(trajectory_path, gps_week=gps_week)
+    frame = LocalFrame(float(sbet.lat_rad[0]), float(sbet.lon_rad[0]), float(sbet.h_m[0]))
+    t0 = float(np.floor(sbet.time_gps[0]))
+    traj = trajectory_from_sbet(sbet, frame, t0)
+    crs = OutputCRS(cfg.crs.output_epsg)
+    out.mkdir(parents=True, exist_ok=True)
+    results = []
+    for rel in cfg.scanner.files:
+        src = root / rel
+        dst = out / (Path(rel).stem + ".laz")
+        results.append(
+            georeference_strip(
+                src, dst, traj, np.asarray(cfg.scanner.lever_arm_m), boresight_matrix(cfg.scanner.boresight_deg),
+                frame, crs, progress=progress, protect=(root,),
+            )
+        )
+    return GeoreferenceRunResult(out, tuple(results))

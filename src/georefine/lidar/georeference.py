@@ -1,21 +1,62 @@
-"""Direct georeferencing of scanner-frame points (DESIGN §4.5 step 3/6).
+"""Direct georeferencing of scanner-frame points (DESIGN §4.5 steps 3 and 6).
 
 ``x_w = p_w_b(t) + R_w_b(t) (R_b_s x_s + p_b_s)``, vectorised over points. The trajectory is
-interpolated per point (linear position, geodesic attitude) from its samples; at IMU rate the
-interpolation error is far below the ranging noise.
+sampled at IMU rate and interpolated per point: linearly in position and by normalised linear
+quaternion interpolation in attitude (at >= 100 Hz the difference to SLERP is below 1e-10 rad
+for aircraft rates, and it avoids a Log/Exp per point).
+
+Strips are streamed in chunks (files larger than memory); points whose time lies outside the
+trajectory are counted, reported and left out, never extrapolated.
 """
 
 from __future__ import annotations
 
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
 import numpy as np
 
+from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.geometry.rotation import matrix_from_quat, quat_from_matrix
 from georefine.trajectory.sampled import Trajectory
+
+log = logging.getLogger(__name__)
+
+
+class PoseInterpolator:
+    """Fast per-point interpolation of a sampled trajectory (linear position, nlerp attitude)."""
+
+    def __init__(self, trajectory: Trajectory) -> None:
+        self.time = trajectory.time
+        self.p = trajectory.p_w_b
+        q = quat_from_matrix(trajectory.R_w_b)
+        # Make consecutive quaternions lie in the same hemisphere so that blending is short-way.
+        sign = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0.0, -1.0, 1.0))
+        q[1:] *= sign[:, None]
+        self.q = q
+
+    @property
+    def span(self) -> tuple[float, float]:
+        return float(self.time[0]), float(self.time[-1])
+
+    def inside(self, t: np.ndarray) -> np.ndarray:
+        return (t >= self.time[0]) & (t <= self.time[-1])
+
+    def __call__(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(p_w_b (N,3), R_w_b (N,3,3))`` at times ``t`` inside the span (caller checks)."""
+        k = np.clip(np.searchsorted(self.time, t, side="right") - 1, 0, self.time.size - 2)
+        u = ((t - self.time[k]) / (self.time[k + 1] - self.time[k]))[:, None]
+        p = self.p[k] + u * (self.p[k + 1] - self.p[k])
+        q = self.q[k] + u * (self.q[k + 1] - self.q[k])
+        return p, matrix_from_quat(q)
 
 
 def georeference(
     time: np.ndarray,
     xyz_s: np.ndarray,
-    trajectory: Trajectory,
+    trajectory: Trajectory | PoseInterpolator,
     p_b_s: np.ndarray,
     R_b_s: np.ndarray,
 ) -> np.ndarray:
@@ -24,14 +65,15 @@ def georeference(
     Parameters
     ----------
     time : (N,) float64
-        Point times, seconds relative to ``trajectory.t0_gps``.
+        Point times, seconds relative to the trajectory's epoch; all inside its span.
     xyz_s : (N, 3) float64
         Points in the scanner frame ``s`` (m).
     trajectory
-        Body poses in ``w``; every time must lie inside its span.
-    p_b_s : (3,) float64
+        Body poses in ``w`` (a :class:`Trajectory`, interpolated exactly by SLERP, or a
+        :class:`PoseInterpolator` for speed).
+    p_b_s : (3,)
         Scanner origin in the body frame (lever arm, m).
-    R_b_s : (3, 3) float64
+    R_b_s : (3, 3)
         Boresight rotation from ``s`` to ``b``.
 
     Returns
@@ -39,6 +81,72 @@ def georeference(
     (N, 3) float64
         Points in ``w`` (m).
     """
-    p_w_b, R_w_b = trajectory.interpolate(time)
+    if isinstance(trajectory, PoseInterpolator):
+        t = np.asarray(time, dtype=float)
+        if not np.all(trajectory.inside(t)):
+            raise ValueError("point times outside the trajectory span")
+        p_w_b, R_w_b = trajectory(t)
+    else:
+        p_w_b, R_w_b = trajectory.interpolate(time)
     x_b = np.asarray(xyz_s, dtype=float) @ np.asarray(R_b_s).T + np.asarray(p_b_s)
     return p_w_b + np.einsum("nij,nj->ni", R_w_b, x_b)
+
+
+@dataclass(frozen=True)
+class StripGeoreferenceResult:
+    """One georeferenced strip: points written and points left out (outside the trajectory)."""
+
+    source: Path
+    output: Path
+    points_written: int
+    points_outside: int
+
+
+def georeference_strip(
+    scan_path: str | Path,
+    out_path: str | Path,
+    trajectory: Trajectory,
+    p_b_s: np.ndarray,
+    R_b_s: np.ndarray,
+    frame: LocalFrame,
+    crs: OutputCRS,
+    *,
+    chunk_size: int = 2_000_000,
+    scale_m: float = 0.001,
+    progress: Callable[[str, float, float], None] | None = None,
+    protect: tuple = (),
+) -> StripGeoreferenceResult:
+    """Georeference a scanner-frame LAS/LAZ strip into an output-CRS LAZ (LAS 1.4, PF 6).
+
+    Keeps gps_time, intensity, ``scanner_channel``, ``point_source_id`` and return numbers; the
+    CRS is written as WKT; heights are ellipsoidal. Points outside the trajectory's time span
+    are left out and counted (a warning is logged).
+    """
+    from georefine.io.las import LasWriter, PointCloud, iter_las_chunks, read_las_info
+
+    scan_path, out_path = Path(scan_path), Path(out_path)
+    total = read_las_info(scan_path).point_count
+    interp = PoseInterpolator(trajectory)
+    t0 = trajectory.t0_gps
+    written = outside = done = 0
+    with LasWriter(out_path, scale=scale_m, crs=crs.crs, protect=protect) as out:
+        for chunk in iter_las_chunks(scan_path, chunk_size):
+            t = chunk.time_gps - t0
+            keep = interp.inside(t)
+            outside += int(np.count_nonzero(~keep))
+            if np.any(keep):
+                x_w = georeference(t[keep], chunk.xyz[keep], interp, p_b_s, R_b_s)
+                out.write(
+                    PointCloud(
+                        chunk.time_gps[keep], crs.from_w(frame, x_w), chunk.intensity[keep],
+                        chunk.scanner_channel[keep], chunk.point_source_id[keep],
+                        chunk.return_number[keep], chunk.number_of_returns[keep],
+                    )
+                )
+                written += int(np.count_nonzero(keep))
+            done += len(chunk)
+            if progress is not None:
+                progress(f"georeference {scan_path.name}", done, total)
+    if outside:
+        log.warning("%s: %d points outside the trajectory span were left out", scan_path, outside)
+    return StripGeoreferenceResult(scan_path, out_path, written, outside)

@@ -1,0 +1,55 @@
+"""Georeferencing strips with a trajectory file: accuracy against the truth, no extrapolation."""
+
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from georefine.io.trajectory import read_sbet, write_sbet
+from georefine.pipeline import run_georeference
+from georefine.sim.scenarios import simulate_project
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("geo") / "p"
+    simulate_project("corridor-tiny", out, seed=4, overrides=["scanner.pulse_rate_hz=5000"])
+    return out
+
+
+def test_georeferencing_with_the_true_trajectory_reproduces_the_truth(project, tmp_path):
+    res = run_georeference(project, project / "truth" / "trajectory.sbet", tmp_path / "pts")
+    assert [s.points_outside for s in res.strips] == [0, 0]
+    for s in res.strips:
+        est = laspy.read(s.output)
+        truth = laspy.read(project / "truth" / s.output.name)
+        assert est.header.point_format.id == 6 and est.header.global_encoding.gps_time_type
+        assert est.header.parse_crs() is not None
+        np.testing.assert_array_equal(est.gps_time, truth.gps_time)
+        np.testing.assert_array_equal(est.scanner_channel, truth.scanner_channel)
+        d = np.column_stack([est.x - truth.x, est.y - truth.y, est.z - truth.z])
+        assert np.abs(d).max() < 1.5e-3  # 1 mm output resolution
+
+
+def test_points_outside_the_trajectory_are_left_out_and_counted(project, tmp_path):
+    first = laspy.read(project / "scans" / "strip_1.laz").gps_time[0] + 1e9
+    week = int(first // 604800)
+    sbet = read_sbet(project / "truth" / "trajectory.sbet", gps_week=week)
+    # Cut the trajectory in the middle of the first pass.
+    t_cut = np.median(laspy.read(project / "scans" / "strip_1.laz").gps_time) + 1e9
+    keep = sbet.time_gps <= t_cut
+    from dataclasses import replace
+
+    short = replace(
+        sbet, **{f: getattr(sbet, f)[keep] for f in (
+            "time_gps", "lat_rad", "lon_rad", "h_m", "velocity_wander", "roll_rad", "pitch_rad", "heading_rad",
+            "wander_rad", "accel_b", "angular_rate_b")}
+    )
+    write_sbet(tmp_path / "short.sbet", short, time_scale="gps")
+    res = run_georeference(project, tmp_path / "short.sbet", tmp_path / "pts", gps_week=week)
+    s1, s2 = res.strips
+    n1 = laspy.open(project / "scans" / "strip_1.laz").header.point_count
+    assert 0.3 * n1 < s1.points_outside < 0.7 * n1 and s1.points_written + s1.points_outside == n1
+    assert s2.points_written == 0  # the whole second pass is outside
+    assert "outside the trajectory" in res.summary()
