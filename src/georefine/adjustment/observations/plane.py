@@ -1,0 +1,429 @@
+"""Plane correspondences: planar LiDAR features observing planar objects (DESIGN §4.3).
+
+Paper 000 §2, Eq. 5; Pöppl et al. (2024). A planar *feature* is extracted from one view
+(strip x scanner channel) and stored in the scanner frame ``s`` at its mean time ``t_f``:
+centre ``c_s``, orthonormal in-plane axes ``k1_s, k2_s``. With the current trajectory and
+mounting calibration it is georeferenced as
+
+``c~ = p_w_b(t_f) + R_w_b(t_f) (p_b_s + R_b_s c_s)``,   ``k~_i = R_w_s(t_f) k_i_s``,
+``R_w_s = R_w_b R_b_s``.
+
+A planar *object* (all features matched to one physical surface) has a fixed reference frame
+``(c0, k1_0, k2_0, n0)`` in ``w`` (orthonormal; e.g. from the initial matched features, see
+:func:`plane_reference_frames`) and three parameters ``x = (d, alpha, beta)``:
+
+``n = m / |m|``,  ``m = n0 + alpha k1_0 + beta k2_0``,   ``c = c0 + d n0``.
+
+Each feature gives one observation of three whitened rows (normal distance and two slopes):
+
+``r1 = n . (c~ - c) / sigma_d``,  ``r2 = n . k~1 / sigma_s``,  ``r3 = n . k~2 / sigma_s``.
+
+The paper's Eq. 5 writes the distance as ``(c - c~) . n~`` (along the feature normal) and
+divides the slopes by ``n . n~``. Here (DESIGN §4.3) all three rows use the object normal: every
+feature of an object refers to the same plane, the rows are linear in the georeferenced feature,
+the slopes differ from the paper's by the factor ``n . n~ = 1 - O(slope²)`` and the distances
+coincide where the slopes vanish (at a consistent solution); the sign is immaterial. The
+standard deviations come from the feature's roughness, point count and extent (feature
+extraction, ``lidar/planes.py``). A robust loss (Cauchy or Huber) on each observation's
+squared norm guards against wrong matches.
+
+Jacobians (right perturbations ``R <- R Exp(delta)``, DESIGN §2; ``a . (R x)`` has the
+derivative ``-(R^T a)^T skew(x) = (x x R^T a)^T`` w.r.t. ``delta``):
+
+* trajectory: ``d r1 / d p_w_b = n^T / sigma_d`` times the position-basis weights of the six
+  position knot states; w.r.t. the right tangent of ``R_w_b(t_f)`` with ``n_b = R_w_b^T n``:
+  ``r1: (p_b_s + R_b_s c_s) x n_b / sigma_d``, ``r_i+1: (R_b_s k_i_s) x n_b / sigma_s``,
+  chained with :attr:`~georefine.trajectory.spline.OrientationJacobians.dR` to the knots;
+* boresight ``R_b_s <- R_b_s Exp(eps)`` with ``n_s = R_w_s^T n``: ``r1: c_s x n_s / sigma_d``,
+  ``r_i+1: k_i_s x n_s / sigma_s``; lever arm: ``d r1 / d p_b_s = n_b^T / sigma_d``;
+* object: ``dn/dm = (I - n n^T) / |m|``, ``dm/dalpha = k1_0``, ``dm/dbeta = k2_0``,
+  ``dc/dd = n0``: ``r1: [-(n . n0), (c~ - c) . n_alpha, (c~ - c) . n_beta] / sigma_d``,
+  ``r_i+1: [0, k~_i . n_alpha, k~_i . n_beta] / sigma_s``.
+
+References
+----------
+Pöppl, F., Ullrich, A., Mandlburger, G., Pfeifer, N. (2024): A flexible trajectory estimation
+methodology for kinematic laser scanning. ISPRS J. Photogramm. Remote Sens. 215.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import numpy as np
+
+from georefine.adjustment.observations.trajectory_blocks import (
+    TrajectoryBlocks,
+    orientation_jacobians,
+    position_jacobians,
+)
+from georefine.adjustment.problem import JacobianBlock, Linearization
+from georefine.adjustment.robust import RobustLoss
+from georefine.trajectory.spline import KnotGrid, eval_orientation, position_basis
+
+__all__ = [
+    "FeatureFrames",
+    "PlaneObservation",
+    "object_planes",
+    "plane_parameters",
+    "plane_reference_frames",
+]
+
+_ORTHONORMAL_TOL = 1e-6  # unit length and orthogonality of axes and reference frames
+_MIN_COS_TILT = 1e-3  # |n . n0| below this: the plane is (nearly) perpendicular to its reference
+_MIN_SIN_TILT = 0.1  # planes tilted less than ~6 deg take e_x, not the strike, as first axis
+
+
+class FeatureFrames(NamedTuple):
+    """Georeferenced features in ``w``: ``centre_w``, ``axis1_w``, ``axis2_w``, ``normal_w`` (F, 3) each."""
+
+    centre_w: np.ndarray
+    axis1_w: np.ndarray
+    axis2_w: np.ndarray
+    normal_w: np.ndarray
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("ni,ni->n", a, b)
+
+
+def plane_reference_frames(
+    centre_w: np.ndarray, normal_w: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Orthonormal reference frames ``(c0, k1_0, k2_0, n0)`` of planar objects.
+
+    Parameters
+    ----------
+    centre_w : (O, 3)
+        A point on each plane (m, ``w``), e.g. the mean of its matched features' centres.
+    normal_w : (O, 3)
+        Plane normals (any length > 0, any sign).
+
+    Returns
+    -------
+    c0, k1_0, k2_0, n0 : (O, 3) each
+        ``c0 = centre_w``; ``n0`` the unit normal; ``k1_0`` the horizontal strike direction
+        ``normalize(e_z x n0)`` of planes tilted by more than ~6 deg, else ``e_x`` projected into
+        the plane; ``k2_0 = n0 x k1_0`` (the dip direction), so ``[k1_0 k2_0 n0]`` is a
+        right-handed rotation.
+    """
+    c0 = np.array(centre_w, dtype=float).reshape(-1, 3)
+    normal = np.asarray(normal_w, dtype=float).reshape(c0.shape)
+    length = np.linalg.norm(normal, axis=1)
+    if not np.all(np.isfinite(c0)) or not np.all(length > 0):
+        raise ValueError("plane_reference_frames: centres must be finite and normals non-zero")
+    n0 = normal / length[:, None]
+    strike = np.cross(np.array([0.0, 0.0, 1.0]), n0)
+    flat = np.linalg.norm(strike, axis=1) < _MIN_SIN_TILT
+    east = np.array([1.0, 0.0, 0.0]) - n0[:, 0:1] * n0
+    k1 = _unit(np.where(flat[:, None], east, strike))
+    return c0, k1, np.cross(n0, k1), n0
+
+
+def object_planes(
+    c0: np.ndarray, k1_0: np.ndarray, k2_0: np.ndarray, n0: np.ndarray, params: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Object planes from their reference frames and parameters.
+
+    Parameters
+    ----------
+    c0, k1_0, k2_0, n0 : (O, 3)
+        Reference frames in ``w``.
+    params : (O, 3)
+        ``(d, alpha, beta)``: offset along ``n0`` (m) and the two slopes.
+
+    Returns
+    -------
+    c, n : (O, 3)
+        ``c = c0 + d n0`` (m) and ``n = normalize(n0 + alpha k1_0 + beta k2_0)``.
+    """
+    params = np.asarray(params, dtype=float)
+    m = n0 + params[:, 1:2] * k1_0 + params[:, 2:3] * k2_0
+    return c0 + params[:, 0:1] * n0, _unit(m)
+
+
+def plane_parameters(
+    c0: np.ndarray,
+    k1_0: np.ndarray,
+    k2_0: np.ndarray,
+    n0: np.ndarray,
+    point_w: np.ndarray,
+    normal_w: np.ndarray,
+) -> np.ndarray:
+    """Parameters ``(d, alpha, beta)`` of given planes in given reference frames.
+
+    The inverse of :func:`object_planes` (up to the sign of the normal): the plane through
+    ``point_w`` with normal ``normal_w`` has ``alpha = n.k1_0 / n.n0``, ``beta = n.k2_0 / n.n0``
+    and ``d = n.(point_w - c0) / n.n0``. Use it to start objects from known planes or to
+    re-anchor the reference frames after an adjustment.
+
+    Parameters
+    ----------
+    c0, k1_0, k2_0, n0 : (O, 3)
+        Reference frames in ``w``.
+    point_w, normal_w : (O, 3)
+        A point on each plane (m) and its normal (any length, any sign).
+
+    Returns
+    -------
+    (O, 3)
+
+    Raises
+    ------
+    ValueError
+        If a plane is perpendicular to its reference plane (no finite parameters).
+    """
+    n = np.asarray(normal_w, dtype=float).reshape(-1, 3)
+    cos_tilt = _dot(n, n0) / np.linalg.norm(n, axis=1)
+    if not np.all(np.abs(cos_tilt) > _MIN_COS_TILT):
+        bad = np.flatnonzero(~(np.abs(cos_tilt) > _MIN_COS_TILT))
+        raise ValueError(f"plane_parameters: planes {bad[:10].tolist()} are perpendicular to their reference planes")
+    along = _dot(n, n0)
+    point = np.asarray(point_w, dtype=float).reshape(n.shape)
+    return np.column_stack([_dot(n, point - c0) / along, _dot(n, k1_0) / along, _dot(n, k2_0) / along])
+
+
+def _as_rows(name: str, value, n: int, width: int | None = 3) -> np.ndarray:
+    """Cast to float (n, width) or (n,) (scalars broadcast for (n,)) and check finiteness."""
+    arr = np.asarray(value, dtype=float)
+    shape = (n,) if width is None else (n, width)
+    if width is None and arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != shape:
+        raise ValueError(f"PlaneObservation: {name} must have shape {shape}, found {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"PlaneObservation: {name} contains NaN or inf")
+    return arr
+
+
+def _check_orthonormal(label: str, vectors: dict[str, np.ndarray]) -> None:
+    """Raise if the named (n, 3) vectors are not unit length and pairwise orthogonal."""
+    names = list(vectors)
+    bad = np.zeros(next(iter(vectors.values())).shape[0], dtype=bool)
+    for i, a in enumerate(names):
+        bad |= np.abs(np.linalg.norm(vectors[a], axis=1) - 1.0) > _ORTHONORMAL_TOL
+        for b in names[i + 1 :]:
+            bad |= np.abs(_dot(vectors[a], vectors[b])) > _ORTHONORMAL_TOL
+    if np.any(bad):
+        idx = np.flatnonzero(bad)
+        raise ValueError(
+            f"PlaneObservation: {', '.join(names)} of {label} {idx[:10].tolist()} "
+            f"({idx.size} in all) are not orthonormal (tolerance {_ORTHONORMAL_TOL:g})"
+        )
+
+
+@dataclass
+class PlaneObservation:
+    """Plane correspondences (feature -> object) observing a spline trajectory.
+
+    One observation of three whitened rows per feature (module docstring). The group reads
+    the trajectory blocks, the object block and, when named, a boresight and a lever-arm
+    block; any of them may be held constant in the :class:`~georefine.adjustment.problem.Problem`.
+
+    Parameters
+    ----------
+    grid
+        Knot grid of the trajectory.
+    time : (F,)
+        Feature mean times, s relative to the dataset epoch, inside the grid's span.
+    centre_s, axis1_s, axis2_s : (F, 3)
+        Feature centres (m) and orthonormal in-plane axes in the scanner frame ``s``.
+    sigma_d : (F,) or scalar
+        Standard deviation of the normal distance (m).
+    sigma_slope : (F,) or scalar
+        Standard deviation of the two slopes (rad).
+    object_index : (F,) int
+        Object of each feature (element of the ``objects`` block).
+    c0, k1, k2, n0 : (O, 3)
+        Object reference frames in ``w`` (orthonormal ``k1, k2, n0``).
+    p_b_s : (3,)
+        Scanner origin in the body frame (m); used when ``lever_arm`` is None.
+    R_b_s : (3, 3)
+        Boresight (nominal); used when ``boresight`` is None.
+    objects
+        Euclidean block ``(O, 3)`` of ``(d [m], alpha, beta)``.
+    boresight
+        Optional SO(3) block ``(1, 3, 3)`` holding ``R_b_s`` (right perturbation
+        ``R_b_s Exp(eps)``, scanner frame).
+    lever_arm
+        Optional Euclidean block ``(1, 3)`` holding ``p_b_s`` (m).
+    blocks
+        Trajectory block names.
+    loss
+        Robust loss per feature (Cauchy or Huber against wrong matches); None = plain LS.
+    name
+        Group name.
+    """
+
+    grid: KnotGrid
+    time: np.ndarray
+    centre_s: np.ndarray
+    axis1_s: np.ndarray
+    axis2_s: np.ndarray
+    sigma_d: np.ndarray
+    sigma_slope: np.ndarray
+    object_index: np.ndarray
+    c0: np.ndarray
+    k1: np.ndarray
+    k2: np.ndarray
+    n0: np.ndarray
+    p_b_s: np.ndarray
+    R_b_s: np.ndarray
+    objects: str = "plane_params"
+    boresight: str | None = None
+    lever_arm: str | None = None
+    blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
+    loss: RobustLoss | None = None
+    name: str = "planes"
+
+    def __post_init__(self) -> None:
+        self.time = np.atleast_1d(np.asarray(self.time, dtype=float))
+        if self.time.ndim != 1:
+            raise ValueError(f"PlaneObservation: time must be 1-D, found shape {self.time.shape}")
+        f = self.time.size
+        self.centre_s = _as_rows("centre_s", self.centre_s, f)
+        self.axis1_s = _as_rows("axis1_s", self.axis1_s, f)
+        self.axis2_s = _as_rows("axis2_s", self.axis2_s, f)
+        self.sigma_d = _as_rows("sigma_d", self.sigma_d, f, None)
+        self.sigma_slope = _as_rows("sigma_slope", self.sigma_slope, f, None)
+        if np.any(self.sigma_d <= 0) or np.any(self.sigma_slope <= 0):
+            raise ValueError("PlaneObservation: sigma_d and sigma_slope must be positive")
+        _check_orthonormal("features", {"axis1_s": self.axis1_s, "axis2_s": self.axis2_s})
+        if np.ndim(self.c0) != 2:
+            raise ValueError(f"PlaneObservation: c0 must have shape (O, 3), found {np.shape(self.c0)}")
+        n_obj = np.shape(self.c0)[0]
+        self.c0, self.k1, self.k2, self.n0 = (
+            _as_rows(label, v, n_obj) for label, v in (("c0", self.c0), ("k1", self.k1), ("k2", self.k2), ("n0", self.n0))
+        )
+        _check_orthonormal("objects", {"k1": self.k1, "k2": self.k2, "n0": self.n0})
+        idx = np.asarray(self.object_index)
+        if idx.shape != (f,) or (f and not np.issubdtype(idx.dtype, np.integer)):
+            raise ValueError(f"PlaneObservation: object_index must be ({f},) integers, found {idx.shape} {idx.dtype}")
+        if f and (idx.min() < 0 or idx.max() >= n_obj):
+            raise ValueError(f"PlaneObservation: object_index must lie in [0, {n_obj}), found {idx.min()} .. {idx.max()}")
+        self.object_index = idx.astype(np.int64)
+        self.p_b_s = np.asarray(self.p_b_s, dtype=float).reshape(3)
+        self.R_b_s = np.asarray(self.R_b_s, dtype=float).reshape(3, 3)
+        if np.abs(self.R_b_s @ self.R_b_s.T - np.eye(3)).max() > _ORTHONORMAL_TOL or np.linalg.det(self.R_b_s) <= 0:
+            raise ValueError("PlaneObservation: R_b_s is not a rotation matrix")
+        self._k, u = self.grid.locate(self.time) if f else (np.zeros(0, np.int64), np.zeros(0))
+        self._w0 = position_basis(u, self.grid.dt, 0)
+        self._w_d = 1.0 / self.sigma_d
+        self._w_s = 1.0 / self.sigma_slope
+        self._rows = np.arange(3 * f).reshape(f, 3)
+        self._obs = np.repeat(np.arange(f), 3)
+
+    @property
+    def n_features(self) -> int:
+        """Number of features (observations) ``F``."""
+        return int(self.time.size)
+
+    @property
+    def n_objects(self) -> int:
+        """Number of objects ``O`` (elements of the object block)."""
+        return int(self.c0.shape[0])
+
+    # -- model ----------------------------------------------------------------------------------
+    def calibration(self, values: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Current ``(R_b_s (3,3), p_b_s (3,))``: from the blocks when named, else the fixed ones."""
+        R_b_s, p_b_s = self.R_b_s, self.p_b_s
+        if self.boresight is not None:
+            R_b_s = _single_element(values, self.boresight, (3, 3))
+        if self.lever_arm is not None:
+            p_b_s = _single_element(values, self.lever_arm, (3,))
+        return R_b_s, p_b_s
+
+    def object_planes(self, values: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Current object planes: centres ``c`` (O, 3) m and unit normals ``n`` (O, 3) in ``w``."""
+        return object_planes(self.c0, self.k1, self.k2, self.n0, self._params(values))
+
+    def feature_frames(self, values: Mapping[str, np.ndarray]) -> FeatureFrames:
+        """Features georeferenced with the current trajectory and calibration (``w``)."""
+        _, R_w_b, R_b_s, _, centre_w = self._pose(values, jacobians=False)
+        R_w_s = R_w_b @ R_b_s
+        k1_w = np.einsum("nij,nj->ni", R_w_s, self.axis1_s)
+        k2_w = np.einsum("nij,nj->ni", R_w_s, self.axis2_s)
+        return FeatureFrames(centre_w, k1_w, k2_w, np.cross(k1_w, k2_w))
+
+    def residual_norms(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Norm of each feature's whitened 3-vector (F,), e.g. to flag wrong matches after a solve."""
+        r = self.linearize(values, jacobians=False).residuals.reshape(-1, 3)
+        return np.linalg.norm(r, axis=1)
+
+    def _params(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
+        params = np.asarray(values[self.objects], dtype=float)
+        if params.shape != (self.n_objects, 3):
+            raise ValueError(f"block {self.objects!r} must have shape ({self.n_objects}, 3), found {params.shape}")
+        return params
+
+    def _pose(self, values: Mapping[str, np.ndarray], jacobians: bool):
+        """``(ev, R_w_b, R_b_s, x_b, c~)``: spline attitude, calibration, centre in b, centre in w."""
+        P, V, A, R, W = self.blocks.knots(values)
+        k, w0 = self._k, self._w0
+        p = (
+            w0[:, 0:1] * P[k] + w0[:, 1:2] * V[k] + w0[:, 2:3] * A[k]
+            + w0[:, 3:4] * P[k + 1] + w0[:, 4:5] * V[k + 1] + w0[:, 5:6] * A[k + 1]
+        )
+        ev = eval_orientation(self.grid, R, W, self.time, rate=False, jacobians=jacobians)
+        R_b_s, p_b_s = self.calibration(values)
+        x_b = p_b_s + self.centre_s @ R_b_s.T  # feature centre relative to the IMU, body frame
+        return ev, ev.R_w_b, R_b_s, x_b, p + np.einsum("nij,nj->ni", ev.R_w_b, x_b)
+
+    def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
+        """Whitened residuals (3 rows per feature) and Jacobian blocks; see the module docstring."""
+        params = self._params(values)
+        if self.n_features == 0:
+            return Linearization(np.zeros(0), [], np.zeros(0, dtype=np.int64))
+        ev, R_w_b, R_b_s, x_b, c_t = self._pose(values, jacobians)
+        R_w_s = R_w_b @ R_b_s
+        k1_t = np.einsum("nij,nj->ni", R_w_s, self.axis1_s)
+        k2_t = np.einsum("nij,nj->ni", R_w_s, self.axis2_s)
+        j = self.object_index
+        m = self.n0[j] + params[j, 1:2] * self.k1[j] + params[j, 2:3] * self.k2[j]
+        m_norm = np.linalg.norm(m, axis=1)
+        n = m / m_norm[:, None]
+        e = c_t - (self.c0[j] + params[j, 0:1] * self.n0[j])
+        w_d, w_s = self._w_d, self._w_s
+        r = np.column_stack([_dot(n, e) * w_d, _dot(n, k1_t) * w_s, _dot(n, k2_t) * w_s])
+        if not jacobians:
+            return Linearization(r.ravel(), [], self._obs)
+
+        rows, f = self._rows, self.n_features
+        scale = np.column_stack([w_d, w_s, w_s])[:, :, None]  # (F, 3, 1) row whitening
+        jac = position_jacobians(self.blocks, rows[:, :1], self._k, self._w0, (n * w_d[:, None])[:, None, :])
+        # Attitude of the body: a . (R_w_b x) -> x x (R_w_b^T a) per right tangent.
+        n_b = np.einsum("nji,nj->ni", R_w_b, n)
+        lever_b = np.stack([x_b, self.axis1_s @ R_b_s.T, self.axis2_s @ R_b_s.T], axis=1)  # (F, 3, 3)
+        M_R = np.cross(lever_b, n_b[:, None, :]) * scale
+        jac += orientation_jacobians(self.blocks, rows, ev.jacobians, M_R)
+        # Objects: d r / d (d, alpha, beta).
+        dn_da = (self.k1[j] - n * _dot(n, self.k1[j])[:, None]) / m_norm[:, None]
+        dn_db = (self.k2[j] - n * _dot(n, self.k2[j])[:, None]) / m_norm[:, None]
+        vecs = np.stack([e, k1_t, k2_t], axis=1)  # (F, 3 rows, 3)
+        J_obj = np.zeros((f, 3, 3))
+        J_obj[:, 0, 0] = -_dot(n, self.n0[j])
+        J_obj[:, :, 1] = np.einsum("nri,ni->nr", vecs, dn_da)
+        J_obj[:, :, 2] = np.einsum("nri,ni->nr", vecs, dn_db)
+        jac.append(JacobianBlock(self.objects, rows, j, J_obj * scale))
+        zeros = np.zeros(f, dtype=np.int64)
+        if self.boresight is not None:
+            n_s = np.einsum("nji,nj->ni", R_w_s, n)
+            feat_s = np.stack([self.centre_s, self.axis1_s, self.axis2_s], axis=1)
+            jac.append(JacobianBlock(self.boresight, rows, zeros, np.cross(feat_s, n_s[:, None, :]) * scale))
+        if self.lever_arm is not None:
+            jac.append(JacobianBlock(self.lever_arm, rows[:, :1], zeros, (n_b * w_d[:, None])[:, None, :]))
+        return Linearization(r.ravel(), jac, self._obs)
+
+
+def _single_element(values: Mapping[str, np.ndarray], name: str, shape: tuple[int, ...]) -> np.ndarray:
+    """The one element of a calibration block (``(1,) + shape``)."""
+    arr = np.asarray(values[name], dtype=float)
+    if arr.shape != (1,) + shape:
+        raise ValueError(f"block {name!r} must have shape {(1,) + shape}, found {arr.shape}")
+    return arr[0]
