@@ -142,6 +142,58 @@ class FilterConfig(StrictModel):
     scale_factor_floor_ppm: float = Field(1.0, gt=0, description="prior floor when estimated")
 
 
+class PlaneExtractionConfig(StrictModel):
+    """Planar feature extraction per view (defaults: helicopter ALS, ~5-10 points/m² per view)."""
+
+    seed_spacing_m: float = Field(2.0, gt=0, description="horizontal seed grid in x, y of w")
+    seed_layer_m: float = Field(2.0, gt=0, description="height of the seed layers of a column (facades)")
+    radius_m: float = Field(1.0, gt=0, description="3-D neighbourhood radius around the seed point")
+    min_points: int = Field(10, ge=4, description="points in the neighbourhood")
+    max_roughness_m: float = Field(0.02, gt=0, description="sqrt of the smallest PCA eigenvalue")
+    max_linearity: float = Field(0.8, gt=0, le=1, description="(l1 - l2)/l1; rejects wires, edges")
+    min_extent_m: float = Field(0.5, ge=0, description="2 sqrt(l2): smaller in-plane extent")
+    max_time_span_s: float = Field(2.0, gt=0, description="last minus first point time of a patch")
+    range_sigma_m: float = Field(0.005, gt=0, description="ranging noise, floor of the point scatter")
+    min_sigma_d_m: float = Field(0.001, ge=0, description="floor of the normal-distance sigma")
+    min_sigma_slope_mdeg: float = Field(30.0, ge=0, description="floor of the slope sigma")
+
+
+class MatchingConfig(StrictModel):
+    """Matching of planar features into planar objects (rules in the module docstring)."""
+
+    max_centre_distance_m: float = Field(1.5, gt=0.0, description="Search radius between feature centres.")
+    max_normal_angle_deg: float = Field(3.0, gt=0.0, lt=90.0, description="Normals agree up to sign within this.")
+    max_plane_distance_m: float = Field(
+        0.3, gt=0.0, description="Distance of each centre to the other feature's plane (and to the object plane)."
+    )
+    cross_view_only: bool = Field(True, description="Match only features of different views (strip, channel).")
+    max_object_radius_m: float = Field(
+        3.0, gt=0.0, description="Anti-chaining: members lie within this of the object centre c0."
+    )
+    max_features_per_object: int = Field(12, ge=2)
+    balance_cell_m: float = Field(10.0, gt=0.0, description="Cell size of the balancing along the track.")
+    max_objects_per_cell: int = Field(4, ge=1)
+    min_views_per_object: int = Field(2, ge=1)
+    vertical_max_tilt_deg: float = Field(
+        20.0, gt=0.0, lt=90.0, description="Planes within this angle of vertical are vertical objects (facades)."
+    )
+
+
+class LidarAdjustmentConfig(StrictModel):
+    """GNSS/IMU/LiDAR adjustment and its outer iterations (DESIGN §4.5 steps 3-6)."""
+
+    outer_iterations: int = Field(3, ge=1, le=10, description="Re-georeference, re-extract, re-match, re-adjust.")
+    convergence_attitude_mdeg: float = Field(
+        0.5, gt=0.0, description="Stop when the largest attitude change between outer iterations is below this."
+    )
+    convergence_position_m: float = Field(0.002, gt=0.0, description="... and the largest position change below this.")
+    plane_loss: Literal["cauchy", "huber", "none"] = "cauchy"
+    plane_loss_scale: float = Field(2.0, gt=0.0, description="Cauchy c / Huber delta in units of sigma.")
+    estimate_boresight: bool = Field(False, description="Estimate the scanner boresight (needs two passes).")
+    boresight_prior_deg: float = Field(0.1, gt=0.0, description="Prior sigma of the boresight angles when estimated.")
+    max_features: int = Field(200_000, ge=100, description="Cap on matched features in the adjustment.")
+
+
 class TrajectoryAdjustmentConfig(StrictModel):
     """GNSS/IMU(/LiDAR) adjustment of the spline trajectory (DESIGN §4.2-4.4, §4.6)."""
 
@@ -186,6 +238,9 @@ class ProcessingConfig(StrictModel):
 
     filter: FilterConfig = Field(default_factory=FilterConfig)
     trajectory: TrajectoryAdjustmentConfig = Field(default_factory=TrajectoryAdjustmentConfig)
+    planes: PlaneExtractionConfig = Field(default_factory=PlaneExtractionConfig)
+    matching: MatchingConfig = Field(default_factory=MatchingConfig)
+    lidar: LidarAdjustmentConfig = Field(default_factory=LidarAdjustmentConfig)
 
 
 class ProjectConfig(StrictModel):

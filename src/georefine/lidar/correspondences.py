@@ -61,12 +61,11 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
-from pydantic import Field
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from georefine.config import StrictModel
+from georefine.config import MatchingConfig
 from georefine.errors import InputError
 from georefine.io._common import PathLike, atomic_output, data_lines, parse_float_rows, read_text_lines
 from georefine.lidar.planes import PlanarFeatures
@@ -83,27 +82,6 @@ _COLUMNS = (
     "object", "c0_x_m", "c0_y_m", "c0_z_m", "k1_x", "k1_y", "k1_z", "k2_x", "k2_y", "k2_z",
     "n0_x", "n0_y", "n0_z", "n_features", "n_views", "is_vertical", "features",
 )
-
-
-class MatchingConfig(StrictModel):
-    """Matching of planar features into planar objects (rules in the module docstring)."""
-
-    max_centre_distance_m: float = Field(1.5, gt=0.0, description="Search radius between feature centres.")
-    max_normal_angle_deg: float = Field(3.0, gt=0.0, lt=90.0, description="Normals agree up to sign within this.")
-    max_plane_distance_m: float = Field(
-        0.3, gt=0.0, description="Distance of each centre to the other feature's plane (and to the object plane)."
-    )
-    cross_view_only: bool = Field(True, description="Match only features of different views (strip, channel).")
-    max_object_radius_m: float = Field(
-        3.0, gt=0.0, description="Anti-chaining: members lie within this of the object centre c0."
-    )
-    max_features_per_object: int = Field(12, ge=2)
-    balance_cell_m: float = Field(10.0, gt=0.0, description="Cell size of the balancing along the track.")
-    max_objects_per_cell: int = Field(4, ge=1)
-    min_views_per_object: int = Field(2, ge=1)
-    vertical_max_tilt_deg: float = Field(
-        20.0, gt=0.0, lt=90.0, description="Planes within this angle of vertical are vertical objects (facades)."
-    )
 
 
 @dataclass(frozen=True)

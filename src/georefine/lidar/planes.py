@@ -60,9 +60,8 @@ from dataclasses import dataclass, fields
 
 import numba
 import numpy as np
-from pydantic import Field
 
-from georefine.config import StrictModel
+from georefine.config import PlaneExtractionConfig
 from georefine.errors import InputError
 from georefine.io._common import (
     PathLike,
@@ -85,22 +84,6 @@ __all__ = [
 
 PoseFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """``pose_fn(t (M,)) -> (p_w_b (M,3), R_w_b (M,3,3))``: the trajectory used to georeference."""
-
-
-class PlaneExtractionConfig(StrictModel):
-    """Planar feature extraction per view (defaults: helicopter ALS, ~5-10 points/m² per view)."""
-
-    seed_spacing_m: float = Field(2.0, gt=0, description="horizontal seed grid in x, y of w")
-    seed_layer_m: float = Field(2.0, gt=0, description="height of the seed layers of a column (facades)")
-    radius_m: float = Field(1.0, gt=0, description="3-D neighbourhood radius around the seed point")
-    min_points: int = Field(10, ge=4, description="points in the neighbourhood")
-    max_roughness_m: float = Field(0.02, gt=0, description="sqrt of the smallest PCA eigenvalue")
-    max_linearity: float = Field(0.8, gt=0, le=1, description="(l1 - l2)/l1; rejects wires, edges")
-    min_extent_m: float = Field(0.5, ge=0, description="2 sqrt(l2): smaller in-plane extent")
-    max_time_span_s: float = Field(2.0, gt=0, description="last minus first point time of a patch")
-    range_sigma_m: float = Field(0.005, gt=0, description="ranging noise, floor of the point scatter")
-    min_sigma_d_m: float = Field(0.001, ge=0, description="floor of the normal-distance sigma")
-    min_sigma_slope_mdeg: float = Field(30.0, ge=0, description="floor of the slope sigma")
 
 
 _FLOAT_FIELDS = ("time", "roughness_m", "extent_m", "sigma_d_m", "sigma_slope_rad")
