@@ -147,6 +147,33 @@ def trajectory(
 
 
 @app.command()
+def run(
+    project: Path = typer.Argument(..., help="Project folder with project.yaml."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
+    strips: Optional[str] = typer.Option(None, "--strips", help="Comma-separated strip ids (point_source_id) to use."),
+    no_lidar: bool = typer.Option(False, "--no-lidar", help="Stop after the GNSS/IMU adjustment (steps 1-3, 6)."),
+) -> None:
+    """Run the whole workflow: filter, G/I adjustment, planar features, G/I/L adjustment, point clouds.
+
+    Writes gi/ and gil/ (trajectory.sbet, trajectory.csv, adjustment.json), points/*.laz,
+    features/ (features.csv, objects.csv), metrics.json and the resolved configuration.
+    """
+    with _user_errors():
+        from georefine.errors import InputError
+        from georefine.pipeline.lidar import run_workflow
+
+        ids = None
+        if strips:
+            try:
+                ids = [int(x) for x in strips.split(",") if x.strip()]
+            except ValueError:
+                raise InputError("strip ids must be integers", field="--strips", found=repr(strips)) from None
+        with _progress() as report:
+            result = run_workflow(project, out, strips=ids, lidar=not no_lidar, progress=report)
+    stdout.print(result.summary())
+
+
+@app.command()
 def georeference(
     project: Path = typer.Argument(..., help="Project folder with project.yaml."),
     trajectory_file: Path = typer.Option(..., "--trajectory", help="Trajectory SBET (IMU, WGS84)."),

@@ -171,8 +171,12 @@ class MatchingConfig(StrictModel):
         3.0, gt=0.0, description="Anti-chaining: members lie within this of the object centre c0."
     )
     max_features_per_object: int = Field(12, ge=2)
-    balance_cell_m: float = Field(10.0, gt=0.0, description="Cell size of the balancing along the track.")
-    max_objects_per_cell: int = Field(4, ge=1)
+    balance_cell_m: float = Field(
+        25.0, gt=0.0,
+        description="Cell size of the balancing. Fewer, well-spread objects keep the normal equations sparse: "
+        "every object couples the knots of all times it was seen at.",
+    )
+    max_objects_per_cell: int = Field(3, ge=1)
     min_views_per_object: int = Field(2, ge=1)
     vertical_max_tilt_deg: float = Field(
         20.0, gt=0.0, lt=90.0, description="Planes within this angle of vertical are vertical objects (facades)."
@@ -207,8 +211,18 @@ class TrajectoryAdjustmentConfig(StrictModel):
     gnss_loss: Literal["huber", "cauchy", "none"] = "huber"
     gnss_loss_scale: float = Field(3.0, gt=0.0, description="Huber delta / Cauchy c in units of sigma.")
     max_iterations: int = Field(30, ge=1)
+    function_tolerance: float = Field(
+        1e-5, gt=0.0,
+        description="Stop when an iteration lowers the cost by less than this fraction (1e-5 of a cost of "
+        "~1e5 is far below one unit of chi-square).",
+    )
     covariance_interval_s: float = Field(
-        5.0, gt=0.0, description="Posterior roll/pitch/yaw sigma are computed at knots this far apart."
+        5.0, gt=0.0, description="Posterior roll/pitch/yaw sigma are computed at knots this far apart ..."
+    )
+    max_covariance_knots: int = Field(
+        150, ge=2,
+        description="... but at no more knots than this (each costs a solve of the whole system, so the "
+        "covariance cost stays linear in the flight duration).",
     )
     min_gyro_noise_deg_per_sqrt_h: float = Field(
         0.001, gt=0.0, description="Floor of the gyro ARW used for weighting (an ideal IMU spec is all zeros)."

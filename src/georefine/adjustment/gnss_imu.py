@@ -225,14 +225,14 @@ def solve_gnss_imu(built: GnssImuProblem, options: SolverOptions | None = None, 
     """Solve the built problem and read out trajectory, IMU errors and posterior sigma."""
     cfg = built.cfg
     t = _time.perf_counter()
-    options = options or SolverOptions(max_iterations=cfg.max_iterations)
+    options = options or SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance)
     result = built.problem.solve(options, progress=progress)
     timings = {"solve": _time.perf_counter() - t}
 
     t = _time.perf_counter()
     p = built.problem
     grid = built.grid
-    step = max(1, int(round(cfg.covariance_interval_s / grid.dt)))
+    step = max(1, int(round(cfg.covariance_interval_s / grid.dt)), int(np.ceil(grid.n_knots / cfg.max_covariance_knots)))
     knots = np.arange(0, grid.n_knots, step)
     if knots[-1] != grid.n_knots - 1:
         knots = np.append(knots, grid.n_knots - 1)

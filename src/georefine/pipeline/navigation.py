@@ -30,6 +30,7 @@ from georefine.io.imu import ImuData, check_rate_gaps
 from georefine.io.project import read_project_gnss, read_project_imu
 from georefine.products import body_kinematics, write_csv_product, write_json, write_sbet_product
 from georefine.trajectory.ekf import FilterResult, gnss_in_w, run_filter
+from georefine.trajectory.sampled import Trajectory
 from georefine.trajectory.spline import KnotGrid
 from georefine.trajectory.spline_fit import fit_spline
 
@@ -181,6 +182,27 @@ def _filter_sigma_rph(nav: NavigationData, filt: FilterResult) -> np.ndarray:
     return np.sqrt(np.diagonal(Einv @ cov @ np.swapaxes(Einv, 1, 2), axis1=1, axis2=2))
 
 
+def write_trajectory_products(out: Path, nav: NavigationData, adj: GnssImuResult, crs: OutputCRS) -> None:
+    """``trajectory.sbet`` at the IMU samples inside the spline, ``trajectory.csv`` at the knots."""
+    spline = adj.spline
+    t_imu = nav.gnss.imu_time
+    t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
+    p, v, R, f, w = body_kinematics(nav.frame, spline, t_imu)
+    write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, t_imu, p, v, R, f, w)
+    tk = spline.grid.knot_times
+    pk, Rk = spline.pose(tk)
+    sig_rph = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_rph_rad[:, i]) for i in range(3)])
+    sig_p = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_position_m[:, i]) for i in range(3)])
+    write_csv_product(out / "trajectory.csv", nav.frame, crs, nav.t0_gps, tk, pk, Rk, sig_rph, sig_p)
+
+
+def imu_rate_trajectory(nav: NavigationData, spline) -> Trajectory:
+    """The spline sampled at the IMU samples inside its span (for georeferencing)."""
+    t_imu = nav.gnss.imu_time
+    t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
+    return spline.to_sampled(t_imu)
+
+
 def run_trajectory(
     project_dir: str | Path,
     out: str | Path,
@@ -218,16 +240,7 @@ def run_trajectory(
         adj = step_adjust_gnss_imu(nav, filt, progress)
         timings["adjustment"] = _time.perf_counter() - t
         t = _time.perf_counter()
-        spline = adj.spline
-        t_imu = nav.gnss.imu_time
-        t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
-        p, v, R, f, w = body_kinematics(nav.frame, spline, t_imu)
-        write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, t_imu, p, v, R, f, w)
-        tk = spline.grid.knot_times
-        pk, Rk = spline.pose(tk)
-        sig_rph = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_rph_rad[:, i]) for i in range(3)])
-        sig_p = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_position_m[:, i]) for i in range(3)])
-        write_csv_product(out / "trajectory.csv", nav.frame, crs, nav.t0_gps, tk, pk, Rk, sig_rph, sig_p)
+        write_trajectory_products(out, nav, adj, crs)
         timings["products"] = _time.perf_counter() - t
 
     report = {

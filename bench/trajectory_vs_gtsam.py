@@ -1,0 +1,385 @@
+"""GNSS/IMU adjustment of Georefine against a gtsam factor graph on the same data (a script, not a test).
+
+Simulates the ``corridor`` scenario (navigation data only: the scanner runs at 1 kHz so
+that the simulation takes seconds), runs Georefine's initialisation filter and G/I
+adjustment (DESIGN §4.5 steps 1-2), then solves the same GNSS/IMU problem as a batch gtsam
+factor graph and compares both with the true trajectory.
+
+gtsam graph (the peer, measured in the same run)
+    * States every ``--keyframe-interval`` s (default 0.1 s, Georefine's knot spacing) on
+      the same span as Georefine's spline, each snapped to the nearest IMU sample:
+      ``X`` = Pose3(Rot3(R_w_b), p_w_b) (body in the navigation frame), ``V`` = v_w_b,
+      ``B`` = imuBias.ConstantBias(acc, gyro).
+    * CombinedImuFactor between consecutive states (PreintegratedCombinedMeasurements). The
+      IMU samples are instantaneous values, so each sample interval integrates the mean of
+      its two end samples, the acceleration rotated forward by half the interval's rotation
+      (midpoint rule; gtsam rotates a step's acceleration with the attitude at the step's
+      start, see ``build_gtsam_graph``). Navigation frame = Georefine's ``w`` (ENU at the
+      reference point, Earth-fixed): ``n_gravity = g_w(0) = [0, 0, -|g|]`` (normal gravity at the
+      reference point, held constant: gtsam has no position-dependent gravity),
+      ``omegaCoriolis = frame.omega_ie_w`` (first order: Earth rate in the attitude and
+      Coriolis in the velocity; the centrifugal part is already in normal gravity).
+      Noise densities exactly as Georefine's (``gnss_imu._densities``, incl. its floors):
+      gyro radians(ARW)/60 rad/s/sqrt(Hz), acc VRW/60 m/s^2/sqrt(Hz), bias random walk
+      ``q = B sqrt(2/tau)`` (continuous-time, so gtsam's bias covariance grows as q^2 dt).
+    * GPSFactorArm at the states that coincide with a GNSS epoch (5 Hz, i.e. every other
+      state; epochs between states are counted and left out): ``p + R p_b_a - z``, full 3x3
+      covariance from the ``.pos`` file, Huber loss with Georefine's threshold (3 sigma).
+    * Priors: turn-on bias prior at zero with the datasheet sigma (as Georefine); weak
+      pose/velocity priors on the first state (1 m, 1 deg, 0.5 m/s; GNSS fixes the datum).
+    * Initial values from Georefine's smoothed filter at the state times (the same starting
+      point as Georefine's spline fit); the preintegration bias linearisation point too.
+    * gtsam.LevenbergMarquardtOptimizer (multifrontal Cholesky, COLAMD), at most the same
+      number of iterations as Georefine and the same relative cost tolerance (1e-8).
+    * Covariance (column ``cov``): gtsam.Marginals and the pose marginals every 5 s, the
+      counterpart of Georefine's posterior attitude/position sigma at knots 5 s apart.
+
+Model differences (why variants): Georefine also estimates diagonal IMU scale factors and
+uses position-dependent normal gravity ``g_w(p)``; gtsam's IMU factor has neither. The
+variant ``plain`` feeds the raw IMU data. ``scale`` divides the samples by ``1 + s`` with
+the scale factors of the shared filter result; ``gravity`` adds
+``R_w_b^T (g_w(p_w_b) - g_w(0))`` along the filter trajectory to the specific force, so
+that gtsam's constant gravity becomes exact to first order (normal gravity tilts against
+w's z-axis by distance / Earth radius, ~40 mdeg at the far end of the ~5 km flight, which
+otherwise appears as roll/pitch error).
+``scale+gravity`` applies both. These corrections use only the shared filter result, never
+the truth.
+
+Errors: roll/pitch/yaw (NED Euler angles, wrapped) and 3-D position of each solution minus
+the truth (``truth/trajectory.sbet``), at the gtsam state times (Georefine's spline is
+evaluated there), over the whole common span and over the two mapping passes.
+
+Usage::
+
+    python bench/trajectory_vs_gtsam.py [--seed 42] [--keep DIR] [--keyframe-interval 0.1]
+        [--variants plain scale+gravity] [--no-marginals] [--set scene.length_m=2000 ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+SIM_OVERRIDES = ["scanner.pulse_rate_hz=1000", "scanner.line_rate_hz=50"]  # >= 10 pulses per line
+MDEG_PER_RAD = 180e3 / np.pi
+
+
+@dataclass
+class Solution:
+    """One solver's result at the evaluation times: times (K,), p_w_b (K,3), R_w_b (K,3,3)."""
+
+    name: str
+    time: np.ndarray | None = None
+    p_w_b: np.ndarray | None = None
+    R_w_b: np.ndarray | None = None
+    timings_s: dict = field(default_factory=dict)
+    unknowns: int = 0
+    states: int = 0
+    iterations: str = ""
+    note: str = ""
+    error: str | None = None
+    spline: object = None  # Georefine only: the adjusted SplineTrajectory
+
+
+def simulate(base: Path, seed: int, extra: list[str]) -> tuple[Path, dict]:
+    """Simulate (or reuse) the corridor project under ``base``; returns the folder and truth/scenario.yaml."""
+    from georefine.sim.scenarios import simulate_project
+
+    tag = "".join(c if c.isalnum() or c in ".-" else "_" for c in "-".join(extra))
+    out = base / (f"corridor-seed{seed}" + (f"-{tag}" if tag else ""))
+    if not (out / "truth" / "scenario.yaml").exists():
+        if out.exists():
+            shutil.rmtree(out)
+        simulate_project("corridor", out, seed=seed, overrides=SIM_OVERRIDES + extra)
+    return out, yaml.safe_load((out / "truth" / "scenario.yaml").read_text())
+
+
+def load_truth(nav, project: Path):
+    """The true IMU trajectory (truth/trajectory.sbet) in ``w``."""
+    from georefine.io.trajectory import read_sbet
+    from georefine.trajectory.sampled import trajectory_from_sbet
+
+    sbet = read_sbet(project / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
+    return trajectory_from_sbet(sbet, nav.frame, nav.t0_gps)
+
+
+def errors(nav, truth, t: np.ndarray, p_w_b: np.ndarray, R_w_b: np.ndarray, mask: np.ndarray) -> dict:
+    """RMSE of roll/pitch/yaw (mdeg) and of the 3-D position (m) against the truth at ``t[mask]``."""
+    p_ref, R_ref = truth.interpolate(t[mask])
+    rph_ref = nav.frame.rph_from_R_w_b(p_ref, R_ref)
+    rph = nav.frame.rph_from_R_w_b(p_w_b[mask], R_w_b[mask])
+    d = np.angle(np.exp(1j * (rph - rph_ref))) * MDEG_PER_RAD
+    rmse = np.sqrt(np.mean(d**2, axis=0))
+    d_p = np.linalg.norm(p_w_b[mask] - p_ref, axis=1)
+    return {"roll": rmse[0], "pitch": rmse[1], "yaw": rmse[2], "pos": float(np.sqrt(np.mean(d_p**2))),
+            "max_att": float(np.max(np.abs(d)))}
+
+
+def run_georefine(nav) -> tuple[object, Solution]:
+    """Steps 1-2 of the workflow, timed; returns the filter result (shared with gtsam) and the solution."""
+    from georefine.pipeline import step_adjust_gnss_imu, step_initialise
+
+    sol = Solution("Georefine")
+    t = time.perf_counter()
+    filt = step_initialise(nav)
+    sol.timings_s["filter"] = time.perf_counter() - t
+    t = time.perf_counter()
+    adj = step_adjust_gnss_imu(nav, filt)
+    sol.timings_s["adjust"] = time.perf_counter() - t
+    sol.timings_s["solve"] = adj.timings_s["solve"]
+    sol.timings_s["covariance"] = adj.timings_s["covariance"]
+    sol.timings_s["build"] = sol.timings_s["adjust"] - sol.timings_s["solve"] - sol.timings_s["covariance"]
+    sol.unknowns = adj.solve.n_unknowns
+    sol.iterations = f"{adj.solve.iterations}/{adj.solve.successful_iterations}"
+    sol.states = adj.spline.grid.n_knots
+    h = adj.solve.cost_history
+    sol.note = (f"{sol.states} knots x (p,v,a,R,w) every {adj.spline.grid.dt:g} s + "
+                f"{adj.imu_errors.bias_grid.n_knots} bias knots x (acc, gyro) + 2 scale-factor triples; "
+                f"{adj.solve.termination}; cost {adj.solve.initial_cost:.4g} -> "
+                + " -> ".join(f"{c:.6g}" for c in h))
+    sol.spline = adj.spline
+    return filt, sol
+
+
+def keyframes(nav, grid, dt: float) -> np.ndarray:
+    """IMU sample indices of the gtsam states: every ``dt`` on Georefine's knot span, snapped to the nearest sample."""
+    t_imu = nav.gnss.imu_time
+    want = grid.t_start + dt * np.arange(int(np.floor((grid.t_end - grid.t_start) / dt + 1e-9)) + 1)
+    i = np.clip(np.searchsorted(t_imu, want), 1, t_imu.size - 1)
+    i -= (want - t_imu[i - 1]) < (t_imu[i] - want)
+    i = np.unique(i)
+    return i[(t_imu[i] >= grid.t_start) & (t_imu[i] <= grid.t_end)]
+
+
+def gtsam_inputs(nav, filt, variant: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """The IMU samples fed to gtsam (acc, gyro; (N,3)) with the variant's corrections."""
+    acc = nav.gnss.imu_acc.copy()
+    gyro = nav.gnss.imu_gyro.copy()
+    parts = set(variant.split("+")) - {"plain"}
+    unknown = parts - {"scale", "gravity"}
+    if unknown:
+        raise ValueError(f"unknown variant part(s) {sorted(unknown)}; use plain, scale, gravity or scale+gravity")
+    notes = []
+    if "scale" in parts:
+        acc /= 1.0 + np.asarray(filt.scale_acc)
+        gyro /= 1.0 + np.asarray(filt.scale_gyro)
+        notes.append("IMU / (1 + filter scale factors)")
+    if "gravity" in parts:
+        # Filter states at every IMU sample it covers; outside, the nearest one (not used by the graph).
+        j = np.clip(np.searchsorted(filt.time, nav.gnss.imu_time), 0, filt.time.size - 1)
+        g0 = nav.frame.gravity_w(np.zeros(3))
+        dg_w = nav.frame.gravity_w(filt.p_w_b[j]) - g0
+        acc += np.einsum("nji,nj->ni", filt.R_w_b[j], dg_w)
+        g_w = g0 + dg_w
+        cos_tilt = (g_w @ g0) / (np.linalg.norm(g_w, axis=1) * np.linalg.norm(g0))
+        tilt_mdeg = np.degrees(np.arccos(np.clip(cos_tilt, -1.0, 1.0))).max() * 1e3
+        notes.append(f"specific force + R^T (g_w(p) - g_w(0)) (gravity tilts by up to {tilt_mdeg:.0f} mdeg)")
+    return acc, gyro, "; ".join(notes) or "raw IMU"
+
+
+def build_gtsam_graph(nav, filt, kf: np.ndarray, variant: str):
+    """The gtsam graph and initial values (module docstring); returns (graph, values, note)."""
+    import gtsam
+    from gtsam.symbol_shorthand import B, V, X
+
+    # Georefine's own noise densities, floors included, so that both weight the IMU alike.
+    from georefine.adjustment.gnss_imu import _densities
+
+    d = nav.gnss
+    frame = nav.frame
+    acc, gyro, note = gtsam_inputs(nav, filt, variant)
+    dens = _densities(nav.config.imu.errors, nav.config.processing.trajectory)
+    params = gtsam.PreintegrationCombinedParams(frame.gravity_w(np.zeros(3)))
+    params.setOmegaCoriolis(frame.omega_ie_w)
+    params.setGyroscopeCovariance(dens["gyro_noise"] ** 2 * np.eye(3))
+    params.setAccelerometerCovariance(dens["acc_noise"] ** 2 * np.eye(3))
+    params.setIntegrationCovariance(1e-10 * np.eye(3))
+    params.setBiasAccCovariance(dens["acc_rw"] ** 2 * np.eye(3))
+    params.setBiasOmegaCovariance(dens["gyro_rw"] ** 2 * np.eye(3))
+
+    t_imu = d.imu_time
+    t_kf = t_imu[kf]
+    fi = np.clip(np.searchsorted(filt.time, t_kf), 0, filt.time.size - 1)
+    if np.any(np.abs(filt.time[fi] - t_kf) > 1e-9):
+        raise RuntimeError("a gtsam state time is not a filter epoch")
+    dts = np.diff(t_imu)
+    # Midpoint rule for instantaneous samples: the mean of the two end samples belongs to the middle
+    # of the step, but gtsam rotates a step's acceleration with the attitude at its start, so rotate
+    # it forward by Exp(omega dt/2) (first order). Without this, a banked turn leaves a bias
+    # f_z omega_y dt/2 (1.7e-3 m/s^2 at 10 deg/s) along x; feeding the first sample instead shifts the
+    # solution by half a sample (2.5 ms, ~25 mdeg of heading in a turn).
+    gyro_mid = 0.5 * (gyro[:-1] + gyro[1:])
+    acc_mid = 0.5 * (acc[:-1] + acc[1:])
+    acc_mid += np.cross(0.5 * dts[:, None] * gyro_mid, acc_mid)
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    K = kf.size
+    for k in range(K):
+        f = fi[k]
+        values.insert(X(k), gtsam.Pose3(gtsam.Rot3(filt.R_w_b[f]), filt.p_w_b[f]))
+        values.insert(V(k), filt.v_w_b[f])
+        values.insert(B(k), gtsam.imuBias.ConstantBias(filt.bias_acc[f], filt.bias_gyro[f]))
+    for k in range(K - 1):
+        f = fi[k]
+        pim = gtsam.PreintegratedCombinedMeasurements(
+            params, gtsam.imuBias.ConstantBias(filt.bias_acc[f], filt.bias_gyro[f]))
+        for i in range(kf[k], kf[k + 1]):
+            pim.integrateMeasurement(acc_mid[i], gyro_mid[i], dts[i])
+        graph.add(gtsam.CombinedImuFactor(X(k), V(k), X(k + 1), V(k + 1), B(k), B(k + 1), pim))
+
+    # GNSS epochs that coincide with a state (the others are counted, not used).
+    gk = np.clip(np.searchsorted(t_kf, d.gnss_time), 1, K - 1)
+    gk -= (d.gnss_time - t_kf[gk - 1]) < (t_kf[gk] - d.gnss_time)
+    on_state = np.abs(t_kf[gk] - d.gnss_time) < 1e-4
+    huber = gtsam.noiseModel.mEstimator.Huber.Create(nav.config.processing.trajectory.gnss_loss_scale)
+    for g in np.flatnonzero(on_state):
+        model = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(d.gnss_cov_w[g]))
+        graph.add(gtsam.GPSFactorArm(X(int(gk[g])), d.gnss_p_w[g], d.p_b_a, model))
+    note += f"; {int(on_state.sum())} GNSS factors, {int((~on_state).sum())} epochs not on a state"
+
+    zero = np.zeros(3)
+    bias_sigma = np.r_[[dens["acc_turn_on"]] * 3, [dens["gyro_turn_on"]] * 3]
+    graph.add(gtsam.PriorFactorConstantBias(
+        B(0), gtsam.imuBias.ConstantBias(zero, zero), gtsam.noiseModel.Diagonal.Sigmas(bias_sigma)))
+    graph.add(gtsam.PriorFactorPose3(
+        X(0), values.atPose3(X(0)), gtsam.noiseModel.Diagonal.Sigmas(np.r_[[np.radians(1.0)] * 3, [1.0] * 3])))
+    graph.add(gtsam.PriorFactorVector(V(0), filt.v_w_b[fi[0]], gtsam.noiseModel.Isotropic.Sigma(3, 0.5)))
+    return graph, values, note
+
+
+def run_gtsam(nav, filt, kf: np.ndarray, variant: str, max_iterations: int, marginals_every_s: float | None) -> Solution:
+    """Build and optimise the gtsam graph for one variant; failures are caught and reported."""
+    sol = Solution(f"gtsam {variant}")
+    try:
+        import gtsam
+        from gtsam.symbol_shorthand import X
+
+        t = time.perf_counter()
+        graph, values, sol.note = build_gtsam_graph(nav, filt, kf, variant)
+        sol.timings_s["build"] = time.perf_counter() - t
+
+        lm = gtsam.LevenbergMarquardtParams()
+        lm.setMaxIterations(max_iterations)
+        lm.setRelativeErrorTol(1e-8)
+        lm.setAbsoluteErrorTol(0.0)
+        t = time.perf_counter()
+        opt = gtsam.LevenbergMarquardtOptimizer(graph, values, lm)
+        result = opt.optimize()
+        sol.timings_s["solve"] = time.perf_counter() - t
+        sol.iterations = str(opt.iterations())
+        sol.note += f"; cost {graph.error(values):.4g} -> {graph.error(result):.4g}"
+
+        K = kf.size
+        if marginals_every_s:
+            t = time.perf_counter()
+            marg = gtsam.Marginals(graph, result)
+            step = max(1, round(marginals_every_s / float(np.median(np.diff(nav.gnss.imu_time[kf])))))
+            for k in range(0, K, step):
+                marg.marginalCovariance(X(k))
+            sol.timings_s["covariance"] = time.perf_counter() - t
+
+        sol.time = nav.gnss.imu_time[kf]
+        sol.p_w_b = np.array([result.atPose3(X(k)).translation() for k in range(K)])
+        sol.R_w_b = np.array([result.atPose3(X(k)).rotation().matrix() for k in range(K)])
+        sol.states = K
+        sol.unknowns = int(result.dim())
+    except Exception as exc:  # noqa: BLE001  (the peer may fail: report it and carry on)
+        sol.error = f"{type(exc).__name__}: {exc}"
+    return sol
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=42)
+    ap.add_argument("--keep", type=Path, default=None, help="simulate into / reuse the project in this folder")
+    ap.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                    help="extra scenario override, e.g. scene.length_m=2000 (repeatable)")
+    ap.add_argument("--keyframe-interval", type=float, default=0.1, help="gtsam state spacing (s)")
+    ap.add_argument("--variants", nargs="+", default=["plain", "scale+gravity"],
+                    help="gtsam input variants: plain, scale, gravity, scale+gravity")
+    ap.add_argument("--no-marginals", action="store_true", help="skip gtsam's marginal covariances")
+    args = ap.parse_args()
+
+    import gtsam  # noqa: F401  (fail early if the peer is missing)
+
+    from georefine.pipeline import load_navigation
+
+    base = args.keep or Path(tempfile.mkdtemp(prefix="georefine-bench-"))
+    base.mkdir(parents=True, exist_ok=True)
+    try:
+        t = time.perf_counter()
+        project, truth_yaml = simulate(base, args.seed, args.overrides)
+        print(f"project {project} (simulated or reused in {time.perf_counter() - t:.1f} s): corridor, seed {args.seed}, "
+              f"flight {truth_yaml['duration_s']:.0f} s, IMU {truth_yaml['scenario']['imu']['name']}")
+        nav = load_navigation(project)
+        truth = load_truth(nav, project)
+        print(f"IMU {nav.gnss.imu_time.size:,} samples at {nav.gnss.imu_rate_hz:g} Hz, "
+              f"GNSS {nav.gnss.gnss_time.size:,} epochs")
+
+        filt, geo = run_georefine(nav)
+        kf = keyframes(nav, geo.spline.grid, args.keyframe_interval)
+        t_eval = nav.gnss.imu_time[kf]
+        geo.time = t_eval
+        geo.p_w_b, geo.R_w_b = geo.spline.pose(t_eval)
+        print(f"Georefine: {geo.note}")
+        print(f"gtsam states: {kf.size:,} every {args.keyframe_interval:g} s (IMU samples nearest to the knots)")
+
+        sols = [geo]
+        for v in args.variants:
+            s = run_gtsam(nav, filt, kf, v, nav.config.processing.trajectory.max_iterations,
+                          None if args.no_marginals else nav.config.processing.trajectory.covariance_interval_s)
+            sols.append(s)
+            print(f"{s.name}: " + (f"FAILED {s.error}" if s.error else s.note))
+
+        passes = np.zeros(t_eval.size, dtype=bool)
+        for ps in truth_yaml["passes"]:
+            passes |= (t_eval >= ps["t_start_s"]) & (t_eval <= ps["t_end_s"])
+        everywhere = truth.contains(t_eval)
+        ok = [s for s in sols if s.error is None]
+
+        print(f"\nErrors against the truth at the {int(everywhere.sum()):,} gtsam state times "
+              f"(RMSE; 'max' = largest |attitude error|):")
+        print(f"{'solution':<22} {'span':<7} {'roll':>7} {'pitch':>7} {'yaw':>7} {'max':>7} {'3D pos':>7}")
+        print(f"{'':<22} {'':<7} {'mdeg':>7} {'mdeg':>7} {'mdeg':>7} {'mdeg':>7} {'m':>7}")
+        for s in ok:
+            for label, mask in (("flight", everywhere), ("passes", passes & everywhere)):
+                e = errors(nav, truth, s.time, s.p_w_b, s.R_w_b, mask)
+                print(f"{s.name if label == 'flight' else '':<22} {label:<7} {e['roll']:7.1f} {e['pitch']:7.1f}"
+                      f" {e['yaw']:7.1f} {e['max_att']:7.1f} {e['pos']:7.3f}")
+
+        print("\nWall time (s; build = Georefine spline fit + problem, gtsam preintegration + graph; "
+              "cov = posterior covariances every 5 s)")
+        print(f"{'solution':<22} {'build':>6} {'solve':>6} {'cov':>6} {'total':>6} {'iter':>6} {'unknowns':>9}"
+              f" {'states':>7} {'solve/G':>8} {'total/G':>8}")
+        g = geo.timings_s
+        for s in ok:
+            tm = s.timings_s
+            total = tm["build"] + tm["solve"] + tm.get("covariance", 0.0)
+            print(f"{s.name:<22} {tm['build']:6.2f} {tm['solve']:6.2f} {tm.get('covariance', float('nan')):6.2f}"
+                  f" {total:6.2f} {s.iterations:>6} {s.unknowns:9,} {s.states:7,} {tm['solve'] / g['solve']:8.3f}"
+                  f" {total / g['adjust']:8.3f}")
+        print(f"Georefine: filter {g['filter']:.2f} s, adjustment {g['adjust']:.2f} s, filter + adjustment "
+              f"{g['filter'] + g['adjust']:.2f} s; 'iter' = trial/accepted steps (Georefine), LM iterations (gtsam); "
+              f"x/G = ratio to Georefine")
+        print(f"peak RSS of this process {_peak_rss_gb():.2f} GB")
+    finally:
+        if args.keep is None:
+            shutil.rmtree(base, ignore_errors=True)
+
+
+def _peak_rss_gb() -> float:
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # KiB on Linux
+
+
+if __name__ == "__main__":
+    main()

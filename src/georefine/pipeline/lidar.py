@@ -1,0 +1,322 @@
+"""Workflow steps 3-6 of paper 000: tightly-coupled GNSS/IMU/LiDAR trajectory estimation.
+
+3. Preliminary georeferencing of every strip with the current trajectory (IMU rate, per-point
+   interpolation).
+4. Planar features per view (strip x scanner channel) and their matching across views into
+   planar objects.
+5. GNSS/IMU/LiDAR adjustment: the GNSS/IMU problem plus the plane observations (robust loss),
+   optionally the boresight. Steps 3-5 repeat (outer iterations) until the trajectory changes
+   less than the configured thresholds.
+6. Final georeferencing into the output CRS.
+
+:func:`run_workflow` writes ``gi/`` and ``gil/`` (trajectory products), ``points/*.laz``,
+``features/`` (features and objects as CSV), ``metrics.json`` and the resolved configuration.
+"""
+
+from __future__ import annotations
+
+import logging
+import time as _time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from georefine.adjustment.gnss_imu import GnssImuResult, build_gnss_imu_problem, solve_gnss_imu
+from georefine.adjustment.observations.plane import PlaneObservation
+from georefine.adjustment.observations.prior import RotationPrior
+from georefine.adjustment.robust import make_loss
+from georefine.config import boresight_matrix, write_yaml
+from georefine.errors import InputError
+from georefine.geometry.frames import OutputCRS
+from georefine.geometry.rotation import log_so3, rph_from_R_n_b
+from georefine.io.las import iter_las_chunks
+from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
+from georefine.lidar.georeference import PoseInterpolator, georeference, georeference_strip
+from georefine.lidar.planes import PlanarFeatures, extract_features, write_features
+from georefine.pipeline.navigation import (
+    NavigationData,
+    imu_rate_trajectory,
+    load_navigation,
+    step_adjust_gnss_imu,
+    step_initialise,
+    write_trajectory_products,
+)
+from georefine.products import write_json
+from georefine.trajectory.sampled import Trajectory
+
+log = logging.getLogger(__name__)
+Progress = Callable[[str, float, float], None]
+
+
+def _no_progress(name: str, done: float, total: float) -> None:
+    return None
+
+
+@dataclass(frozen=True)
+class StripPoints:
+    """One strip in memory: scanner-frame points, times relative to the epoch, channels."""
+
+    path: Path
+    strip_id: int
+    time: np.ndarray
+    xyz_s: np.ndarray
+    channel: np.ndarray
+
+
+def read_strips(nav: NavigationData, strips: list[int] | None = None) -> list[StripPoints]:
+    """Read the project's strips (optionally only those with the given ``point_source_id``).
+
+    Raises
+    ------
+    InputError
+        A strip without points, without configured ``scanner_channel`` values, or a requested
+        strip id that no file holds.
+    """
+    cfg = nav.config
+    channels = {c.id for c in cfg.scanner.channels}
+    out = []
+    for rel in cfg.scanner.files:
+        path = nav.root / rel
+        parts = list(iter_las_chunks(path, 5_000_000))
+        if not parts or sum(len(p) for p in parts) == 0:
+            raise InputError("strip has no points", path=path)
+        sid = int(parts[0].point_source_id[0])
+        if strips is not None and sid not in strips:
+            continue
+        t = np.concatenate([p.time_gps for p in parts]) - nav.t0_gps
+        ch = np.concatenate([p.scanner_channel for p in parts])
+        if not np.any(np.isin(ch, list(channels))):
+            raise InputError(
+                "no point has a configured scanner_channel", path=path, field="scanner_channel",
+                expected="one of " + ", ".join(map(str, sorted(channels))), found=", ".join(map(str, np.unique(ch)[:5])),
+            )
+        out.append(StripPoints(path, sid, t, np.concatenate([p.xyz for p in parts]), ch))
+    if strips is not None:
+        missing = set(strips) - {s.strip_id for s in out}
+        if missing:
+            raise InputError("no strip with this id", field="--strips", expected="ids of the project's strips",
+                             found=", ".join(map(str, sorted(missing))))
+    return out
+
+
+def step_features(
+    nav: NavigationData, trajectory: Trajectory, strips: list[StripPoints], progress: Progress = _no_progress
+) -> tuple[PlanarFeatures, dict]:
+    """Steps 3-4a: georeference each view with ``trajectory`` and extract its planar features."""
+    cfg = nav.config
+    p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
+    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
+    interp = PoseInterpolator(trajectory)
+    parts, stats = [], {"points_outside_trajectory": 0, "views": {}}
+    for k, strip in enumerate(strips):
+        inside = interp.inside(strip.time)
+        stats["points_outside_trajectory"] += int(np.count_nonzero(~inside))
+        t, xs, ch = strip.time[inside], strip.xyz_s[inside], strip.channel[inside]
+        x_w = georeference(t, xs, interp, p_b_s, R_b_s)
+        for c in cfg.scanner.channels:
+            m = ch == c.id
+            if not np.any(m):
+                log.warning("%s: no points of channel %d (%s)", strip.path.name, c.id, c.name)
+                continue
+            f = extract_features(x_w[m], t[m], strip.strip_id, c.id, interp, p_b_s, R_b_s, cfg.processing.planes)
+            stats["views"][f"strip{strip.strip_id}_{c.name}"] = len(f)
+            if len(f) == 0:
+                log.warning("%s: channel %d (%s) gave no planar features", strip.path.name, c.id, c.name)
+            parts.append(f)
+        progress("planar features", k + 1, len(strips))
+    features = PlanarFeatures.concatenate(parts) if parts else PlanarFeatures.empty()
+    if len(features) == 0:
+        raise InputError("no planar features in any view", field="processing.planes",
+                         expected="planar surfaces (roofs, roads, facades) in the scans")
+    return features, stats
+
+
+@dataclass(frozen=True)
+class LidarAdjustment:
+    """Result of one G/I/L adjustment."""
+
+    result: GnssImuResult
+    features_used: int
+    objects_used: int
+    boresight_deg: np.ndarray | None
+    boresight_sigma_mdeg: np.ndarray | None
+
+
+def step_adjust_gil(
+    nav: NavigationData,
+    previous: GnssImuResult,
+    features: PlanarFeatures,
+    objects: PlanarObjects,
+    progress: Progress = _no_progress,
+) -> LidarAdjustment:
+    """Step 5: the G/I problem started at ``previous`` plus the plane observations."""
+    cfg = nav.config
+    lcfg = cfg.processing.lidar
+    built = build_gnss_imu_problem(nav.gnss, cfg.imu.errors, cfg.processing.trajectory, previous.spline)
+    e = previous.imu_errors
+    P = built.problem
+    P.set_values("acc_bias", e.acc_bias)
+    P.set_values("gyro_bias", e.gyro_bias)
+    P.set_values("acc_scale", np.asarray(e.acc_scale).reshape(1, 3))
+    P.set_values("gyro_scale", np.asarray(e.gyro_scale).reshape(1, 3))
+
+    grid = built.grid
+    sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end))
+    if sel.size > lcfg.max_features:
+        sel = np.sort(np.random.default_rng(0).choice(sel, lcfg.max_features, replace=False))
+    if sel.size == 0:
+        raise InputError("no matched planar features inside the trajectory span", field="processing.matching")
+    used_objects, obj_index = np.unique(objects.feature_object[sel], return_inverse=True)
+    f = features.select(sel)
+    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
+    P.add_block("plane_params", np.zeros((used_objects.size, 3)))
+    boresight = None
+    if lcfg.estimate_boresight:
+        P.add_block("boresight", R_b_s[None].copy(), manifold="so3")
+        P.add_group(RotationPrior("boresight_prior", "boresight", [0], R_b_s[None], np.radians(lcfg.boresight_prior_deg)))
+        boresight = "boresight"
+    P.add_group(
+        PlaneObservation(
+            grid, f.time, f.centre_s, f.axis1_s, f.axis2_s, f.sigma_d_m, f.sigma_slope_rad, obj_index,
+            objects.c0[used_objects], objects.k1[used_objects], objects.k2[used_objects], objects.n0[used_objects],
+            np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight,
+            blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale),
+        )
+    )
+
+    def report(it) -> None:
+        progress("G/I/L adjustment", getattr(it, "iteration", 0), cfg.processing.trajectory.max_iterations)
+
+    result = solve_gnss_imu(built, progress=report)
+    bs_deg = bs_sig = None
+    if boresight:
+        R = P.values("boresight")[0]
+        bs_deg = np.degrees(rph_from_R_n_b(R))
+        bs_deg[2] = (bs_deg[2] + 180.0) % 360.0 - 180.0
+        bs_sig = np.degrees(np.sqrt(np.diag(P.covariance("boresight")[0]))) * 1e3
+    return LidarAdjustment(result, int(sel.size), int(used_objects.size), bs_deg, bs_sig)
+
+
+def trajectory_change(a, b) -> tuple[float, float]:
+    """Largest attitude (mdeg) and position (m) difference of two splines at ``a``'s knots."""
+    t = a.grid.knot_times
+    t = t[(t >= b.grid.t_start) & (t <= b.grid.t_end)]
+    pa, Ra = a.pose(t)
+    pb, Rb = b.pose(t)
+    dth = np.linalg.norm(log_so3(np.swapaxes(Ra, 1, 2) @ Rb), axis=1)
+    return float(np.degrees(dth.max()) * 1e3), float(np.linalg.norm(pa - pb, axis=1).max())
+
+
+@dataclass(frozen=True)
+class WorkflowResult:
+    """What :func:`run_workflow` computed and wrote."""
+
+    out: Path
+    gi: GnssImuResult
+    gil: LidarAdjustment | None
+    metrics: dict = field(default_factory=dict)
+
+    def summary(self) -> str:
+        m = self.metrics
+        lines = [f"Results written to {self.out}"]
+        for it in m.get("outer_iterations", []):
+            lines.append(
+                f"  iteration {it['iteration']}: {it['features']:,} features, {it['objects']:,} objects, "
+                f"{it['features_used']:,} used; change {it['attitude_change_mdeg']:.2f} mdeg, "
+                f"{it['position_change_m'] * 1e3:.1f} mm"
+            )
+        if self.gil is not None and self.gil.boresight_deg is not None:
+            b = self.gil.boresight_deg
+            lines.append(f"  boresight roll/pitch/yaw: {b[0]:.4f} {b[1]:.4f} {b[2]:.4f} deg")
+        lines.append("  timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in m.get("timings_s", {}).items()))
+        return "\n".join(lines)
+
+
+def run_workflow(
+    project_dir: str | Path,
+    out: str | Path,
+    *,
+    strips: list[int] | None = None,
+    lidar: bool = True,
+    progress: Progress = _no_progress,
+) -> WorkflowResult:
+    """Steps 1-6 on a project folder (see the module docstring for the outputs)."""
+    timings: dict[str, float] = {}
+    t = _time.perf_counter()
+    nav = load_navigation(project_dir)
+    out = Path(out)
+    if out.resolve() == nav.root.resolve() or nav.root.resolve() in out.resolve().parents:
+        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    strip_points = read_strips(nav, strips)
+    timings["read"] = _time.perf_counter() - t
+    crs = OutputCRS(nav.config.crs.output_epsg)
+    for sub in ("gi", "gil", "points", "features"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+
+    t = _time.perf_counter()
+    progress("initialisation filter", 0, 1)
+    filt = step_initialise(nav)
+    timings["filter"] = _time.perf_counter() - t
+    t = _time.perf_counter()
+    gi = step_adjust_gnss_imu(nav, filt, progress)
+    timings["gi_adjustment"] = _time.perf_counter() - t
+    write_trajectory_products(out / "gi", nav, gi, crs)
+    write_json(out / "gi" / "adjustment.json", {"adjustment": gi.solve.to_dict(), "imu_errors": gi.imu_errors.to_dict(),
+                                                 "t0_gps": nav.t0_gps, "timings_s": gi.timings_s})
+    metrics: dict = {"t0_gps": nav.t0_gps, "strips": [s.strip_id for s in strip_points], "outer_iterations": []}
+
+    final = gi
+    gil = None
+    if lidar:
+        lcfg = nav.config.processing.lidar
+        current = gi
+        for it in range(1, lcfg.outer_iterations + 1):
+            t = _time.perf_counter()
+            traj = imu_rate_trajectory(nav, current.spline)
+            features, fstats = step_features(nav, traj, strip_points, progress)
+            timings[f"features_{it}"] = _time.perf_counter() - t
+            t = _time.perf_counter()
+            objects = match_features(features, nav.config.processing.matching)
+            timings[f"matching_{it}"] = _time.perf_counter() - t
+            t = _time.perf_counter()
+            gil = step_adjust_gil(nav, current, features, objects, progress)
+            timings[f"gil_adjustment_{it}"] = _time.perf_counter() - t
+            d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
+            metrics["outer_iterations"].append({
+                "iteration": it, "features": len(features), "objects": len(objects),
+                "features_used": gil.features_used, "objects_used": gil.objects_used,
+                "attitude_change_mdeg": d_att, "position_change_m": d_pos, **fstats,
+            })
+            current = gil.result
+            if d_att < lcfg.convergence_attitude_mdeg and d_pos < lcfg.convergence_position_m:
+                break
+        write_features(out / "features" / "features.csv", features)
+        write_objects(out / "features" / "objects.csv", objects)
+        final = current
+        write_trajectory_products(out / "gil", nav, final, crs)
+        gil_report = {"adjustment": final.solve.to_dict(), "imu_errors": final.imu_errors.to_dict(), "t0_gps": nav.t0_gps,
+                      "timings_s": final.timings_s}
+        if gil.boresight_deg is not None:
+            gil_report["boresight_deg"] = gil.boresight_deg.tolist()
+            gil_report["boresight_sigma_mdeg"] = gil.boresight_sigma_mdeg.tolist()
+        write_json(out / "gil" / "adjustment.json", gil_report)
+
+    t = _time.perf_counter()
+    traj = imu_rate_trajectory(nav, final.spline)
+    p_b_s = np.asarray(nav.config.scanner.lever_arm_m, dtype=float)
+    R_b_s = boresight_matrix(nav.config.scanner.boresight_deg)
+    if gil is not None and gil.boresight_deg is not None:
+        R_b_s = boresight_matrix(tuple(gil.boresight_deg))
+    georef = []
+    for s in strip_points:
+        r = georeference_strip(s.path, out / "points" / (s.path.stem + ".laz"), traj, p_b_s, R_b_s, nav.frame, crs,
+                               progress=progress, protect=(nav.root,))
+        georef.append({"strip": s.strip_id, "points": r.points_written, "outside_trajectory": r.points_outside})
+    timings["final_georeferencing"] = _time.perf_counter() - t
+    metrics["points"] = georef
+    metrics["timings_s"] = timings
+    write_json(out / "metrics.json", metrics)
+    write_yaml(out / "config.resolved.yaml", nav.config)
+    return WorkflowResult(out, gi, gil, metrics)
