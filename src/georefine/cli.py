@@ -271,9 +271,5 @@ def evaluate_trajectory(
         stdout.print(f"wrote {path}")
 
 
-def run() -> None:  # pragma: no cover - console entry point
-    app()
-
-
 if __name__ == "__main__":  # pragma: no cover
     app()
