@@ -292,7 +292,9 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
         ),
         reference=ReferenceConfig(surfaces="reference/surfaces.csv"),
     )
-    write_yaml(root / "project.yaml", project)
+    # Sensor configuration only: the processing options keep their documented defaults unless a
+    # user writes them into project.yaml.
+    write_yaml(root / "project.yaml", project.model_dump(mode="json", exclude={"processing"}))
     truth = {
         "seed": seed,
         "t0_gps": traj.t0_gps,
