@@ -19,7 +19,6 @@ import logging
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -38,7 +37,10 @@ from georefine.lidar.planes import PlanarFeatures, extract_features, write_featu
 from georefine.pipeline.navigation import (
     NavigationData,
     imu_rate_trajectory,
+    Progress,
+    _no_progress,
     load_navigation,
+    output_folder,
     step_adjust_gnss_imu,
     step_initialise,
     write_trajectory_products,
@@ -47,11 +49,6 @@ from georefine.products import write_json
 from georefine.trajectory.sampled import Trajectory
 
 log = logging.getLogger(__name__)
-Progress = Callable[[str, float, float], None]
-
-
-def _no_progress(name: str, done: float, total: float) -> None:
-    return None
 
 
 @dataclass(frozen=True)
@@ -246,9 +243,7 @@ def run_workflow(
     timings: dict[str, float] = {}
     t = _time.perf_counter()
     nav = load_navigation(project_dir)
-    out = Path(out)
-    if out.resolve() == nav.root.resolve() or nav.root.resolve() in out.resolve().parents:
-        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    out = output_folder(out, nav.root)
     strip_points = read_strips(nav, strips)
     timings["read"] = _time.perf_counter() - t
     crs = OutputCRS(nav.config.crs.output_epsg)

@@ -42,6 +42,14 @@ def _no_progress(name: str, done: float, total: float) -> None:
     return None
 
 
+def output_folder(out: str | Path, project_root: Path) -> Path:
+    """``out`` as a Path, refusing the project folder or anything inside it (inputs stay untouched)."""
+    out = Path(out)
+    if out.resolve() == project_root.resolve() or project_root.resolve() in out.resolve().parents:
+        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    return out
+
+
 @dataclass(frozen=True)
 class NavigationData:
     """GNSS and IMU of a project in the mapping frame, validated."""
@@ -215,9 +223,7 @@ def run_trajectory(
     t = _time.perf_counter()
     nav = load_navigation(project_dir)
     timings["read"] = _time.perf_counter() - t
-    out = Path(out)
-    if out.resolve() == nav.root.resolve() or nav.root.resolve() in out.resolve().parents:
-        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    out = output_folder(out, nav.root)
     out.mkdir(parents=True, exist_ok=True)
     crs = OutputCRS(nav.config.crs.output_epsg)
 
@@ -295,9 +301,7 @@ def run_georeference(
 
     root = Path(project_dir)
     cfg = load_project(root)
-    out = Path(out)
-    if out.resolve() == root.resolve() or root.resolve() in out.resolve().parents:
-        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    out = output_folder(out, root)
     if gps_week is None:
         first = next(iter_las_chunks(root / cfg.scanner.files[0], 1), None)
         if first is None or len(first) == 0:
