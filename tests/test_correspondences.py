@@ -267,7 +267,7 @@ def test_balancing_caps_cells_and_keeps_facades(scene):
 
 def test_balancing_along_a_track_axis(scene):
     features, _ = scene
-    cfg = MatchingConfig(max_objects_per_cell=3)
+    cfg = MatchingConfig(balance_cell_m=10.0, max_objects_per_cell=3)
     objects = match_features(features, cfg, track_axis=lambda p_w: p_w[:, 0])
     bins = np.floor(objects.c0[:, 0] / cfg.balance_cell_m).astype(int)
     assert np.bincount(bins - bins.min()).max() <= 3

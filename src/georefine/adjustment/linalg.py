@@ -186,6 +186,9 @@ def _cholespy(A_lower: sp.csr_matrix, n: int) -> Factorization:
     return _CholespyFactorization(backend="cholespy", n=n, _solver=solver)
 
 
+_SINGULAR_PIVOT = 1e-13
+
+
 @dataclass
 class _CholmodFactorization:
     backend: str
@@ -203,10 +206,19 @@ def _cholmod(A_lower: sp.csr_matrix, n: int) -> Factorization:
     from sksparse import cholmod
 
     not_pd = getattr(cholmod, "CholmodNotPositiveDefiniteError", cholmod.CholmodError)
+    A_csc = sp.csc_matrix(A_lower)
     try:
-        factor = cholmod.cholesky(sp.csc_matrix(A_lower), beta=0, mode="auto")
+        factor = cholmod.cholesky(A_csc, beta=0, mode="auto")
+        L_diag = factor.L().diagonal()
     except not_pd as exc:
         raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is not positive definite") from exc
+    # The supernodal factorisation accepts a singular matrix whose rounding leaves tiny positive
+    # pivots (a missing datum, say); the simplicial one and cholespy reject it. Make the
+    # backends agree: a pivot below 1e-13 of its diagonal entry is numerically singular.
+    d = L_diag**2
+    a = A_csc.diagonal()[factor.P()]
+    if np.any(d <= _SINGULAR_PIVOT * np.maximum(a, np.finfo(float).tiny)):
+        raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is numerically singular")
     return _CholmodFactorization(backend="cholmod", n=n, _factor=factor)
 
 
