@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 import yaml
 
-from georefine.evaluation.trajectory import compare_sbet_files, consistency
+from georefine.evaluation.trajectory import consistency
+from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.trajectory import read_trajectory_csv
 from georefine.pipeline import load_navigation, run_trajectory
 from georefine.sim.scenarios import simulate_project

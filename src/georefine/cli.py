@@ -248,7 +248,7 @@ def evaluate_trajectory(
     Differences are estimate minus reference; angle differences are wrapped to (-180, 180] deg.
     """
     with _user_errors():
-        from georefine.evaluation.trajectory import compare_sbet_files, write_trajectory_evaluation
+        from georefine.evaluation.trajectory_files import compare_sbet_files, write_trajectory_evaluation
 
         comparison = compare_sbet_files(estimate, reference, gps_week=gps_week, time_window=span)
         files = (

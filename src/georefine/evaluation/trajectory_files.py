@@ -1,0 +1,184 @@
+"""Trajectory evaluation with files: SBET inputs on either time scale, JSON and plot outputs.
+
+:func:`compare_sbet_files` reads two SBETs, settles their time scale (see the conventions in
+:mod:`georefine.evaluation.trajectory`) and compares them; :func:`write_trajectory_evaluation`
+writes the comparison as JSON and the Fig. 9-style plots. The CLI only calls these two.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from georefine.errors import InputError
+from georefine.evaluation.trajectory import TrajectoryComparison, compare_trajectories
+from georefine.io._common import SECONDS_PER_WEEK, PathLike, atomic_output, week_from_gps_seconds
+from georefine.io.trajectory import SBET_RECORD_SIZE, read_sbet
+
+_log = logging.getLogger(__name__)
+
+def _first_time(path: Path) -> float | None:
+    """First SBET time field, or None if the file cannot hold one (read_sbet then says why)."""
+    try:
+        if path.stat().st_size < SBET_RECORD_SIZE:
+            return None
+        return float(np.fromfile(path, dtype="<f8", count=1)[0])
+    except OSError:
+        return None
+
+
+def _window_on_scale(window: tuple[float, float], *, week: int | None) -> tuple[float, float]:
+    """Bring a window to the data's scale: seconds of week (< 604800) and absolute GPS seconds."""
+    out = []
+    for v in (float(window[0]), float(window[1])):
+        if week is None:  # data are seconds of week
+            out.append(v if v < SECONDS_PER_WEEK else float(week_from_gps_seconds(v)[1]))
+        else:
+            out.append(v + week * SECONDS_PER_WEEK if v < SECONDS_PER_WEEK else v)
+    return out[0], out[1]
+
+
+def compare_sbet_files(
+    estimate_path: PathLike,
+    reference_path: PathLike,
+    *,
+    gps_week: int | None = None,
+    time_window: tuple[float, float] | None = None,
+    max_time_offset_s: float = 1e-4,
+    max_gap_s: float | None = None,
+) -> TrajectoryComparison:
+    """Read two SBET files and compare them (:func:`compare_trajectories`).
+
+    Parameters
+    ----------
+    estimate_path, reference_path
+        SBET files (:mod:`georefine.io.trajectory`).
+    gps_week
+        GPS week of files whose times are seconds of week. Without it, a seconds-of-week
+        file is assumed to be in the same week as the other file (module docstring).
+    time_window
+        ``(start, end)``: values below 604800 are seconds of week, others GPS seconds; both
+        are brought to the data's scale (with the GPS week of the later start of the two
+        trajectories).
+
+    Raises
+    ------
+    InputError
+        From :func:`~georefine.io.trajectory.read_sbet` (file, record, field) and
+        :func:`compare_trajectories`.
+    """
+    paths = {"estimate": Path(estimate_path), "reference": Path(reference_path)}
+    first = {k: _first_time(p) for k, p in paths.items()}
+    sow = {k: v is not None and v < SECONDS_PER_WEEK for k, v in first.items()}
+    notes: list[str] = []
+    weeks: dict[str, int | None] = {}
+    if gps_week is not None:
+        weeks = {k: gps_week for k in paths}
+        for k in paths:
+            if sow[k]:
+                notes.append(f"{k} ({paths[k].name}): seconds of week, GPS week {gps_week} given")
+    elif not any(sow.values()):
+        weeks = {k: None for k in paths}
+    elif all(sow.values()):
+        weeks = {k: 0 for k in paths}
+        notes.append("both files store seconds of week and no GPS week was given: both are assumed to be "
+                     "in the same GPS week and compared as seconds of week")
+    else:
+        absolute = "reference" if sow["estimate"] else "estimate"
+        week = int(week_from_gps_seconds(first[absolute])[0])
+        weeks = {k: week for k in paths}
+        relative = "estimate" if absolute == "reference" else "reference"
+        notes.append(f"{relative} ({paths[relative].name}) stores seconds of week and no GPS week was given: "
+                     f"assumed to be in GPS week {week} of the {absolute} ({paths[absolute].name})")
+    data = {k: read_sbet(p, gps_week=weeks[k]) for k, p in paths.items()}
+    same_week_assumed = gps_week is None and all(sow.values())
+    if time_window is not None:
+        if same_week_assumed:
+            week_of_data = None
+        else:
+            start = max(float(d.time_gps[0]) for d in data.values())
+            week_of_data = int(week_from_gps_seconds(start)[0])
+        time_window = _window_on_scale(time_window, week=week_of_data)
+    result = compare_trajectories(data["estimate"], data["reference"], time_window=time_window,
+                                  max_time_offset_s=max_time_offset_s, max_gap_s=max_gap_s)
+    return dataclasses.replace(
+        result, time_scale="seconds_of_week" if same_week_assumed else "gps", notes=tuple(notes),
+        sources={k: str(p) for k, p in paths.items()},
+    )
+
+
+@dataclass(frozen=True)
+class TrajectoryEvaluationFiles:
+    """Files written by :func:`write_trajectory_evaluation`."""
+
+    json: Path
+    attitude_plot: Path
+    position_plot: Path
+
+    def all(self) -> tuple[Path, ...]:
+        return (self.json, self.attitude_plot, self.position_plot)
+
+
+def _output_folder(out_dir: Path, protect: tuple[PathLike, ...]) -> Path:
+    """Create ``out_dir`` unless it is (or lies inside) a protected input; raise InputError."""
+    out = Path(out_dir).resolve()
+    for item in protect:
+        p = Path(item).resolve()
+        if out == p or p in out.parents:
+            raise InputError("refusing to write into an input", path=out,
+                             expected="an output folder that is not an input", found=f"input {p}")
+    if out.exists() and not out.is_dir():
+        raise InputError("output path exists and is not a folder", path=out, expected="a folder",
+                         found="a file")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the output folder: {exc.strerror}", path=out) from exc
+    return out
+
+
+def write_trajectory_evaluation(
+    out_dir: PathLike,
+    comparison: TrajectoryComparison,
+    *,
+    label: str | None = None,
+    protect: tuple[PathLike, ...] = (),
+) -> TrajectoryEvaluationFiles:
+    """Write ``trajectory_comparison.json``, ``attitude_differences.png`` and ``position_differences.png``.
+
+    The folder is created if needed; every file is written atomically.
+
+    Parameters
+    ----------
+    label
+        Legend label of the comparison in the plots (default: ``estimate - reference``
+        from the sources, or ``"estimate - reference"``).
+    protect
+        Input files or folders that ``out_dir`` must not be or lie inside.
+
+    Raises
+    ------
+    InputError
+        If ``out_dir`` is a protected input or an existing file, or cannot be created.
+    """
+    from georefine.evaluation.plots import plot_attitude_differences, plot_position_differences
+
+    out = _output_folder(Path(out_dir), protect)
+    if label is None:
+        src = comparison.sources
+        label = (f"{Path(src['estimate']).name} - {Path(src['reference']).name}"
+                 if "estimate" in src and "reference" in src else "estimate - reference")
+    json_path = out / "trajectory_comparison.json"
+    with atomic_output(json_path, "w", protect=protect) as fh:
+        json.dump(comparison.to_dict(), fh, indent=2, allow_nan=False)
+        fh.write("\n")
+    att = plot_attitude_differences({label: comparison}, out / "attitude_differences.png",
+                                    title="Attitude differences (estimate - reference)", protect=protect)
+    pos = plot_position_differences({label: comparison}, out / "position_differences.png",
+                                    title="Position differences (estimate - reference)", protect=protect)
+    return TrajectoryEvaluationFiles(json_path, att, pos)
