@@ -41,8 +41,8 @@ import logging
 import math
 import time
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import asdict, dataclass
-from typing import Any, Literal
+from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
@@ -57,6 +57,7 @@ from georefine.adjustment.linalg import (
 )
 from georefine.adjustment.problem import ColumnLayout, Linearization, ObservationGroup, ParameterBlock
 from georefine.adjustment.robust import irls_weights
+from georefine.adjustment.statistics import GroupStatistics, IterationSummary, SolveResult, Timings
 
 __all__ = [
     "SolverOptions",
@@ -74,7 +75,6 @@ _MAX_DIAGONAL = 1e32
 _MIN_LAMBDA = 1e-15
 _MAX_LAMBDA = 1e16
 _MIN_GAIN_RATIO = 1e-3
-_CONVERGED = ("function_tolerance", "parameter_tolerance", "gradient_tolerance", "no_unknowns")
 
 
 @dataclass(frozen=True)
@@ -118,172 +118,6 @@ class SolverOptions:
                 raise ValueError(f"{name} must be >= 0, found {getattr(self, name)}")
         if not self.initial_lambda > 0:
             raise ValueError(f"initial_lambda must be > 0, found {self.initial_lambda}")
-
-
-@dataclass(frozen=True)
-class IterationSummary:
-    """One trial step, passed to the ``progress`` callback.
-
-    ``cost`` is the cost after the iteration (unchanged when the step was rejected),
-    ``cost_change`` the actual decrease of the trial, ``gain_ratio`` actual / predicted
-    decrease, ``step_norm`` ``||delta||``, ``gradient_max_norm`` ``max |g|`` at the start.
-    """
-
-    iteration: int
-    cost: float
-    cost_change: float
-    gain_ratio: float
-    step_norm: float
-    gradient_max_norm: float
-    lambda_: float
-    accepted: bool
-    elapsed_s: float
-
-
-@dataclass(frozen=True)
-class GroupStatistics:
-    """Per observation group at the solution.
-
-    Attributes
-    ----------
-    name
-        Group name.
-    robust_loss
-        Name of the loss applied, ``None`` for plain least squares.
-    n_observations, n_residuals
-        Number of observations and of residual rows.
-    rms
-        RMS of the whitened residuals (before robust weighting).
-    cost, cost_share
-        The group's part of the cost ``1/2 sum rho(s)`` and its fraction of the total.
-    variance_factor
-        ``sum w r^2 / n_residuals``: approximate (ignores the group's share of the redundancy,
-        so it is biased low by about ``unknowns / rows``).
-    n_downweighted
-        Observations whose robust weight ``rho'(s)`` is below 0.5.
-    """
-
-    name: str
-    robust_loss: str | None
-    n_observations: int
-    n_residuals: int
-    rms: float
-    cost: float
-    cost_share: float
-    variance_factor: float
-    n_downweighted: int
-
-
-@dataclass(frozen=True)
-class Timings:
-    """Wall-clock seconds: group evaluation, sparse assembly (J, J^T J), factorisation+solve, total."""
-
-    evaluation_s: float
-    assembly_s: float
-    factorization_s: float
-    total_s: float
-
-
-@dataclass(frozen=True)
-class SolveResult:
-    """Outcome and statistics of one adjustment.
-
-    Attributes
-    ----------
-    termination
-        ``function_tolerance``, ``parameter_tolerance``, ``gradient_tolerance``,
-        ``max_iterations``, ``no_progress`` or ``no_unknowns``.
-    iterations, successful_iterations
-        Trial steps and accepted steps.
-    initial_cost, final_cost, cost_history
-        Cost ``1/2 sum rho`` at the start, at the end, and after every accepted step.
-    final_lambda
-        Damping at the end.
-    n_unknowns, n_observations, n_residuals
-        Free tangent dimensions (columns), observations and residual rows.
-    redundancy
-        ``n_residuals - n_unknowns``.
-    variance_factor
-        A-posteriori ``sigma0^2 = sum w r^2 / redundancy`` (NaN without redundancy).
-    groups
-        :class:`GroupStatistics` per group.
-    timings
-        :class:`Timings`.
-    backend
-        Sparse Cholesky backend used.
-    """
-
-    termination: str
-    iterations: int
-    successful_iterations: int
-    initial_cost: float
-    final_cost: float
-    cost_history: tuple[float, ...]
-    final_lambda: float
-    n_unknowns: int
-    n_observations: int
-    n_residuals: int
-    redundancy: int
-    variance_factor: float
-    groups: tuple[GroupStatistics, ...]
-    timings: Timings
-    backend: str
-
-    @property
-    def converged(self) -> bool:
-        """Whether a convergence criterion (not an iteration limit or failure) ended the solve."""
-        return self.termination in _CONVERGED
-
-    @property
-    def sigma0(self) -> float:
-        """A-posteriori standard deviation of unit weight ``sqrt(sigma0^2)``."""
-        return math.sqrt(self.variance_factor) if self.variance_factor >= 0 else math.nan
-
-    def group(self, name: str) -> GroupStatistics:
-        """Statistics of one group by name."""
-        for stats in self.groups:
-            if stats.name == name:
-                return stats
-        raise KeyError(f"no group {name!r} in the result")
-
-    def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-serialisable dictionary (non-finite numbers become ``None``)."""
-        out = _jsonable(asdict(self))
-        out["converged"] = self.converged
-        out["sigma0"] = _jsonable(self.sigma0)
-        return out
-
-    def summary(self) -> str:
-        """A few lines for logs and reports."""
-        lines = [
-            f"{self.termination} after {self.iterations} iterations ({self.successful_iterations} accepted), "
-            f"cost {self.initial_cost:.6g} -> {self.final_cost:.6g}",
-            f"unknowns {self.n_unknowns}, residuals {self.n_residuals}, redundancy {self.redundancy}, "
-            f"sigma0^2 {self.variance_factor:.4g}, {self.timings.total_s:.2f} s ({self.backend})",
-        ]
-        for g in self.groups:
-            lines.append(
-                f"  {g.name}: {g.n_observations} obs, {g.n_residuals} rows, rms {g.rms:.4g}, "
-                f"cost share {g.cost_share:.1%}, s0^2~{g.variance_factor:.4g}, downweighted {g.n_downweighted}"
-            )
-        return "\n".join(lines)
-
-
-def _jsonable(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if math.isfinite(obj) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
-
-
-# ---------------------------------------------------------------------------------------------
-# Layout, evaluation and assembly
-# ---------------------------------------------------------------------------------------------
 
 
 @dataclass
