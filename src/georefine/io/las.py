@@ -174,6 +174,14 @@ def _validate_header(path: Path, header) -> None:
                              found="absent")
 
 
+def gps_week_of_strip(path: PathLike) -> int:
+    """GPS week of a strip's first point (to read trajectories stored in seconds of week)."""
+    first = next(iter_las_chunks(path, 1), None)
+    if first is None or len(first) == 0:
+        raise InputError("strip has no points", path=Path(path))
+    return int(first.time_gps[0] // 604800)
+
+
 def read_las_info(path: PathLike) -> LasInfo:
     """Open, validate and describe a LAS/LAZ file without reading its points."""
     path = Path(path)

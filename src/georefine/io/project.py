@@ -95,6 +95,38 @@ def read_project_imu(root: Path, cfg: ProjectConfig) -> ImuData:
     return read_imu_csv(path, rate_hz=cfg.imu.rate_hz)
 
 
+def check_navigation_spans(
+    root: Path, cfg: ProjectConfig, gnss: GnssSolution, imu: ImuData
+) -> tuple[np.ndarray, tuple[float, float], tuple[float, float]]:
+    """Usable GNSS epochs and the GNSS/IMU time spans (GPS s); they must overlap.
+
+    Raises
+    ------
+    InputError
+        No epoch of the configured quality, or GNSS and IMU spans that do not overlap.
+    """
+    usable = gnss.quality <= cfg.gnss.min_quality
+    if not np.any(usable):
+        raise InputError(
+            "no epoch of sufficient quality",
+            path=root / cfg.gnss.files[0],
+            field="Q",
+            expected=f"Q <= {cfg.gnss.min_quality} (gnss.min_quality)",
+            found=f"best Q = {int(gnss.quality.min())}",
+        )
+    g_span = (float(gnss.time_gps[usable][0]), float(gnss.time_gps[usable][-1]))
+    i_span = (float(imu.time_gps[0]), float(imu.time_gps[-1]))
+    if g_span[1] <= i_span[0] or i_span[1] <= g_span[0]:
+        raise InputError(
+            "GNSS and IMU time spans do not overlap",
+            path=root / cfg.imu.file,
+            field="time",
+            expected=f"overlap with GNSS {g_span[0]:.3f} .. {g_span[1]:.3f} GPS s",
+            found=f"{i_span[0]:.3f} .. {i_span[1]:.3f} GPS s",
+        )
+    return usable, g_span, i_span
+
+
 def inspect_project(
     project_dir: str | Path,
     *,
@@ -115,30 +147,11 @@ def inspect_project(
     warnings: list[str] = []
 
     gnss = read_project_gnss(root, cfg)
-    usable = gnss.quality <= cfg.gnss.min_quality
-    if not np.any(usable):
-        raise InputError(
-            "no epoch of sufficient quality",
-            path=root / cfg.gnss.files[0],
-            field="Q",
-            expected=f"Q <= {cfg.gnss.min_quality} (gnss.min_quality)",
-            found=f"best Q = {int(gnss.quality.min())}",
-        )
     imu = read_project_imu(root, cfg)
+    usable, g_span, i_span = check_navigation_spans(root, cfg, gnss, imu)
     gaps = check_rate_gaps(imu)
     if len(gaps):
         warnings.append(f"IMU has {len(gaps)} sampling gaps, the longest {float(np.max(gaps[:, 1] - gaps[:, 0])):.3f} s")
-
-    g_span = (float(gnss.time_gps[usable][0]), float(gnss.time_gps[usable][-1]))
-    i_span = (float(imu.time_gps[0]), float(imu.time_gps[-1]))
-    if g_span[1] <= i_span[0] or i_span[1] <= g_span[0]:
-        raise InputError(
-            "GNSS and IMU time spans do not overlap",
-            path=root / cfg.imu.file,
-            field="time",
-            expected=f"overlap with GNSS {g_span[0]:.3f} .. {g_span[1]:.3f} GPS s",
-            found=f"{i_span[0]:.3f} .. {i_span[1]:.3f} GPS s",
-        )
 
     channels = {c.id for c in cfg.scanner.channels}
     nav = (max(g_span[0], i_span[0]), min(g_span[1], i_span[1]))

@@ -27,7 +27,7 @@ from georefine.config import ProjectConfig, load_project, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.imu import ImuData, check_rate_gaps
-from georefine.io.project import read_project_gnss, read_project_imu
+from georefine.io.project import check_navigation_spans, read_project_gnss, read_project_imu
 from georefine.products import body_kinematics, write_csv_product, write_json, write_sbet_product
 from georefine.trajectory.ekf import FilterResult, gnss_in_w, run_filter
 from georefine.trajectory.sampled import Trajectory
@@ -73,12 +73,6 @@ def load_navigation(project_dir: str | Path) -> NavigationData:
     root = Path(project_dir)
     cfg = load_project(root)
     gnss = read_project_gnss(root, cfg)
-    usable = gnss.quality <= cfg.gnss.min_quality
-    if not np.any(usable):
-        raise InputError(
-            "no epoch of sufficient quality", path=root / cfg.gnss.files[0], field="Q",
-            expected=f"Q <= {cfg.gnss.min_quality} (gnss.min_quality)", found=f"best Q = {int(gnss.quality.min())}",
-        )
     imu = read_project_imu(root, cfg)
     gaps = check_rate_gaps(imu)
     if len(gaps):
@@ -89,13 +83,7 @@ def load_navigation(project_dir: str | Path) -> NavigationData:
             record_kind="line" if cfg.imu.format == "csv" else "record", field="time",
             expected=f"samples every {1.0 / imu.rate_hz:.4f} s", found=f"{gaps[0, 0]:.6f} -> {gaps[0, 1]:.6f} GPS s",
         )
-    g_t = gnss.time_gps[usable]
-    if g_t[-1] <= imu.time_gps[0] or imu.time_gps[-1] <= g_t[0]:
-        raise InputError(
-            "GNSS and IMU time spans do not overlap", path=root / cfg.imu.file, field="time",
-            expected=f"overlap with GNSS {g_t[0]:.3f} .. {g_t[-1]:.3f} GPS s",
-            found=f"{imu.time_gps[0]:.3f} .. {imu.time_gps[-1]:.3f} GPS s",
-        )
+    usable, _, _ = check_navigation_spans(root, cfg, gnss, imu)
     if cfg.crs.reference_point is not None:
         rp = cfg.crs.reference_point
         frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
@@ -294,7 +282,7 @@ def run_georeference(
 ) -> GeoreferenceRunResult:
     """Georeference every strip of a project with a trajectory SBET into ``out/*.laz``."""
     from georefine.config import boresight_matrix
-    from georefine.io.las import iter_las_chunks
+    from georefine.io.las import gps_week_of_strip
     from georefine.io.trajectory import read_sbet
     from georefine.lidar.georeference import georeference_strip
     from georefine.trajectory.sampled import trajectory_from_sbet
@@ -303,10 +291,7 @@ def run_georeference(
     cfg = load_project(root)
     out = output_folder(out, root)
     if gps_week is None:
-        first = next(iter_las_chunks(root / cfg.scanner.files[0], 1), None)
-        if first is None or len(first) == 0:
-            raise InputError("strip has no points", path=root / cfg.scanner.files[0])
-        gps_week = int(first.time_gps[0] // 604800)
+        gps_week = gps_week_of_strip(root / cfg.scanner.files[0])
     sbet = read_sbet(trajectory_path, gps_week=gps_week)
     frame = LocalFrame(float(sbet.lat_rad[0]), float(sbet.lon_rad[0]), float(sbet.h_m[0]))
     t0 = float(np.floor(sbet.time_gps[0]))

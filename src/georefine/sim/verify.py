@@ -17,7 +17,7 @@ import numpy as np
 from georefine.config import boresight_matrix, load_project
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
-from georefine.io.las import iter_las_chunks, read_las_info
+from georefine.io.las import gps_week_of_strip, iter_las_chunks, read_las_info
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.georeference import georeference
 from georefine.trajectory.sampled import trajectory_from_sbet
@@ -51,10 +51,7 @@ def verify_project(
     cfg = load_project(root)
     sbet_path = root / "truth" / "trajectory.sbet"
     # The truth SBET is in seconds of week; the week follows from the scans' absolute times.
-    first_scan = root / cfg.scanner.files[0]
-    first = next(iter_las_chunks(first_scan, 1))
-    week = int(first.time_gps[0] // 604800)
-    sbet = read_sbet(sbet_path, gps_week=week)
+    sbet = read_sbet(sbet_path, gps_week=gps_week_of_strip(root / cfg.scanner.files[0]))
     t0 = float(np.floor(sbet.time_gps[0]))
     frame = LocalFrame(float(sbet.lat_rad[0]), float(sbet.lon_rad[0]), float(sbet.h_m[0]))
     trajectory = trajectory_from_sbet(sbet, frame, t0)
