@@ -506,7 +506,7 @@ def test_backends_agree_on_the_same_system():
             np.testing.assert_allclose(f.solve(B[:, 0]), ref[:, 0], rtol=1e-9, atol=1e-11)
     # Full solve: same estimate with either backend
     estimates = []
-    for backend in ("cholespy", "scipy"):
+    for backend in _installed("cholmod", "cvxopt", "cholespy", "scipy"):
         r = np.random.default_rng(9)
         R_true = random_rotations(r, 12)
         g_abs, g_rel = _rotation_chain(r, R_true, 0.02, 0.01, np.array([0, 11]))
@@ -517,17 +517,53 @@ def test_backends_agree_on_the_same_system():
         result = problem.solve(SolverOptions(linear_solver=backend))
         assert result.backend == backend
         estimates.append((problem.values("R"), problem.covariance("R")))
-    np.testing.assert_allclose(estimates[0][0], estimates[1][0], atol=1e-10)
-    np.testing.assert_allclose(estimates[0][1], estimates[1][1], rtol=1e-7)
+    for values, cov in estimates[1:]:
+        np.testing.assert_allclose(values, estimates[0][0], atol=1e-10)
+        np.testing.assert_allclose(cov, estimates[0][1], rtol=1e-7)
 
 
-@pytest.mark.parametrize("backend", ["cholespy", "scipy"])
+def _installed(*names):
+    return [b for b in names if b in linalg.available_backends()]
+
+
+@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "cholespy", "scipy"))
 def test_backends_reject_indefinite_matrices(backend):
     A = sp.csr_matrix(np.array([[2.0, 3.0, 0.0], [3.0, 2.0, 0.0], [0.0, 0.0, 1.0]]))
     with pytest.raises(NotPositiveDefiniteError):
         cholesky(A, backend=backend)
     with pytest.raises(ValueError):
         cholesky(A, backend="mumps")
+
+
+@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "cholespy", "scipy"))
+def test_backends_reject_numerically_singular_matrices(backend):
+    """A missing datum: rounding leaves a tiny positive pivot, which must not pass as a factor."""
+    rng = np.random.default_rng(12)
+    G = rng.normal(size=(40, 6))
+    G[:, 5] = G[:, :5] @ rng.normal(size=5)  # rank 5
+    A = sp.csr_matrix(G.T @ G)
+    with pytest.raises(NotPositiveDefiniteError):
+        cholesky(A, backend=backend)
+
+
+@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "cholespy", "scipy"))
+def test_sparse_cholesky_reuses_the_analysis_while_the_pattern_holds(backend):
+    rng = np.random.default_rng(13)
+    A = _random_spd(rng, 300)
+    B = rng.normal(size=(300, 3))
+    solver = linalg.SparseCholesky(backend)
+    for scale in (1.0, 2.0, 5.0):  # LM: N + lambda D, same pattern, new values
+        M = A + sp.diags(scale * A.diagonal())
+        np.testing.assert_allclose(solver.factorize(M).solve(B), np.linalg.solve(M.toarray(), B), rtol=1e-9, atol=1e-12)
+    separate = backend in ("cholmod", "cvxopt")
+    assert solver.analyses == (1 if separate else 0)
+    A2 = _random_spd(rng, 300)  # another pattern: analysed anew
+    np.testing.assert_allclose(solver.factorize(A2).solve(B), np.linalg.solve(A2.toarray(), B), rtol=1e-9, atol=1e-12)
+    assert solver.analyses == (2 if separate else 0)
+    bad = sp.csr_matrix(A2.toarray() - 1e3 * np.eye(300))
+    with pytest.raises(NotPositiveDefiniteError):
+        solver.factorize(bad)
+    np.testing.assert_allclose(solver.factorize(A2).solve(B[:, 0]), np.linalg.solve(A2.toarray(), B[:, 0]), rtol=1e-9)
 
 
 def test_cholespy_reads_only_the_lower_triangle():

@@ -196,6 +196,13 @@ class LidarAdjustmentConfig(StrictModel):
     estimate_boresight: bool = Field(False, description="Estimate the scanner boresight (needs two passes).")
     boresight_prior_deg: float = Field(0.1, gt=0.0, description="Prior sigma of the boresight angles when estimated.")
     max_features: int = Field(200_000, ge=100, description="Cap on matched features in the adjustment.")
+    function_tolerance: float = Field(
+        1e-3, gt=0.0,
+        description="Stop the G/I/L Levenberg-Marquardt when an iteration lowers the cost by less than this "
+        "fraction. Under the Cauchy loss the last per-mille of the cost comes slowly (IRLS converges linearly) "
+        "and moved roll/pitch/yaw RMSE by less than 0.01 mdeg on corridor-tiny (10 against 25 iterations); "
+        "the next outer iteration starts from the result anyway.",
+    )
 
 
 class TrajectoryAdjustmentConfig(StrictModel):

@@ -13,7 +13,9 @@ Each iteration
        for non-constant elements; duplicates summed), ``N = J^T J``.
     4. ``(N + lambda D) delta = -g`` with ``D = clip(diag(N), 1e-6, 1e32)`` (Marquardt's
        scaling with a floor, as in Ceres) is solved by sparse Cholesky
-       (:mod:`georefine.adjustment.linalg`), and the step applied through the retraction.
+       (:mod:`georefine.adjustment.linalg`; the symbolic analysis of the first iteration is
+       reused while the pattern of ``N`` stays the same), and the step applied through the
+       retraction.
     5. Gain ratio ``rho = (F(x) - F(x')) / (L(0) - L(delta))`` with the model decrease
        ``L(0) - L(delta) = 1/2 delta^T (lambda D delta - g)``. Accepted if
        ``rho > 1e-3``; then ``lambda *= max(1/3, 1 - (2 rho - 1)^3)`` and ``nu = 2``, else
@@ -50,9 +52,9 @@ import scipy.sparse as sp
 from georefine.adjustment.linalg import (
     BlockTriplets,
     NotPositiveDefiniteError,
+    SparseCholesky,
     assemble_block_coo,
     available_backends,
-    cholesky,
     normal_equations,
 )
 from georefine.adjustment.problem import ColumnLayout, Linearization, ObservationGroup, ParameterBlock
@@ -310,6 +312,7 @@ def run_levenberg_marquardt(
     history = [cost]
     lam, nu = options.initial_lambda, 2.0
     iterations = accepted_steps = 0
+    factorizer = SparseCholesky(options.linear_solver)  # one symbolic analysis for all iterations
     backend_used = options.linear_solver
     termination = "max_iterations"
     log("LM start: cost %.6g, %d unknowns, %d residuals", cost, layout.n_cols, current.n_rows)
@@ -328,7 +331,7 @@ def run_levenberg_marquardt(
         t0 = time.perf_counter()
         try:
             A = normal.N_lower + sp.diags(lam * normal.D, format="csr")
-            factor = cholesky(A, lower=True, backend=options.linear_solver)
+            factor = factorizer.factorize(A, lower=True)
             backend_used = factor.backend
             delta = factor.solve(-normal.g)
             solved = bool(np.all(np.isfinite(delta)))

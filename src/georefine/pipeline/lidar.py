@@ -26,6 +26,7 @@ from georefine.adjustment.gnss_imu import GnssImuResult, build_gnss_imu_problem,
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.observations.prior import RotationPrior
 from georefine.adjustment.robust import make_loss
+from georefine.adjustment.solver import SolverOptions
 from georefine.config import boresight_matrix, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.frames import OutputCRS
@@ -186,7 +187,9 @@ def step_adjust_gil(
     def report(it) -> None:
         progress("G/I/L adjustment", getattr(it, "iteration", 0), cfg.processing.trajectory.max_iterations)
 
-    result = solve_gnss_imu(built, progress=report)
+    tcfg = cfg.processing.trajectory
+    options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance)
+    result = solve_gnss_imu(built, options, progress=report)
     bs_deg = bs_sig = None
     if boresight:
         R = P.values("boresight")[0]
