@@ -188,9 +188,11 @@ class LidarAdjustmentConfig(StrictModel):
 
     outer_iterations: int = Field(3, ge=1, le=10, description="Re-georeference, re-extract, re-match, re-adjust.")
     convergence_attitude_mdeg: float = Field(
-        0.5, gt=0.0, description="Stop when the largest attitude change between outer iterations is below this."
+        1.5, gt=0.0, description="Stop when the RMS attitude change (over the knots) between outer iterations "
+        "is below this. Re-extracted and re-matched features alone move the corridor solution by about 1 mdeg RMS "
+        "without changing its accuracy (measured), so a tighter threshold only adds iterations.",
     )
-    convergence_position_m: float = Field(0.002, gt=0.0, description="... and the largest position change below this.")
+    convergence_position_m: float = Field(0.005, gt=0.0, description="... and the RMS position change below this.")
     plane_loss: Literal["cauchy", "huber", "none"] = "cauchy"
     plane_loss_scale: float = Field(2.0, gt=0.0, description="Cauchy c / Huber delta in units of sigma.")
     estimate_boresight: bool = Field(False, description="Estimate the scanner boresight (needs two passes).")

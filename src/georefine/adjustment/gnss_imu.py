@@ -221,14 +221,35 @@ def _euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
     return np.linalg.inv(E)
 
 
-def solve_gnss_imu(built: GnssImuProblem, options: SolverOptions | None = None, progress=None) -> GnssImuResult:
-    """Solve the built problem and read out trajectory, IMU errors and posterior sigma."""
+def solve_gnss_imu(
+    built: GnssImuProblem, options: SolverOptions | None = None, progress=None, covariance: bool = True
+) -> GnssImuResult:
+    """Solve the built problem and read out trajectory, IMU errors and (optionally) posterior sigma.
+
+    With ``covariance=False`` the sigma arrays are empty and the IMU errors carry no sigma; call
+    :func:`with_posterior` on the same ``built`` problem later to add them (the outer iterations
+    of the G/I/L workflow need the covariance of their last adjustment only).
+    """
     cfg = built.cfg
     t = _time.perf_counter()
     options = options or SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance)
     result = built.problem.solve(options, progress=progress)
     timings = {"solve": _time.perf_counter() - t}
+    p = built.problem
+    errors = ImuErrorEstimate(
+        built.bias_grid, p.values("acc_bias"), p.values("gyro_bias"), p.values("acc_scale")[0], p.values("gyro_scale")[0],
+    )
+    out = GnssImuResult(built.spline(), errors, result, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), timings)
+    return with_posterior(built, out) if covariance else out
 
+
+def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResult:
+    """``result`` with posterior sigma of attitude (roll/pitch/yaw), position and IMU errors.
+
+    ``built`` must be the problem whose last solve gave ``result``. Attitude and position sigma
+    are computed at knots every ``covariance_interval_s`` (at most ``max_covariance_knots``).
+    """
+    cfg = built.cfg
     t = _time.perf_counter()
     p = built.problem
     grid = built.grid
@@ -238,7 +259,7 @@ def solve_gnss_imu(built: GnssImuProblem, options: SolverOptions | None = None, 
         knots = np.append(knots, grid.n_knots - 1)
     cov_R = p.covariance(built.blocks.attitude, knots)
     cov_p = p.covariance(built.blocks.position, knots)
-    spline = built.spline()
+    spline = result.spline
     tk = grid.knot_times[knots]
     p_w, R_w_b = spline.pose(tk)
     rph = rph_from_R_n_b(np.swapaxes(built.data.frame.R_w_n_at(p_w), 1, 2) @ R_w_b)
@@ -251,11 +272,12 @@ def solve_gnss_imu(built: GnssImuProblem, options: SolverOptions | None = None, 
         c = p.covariance(name)
         return np.sqrt(np.clip(np.diagonal(c, axis1=1, axis2=2), 0.0, None))
 
+    e = result.imu_errors
     errors = ImuErrorEstimate(
-        built.bias_grid, p.values("acc_bias"), p.values("gyro_bias"), p.values("acc_scale")[0], p.values("gyro_scale")[0],
+        e.bias_grid, e.acc_bias, e.gyro_bias, e.acc_scale, e.gyro_scale,
         acc_bias_sigma=sig("acc_bias"), gyro_bias_sigma=sig("gyro_bias"),
         acc_scale_sigma=sig("acc_scale")[0] if built.estimate_scale else None,
         gyro_scale_sigma=sig("gyro_scale")[0] if built.estimate_scale else None,
     )
-    timings["covariance"] = _time.perf_counter() - t
-    return GnssImuResult(spline, errors, result, tk, sigma_rph, sigma_p, timings)
+    timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
+    return GnssImuResult(spline, errors, result.solve, tk, sigma_rph, sigma_p, timings)

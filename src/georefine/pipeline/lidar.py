@@ -22,7 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from georefine.adjustment.gnss_imu import GnssImuResult, build_gnss_imu_problem, solve_gnss_imu
+from georefine.adjustment.gnss_imu import (
+    GnssImuProblem,
+    GnssImuResult,
+    build_gnss_imu_problem,
+    solve_gnss_imu,
+    with_posterior,
+)
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.observations.prior import RotationPrior
 from georefine.adjustment.robust import make_loss
@@ -133,13 +139,25 @@ def step_features(
 
 @dataclass(frozen=True)
 class LidarAdjustment:
-    """Result of one G/I/L adjustment."""
+    """Result of one G/I/L adjustment (``built``: the problem, for :func:`add_posterior`)."""
 
     result: GnssImuResult
     features_used: int
     objects_used: int
     boresight_deg: np.ndarray | None
     boresight_sigma_mdeg: np.ndarray | None
+    built: GnssImuProblem | None = None
+
+
+def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
+    """``adj`` with posterior sigma (trajectory, IMU errors, boresight) if it has none yet."""
+    if adj.result.sigma_time.size or adj.built is None:
+        return adj
+    result = with_posterior(adj.built, adj.result)
+    bs_sig = None
+    if adj.boresight_deg is not None:
+        bs_sig = np.degrees(np.sqrt(np.diag(adj.built.problem.covariance("boresight")[0]))) * 1e3
+    return LidarAdjustment(result, adj.features_used, adj.objects_used, adj.boresight_deg, bs_sig, adj.built)
 
 
 def step_adjust_gil(
@@ -148,8 +166,12 @@ def step_adjust_gil(
     features: PlanarFeatures,
     objects: PlanarObjects,
     progress: Progress = _no_progress,
+    covariance: bool = True,
 ) -> LidarAdjustment:
-    """Step 5: the G/I problem started at ``previous`` plus the plane observations."""
+    """Step 5: the G/I problem started at ``previous`` plus the plane observations.
+
+    With ``covariance=False`` no posterior sigma is computed (see :func:`add_posterior`).
+    """
     cfg = nav.config
     lcfg = cfg.processing.lidar
     built = build_gnss_imu_problem(nav.gnss, cfg.imu.errors, cfg.processing.trajectory, previous.spline)
@@ -189,24 +211,34 @@ def step_adjust_gil(
 
     tcfg = cfg.processing.trajectory
     options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance)
-    result = solve_gnss_imu(built, options, progress=report)
-    bs_deg = bs_sig = None
+    result = solve_gnss_imu(built, options, progress=report, covariance=False)
+    bs_deg = None
     if boresight:
         R = P.values("boresight")[0]
         bs_deg = np.degrees(rph_from_R_n_b(R))
         bs_deg[2] = (bs_deg[2] + 180.0) % 360.0 - 180.0
-        bs_sig = np.degrees(np.sqrt(np.diag(P.covariance("boresight")[0]))) * 1e3
-    return LidarAdjustment(result, int(sel.size), int(used_objects.size), bs_deg, bs_sig)
+    adj = LidarAdjustment(result, int(sel.size), int(used_objects.size), bs_deg, None, built)
+    return add_posterior(adj) if covariance else adj
 
 
-def trajectory_change(a, b) -> tuple[float, float]:
-    """Largest attitude (mdeg) and position (m) difference of two splines at ``a``'s knots."""
+def trajectory_change(a, b, *, statistic: str = "rms") -> tuple[float, float]:
+    """Attitude (mdeg) and position (m) difference of two splines at ``a``'s knots.
+
+    ``statistic="rms"`` (the outer-iteration criterion) or ``"max"``. The RMS, not the maximum:
+    re-extracted and re-matched features differ a little from one outer iteration to the next,
+    which moves single knots by a few mdeg without changing the trajectory as a whole.
+    """
     t = a.grid.knot_times
     t = t[(t >= b.grid.t_start) & (t <= b.grid.t_end)]
     pa, Ra = a.pose(t)
     pb, Rb = b.pose(t)
     dth = np.linalg.norm(log_so3(np.swapaxes(Ra, 1, 2) @ Rb), axis=1)
-    return float(np.degrees(dth.max()) * 1e3), float(np.linalg.norm(pa - pb, axis=1).max())
+    dp = np.linalg.norm(pa - pb, axis=1)
+    if statistic == "max":
+        return float(np.degrees(dth.max()) * 1e3), float(dp.max())
+    if statistic != "rms":
+        raise ValueError(f"statistic must be 'rms' or 'max', found {statistic!r}")
+    return float(np.degrees(np.sqrt(np.mean(dth**2))) * 1e3), float(np.sqrt(np.mean(dp**2)))
 
 
 @dataclass(frozen=True)
@@ -224,7 +256,7 @@ class WorkflowResult:
         for it in m.get("outer_iterations", []):
             lines.append(
                 f"  iteration {it['iteration']}: {it['features']:,} features, {it['objects']:,} objects, "
-                f"{it['features_used']:,} used; change {it['attitude_change_mdeg']:.2f} mdeg, "
+                f"{it['features_used']:,} used; RMS change {it['attitude_change_mdeg']:.2f} mdeg, "
                 f"{it['position_change_m'] * 1e3:.1f} mm"
             )
         if self.gil is not None and self.gil.boresight_deg is not None:
@@ -279,7 +311,7 @@ def run_workflow(
             objects = match_features(features, nav.config.processing.matching)
             timings[f"matching_{it}"] = _time.perf_counter() - t
             t = _time.perf_counter()
-            gil = step_adjust_gil(nav, current, features, objects, progress)
+            gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
             timings[f"gil_adjustment_{it}"] = _time.perf_counter() - t
             d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
             metrics["outer_iterations"].append({
@@ -290,6 +322,10 @@ def run_workflow(
             current = gil.result
             if d_att < lcfg.convergence_attitude_mdeg and d_pos < lcfg.convergence_position_m:
                 break
+        t = _time.perf_counter()
+        gil = add_posterior(gil)
+        current = gil.result
+        timings["gil_covariance"] = _time.perf_counter() - t
         write_features(out / "features" / "features.csv", features)
         write_objects(out / "features" / "objects.csv", objects)
         final = current

@@ -1,0 +1,188 @@
+"""GNSS/IMU/LiDAR workflow (steps 3-6) end to end on simulated truth: `georefine run`.
+
+Both passes and a single pass against G/I of the same data, boresight recovery, robustness to
+wrong matches, point-cloud accuracy, and bad input. The full runs are marked slow (CI runs them).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+import yaml
+
+from georefine.errors import InputError
+from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
+from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.io.trajectory import read_sbet
+from georefine.lidar.correspondences import inject_wrong_matches, match_features
+from georefine.pipeline import load_navigation, run_georeference, step_adjust_gnss_imu, step_initialise
+from georefine.pipeline.lidar import read_strips, run_workflow, step_adjust_gil, step_features
+from georefine.pipeline.navigation import imu_rate_trajectory
+from georefine.sim.scenarios import simulate_project
+from georefine.trajectory.sampled import Trajectory, trajectory_from_sbet
+
+SCAN = ["scanner.pulse_rate_hz=100000", "scanner.line_rate_hz=120"]  # the corridor's scanner
+
+
+@pytest.fixture(scope="module")
+def project(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("gil") / "p"
+    simulate_project("corridor-tiny", out, seed=7, overrides=SCAN)
+    return out
+
+
+@pytest.fixture(scope="module")
+def sparse_project(tmp_path_factory) -> Path:
+    """Too few points per square metre for any planar feature."""
+    out = tmp_path_factory.mktemp("gil_sparse") / "p"
+    simulate_project("corridor-tiny", out, seed=8, overrides=["scanner.pulse_rate_hz=3000", "scanner.line_rate_hz=60"])
+    return out
+
+
+def _pass_rmse(sbet: Path, project: Path, strip: int) -> np.ndarray:
+    """Roll, pitch, yaw RMSE (mdeg) of ``sbet`` against the truth during a pass (1 s inset)."""
+    truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
+    p = next(p for p in truth["passes"] if p["strip_id"] == strip)
+    t0 = truth["t0_gps"]
+    cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet",
+                             time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
+    return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
+
+
+def _point_metrics(points_dir: Path, project: Path) -> tuple[float, float]:
+    """Mean distance to the true surface (m) and median strip discrepancy (m)."""
+    dist, layers = [], []
+    for f in sorted(points_dir.glob("strip_*.laz")):
+        est = laspy.read(f)
+        tru = laspy.read(project / "truth" / f.name)
+        e = np.column_stack([est.x, est.y, est.z])
+        dist.append(surface_distances(e, np.column_stack([tru.x, tru.y, tru.z]), sample_step=20).distance_m)
+        layers.append(e)
+    return float(np.mean(np.concatenate(dist))), strip_discrepancy(layers)["median_m"]
+
+
+@pytest.mark.slow
+def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(project), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    for rel in ("gi/trajectory.sbet", "gil/trajectory.sbet", "gil/trajectory.csv", "gil/adjustment.json",
+                "points/strip_1.laz", "points/strip_2.laz", "features/features.csv", "features/objects.csv",
+                "metrics.json", "config.resolved.yaml"):
+        assert (out / rel).is_file(), rel
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["strips"] == [1, 2] and 1 <= len(metrics["outer_iterations"]) <= 3
+    assert all(p["outside_trajectory"] == 0 for p in metrics["points"])
+    for strip in (1, 2):
+        gi = _pass_rmse(out / "gi" / "trajectory.sbet", project, strip)
+        gil = _pass_rmse(out / "gil" / "trajectory.sbet", project, strip)
+        assert gil[2] <= 0.3 * gi[2], (strip, gi, gil)
+        assert np.all(gil[:2] <= 1.1 * gi[:2]), (strip, gi, gil)
+    # The point cloud: closer to the true surface, and the strips agree better.
+    gi_pts = run_georeference(project, out / "gi" / "trajectory.sbet", tmp_path / "gi_points")
+    assert all(s.points_outside == 0 for s in gi_pts.strips)
+    d_gi, s_gi = _point_metrics(tmp_path / "gi_points", project)
+    d_gil, s_gil = _point_metrics(out / "points", project)
+    assert d_gil < d_gi and s_gil < s_gi, (d_gi, d_gil, s_gi, s_gil)
+
+
+@pytest.mark.slow
+def test_single_pass_fixes_the_heading_of_that_pass(project, tmp_path):
+    res = run_workflow(project, tmp_path / "single", strips=[1])
+    assert res.metrics["strips"] == [1]
+    assert sorted(p.name for p in (tmp_path / "single" / "points").iterdir()) == ["strip_1.laz"]
+    gi = _pass_rmse(tmp_path / "single" / "gi" / "trajectory.sbet", project, 1)
+    gil = _pass_rmse(tmp_path / "single" / "gil" / "trajectory.sbet", project, 1)
+    assert gil[2] <= 0.3 * gi[2], (gi, gil)
+    assert gil[1] <= 1.1 * gi[1], (gi, gil)
+
+
+@pytest.mark.slow
+def test_boresight_error_of_005_deg_is_recovered_from_both_passes(project, tmp_path):
+    wrong = tmp_path / "wrong"
+    shutil.copytree(project, wrong)
+    cfg = yaml.safe_load((wrong / "project.yaml").read_text())
+    true_bs = np.array(cfg["scanner"]["boresight_deg"], dtype=float)
+    cfg["scanner"]["boresight_deg"] = (true_bs + [0.05, -0.05, 0.05]).tolist()
+    cfg["processing"] = {"lidar": {"estimate_boresight": True}}
+    (wrong / "project.yaml").write_text(yaml.safe_dump(cfg))
+    res = run_workflow(wrong, tmp_path / "out")
+    err_mdeg = (res.gil.boresight_deg - true_bs) * 1e3
+    assert np.all(np.abs(err_mdeg) < 5.0), err_mdeg
+    assert res.gil.boresight_sigma_mdeg is not None and np.all(res.gil.boresight_sigma_mdeg < 5.0)
+
+
+@pytest.mark.slow
+def test_ten_percent_wrong_matches_change_yaw_by_less_than_20_percent(project):
+    nav = load_navigation(project)
+    gi = step_adjust_gnss_imu(nav, step_initialise(nav))
+    features, _ = step_features(nav, imu_rate_trajectory(nav, gi.spline), read_strips(nav))
+    objects = match_features(features, nav.config.processing.matching)
+    sb = read_sbet(project / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
+    truth = trajectory_from_sbet(sb, nav.frame, nav.t0_gps)
+    passes = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["passes"]
+
+    def yaw_rmse(spline):
+        d = []
+        for p in passes:
+            t = np.arange(p["t_start_s"] + 1.0, p["t_end_s"] - 1.0, 0.05)
+            pt, Rt = truth.interpolate(t)
+            pe, Re = spline.pose(t)
+            d.append(nav.frame.rph_from_R_w_b(pe, Re)[:, 2] - nav.frame.rph_from_R_w_b(pt, Rt)[:, 2])
+        d = (np.concatenate(d) + np.pi) % (2 * np.pi) - np.pi
+        return np.degrees(np.sqrt(np.mean(d**2))) * 1e3
+
+    clean = yaw_rmse(step_adjust_gil(nav, gi, features, objects, covariance=False).result.spline)
+    bad_objects, changed = inject_wrong_matches(objects, features, 0.10, np.random.default_rng(3))
+    assert changed.size == round(0.10 * np.count_nonzero(objects.feature_object >= 0))
+    bad = yaw_rmse(step_adjust_gil(nav, gi, features, bad_objects, covariance=False).result.spline)
+    assert yaw_rmse(gi.spline) > 3 * clean  # the LiDAR data matter here
+    assert abs(bad - clean) < 0.2 * clean, (clean, bad)
+
+
+def test_points_outside_the_trajectory_are_counted_not_extrapolated(project):
+    nav = load_navigation(project)
+    sb = read_sbet(project / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
+    truth = trajectory_from_sbet(sb, nav.frame, nav.t0_gps)
+    strips = read_strips(nav, [1])
+    t_cut = float(np.median(strips[0].time))
+    keep = truth.time <= t_cut
+    short = Trajectory(truth.time[keep], truth.p_w_b[keep], truth.R_w_b[keep])
+    features, stats = step_features(nav, short, strips)
+    n_after = int(np.count_nonzero(strips[0].time > t_cut))
+    assert stats["points_outside_trajectory"] == n_after > 0
+    assert features.time.max() <= t_cut
+
+
+def test_strip_without_configured_scanner_channel_is_rejected(sparse_project, tmp_path):
+    bad = tmp_path / "bad"
+    shutil.copytree(sparse_project, bad)
+    las = laspy.read(bad / "scans" / "strip_2.laz")
+    las.scanner_channel = np.full(len(las.points), 3, dtype=np.uint8)
+    las.write(bad / "scans" / "strip_2.laz")
+    proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(bad), "--out", str(tmp_path / "o")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "strip_2.laz" in proc.stderr and "scanner_channel" in proc.stderr
+    assert not (tmp_path / "o" / "gil").exists()
+
+
+def test_views_without_features_are_reported(sparse_project, tmp_path, caplog):
+    nav = load_navigation(sparse_project)
+    sb = read_sbet(sparse_project / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
+    truth = trajectory_from_sbet(sb, nav.frame, nav.t0_gps)
+    with caplog.at_level(logging.WARNING), pytest.raises(InputError, match="no planar features"):
+        step_features(nav, truth, read_strips(nav))
+    assert "channel 0 (nadir) gave no planar features" in caplog.text
+    proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(sparse_project), "--out", str(tmp_path / "o")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "no planar features" in proc.stderr
