@@ -93,6 +93,16 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
     d_gi, s_gi = _point_metrics(tmp_path / "gi_points", project)
     d_gil, s_gil = _point_metrics(out / "points", project)
     assert d_gil < d_gi and s_gil < s_gi, (d_gi, d_gil, s_gi, s_gil)
+    # A rerun resumes every step from out/.cache and writes the same products.
+    before = (out / "gil" / "trajectory.sbet").read_bytes()
+    proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(project), "--out", str(out)],
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    again = json.loads((out / "metrics.json").read_text())
+    n_outer = len(metrics["outer_iterations"])
+    assert again["resumed"] == ["gi", *[f"gil_{i}" for i in range(1, n_outer + 1)], "gil_posterior", "points"]
+    assert again["outer_iterations"] == metrics["outer_iterations"]
+    assert (out / "gil" / "trajectory.sbet").read_bytes() == before
 
 
 @pytest.mark.slow
@@ -151,6 +161,30 @@ def test_ten_percent_wrong_matches_change_yaw_by_less_than_20_percent(project):
     bad = yaw_rmse(step_adjust_gil(nav, gi, features, bad_objects, covariance=False).result.spline)
     assert yaw_rmse(gi.spline) > 3 * clean  # the LiDAR data matter here
     assert abs(bad - clean) < 0.2 * clean, (clean, bad)
+
+
+def test_rerun_resumes_unchanged_steps_and_recomputes_changed_ones(sparse_project, tmp_path):
+    import os
+
+    out = tmp_path / "out"
+    first = run_workflow(sparse_project, out, lidar=False)
+    assert first.metrics["resumed"] == []
+    sbet = (out / "gi" / "trajectory.sbet").read_bytes()
+    assert run_workflow(sparse_project, out, lidar=False).metrics["resumed"] == ["gi", "points"]
+    assert (out / "gi" / "trajectory.sbet").read_bytes() == sbet
+    (out / "points" / "strip_2.laz").unlink()  # a lost product is written again
+    assert run_workflow(sparse_project, out, lidar=False).metrics["resumed"] == ["gi"]
+    assert (out / "points" / "strip_2.laz").is_file()
+    assert run_workflow(sparse_project, out, lidar=False, resume=False).metrics["resumed"] == []
+    # A changed input invalidates its step and everything after it (file size and mtime).
+    copy = tmp_path / "p"
+    shutil.copytree(sparse_project, copy)
+    out2 = tmp_path / "out2"
+    assert run_workflow(copy, out2, lidar=False).metrics["resumed"] == []
+    imu = copy / "imu" / "imu.csv"
+    st = imu.stat()
+    os.utime(imu, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
+    assert run_workflow(copy, out2, lidar=False).metrics["resumed"] == []
 
 
 def test_points_outside_the_trajectory_are_counted_not_extrapolated(project):

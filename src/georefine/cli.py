@@ -152,11 +152,13 @@ def run(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
     strips: Optional[str] = typer.Option(None, "--strips", help="Comma-separated strip ids (point_source_id) to use."),
     no_lidar: bool = typer.Option(False, "--no-lidar", help="Stop after the GNSS/IMU adjustment (steps 1-3, 6)."),
+    fresh: bool = typer.Option(False, "--fresh", help="Recompute every step instead of resuming from OUT/.cache."),
 ) -> None:
     """Run the whole workflow: filter, G/I adjustment, planar features, G/I/L adjustment, point clouds.
 
     Writes gi/ and gil/ (trajectory.sbet, trajectory.csv, adjustment.json), points/*.laz,
-    features/ (features.csv, objects.csv), metrics.json and the resolved configuration.
+    features/ (features.csv, objects.csv), metrics.json and the resolved configuration. Each
+    step's result is cached in OUT/.cache: a rerun resumes what its inputs have not changed.
     """
     with _user_errors():
         from georefine.errors import InputError
@@ -169,7 +171,7 @@ def run(
             except ValueError:
                 raise InputError("strip ids must be integers", field="--strips", found=repr(strips)) from None
         with _progress() as report:
-            result = run_workflow(project, out, strips=ids, lidar=not no_lidar, progress=report)
+            result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh, progress=report)
     stdout.print(result.summary())
 
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import logging
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -41,6 +41,7 @@ from georefine.io.las import iter_las_chunks
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
 from georefine.lidar.georeference import PoseInterpolator, georeference, georeference_strip
 from georefine.lidar.planes import PlanarFeatures, extract_features, write_features
+from georefine.pipeline.cache import StepCache, file_stamp
 from georefine.pipeline.navigation import (
     NavigationData,
     imu_rate_trajectory,
@@ -262,8 +263,27 @@ class WorkflowResult:
         if self.gil is not None and self.gil.boresight_deg is not None:
             b = self.gil.boresight_deg
             lines.append(f"  boresight roll/pitch/yaw: {b[0]:.4f} {b[1]:.4f} {b[2]:.4f} deg")
+        if m.get("resumed"):
+            lines.append("  resumed from the cache: " + ", ".join(m["resumed"]))
         lines.append("  timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in m.get("timings_s", {}).items()))
         return "\n".join(lines)
+
+
+def _navigation_key(nav: NavigationData) -> str:
+    cfg = nav.config
+    files = [file_stamp(nav.root / f) for f in cfg.gnss.files] + [file_stamp(nav.root / cfg.imu.file)]
+    return StepCache.key(
+        "gi", files, cfg.crs.model_dump(), cfg.gnss.model_dump(), cfg.imu.model_dump(),
+        cfg.processing.filter.model_dump(), cfg.processing.trajectory.model_dump(),
+    )
+
+
+def _lidar_key(nav: NavigationData, strips: list[StripPoints], upstream: str, iteration: int) -> str:
+    cfg = nav.config
+    return StepCache.key(
+        "gil", iteration, upstream, [file_stamp(s.path) for s in strips], cfg.scanner.model_dump(),
+        cfg.processing.planes.model_dump(), cfg.processing.matching.model_dump(), cfg.processing.lidar.model_dump(),
+    )
 
 
 def run_workflow(
@@ -272,9 +292,16 @@ def run_workflow(
     *,
     strips: list[int] | None = None,
     lidar: bool = True,
+    resume: bool = True,
     progress: Progress = _no_progress,
 ) -> WorkflowResult:
-    """Steps 1-6 on a project folder (see the module docstring for the outputs)."""
+    """Steps 1-6 on a project folder (see the module docstring for the outputs).
+
+    Every step's result is cached in ``out/.cache`` (:mod:`georefine.pipeline.cache`); with
+    ``resume`` a rerun loads what its inputs and configuration have not changed, e.g. after an
+    interruption or when only the final georeferencing is repeated. ``metrics.json`` lists the
+    resumed steps under ``resumed``.
+    """
     timings: dict[str, float] = {}
     t = _time.perf_counter()
     nav = load_navigation(project_dir)
@@ -284,13 +311,18 @@ def run_workflow(
     crs = OutputCRS(nav.config.crs.output_epsg)
     for sub in ("gi", "gil", "points", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
+    cache = StepCache(out / ".cache", enabled=resume)
 
     t = _time.perf_counter()
-    progress("initialisation filter", 0, 1)
-    filt = step_initialise(nav)
-    timings["filter"] = _time.perf_counter() - t
-    t = _time.perf_counter()
-    gi = step_adjust_gnss_imu(nav, filt, progress)
+    key = _navigation_key(nav)
+    gi = cache.load("gi", key)
+    if gi is None:
+        progress("initialisation filter", 0, 1)
+        filt = step_initialise(nav)
+        timings["filter"] = _time.perf_counter() - t
+        t = _time.perf_counter()
+        gi = step_adjust_gnss_imu(nav, filt, progress)
+        cache.store("gi", key, gi)
     timings["gi_adjustment"] = _time.perf_counter() - t
     write_trajectory_products(out / "gi", nav, gi, crs)
     write_json(out / "gi" / "adjustment.json", {"adjustment": gi.solve.to_dict(), "imu_errors": gi.imu_errors.to_dict(),
@@ -303,27 +335,44 @@ def run_workflow(
         lcfg = nav.config.processing.lidar
         current = gi
         for it in range(1, lcfg.outer_iterations + 1):
-            t = _time.perf_counter()
-            traj = imu_rate_trajectory(nav, current.spline)
-            features, fstats = step_features(nav, traj, strip_points, progress)
-            timings[f"features_{it}"] = _time.perf_counter() - t
-            t = _time.perf_counter()
-            objects = match_features(features, nav.config.processing.matching)
-            timings[f"matching_{it}"] = _time.perf_counter() - t
-            t = _time.perf_counter()
-            gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
-            timings[f"gil_adjustment_{it}"] = _time.perf_counter() - t
-            d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
-            metrics["outer_iterations"].append({
-                "iteration": it, "features": len(features), "objects": len(objects),
-                "features_used": gil.features_used, "objects_used": gil.objects_used,
-                "attitude_change_mdeg": d_att, "position_change_m": d_pos, **fstats,
-            })
-            current = gil.result
-            if d_att < lcfg.convergence_attitude_mdeg and d_pos < lcfg.convergence_position_m:
+            key = _lidar_key(nav, strip_points, key, it)
+            hit = cache.load(f"gil_{it}", key)
+            if hit is not None:
+                features, objects, gil, record = hit
+            else:
+                t = _time.perf_counter()
+                traj = imu_rate_trajectory(nav, current.spline)
+                features, fstats = step_features(nav, traj, strip_points, progress)
+                timings[f"features_{it}"] = _time.perf_counter() - t
+                t = _time.perf_counter()
+                objects = match_features(features, nav.config.processing.matching)
+                timings[f"matching_{it}"] = _time.perf_counter() - t
+                t = _time.perf_counter()
+                gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
+                timings[f"gil_adjustment_{it}"] = _time.perf_counter() - t
+                d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
+                record = {
+                    "iteration": it, "features": len(features), "objects": len(objects),
+                    "features_used": gil.features_used, "objects_used": gil.objects_used,
+                    "attitude_change_mdeg": d_att, "position_change_m": d_pos, **fstats,
+                }
+                cache.store(f"gil_{it}", key, (features, objects, replace(gil, built=None), record))
+            metrics["outer_iterations"].append(record)
+            previous, current = current, gil.result
+            if record["attitude_change_mdeg"] < lcfg.convergence_attitude_mdeg and (
+                record["position_change_m"] < lcfg.convergence_position_m
+            ):
                 break
         t = _time.perf_counter()
-        gil = add_posterior(gil)
+        key = StepCache.key("gil_posterior", key)
+        posterior = cache.load("gil_posterior", key)
+        if posterior is None:
+            if gil.built is None:  # the last iteration came from the cache: one more (short) solve
+                gil = step_adjust_gil(nav, previous, features, objects, progress, covariance=False)
+            gil = add_posterior(gil)
+            posterior = replace(gil, built=None)
+            cache.store("gil_posterior", key, posterior)
+        gil = posterior
         current = gil.result
         timings["gil_covariance"] = _time.perf_counter() - t
         write_features(out / "features" / "features.csv", features)
@@ -338,18 +387,35 @@ def run_workflow(
         write_json(out / "gil" / "adjustment.json", gil_report)
 
     t = _time.perf_counter()
-    traj = imu_rate_trajectory(nav, final.spline)
+    traj = imu_rate_trajectory(nav, final.spline)  # cheap; the LAZ writing below is what is cached
     p_b_s = np.asarray(nav.config.scanner.lever_arm_m, dtype=float)
     R_b_s = boresight_matrix(nav.config.scanner.boresight_deg)
     if gil is not None and gil.boresight_deg is not None:
         R_b_s = boresight_matrix(tuple(gil.boresight_deg))
-    georef = []
-    for s in strip_points:
-        r = georeference_strip(s.path, out / "points" / (s.path.stem + ".laz"), traj, p_b_s, R_b_s, nav.frame, crs,
-                               progress=progress, protect=(nav.root,))
-        georef.append({"strip": s.strip_id, "points": r.points_written, "outside_trajectory": r.points_outside})
+    key = StepCache.key("points", key, nav.config.crs.model_dump(), nav.config.scanner.model_dump(),
+                        [file_stamp(s.path) for s in strip_points])
+
+    def written(records: list[dict]) -> bool:  # the LAZ files are still those this step wrote
+        return all(
+            (out / "points" / r["file"]).is_file() and file_stamp(out / "points" / r["file"])[1:] == r["stamp"]
+            for r in records
+        )
+
+    done = cache.load("points", key, valid=written)
+    if done is not None:
+        georef = done
+    else:
+        georef = []
+        for s in strip_points:
+            path = out / "points" / (s.path.stem + ".laz")
+            r = georeference_strip(s.path, path, traj, p_b_s, R_b_s, nav.frame, crs, progress=progress,
+                                   protect=(nav.root,))
+            georef.append({"strip": s.strip_id, "file": path.name, "points": r.points_written,
+                           "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]})
+        cache.store("points", key, georef)
     timings["final_georeferencing"] = _time.perf_counter() - t
-    metrics["points"] = georef
+    metrics["points"] = [{k: v for k, v in r.items() if k != "stamp"} for r in georef]
+    metrics["resumed"] = list(cache.hits)
     metrics["timings_s"] = timings
     write_json(out / "metrics.json", metrics)
     write_yaml(out / "config.resolved.yaml", nav.config)
