@@ -19,7 +19,7 @@ import yaml
 
 from georefine.evaluation.trajectory import consistency
 from georefine.evaluation.trajectory_files import compare_sbet_files
-from georefine.io.trajectory import read_trajectory_csv
+from georefine.io.trajectory import read_sbet, read_trajectory_csv
 from georefine.pipeline import load_navigation, run_trajectory
 from georefine.sim.scenarios import simulate_project
 
@@ -214,5 +214,15 @@ def test_trajectory_cli_writes_products(tiny, tmp_path):
         assert (tmp_path / "o" / name).is_file()
     _, s = _errors_against_truth(tmp_path / "o", tiny)
     assert s["3d_rmse_m"] < 0.1 and s["roll_rmse_mdeg"] < 20
+    # The SBET's body specific force and angular rate are the corrected IMU readings: they match
+    # the true ones up to the sensor noise of one sample (not zeros, not raw biased readings).
+    est = read_sbet(tmp_path / "o" / "trajectory.sbet")
+    tru = read_sbet(tiny / "truth" / "trajectory.sbet", gps_week=int(est.time_gps[0] // 604800))
+    common, ie, it = np.intersect1d(np.round(est.time_gps, 4), np.round(tru.time_gps, 4), return_indices=True)
+    assert common.size > 0.9 * est.time_gps.size
+    df = est.accel_b[ie] - tru.accel_b[it]
+    dw = est.angular_rate_b[ie] - tru.angular_rate_b[it]
+    assert np.sqrt(np.mean(df**2)) < 0.05 and np.abs(np.mean(df, axis=0)).max() < 2e-3  # m/s^2
+    assert np.sqrt(np.mean(dw**2)) < 2e-3 and np.abs(np.mean(dw, axis=0)).max() < 2e-5  # rad/s
     run = _georefine("trajectory", str(tiny), "--out", str(tiny / "inside"))
     assert run.returncode == 2 and "project folder" in run.stderr

@@ -223,9 +223,15 @@ def run_trajectory(
 
     adj = None
     if filter_only:
-        imu_f = nav.imu.gyro[np.isin(nav.gnss.imu_time, filt.time)]
+        # Body specific force and angular rate: the IMU readings corrected with the filter's
+        # biases and scale factors (f~ = (I + S) f + b), where the filter's epochs are samples.
+        at = np.isin(nav.gnss.imu_time, filt.time)
+        f_b = w_b = None
+        if np.count_nonzero(at) == filt.time.size:
+            f_b = (nav.imu.acc[at] - filt.bias_acc) / (1.0 + filt.scale_acc)
+            w_b = (nav.imu.gyro[at] - filt.bias_gyro) / (1.0 + filt.scale_gyro)
         write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, filt.time, filt.p_w_b, filt.v_w_b, filt.R_w_b,
-                           None, imu_f if imu_f.shape[0] == filt.time.size else None)
+                           f_b, w_b)
         dec = slice(None, None, max(1, int(round(nav.imu.rate_hz / 10))))
         write_csv_product(out / "trajectory.csv", nav.frame, crs, nav.t0_gps, filt.time[dec], filt.p_w_b[dec],
                           filt.R_w_b[dec], _filter_sigma_rph(nav, filt)[dec], filt.sigma[dec, 0:3])
