@@ -1,0 +1,77 @@
+"""Reference-plane figures (paper 000, Table 1) against hand-computed values."""
+
+import numpy as np
+import pytest
+
+from georefine.evaluation.reference_planes import (
+    observe_reference_planes,
+    reference_planes,
+    summarise_observations,
+)
+from georefine.io.reference import ReferenceSurfaces
+
+
+def _square(sid, centre, size=5.0, tilt=(0.0, 0.0)):
+    cx, cy, cz = centre
+    h = size / 2
+    corners = np.array([[cx - h, cy - h], [cx + h, cy - h], [cx + h, cy + h], [cx - h, cy + h]])
+    z = cz + tilt[0] * (corners[:, 0] - cx) + tilt[1] * (corners[:, 1] - cy)
+    return [(sid, f"P{i}", *corners[i], z[i]) for i in range(4)]
+
+
+def _surfaces():
+    rows = _square("A", (100.0, 200.0, 50.0)) + _square("B", (300.0, 200.0, 60.0), tilt=(0.05, -0.02))
+    sid, pid, x, y, z = zip(*rows)
+    return ReferenceSurfaces(np.array(sid), np.array(pid), np.column_stack([x, y, z]))
+
+
+def _points_on(rng, centre, tilt, offset, n=400, size=6.0, noise=0.0):
+    """Points on (and beyond) a square surface, shifted vertically by ``offset``."""
+    xy = rng.uniform(-size / 2, size / 2, size=(n, 2))
+    z = centre[2] + tilt[0] * xy[:, 0] + tilt[1] * xy[:, 1] + offset + rng.normal(0, noise, n)
+    return np.column_stack([xy[:, 0] + centre[0], xy[:, 1] + centre[1], z])
+
+
+def test_planes_outline_and_inset():
+    planes = reference_planes(_surfaces())
+    a, b = planes
+    assert a.surface_id == "A" and a.rms_survey_m < 1e-12 and a.normal[2] == pytest.approx(1.0)
+    assert b.normal @ np.array([0.05, -0.02, -1.0]) == pytest.approx(-np.linalg.norm([0.05, -0.02, 1.0]))
+    pts = np.array([[100.0, 200.0, 50.0], [102.4, 200.0, 50.0], [102.6, 200.0, 50.0], [101.0, 201.0, 50.0]])
+    np.testing.assert_array_equal(a.inside(pts, 0.25), [True, False, False, True])
+    np.testing.assert_array_equal(a.inside(pts, 0.0), [True, True, False, True])
+
+
+def test_mean_rmse_and_avg_sd_of_known_offsets():
+    rng = np.random.default_rng(4)
+    planes = reference_planes(_surfaces())
+    # Offsets (m) per (surface, strip, channel), chosen by hand.
+    offsets = {("A", 1, 0): 0.010, ("A", 1, 1): 0.014, ("A", 2, 0): 0.006,
+               ("B", 1, 0): -0.004, ("B", 2, 0): 0.000, ("B", 2, 2): 0.002}
+    xyz, strip, chan = [], [], []
+    for (sid, s, c), off in offsets.items():
+        centre, tilt = ((100.0, 200.0, 50.0), (0.0, 0.0)) if sid == "A" else ((300.0, 200.0, 60.0), (0.05, -0.02))
+        p = _points_on(rng, centre, tilt, off)
+        # a slant plane shifted vertically by off is shifted by off * n_z along its normal
+        xyz.append(p)
+        strip.append(np.full(len(p), s))
+        chan.append(np.full(len(p), c))
+    wire = np.array([[100.0, 200.0, 55.0]] * 20)  # 5 m above the surface: not on it
+    xyz.append(wire)
+    strip.append(np.full(20, 1))
+    chan.append(np.full(20, 0))
+    obs = observe_reference_planes(np.vstack(xyz), np.concatenate(strip), np.concatenate(chan), planes)
+    assert len(obs) == 6
+    nz_b = 1.0 / np.linalg.norm([0.05, -0.02, 1.0])
+    expect = {k: v * (nz_b if k[0] == "B" else 1.0) for k, v in offsets.items()}
+    for o in obs:
+        assert o.mean_m == pytest.approx(expect[(o.surface_id, o.strip, o.channel)], abs=1e-12)
+    s = summarise_observations(obs)
+    vals = np.array(list(expect.values()))
+    assert s.n_observations == 6
+    assert s.mean_m == pytest.approx(vals.mean(), abs=1e-12)
+    assert s.rmse_m == pytest.approx(np.sqrt(np.mean(vals**2)), abs=1e-12)
+    sd_a = np.std([0.010, 0.014, 0.006], ddof=1)
+    sd_b = np.std(np.array([-0.004, 0.000, 0.002]) * nz_b, ddof=1)
+    assert s.avg_sd_m == pytest.approx((sd_a + sd_b) / 2, abs=1e-12)
+    assert [p["surface_id"] for p in s.per_surface] == ["A", "B"]
