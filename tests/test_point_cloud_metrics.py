@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from georefine.evaluation.point_cloud import cell_planes, strip_discrepancy, surface_distances
+from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
+from georefine.evaluation.strip_differences import cell_planes, strip_differences, write_geotiff, write_png
 
 
 def _tilted(rng, n, slope, offset, extent=20.0):
@@ -45,3 +46,26 @@ def test_surface_distance_is_the_offset_along_the_normal():
     assert s["points"] == 3000
     assert s["mean_abs_distance_m"] == pytest.approx(0.005, abs=1e-9)
     assert s["mean_3d_error_m"] == pytest.approx(np.linalg.norm(shift), abs=1e-9)
+
+
+def test_strip_difference_raster_png_and_geotiff(tmp_path):
+    tifffile = pytest.importorskip("tifffile")
+    rng = np.random.default_rng(5)
+    a = _tilted(rng, 20000, (0.1, 0.0), 0.0)
+    b = _tilted(rng, 20000, (0.1, 0.0), 0.0)
+    b[b[:, 0] >= 10.0, 2] += 0.05  # the eastern half of strip b lies 5 cm high
+    m = strip_differences([a + [1000.0, 5000.0, 0.0], b + [1000.0, 5000.0, 0.0]], 1.0)
+    assert m.spread_m.shape == (20, 20) and m.x0 == 1000.0 and m.y1 == 5020.0
+    np.testing.assert_allclose(m.spread_m[:, :10], 0.0, atol=1e-9)
+    np.testing.assert_allclose(m.spread_m[:, 10:], 0.05, atol=1e-9)
+    s = m.summary()
+    assert s["cells"] == 400 and s["p95_m"] == pytest.approx(0.05)
+    png = write_png(tmp_path / "map.png", m, epsg=25832)
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    tif = write_geotiff(tmp_path / "map.tif", m, 25832)
+    with tifffile.TiffFile(tif) as t:
+        page = t.pages[0]
+        np.testing.assert_allclose(page.asarray(), m.spread_m.astype(np.float32))
+        assert page.tags["ModelTiepointTag"].value[3:5] == (1000.0, 5020.0)
+        keys = page.tags["GeoKeyDirectoryTag"].value
+        assert 3072 in keys[4::4] and keys[keys.index(3072) + 3] == 25832

@@ -8,10 +8,8 @@ they were measured on, and how well overlapping strips agree on planar surfaces 
   is approximated by the plane through the true neighbours (PCA); only points whose
   neighbourhood is planar (roughness below a threshold: roofs, roads, terrain, facades; not
   vegetation, edges or wires) count. The distance is ``|(x_est - x_true) . n|``.
-* :func:`strip_discrepancy` works without truth: a horizontal raster (default 1 m); in every cell
-  each strip's points get a least-squares plane ``z = a + b dx + c dy`` about the cell centre;
-  cells where at least two strips are planar (RMS residual below a threshold) give the spread
-  ``max - min`` of the strips' plane heights at the centre.
+* :func:`strip_discrepancy` works without truth: the summary of the strip-difference raster
+  (:mod:`georefine.evaluation.strip_differences`) of the given layers.
 """
 
 from __future__ import annotations
@@ -21,7 +19,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["SurfaceDistances", "surface_distances", "CellPlanes", "cell_planes", "strip_discrepancy"]
+from georefine.evaluation.strip_differences import strip_differences
+
+__all__ = ["SurfaceDistances", "surface_distances", "strip_discrepancy"]
 
 
 @dataclass(frozen=True)
@@ -80,76 +80,12 @@ def surface_distances(
     return SurfaceDistances(np.abs(np.einsum("ki,ki->k", e, n)), np.linalg.norm(e, axis=1))
 
 
-@dataclass(frozen=True)
-class CellPlanes:
-    """Least-squares planes of one point layer on a raster: ``z = height + slope . (x - centre)``."""
-
-    cell_ij: np.ndarray  # (C, 2) int64 cell indices (floor(x / size), floor(y / size))
-    height_m: np.ndarray  # (C,) plane height at the cell centre
-    roughness_m: np.ndarray  # (C,) RMS residual of the plane
-    n_points: np.ndarray  # (C,) int64
-
-
-def cell_planes(xyz: np.ndarray, cell_size_m: float = 1.0, min_points: int = 6) -> CellPlanes:
-    """Fit a plane to the points of every raster cell (vectorised with ``bincount`` sums)."""
-    xyz = np.asarray(xyz, dtype=float)
-    ij = np.floor(xyz[:, :2] / cell_size_m).astype(np.int64)
-    cells, inv, counts = np.unique(ij, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    centre = (cells + 0.5) * cell_size_m
-    dx = xyz[:, 0] - centre[inv, 0]
-    dy = xyz[:, 1] - centre[inv, 1]
-    z = xyz[:, 2]
-    z_ref = np.bincount(inv, z, cells.shape[0]) / counts  # numerically safer: fit about the mean
-    dz = z - z_ref[inv]
-
-    def s(w):
-        return np.bincount(inv, w, cells.shape[0])
-
-    n = counts.astype(float)
-    A = np.empty((cells.shape[0], 3, 3))
-    A[:, 0, 0] = n
-    A[:, 0, 1] = A[:, 1, 0] = s(dx)
-    A[:, 0, 2] = A[:, 2, 0] = s(dy)
-    A[:, 1, 1] = s(dx * dx)
-    A[:, 1, 2] = A[:, 2, 1] = s(dx * dy)
-    A[:, 2, 2] = s(dy * dy)
-    b = np.stack([s(dz), s(dx * dz), s(dy * dz)], axis=1)
-    ok = counts >= min_points
-    ok &= np.abs(np.linalg.det(A)) > 1e-9 * np.maximum(n, 1.0) ** 3 * cell_size_m**4
-    coef = np.full((cells.shape[0], 3), np.nan)
-    coef[ok] = np.linalg.solve(A[ok], b[ok][:, :, None])[:, :, 0]
-    res = dz - (coef[inv, 0] + coef[inv, 1] * dx + coef[inv, 2] * dy)
-    rough = np.sqrt(s(res * res) / n)
-    keep = ok & np.isfinite(rough)
-    return CellPlanes(cells[keep], (z_ref + coef[:, 0])[keep], rough[keep], counts[keep])
-
-
 def strip_discrepancy(
     layers: list[np.ndarray], cell_size_m: float = 1.0, min_points: int = 6, max_roughness_m: float = 0.03
 ) -> dict[str, float]:
     """Spread (max - min) of the layers' plane heights in cells where at least two are planar.
 
-    Returns ``cells``, ``median_m``, ``p95_m`` and ``mean_m`` of the spread.
+    The summary of :func:`georefine.evaluation.strip_differences.strip_differences`:
+    ``cells``, ``median_m``, ``p95_m`` and ``mean_m``.
     """
-    planes = [cell_planes(x, cell_size_m, min_points) for x in layers]
-    keys, heights = [], []
-    for p in planes:
-        good = p.roughness_m < max_roughness_m
-        keys.append(p.cell_ij[good])
-        heights.append(p.height_m[good])
-    if not keys:
-        return {"cells": 0, "median_m": float("nan"), "p95_m": float("nan"), "mean_m": float("nan")}
-    allk = np.concatenate(keys)
-    allh = np.concatenate(heights)
-    cells, inv, counts = np.unique(allk, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
-    hi = np.full(cells.shape[0], -np.inf)
-    lo = np.full(cells.shape[0], np.inf)
-    np.maximum.at(hi, inv, allh)
-    np.minimum.at(lo, inv, allh)
-    spread = (hi - lo)[counts >= 2]
-    if spread.size == 0:
-        return {"cells": 0, "median_m": float("nan"), "p95_m": float("nan"), "mean_m": float("nan")}
-    return {"cells": int(spread.size), "median_m": float(np.median(spread)), "p95_m": float(np.percentile(spread, 95)),
-            "mean_m": float(np.mean(spread))}
+    return strip_differences(layers, cell_size_m, min_points, max_roughness_m).summary()
