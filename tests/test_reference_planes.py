@@ -75,3 +75,65 @@ def test_mean_rmse_and_avg_sd_of_known_offsets():
     sd_b = np.std(np.array([-0.004, 0.000, 0.002]) * nz_b, ddof=1)
     assert s.avg_sd_m == pytest.approx((sd_a + sd_b) / 2, abs=1e-12)
     assert [p["surface_id"] for p in s.per_surface] == ["A", "B"]
+
+
+def _write_strip(path, xyz, strip, channel, epsg=25832):
+    import laspy
+    from pyproj import CRS
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.array([1e-4, 1e-4, 1e-4])
+    header.offsets = np.floor(xyz.min(axis=0))
+    header.add_crs(CRS.from_epsg(epsg))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    las.point_source_id = np.full(len(xyz), strip, dtype=np.uint16)
+    las.scanner_channel = channel.astype(np.uint8)
+    las.write(path)
+
+
+def test_evaluate_commands_on_laz_files(tmp_path):
+    import json
+
+    from typer.testing import CliRunner
+
+    from georefine.cli import app
+    from georefine.io.reference import write_reference_surfaces
+
+    rng = np.random.default_rng(6)
+    surfaces = _surfaces()
+    write_reference_surfaces(tmp_path / "surfaces.csv", surfaces)
+    offsets = {(1, 0): 0.004, (1, 1): 0.008, (2, 0): -0.002}  # per strip, channel; same on both surfaces
+    pts = {1: [], 2: []}
+    chans = {1: [], 2: []}
+    for (s, c), off in offsets.items():
+        for centre, tilt in (((100.0, 200.0, 50.0), (0.0, 0.0)), ((300.0, 200.0, 60.0), (0.05, -0.02))):
+            p = _points_on(rng, centre, tilt, off, n=12000, size=20.0)
+            pts[s].append(p)
+            chans[s].append(np.full(len(p), c))
+    for s in (1, 2):
+        _write_strip(tmp_path / f"strip_{s}.laz", np.vstack(pts[s]), s, np.concatenate(chans[s]))
+    run = CliRunner().invoke(app, ["evaluate", "reference-planes", str(tmp_path), "--reference",
+                                   str(tmp_path / "surfaces.csv"), "--out", str(tmp_path / "ev")])
+    assert run.exit_code == 0, run.output
+    rep = json.loads((tmp_path / "ev" / "reference_planes.json").read_text())
+    nz_b = 1.0 / np.linalg.norm([0.05, -0.02, 1.0])
+    vals = np.array([0.004, 0.008, -0.002, 0.004 * nz_b, 0.008 * nz_b, -0.002 * nz_b])
+    assert rep["n_observations"] == 6
+    assert rep["mean_m"] == pytest.approx(vals.mean(), abs=2e-4)  # 0.1 mm coordinate resolution
+    assert rep["rmse_m"] == pytest.approx(np.sqrt(np.mean(vals**2)), abs=2e-4)
+    sd = (np.std(vals[:3], ddof=1) + np.std(vals[3:], ddof=1)) / 2
+    assert rep["avg_sd_m"] == pytest.approx(sd, abs=2e-4)
+    assert "AVG-SD" in run.output
+
+    run = CliRunner().invoke(app, ["evaluate", "strip-differences", str(tmp_path / "strip_1.laz"),
+                                   str(tmp_path / "strip_2.laz"), "--out", str(tmp_path / "sd")])
+    assert run.exit_code == 0, run.output
+    rep = json.loads((tmp_path / "sd" / "strip_differences.json").read_text())
+    # The layers are shifted vertically by +4, +8 and -2 mm on both surfaces: spread 10 mm.
+    assert rep["cells"] > 200 and rep["median_m"] == pytest.approx(0.010, abs=3e-4)
+    assert rep["epsg"] == 25832 and len(rep["layers"]) == 3
+    for name in ("strip_differences.png", "strip_differences.tif"):
+        assert (tmp_path / "sd" / name).is_file()
+    bad = CliRunner().invoke(app, ["evaluate", "strip-differences", str(tmp_path / "missing")])
+    assert bad.exit_code == 2 and "missing" in bad.output

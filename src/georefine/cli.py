@@ -273,5 +273,59 @@ def evaluate_trajectory(
         stdout.print(f"wrote {path}")
 
 
+@evaluate_app.command("reference-planes")
+def evaluate_reference_planes_cmd(
+    points: list[Path] = typer.Argument(..., help="Georeferenced LAS/LAZ strips or folders of them (output CRS)."),
+    reference: Path = typer.Option(..., "--reference", "-r", help="Reference surfaces CSV (surface_id,point_id,x,y,z)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for reference_planes.json and .csv."),
+    inset: float = typer.Option(0.25, "--inset", help="Margin inside each surveyed outline (m)."),
+    max_distance: float = typer.Option(0.3, "--max-distance", help="Points farther from the plane are ignored (m)."),
+) -> None:
+    """Distances of the points to surveyed reference planes per strip x channel (paper 000, Table 1).
+
+    Mean and RMSE over all observations (one observation = mean signed distance of one strip x
+    channel on one surface) and AVG-SD, the mean over surfaces of the standard deviation of that
+    surface's observations.
+    """
+    with _user_errors():
+        from georefine.evaluation.clouds import evaluate_reference_planes, point_files
+
+        obs, summary = evaluate_reference_planes(point_files(points), reference, out, inset_m=inset,
+                                                 max_distance_m=max_distance)
+    from rich.table import Table
+
+    table = Table(title=f"reference planes: {summary.n_observations} observations")
+    for column in ("surface", "observations", "mean (mm)", "SD (mm)", "RMSE (mm)"):
+        table.add_column(column, justify="left" if column == "surface" else "right")
+    for row in summary.per_surface:
+        table.add_row(row["surface_id"], str(row["observations"]), f"{row['mean_m'] * 1e3:.1f}",
+                      f"{row['sd_m'] * 1e3:.1f}", f"{row['rmse_m'] * 1e3:.1f}")
+    stdout.print(table)
+    stdout.print(f"Mean {summary.mean_m * 1e3:.1f} mm, RMSE {summary.rmse_m * 1e3:.1f} mm, "
+                 f"AVG-SD {summary.avg_sd_m * 1e3:.1f} mm")
+    if out is not None:
+        stdout.print(f"wrote {out / 'reference_planes.json'} and {out / 'reference_planes.csv'}")
+
+
+@evaluate_app.command("strip-differences")
+def evaluate_strip_differences_cmd(
+    points: list[Path] = typer.Argument(..., help="Georeferenced LAS/LAZ strips or folders of them (output CRS)."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for the map (PNG, GeoTIFF) and JSON."),
+    cell: float = typer.Option(1.0, "--cell", help="Raster cell size (m)."),
+    max_roughness: float = typer.Option(0.03, "--max-roughness", help="Planar cells only: RMS plane residual (m)."),
+) -> None:
+    """Strip differences on a raster (paper 000, Fig. 7): per cell max - min of the plane heights
+    of the layers strip x channel that are planar there."""
+    with _user_errors():
+        from georefine.evaluation.clouds import evaluate_strip_differences, point_files
+
+        m = evaluate_strip_differences(point_files(points), out, cell_size_m=cell, max_roughness_m=max_roughness)
+    s = m.summary()
+    stdout.print(f"strip differences on {s['cells']:,} planar cells of {cell:g} m: median {s['median_m'] * 1e3:.1f} mm, "
+                 f"P95 {s['p95_m'] * 1e3:.1f} mm")
+    if out is not None:
+        stdout.print(f"wrote {out / 'strip_differences.png'}, .tif and .json")
+
+
 if __name__ == "__main__":  # pragma: no cover
     app()
