@@ -33,7 +33,7 @@ from georefine.io._common import atomic_output
 from georefine.io.reference import read_reference_surfaces
 from georefine.products import write_json
 
-__all__ = ["point_files", "read_layers", "evaluate_reference_planes", "evaluate_strip_differences", "epsg_of"]
+__all__ = ["Layer", "point_files", "read_layers", "evaluate_reference_planes", "evaluate_strip_differences", "epsg_of"]
 
 _CHUNK = 5_000_000
 
@@ -87,32 +87,35 @@ def read_layers(files: list[Path], keep=None) -> list[Layer]:
             if keep is not None:
                 m = keep(xyz)
                 xyz, sid, ch = xyz[m], sid[m], ch[m]
-            for s, c in np.unique(np.column_stack([sid, ch]), axis=0) if len(xyz) else []:
-                sel = (sid == s) & (ch == c)
-                parts.setdefault((int(s), int(c)), []).append(xyz[sel])
+            code = sid.astype(np.int64) * 256 + ch
+            for k in np.unique(code):
+                parts.setdefault((int(k // 256), int(k % 256)), []).append(xyz[code == k])
     return [Layer(s, c, np.concatenate(v)) for (s, c), v in sorted(parts.items())]
 
 
 def evaluate_reference_planes(
     files: list[Path], reference_csv: Path, out: Path | None = None, *, inset_m: float = 0.25,
-    max_distance_m: float = 0.3, min_points: int = 10,
+    max_distance_m: float = 0.3, min_points: int = 10, layers: list[Layer] | None = None,
 ) -> tuple[list[PlaneObservation], ReferencePlaneSummary]:
-    """Observations of the reference surfaces and the Table 1 figures (written to ``out``)."""
+    """Observations of the reference surfaces and the Table 1 figures (written to ``out``).
+
+    ``layers``: points already read (:func:`read_layers`); else ``files`` are read, keeping only
+    the points near the surfaces.
+    """
     planes = reference_planes(read_reference_surfaces(reference_csv))
     lo = np.min([p.centre - 10.0 for p in planes], axis=0)
     hi = np.max([p.centre + 10.0 for p in planes], axis=0)
-    near: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
-    for f in files:
-        for xyz, sid, ch in _chunks(f):
-            box = np.all((xyz >= lo) & (xyz <= hi), axis=1)
-            if np.any(box):
-                near.append((xyz[box], sid[box], ch[box]))
-    if near:
-        xyz = np.concatenate([n[0] for n in near])
-        sid = np.concatenate([n[1] for n in near])
-        ch = np.concatenate([n[2] for n in near])
+
+    def near(xyz):
+        return np.all((xyz >= lo) & (xyz <= hi), axis=1)
+
+    if layers is None:
+        layers = read_layers(files, keep=near)
     else:
-        xyz, sid, ch = np.zeros((0, 3)), np.zeros(0, int), np.zeros(0, int)
+        layers = [Layer(la.strip, la.channel, la.xyz[near(la.xyz)]) for la in layers]
+    xyz = np.concatenate([la.xyz for la in layers]) if layers else np.zeros((0, 3))
+    sid = np.concatenate([np.full(len(la.xyz), la.strip) for la in layers]) if layers else np.zeros(0, int)
+    ch = np.concatenate([np.full(len(la.xyz), la.channel) for la in layers]) if layers else np.zeros(0, int)
     obs = observe_reference_planes(xyz, sid, ch, planes, inset_m=inset_m, max_distance_m=max_distance_m,
                                    min_points=min_points)
     obs.sort(key=lambda o: (o.surface_id, o.strip, o.channel))
@@ -135,10 +138,10 @@ def evaluate_reference_planes(
 
 def evaluate_strip_differences(
     files: list[Path], out: Path | None = None, *, cell_size_m: float = 1.0, min_points: int = 6,
-    max_roughness_m: float = 0.03, title: str = "",
+    max_roughness_m: float = 0.03, title: str = "", layers: list[Layer] | None = None,
 ) -> StripDifferenceMap:
     """The strip-difference raster over all strip x channel layers (files written to ``out``)."""
-    layers = read_layers(files)
+    layers = read_layers(files) if layers is None else layers
     m = strip_differences([layer.xyz for layer in layers], cell_size_m, min_points, max_roughness_m)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)

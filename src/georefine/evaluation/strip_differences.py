@@ -37,12 +37,34 @@ class CellPlanes:
     n_points: np.ndarray  # (C,) int64
 
 
+def _cell_index(ij: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(cells (C, 2), inverse (N,), counts (C,))`` of integer cell indices, without a 2-D sort.
+
+    A dense index over the bounding box with ``bincount`` when the box has at most 4 cells per
+    point (a strip), else a 1-D ``unique`` of the linear index (a diagonal corridor).
+    """
+    if ij.shape[0] == 0:
+        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    lo = ij.min(axis=0)
+    size = ij.max(axis=0) - lo + 1
+    lin = (ij[:, 0] - lo[0]) * size[1] + (ij[:, 1] - lo[1])
+    if size[0] * size[1] <= 4 * ij.shape[0] + 1024:
+        counts_all = np.bincount(lin, minlength=int(size[0] * size[1]))
+        used = np.flatnonzero(counts_all)
+        remap = np.zeros(counts_all.size, dtype=np.int64)
+        remap[used] = np.arange(used.size)
+        inv, counts, ulin = remap[lin], counts_all[used], used
+    else:
+        ulin, inv, counts = np.unique(lin, return_inverse=True, return_counts=True)
+    cells = np.column_stack([ulin // size[1] + lo[0], ulin % size[1] + lo[1]])
+    return cells, inv.reshape(-1), counts
+
+
 def cell_planes(xyz: np.ndarray, cell_size_m: float = 1.0, min_points: int = 6) -> CellPlanes:
     """Fit a plane to the points of every raster cell (vectorised with ``bincount`` sums)."""
     xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
     ij = np.floor(xyz[:, :2] / cell_size_m).astype(np.int64)
-    cells, inv, counts = np.unique(ij, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
+    cells, inv, counts = _cell_index(ij)
     centre = (cells + 0.5) * cell_size_m
     dx = xyz[:, 0] - centre[inv, 0]
     dy = xyz[:, 1] - centre[inv, 1]
@@ -105,8 +127,7 @@ def strip_differences(
     allh = np.concatenate(heights) if heights else np.zeros(0)
     if allk.shape[0] == 0:
         return StripDifferenceMap(np.full((1, 1), np.nan), np.zeros((1, 1), dtype=int), 0.0, cell_size_m, cell_size_m)
-    cells, inv, counts = np.unique(allk, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.reshape(-1)
+    cells, inv, counts = _cell_index(allk)
     hi = np.full(cells.shape[0], -np.inf)
     lo = np.full(cells.shape[0], np.inf)
     np.maximum.at(hi, inv, allh)

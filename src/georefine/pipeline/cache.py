@@ -1,10 +1,12 @@
 """Results of workflow steps cached in the output folder, so that a rerun resumes.
 
-Every step's result is stored in ``OUT/.cache/NAME.pkl`` together with a *key*: a SHA-256 over
+Every step's result is stored in ``OUT/.cache/NAME-KEY.pkl``, where the *key* is a SHA-256 over
 everything the result depends on -- the Georefine version, the configuration sections the step
 reads, the size and modification time of its input files (as ``make`` judges files), and the
 key of the step before it. A rerun with the same key loads the result instead of computing it;
-any change upstream changes every key below it, so stale results are never used. Files are
+any change upstream changes every key below it, so stale results are never used. Because the
+key is in the file name, runs that share a step (a single-pass run and a full run share the
+GNSS/IMU adjustment) can share one cache folder. Files are
 written under a temporary name and renamed when complete, so an interrupted run leaves either
 the old entry or the new one.
 
@@ -43,6 +45,7 @@ class StepCache:
         self.folder = Path(folder)
         self.enabled = enabled
         self.hits: list[str] = []
+        self._written: dict[str, Path] = {}
 
     @staticmethod
     def key(*parts: Any) -> str:
@@ -50,11 +53,14 @@ class StepCache:
         text = json.dumps([__version__, *parts], sort_keys=True, default=str)
         return hashlib.sha256(text.encode()).hexdigest()
 
+    def _path(self, name: str, key: str) -> Path:
+        return self.folder / f"{name}-{key[:20]}.pkl"
+
     def load(self, name: str, key: str, valid: Callable[[Any], bool] | None = None) -> Any | None:
         """The stored result of step ``name`` if it was stored under ``key`` (and passes ``valid``)."""
         if not self.enabled:
             return None
-        path = self.folder / f"{name}.pkl"
+        path = self._path(name, key)
         if not path.is_file():
             return None
         try:
@@ -69,10 +75,14 @@ class StepCache:
         log.info("resumed %s from %s", name, path)
         return value
 
-    def store(self, name: str, key: str, value: Any) -> None:
-        """Store ``value`` for step ``name`` under ``key`` (atomically)."""
+    def store(self, name: str, key: str, value: Any, *, latest_only: bool = False) -> None:
+        """Store ``value`` for step ``name`` under ``key`` (atomically).
+
+        ``latest_only``: remove the entry of the same name this object stored before (large
+        intermediate results of which a resume needs only the last).
+        """
         self.folder.mkdir(parents=True, exist_ok=True)
-        path = self.folder / f"{name}.pkl"
+        path = self._path(name, key)
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             with open(tmp, "wb") as fh:
@@ -80,3 +90,7 @@ class StepCache:
             os.replace(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)
+        before = self._written.get(name)
+        if latest_only and before is not None and before != path:
+            before.unlink(missing_ok=True)
+        self._written[name] = path

@@ -269,6 +269,29 @@ class WorkflowResult:
         return "\n".join(lines)
 
 
+def _outer_iteration(nav, current, strip_points, it, timings, progress, adjust=True):
+    """Steps 3-5 once from ``current``: features, objects, G/I/L adjustment (no posterior) and record."""
+    t = _time.perf_counter()
+    traj = imu_rate_trajectory(nav, current.spline)
+    features, fstats = step_features(nav, traj, strip_points, progress)
+    timings[f"features_{it}"] = _time.perf_counter() - t
+    t = _time.perf_counter()
+    objects = match_features(features, nav.config.processing.matching)
+    timings[f"matching_{it}"] = _time.perf_counter() - t
+    if not adjust:
+        return features, objects, None, None
+    t = _time.perf_counter()
+    gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
+    timings[f"gil_adjustment_{it}"] = _time.perf_counter() - t
+    d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
+    record = {
+        "iteration": it, "features": len(features), "objects": len(objects),
+        "features_used": gil.features_used, "objects_used": gil.objects_used,
+        "attitude_change_mdeg": d_att, "position_change_m": d_pos, **fstats,
+    }
+    return features, objects, gil, record
+
+
 def _navigation_key(nav: NavigationData) -> str:
     cfg = nav.config
     files = [file_stamp(nav.root / f) for f in cfg.gnss.files] + [file_stamp(nav.root / cfg.imu.file)]
@@ -293,6 +316,7 @@ def run_workflow(
     strips: list[int] | None = None,
     lidar: bool = True,
     resume: bool = True,
+    cache_dir: str | Path | None = None,
     progress: Progress = _no_progress,
 ) -> WorkflowResult:
     """Steps 1-6 on a project folder (see the module docstring for the outputs).
@@ -300,7 +324,8 @@ def run_workflow(
     Every step's result is cached in ``out/.cache`` (:mod:`georefine.pipeline.cache`); with
     ``resume`` a rerun loads what its inputs and configuration have not changed, e.g. after an
     interruption or when only the final georeferencing is repeated. ``metrics.json`` lists the
-    resumed steps under ``resumed``.
+    resumed steps under ``resumed``. ``cache_dir`` puts the cache elsewhere, e.g. one folder shared
+    by a full and a single-pass run (they share the GNSS/IMU adjustment).
     """
     timings: dict[str, float] = {}
     t = _time.perf_counter()
@@ -311,7 +336,7 @@ def run_workflow(
     crs = OutputCRS(nav.config.crs.output_epsg)
     for sub in ("gi", "gil", "points", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    cache = StepCache(out / ".cache", enabled=resume)
+    cache = StepCache(Path(cache_dir) if cache_dir is not None else out / ".cache", enabled=resume)
 
     t = _time.perf_counter()
     key = _navigation_key(nav)
@@ -327,51 +352,52 @@ def run_workflow(
     write_trajectory_products(out / "gi", nav, gi, crs)
     write_json(out / "gi" / "adjustment.json", {"adjustment": gi.solve.to_dict(), "imu_errors": gi.imu_errors.to_dict(),
                                                  "t0_gps": nav.t0_gps, "timings_s": gi.timings_s})
-    metrics: dict = {"t0_gps": nav.t0_gps, "strips": [s.strip_id for s in strip_points], "outer_iterations": []}
+    metrics: dict = {
+        "t0_gps": nav.t0_gps, "strips": [s.strip_id for s in strip_points],
+        "strip_time_gps": {str(s.strip_id): [float(s.time.min() + nav.t0_gps), float(s.time.max() + nav.t0_gps)]
+                           for s in strip_points},
+        "outer_iterations": [],
+    }
 
     final = gi
     gil = None
     if lidar:
         lcfg = nav.config.processing.lidar
         current = gi
+        features = objects = None
         for it in range(1, lcfg.outer_iterations + 1):
             key = _lidar_key(nav, strip_points, key, it)
             hit = cache.load(f"gil_{it}", key)
+            previous = current
             if hit is not None:
-                features, objects, gil, record = hit
+                gil, record = hit
+                features = objects = None
             else:
-                t = _time.perf_counter()
-                traj = imu_rate_trajectory(nav, current.spline)
-                features, fstats = step_features(nav, traj, strip_points, progress)
-                timings[f"features_{it}"] = _time.perf_counter() - t
-                t = _time.perf_counter()
-                objects = match_features(features, nav.config.processing.matching)
-                timings[f"matching_{it}"] = _time.perf_counter() - t
-                t = _time.perf_counter()
-                gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
-                timings[f"gil_adjustment_{it}"] = _time.perf_counter() - t
-                d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
-                record = {
-                    "iteration": it, "features": len(features), "objects": len(objects),
-                    "features_used": gil.features_used, "objects_used": gil.objects_used,
-                    "attitude_change_mdeg": d_att, "position_change_m": d_pos, **fstats,
-                }
-                cache.store(f"gil_{it}", key, (features, objects, replace(gil, built=None), record))
+                features, objects, gil, record = _outer_iteration(nav, current, strip_points, it, timings, progress)
+                cache.store(f"gil_{it}", key, (replace(gil, built=None), record))
+                cache.store("gil_features", key, (features, objects), latest_only=True)
             metrics["outer_iterations"].append(record)
-            previous, current = current, gil.result
+            current = gil.result
             if record["attitude_change_mdeg"] < lcfg.convergence_attitude_mdeg and (
                 record["position_change_m"] < lcfg.convergence_position_m
             ):
                 break
         t = _time.perf_counter()
-        key = StepCache.key("gil_posterior", key)
-        posterior = cache.load("gil_posterior", key)
+        if features is None:
+            fo = cache.load("gil_features", key)
+            if fo is None:  # recompute from the trajectory the last iteration started at (deterministic)
+                features, objects, *_ = _outer_iteration(nav, previous, strip_points, it, {}, progress, adjust=False)
+            else:
+                features, objects = fo
+        posterior_key = StepCache.key("gil_posterior", key)
+        posterior = cache.load("gil_posterior", posterior_key)
         if posterior is None:
             if gil.built is None:  # the last iteration came from the cache: one more (short) solve
                 gil = step_adjust_gil(nav, previous, features, objects, progress, covariance=False)
             gil = add_posterior(gil)
             posterior = replace(gil, built=None)
-            cache.store("gil_posterior", key, posterior)
+            cache.store("gil_posterior", posterior_key, posterior)
+        key = posterior_key
         gil = posterior
         current = gil.result
         timings["gil_covariance"] = _time.perf_counter() - t

@@ -1,0 +1,207 @@
+"""One self-contained HTML report per run (DESIGN §5): it opens from the file system.
+
+The page shows, from the files a run and its evaluation wrote (``metrics.json``,
+``gi/`` and ``gil/adjustment.json``, ``evaluation/summary.json`` and its plots,
+``config.resolved.yaml``):
+
+1. a summary beside paper 000's figures (roll/pitch/yaw RMSE, reference planes, strip differences);
+2. the workflow steps with their timings and the outer iterations;
+3. trajectory differences against the reference, per strip, with the Fig. 9 style plots;
+4. the reference-plane table (Table 1) per surface, G/I beside G/I/L;
+5. the strip-difference maps (Fig. 7) of G/I and G/I/L side by side;
+6. the adjustment statistics per observation group and the estimated IMU errors;
+7. the configuration used.
+
+Images are embedded as base64 PNG, so the single file is the whole report.
+"""
+
+from __future__ import annotations
+
+import base64
+import datetime as _dt
+import html
+import json
+from pathlib import Path
+
+from georefine import __version__
+from georefine.io._common import atomic_output
+
+__all__ = ["PAPER_000", "write_report", "summary_rows"]
+
+#: Paper 000's figures (Fig. 9 and §4 text; Table 1). Trajectory: differences to its full
+#: G/I/L solution; the single-pass roll is "at the same level" as G/I.
+PAPER_000 = {
+    "G/I": {"roll_rmse_mdeg": 8.0, "pitch_rmse_mdeg": 4.0, "yaw_rmse_mdeg": 20.0},
+    "G/I/L single pass": {"roll_rmse_mdeg": 8.0, "pitch_rmse_mdeg": 2.0, "yaw_rmse_mdeg": 2.0},
+    "reference_planes": {"G/I": {"avg_sd_m": 0.0101}, "G/I/L": {"avg_sd_m": 0.0033}},
+}
+
+_CSS = """
+body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1200px;color:#222;padding:0 1em}
+h1{font-size:1.6em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
+table{border-collapse:collapse;margin:.6em 0}th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}
+th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}
+.maps{display:flex;gap:1em;flex-wrap:wrap}.maps figure{flex:1;min-width:420px;margin:0}
+img{max-width:100%}figcaption{font-size:.9em;color:#555}pre{background:#f7f7f7;padding:1em;overflow:auto;font-size:.85em}
+.note{color:#555;font-size:.9em}
+"""
+
+
+def _img(path: Path, alt: str) -> str:
+    if not path.is_file():
+        return f'<p class="note">({html.escape(alt)}: not available)</p>'
+    data = base64.b64encode(path.read_bytes()).decode()
+    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
+
+
+def _table(header: list[str], rows: list[list]) -> str:
+    h = "".join(f"<th>{html.escape(str(c))}</th>" for c in header)
+    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
+    return f"<table><tr>{h}</tr>{body}</table>"
+
+
+def _f(x, scale=1.0, digits=1) -> str:
+    return "–" if x is None else f"{x * scale:.{digits}f}"
+
+
+def summary_rows(summary: dict) -> list[list[str]]:
+    """Rows ``[quantity, paper 000, G/I, G/I/L, single-pass G/I/L]`` of the headline table."""
+    traj = summary.get("trajectory", {})
+    single = next((v for k, v in traj.items() if k.startswith("G/I/L single")), None)
+    rows = []
+    for a in ("roll", "pitch", "yaw"):
+        key = f"{a}_rmse_mdeg"
+        paper = f"{PAPER_000['G/I'][key]:.0f} / – / {PAPER_000['G/I/L single pass'][key]:.0f}"
+        cell = "–"
+        if single:  # beside G/I during the same strip(s)
+            gi_strips = traj.get("G/I", {}).get("strips", {})
+            same = [gi_strips[s][key] for s in single["strips"] if s in gi_strips]
+            cell = _f(single["all"][key]) + (f" (G/I {_f(max(same))})" if same else "")
+        rows.append([f"{a} RMSE (mdeg)", paper, _f(traj.get("G/I", {}).get("all", {}).get(key)),
+                     _f(traj.get("G/I/L", {}).get("all", {}).get(key)), cell])
+    rp = summary.get("reference_planes", {})
+    if rp:
+        for k, name in (("mean_m", "Mean"), ("rmse_m", "RMSE"), ("avg_sd_m", "AVG-SD")):
+            paper = {"avg_sd_m": "10.1 / 3.3 / –", "mean_m": "< 4 / < 4 / –", "rmse_m": "< 22 / < 22 / –"}[k]
+            rows.append([f"reference planes {name} (mm)", paper, _f(rp.get("G/I", {}).get(k), 1e3),
+                         _f(rp.get("G/I/L", {}).get(k), 1e3), "–"])
+    sd = summary.get("strip_differences", {})
+    if sd:
+        for k, name in (("median_m", "median"), ("p95_m", "P95")):
+            rows.append([f"strip differences {name} (mm)", "≤ 50 on planar surfaces (Fig. 7)",
+                         _f(sd.get("G/I", {}).get(k), 1e3), _f(sd.get("G/I/L", {}).get(k), 1e3), "–"])
+    return rows
+
+
+def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Georefine report") -> Path:
+    """Write ``run_dir/report.html`` (or ``path``) from the run's files; returns the path."""
+    run_dir = Path(run_dir)
+    path = Path(path) if path is not None else run_dir / "report.html"
+    ev = run_dir / "evaluation"
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    summary = json.loads((ev / "summary.json").read_text()) if (ev / "summary.json").is_file() else {}
+    adj = {k: json.loads((run_dir / k / "adjustment.json").read_text())
+           for k in ("gi", "gil") if (run_dir / k / "adjustment.json").is_file()}
+    parts = [f"<h1>{html.escape(title)}</h1>",
+             f'<p class="note">Georefine {html.escape(__version__)}, {_dt.datetime.now().isoformat(timespec="seconds")}; '
+             f"run folder {html.escape(str(run_dir.resolve()))}; strips {metrics.get('strips')}; "
+             f"trajectory reference: {html.escape(summary.get('reference', '–'))}.</p>"]
+
+    parts.append("<h2>1. Summary beside paper 000</h2>")
+    parts.append(_table(["quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L"],
+                        summary_rows(summary)))
+    parts.append('<p class="note">Paper 000 compares with its full G/I/L solution (no truth); Georefine compares '
+                 "with the reference named above. Reference planes: Mean and RMSE over all strip x channel "
+                 "observations, AVG-SD the mean per-surface standard deviation (Table 1).</p>")
+
+    parts.append("<h2>2. Workflow</h2>")
+    parts.append(_table(["step", "seconds"], [[k, f"{v:.1f}"] for k, v in metrics.get("timings_s", {}).items()]))
+    if metrics.get("outer_iterations"):
+        parts.append(_table(
+            ["outer iteration", "features", "objects", "features used", "RMS change (mdeg)", "RMS change (mm)"],
+            [[it["iteration"], f"{it['features']:,}", f"{it['objects']:,}", f"{it['features_used']:,}",
+              f"{it['attitude_change_mdeg']:.2f}", f"{it['position_change_m'] * 1e3:.1f}"]
+             for it in metrics["outer_iterations"]]))
+    if metrics.get("resumed"):
+        parts.append(f'<p class="note">Resumed from the cache: {html.escape(", ".join(metrics["resumed"]))}.</p>')
+
+    parts.append("<h2>3. Trajectory differences</h2>")
+    rows = []
+    for label, t in summary.get("trajectory", {}).items():
+        for sid, s in t["strips"].items():
+            rows.append([label, f"strip {sid}", _f(s["roll_rmse_mdeg"], digits=2), _f(s["pitch_rmse_mdeg"], digits=2),
+                         _f(s["yaw_rmse_mdeg"], digits=2), _f(s["3d_rmse_m"], 1e3)])
+        a = t["all"]
+        rows.append([label, "all", _f(a["roll_rmse_mdeg"], digits=2), _f(a["pitch_rmse_mdeg"], digits=2),
+                     _f(a["yaw_rmse_mdeg"], digits=2), _f(a["3d_rmse_m"], 1e3)])
+    parts.append(_table(["solution", "during", "roll (mdeg)", "pitch (mdeg)", "yaw (mdeg)", "3-D position (mm)"], rows))
+    parts.append(_img(ev / "attitude_differences.png", "attitude differences"))
+    parts.append(_img(ev / "position_differences.png", "position differences"))
+
+    rp = summary.get("reference_planes", {})
+    if rp:
+        parts.append("<h2>4. Reference planes (Table 1)</h2>")
+        surf = {}
+        for label in ("G/I", "G/I/L"):
+            for s in rp.get(label, {}).get("surfaces", []):
+                surf.setdefault(s["surface_id"], {})[label] = s
+        parts.append(_table(
+            ["surface", "observations", "G/I mean (mm)", "G/I SD (mm)", "G/I/L mean (mm)", "G/I/L SD (mm)"],
+            [[sid, v.get("G/I/L", v.get("G/I", {})).get("observations", "–"),
+              _f(v.get("G/I", {}).get("mean_m"), 1e3), _f(v.get("G/I", {}).get("sd_m"), 1e3),
+              _f(v.get("G/I/L", {}).get("mean_m"), 1e3), _f(v.get("G/I/L", {}).get("sd_m"), 1e3)]
+             for sid, v in surf.items()]))
+        parts.append(_table(["", "Mean (mm)", "RMSE (mm)", "AVG-SD (mm)", "observations"],
+                            [[label, _f(v.get("mean_m"), 1e3), _f(v.get("rmse_m"), 1e3), _f(v.get("avg_sd_m"), 1e3),
+                              v.get("n_observations", "–")] for label, v in rp.items()]))
+
+    sd = summary.get("strip_differences", {})
+    if sd:
+        parts.append("<h2>5. Strip differences (Fig. 7)</h2>")
+        figs = []
+        for label, v in sd.items():
+            cap = (f"{label}: median {_f(v.get('median_m'), 1e3)} mm, P95 {_f(v.get('p95_m'), 1e3)} mm "
+                   f"over {v.get('cells', 0):,} planar 1 m cells")
+            figs.append(f"<figure>{_img(ev / v['map'], label)}<figcaption>{html.escape(cap)}</figcaption></figure>")
+        parts.append('<div class="maps">' + "".join(figs) + "</div>")
+
+    parts.append("<h2>6. Adjustment statistics and IMU errors</h2>")
+    for key, a in adj.items():
+        s = a["adjustment"]
+        parts.append(f"<h3>{'G/I' if key == 'gi' else 'G/I/L'}: {html.escape(str(s.get('termination')))} after "
+                     f"{s.get('iterations')} iterations, σ0² = {_f(s.get('variance_factor'), digits=3)}, "
+                     f"{s.get('n_unknowns'):,} unknowns, redundancy {s.get('redundancy'):,}</h3>")
+        parts.append(_table(
+            ["group", "observations", "rows", "RMS", "σ0² (approx.)", "cost share", "down-weighted"],
+            [[g["name"], f"{g['n_observations']:,}", f"{g['n_residuals']:,}", _f(g["rms"], digits=3),
+              _f(g["variance_factor"], digits=3), f"{100 * g['cost_share']:.1f} %", g["n_downweighted"]]
+             for g in s.get("groups", [])]))
+        e = a.get("imu_errors", {})
+        if e:
+            rows = []
+            for name, unit in (("acc_scale_ppm", "ppm"), ("gyro_scale_ppm", "ppm")):
+                v, sg = e.get(name), e.get(name.replace("_ppm", "_sigma_ppm"))
+                if v is not None:
+                    rows.append([name.replace("_ppm", ""), unit] + [
+                        f"{v[i]:.0f} ± {sg[i]:.0f}" if sg else f"{v[i]:.0f}" for i in range(3)])
+            for name, unit in (("acc_bias_ug", "µg"), ("gyro_bias_deg_per_h", "deg/h")):
+                v = e.get(name)
+                if v:
+                    first, last = v[0], v[-1]
+                    rows.append([name.rsplit("_", 1)[0] + " (first knot → last)", unit] + [
+                        f"{first[i]:.2f} → {last[i]:.2f}" for i in range(3)])
+            parts.append(_table(["IMU error", "unit", "x", "y", "z"], rows))
+        if a.get("boresight_deg"):
+            b, sg = a["boresight_deg"], a.get("boresight_sigma_mdeg") or [float("nan")] * 3
+            parts.append(f"<p>Boresight roll/pitch/yaw: " + ", ".join(
+                f"{b[i]:.4f}° ± {sg[i]:.1f} mdeg" for i in range(3)) + "</p>")
+
+    cfg = run_dir / "config.resolved.yaml"
+    if cfg.is_file():
+        parts.append("<h2>7. Configuration</h2><pre>" + html.escape(cfg.read_text()) + "</pre>")
+
+    doc = (f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html.escape(title)}</title>"
+           f"<style>{_CSS}</style></head><body>{''.join(parts)}</body></html>\n")
+    with atomic_output(path, "w") as fh:
+        fh.write(doc)
+    return path

@@ -1,0 +1,126 @@
+"""Evaluate a `georefine run` output the way paper 000 reports it (DESIGN §5).
+
+:func:`evaluate_run` takes the project, the run folder of the full workflow and, optionally,
+the run folder of a single-pass run, and writes ``RUN/evaluation/``:
+
+* trajectory differences of G/I, G/I/L and single-pass G/I/L against the reference -- the
+  simulated truth when the project has one (``truth/trajectory.sbet``), else the full G/I/L
+  (as the paper does) -- during the strips' time spans: ``trajectory.json`` and the Fig. 9 style
+  plots ``attitude_differences.png``, ``position_differences.png``;
+* the G/I point cloud (``RUN/gi/points``; the run itself writes the G/I/L one), and for both:
+  reference planes (Table 1, when the project has ``reference`` surfaces) and the strip-difference
+  map (Fig. 7) in ``evaluation/gi/`` and ``evaluation/gil/``;
+* ``summary.json``: every figure above, which the report and ``metrics.json`` take over.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from georefine.evaluation.clouds import (
+    evaluate_reference_planes,
+    evaluate_strip_differences,
+    point_files,
+    read_layers,
+)
+from georefine.evaluation.plots import plot_attitude_differences, plot_position_differences
+from georefine.evaluation.trajectory import TrajectoryComparison
+from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.pipeline.navigation import run_georeference
+from georefine.products import write_json
+
+log = logging.getLogger(__name__)
+
+__all__ = ["evaluate_run", "ANGLES"]
+
+ANGLES = ("roll", "pitch", "yaw")
+
+
+def _rmse(comparisons: list[TrajectoryComparison]) -> dict[str, float]:
+    d = np.concatenate([c.d_rph_rad for c in comparisons]) * (180.0 / np.pi * 1e3)
+    p = np.concatenate([c.d_ned_m for c in comparisons])
+    out = {f"{a}_rmse_mdeg": float(np.sqrt(np.mean(d[:, j] ** 2))) for j, a in enumerate(ANGLES)}
+    out["3d_rmse_m"] = float(np.sqrt(np.mean(np.sum(p**2, axis=1))))
+    return out
+
+
+def _windows(metrics: dict, inset_s: float = 1.0) -> dict[str, tuple[float, float]]:
+    return {sid: (t0 + inset_s, t1 - inset_s) for sid, (t0, t1) in metrics.get("strip_time_gps", {}).items()}
+
+
+def evaluate_run(
+    project: Path,
+    run_dir: Path,
+    single_dir: Path | None = None,
+    *,
+    progress: Callable[[str, float, float], None] | None = None,
+) -> dict:
+    """Evaluate ``run_dir`` (and ``single_dir``); write ``run_dir/evaluation`` and return the summary."""
+    project, run_dir = Path(project), Path(run_dir)
+    report = progress or (lambda *a: None)
+    out = run_dir / "evaluation"
+    out.mkdir(parents=True, exist_ok=True)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    truth = project / "truth" / "trajectory.sbet"
+    has_truth = truth.is_file()
+    reference = truth if has_truth else run_dir / "gil" / "trajectory.sbet"
+    summary: dict = {"reference": "truth" if has_truth else "full G/I/L", "trajectory": {}}
+
+    # Trajectory differences during the strips (per strip and over all of them).
+    report("trajectory differences", 0, 1)
+    cases = [("G/I", run_dir / "gi" / "trajectory.sbet", metrics), ("G/I/L", run_dir / "gil" / "trajectory.sbet", metrics)]
+    if not has_truth:
+        cases = cases[:1]
+    if single_dir is not None:
+        sm = json.loads((Path(single_dir) / "metrics.json").read_text())
+        label = "G/I/L single pass (strip " + ", ".join(map(str, sm["strips"])) + ")"
+        cases.append((label, Path(single_dir) / "gil" / "trajectory.sbet", sm))
+    plots: dict[str, TrajectoryComparison] = {}
+    for label, sbet, m in cases:
+        if not sbet.is_file():
+            continue
+        wins = _windows(m)
+        comps = {sid: compare_sbet_files(sbet, reference, time_window=w) for sid, w in wins.items()}
+        summary["trajectory"][label] = {
+            "strips": {sid: {k: c.stats[k] for k in ("roll_rmse_mdeg", "pitch_rmse_mdeg", "yaw_rmse_mdeg", "3d_rmse_m")}
+                       for sid, c in comps.items()},
+            "all": _rmse(list(comps.values())),
+        }
+        span = (min(w[0] for w in wins.values()), max(w[1] for w in wins.values()))
+        plots[f"{label} - {summary['reference']}"] = compare_sbet_files(sbet, reference, time_window=span)
+    if plots:
+        summary["plots"] = {
+            "attitude": str(plot_attitude_differences(plots, out / "attitude_differences.png",
+                                                      "roll, pitch, yaw differences (cf. paper 000, Fig. 9)").name),
+            "position": str(plot_position_differences(plots, out / "position_differences.png",
+                                                      "position differences").name),
+        }
+    report("trajectory differences", 1, 1)
+
+    # Point clouds: G/I (georeferenced here) and G/I/L (written by the run).
+    gi_points = run_dir / "gi" / "points"
+    if not any(gi_points.glob("*.laz")):
+        run_georeference(project, run_dir / "gi" / "trajectory.sbet", gi_points, progress=report)
+    ref_csv = project / "reference" / "surfaces.csv"
+    summary["reference_planes"], summary["strip_differences"] = {}, {}
+    for label, folder, sub in (("G/I", gi_points, "gi"), ("G/I/L", run_dir / "points", "gil")):
+        files = [f for f in point_files([folder])
+                 if f.stem in {f"strip_{s}" for s in metrics["strips"]} or not f.stem.startswith("strip_")]
+        report(f"point cloud evaluation {label}", 0, 2)
+        layers = read_layers(files)
+        if ref_csv.is_file():
+            obs, rp = evaluate_reference_planes(files, ref_csv, out / sub, layers=layers)
+            summary["reference_planes"][label] = {k: v for k, v in rp.to_dict().items() if k != "surfaces"}
+            summary["reference_planes"][label]["surfaces"] = rp.per_surface
+        report(f"point cloud evaluation {label}", 1, 2)
+        sd = evaluate_strip_differences(files, out / sub, title=f"strip differences, {label}", layers=layers)
+        del layers
+        summary["strip_differences"][label] = {**sd.summary(), "map": f"{sub}/strip_differences.png"}
+        report(f"point cloud evaluation {label}", 2, 2)
+    write_json(out / "summary.json", summary)
+    return summary
