@@ -145,12 +145,6 @@ def test_same_seed_same_files_and_imr_matches_csv(tmp_path):
     np.testing.assert_allclose(imr.acc, csv.acc, atol=1e-6)
 
 
-def test_demo_runs_on_the_tiny_scenario(tmp_path):
-    run = _georefine("demo", "--scenario", "corridor-tiny", "--out", str(tmp_path / "demo"))
-    assert run.returncode == 0, run.stderr
-    assert "max" in run.stdout and (tmp_path / "demo" / "project" / "project.yaml").is_file()
-
-
 # ------------------------------------------------------------------------------ bad input
 
 

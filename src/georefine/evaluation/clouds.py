@@ -57,7 +57,11 @@ def epsg_of(path: Path) -> int | None:
     """EPSG code of a LAS/LAZ file's CRS (WKT in the header), if it has one."""
     with laspy.open(path) as f:
         crs = f.header.parse_crs()
-    return None if crs is None else crs.to_epsg()
+    if crs is None:
+        return None
+    # The strips carry the projected CRS with ellipsoidal heights (3-D), which has no EPSG code
+    # of its own: the horizontal CRS has.
+    return crs.to_epsg() or crs.to_2d().to_epsg()
 
 
 @dataclass(frozen=True)

@@ -193,7 +193,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
             parts.append(_table(["IMU error", "unit", "x", "y", "z"], rows))
         if a.get("boresight_deg"):
             b, sg = a["boresight_deg"], a.get("boresight_sigma_mdeg") or [float("nan")] * 3
-            parts.append(f"<p>Boresight roll/pitch/yaw: " + ", ".join(
+            parts.append("<p>Boresight roll/pitch/yaw: " + ", ".join(
                 f"{b[i]:.4f}° ± {sg[i]:.1f} mdeg" for i in range(3)) + "</p>")
 
     cfg = run_dir / "config.resolved.yaml"

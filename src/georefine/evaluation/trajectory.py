@@ -51,7 +51,7 @@ rates and accelerations are not, so the wander angle does not matter here.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -173,6 +173,24 @@ class TrajectoryComparison:
 
     def __len__(self) -> int:
         return self.time.shape[0]
+
+    def within(self, windows: list[tuple[float, float]]) -> "TrajectoryComparison":
+        """The comparison during ``windows`` (``(start, end)`` on this comparison's time scale, e.g.
+        the flight strips): differences outside become NaN, so that plots show gaps, and the
+        statistics are those of the samples inside."""
+        t = self.time_gps
+        inside = np.zeros(t.shape[0], dtype=bool)
+        for a, b in windows:
+            inside |= (t >= a) & (t <= b)
+        if not np.any(inside):
+            raise ValueError("within(): no sample inside the windows")
+        masked = {}
+        for name in ("d_rph_rad", "d_rotvec_rad", "d_ned_m"):
+            d = np.array(getattr(self, name), dtype=float)
+            d[~inside] = np.nan
+            masked[name] = d
+        stats = _statistics(self.d_rph_rad[inside], self.d_rotvec_rad[inside], self.d_ned_m[inside])
+        return replace(self, stats=stats, **masked)
 
     @property
     def time_gps(self) -> np.ndarray:
