@@ -153,6 +153,7 @@ def run(
     strips: Optional[str] = typer.Option(None, "--strips", help="Comma-separated strip ids (point_source_id) to use."),
     no_lidar: bool = typer.Option(False, "--no-lidar", help="Stop after the GNSS/IMU adjustment (steps 1-3, 6)."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every step instead of resuming from OUT/.cache."),
+    no_points: bool = typer.Option(False, "--no-points", help="Skip the final point clouds (step 6)."),
 ) -> None:
     """Run the whole workflow: filter, G/I adjustment, planar features, G/I/L adjustment, point clouds.
 
@@ -171,7 +172,8 @@ def run(
             except ValueError:
                 raise InputError("strip ids must be integers", field="--strips", found=repr(strips)) from None
         with _progress() as report:
-            result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh, progress=report)
+            result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh, points=not no_points,
+                                  progress=report)
     stdout.print(result.summary())
 
 

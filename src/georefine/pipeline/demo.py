@@ -3,8 +3,9 @@
 1. Simulate the scenario (default ``corridor``) into ``OUT/project`` -- kept and reused when a
    previous demo simulated the same scenario, seed and overrides there.
 2. ``georefine run`` on both passes into ``OUT/run`` (steps 1-6).
-3. The single-pass case: ``georefine run --strips FIRST`` into ``OUT/run-single-pass``; both
-   runs share one step cache (``OUT/.cache``), so the GNSS/IMU adjustment is computed once.
+3. The single-pass case: ``georefine run --strips FIRST --no-points`` into ``OUT/run-single-pass``
+   (its trajectory is what the paper compares); both runs share one step cache (``OUT/.cache``),
+   so the GNSS/IMU adjustment is computed once.
 4. Evaluation (:mod:`georefine.evaluation.run`): trajectory differences against the truth,
    reference planes and strip-difference maps of G/I and G/I/L.
 5. ``OUT/report.html`` (:mod:`georefine.evaluation.report`) and ``OUT/metrics.json``: the
@@ -82,7 +83,8 @@ def run_demo(
     if single_pass:
         first = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["passes"][0]["strip_id"]
         t = _time.perf_counter()
-        run_workflow(project, out / "run-single-pass", strips=[int(first)], cache_dir=cache, progress=progress)
+        run_workflow(project, out / "run-single-pass", strips=[int(first)], points=False, cache_dir=cache,
+                     progress=progress)
         timings["run_single_pass"] = _time.perf_counter() - t
         single_dir = out / "run-single-pass"
 

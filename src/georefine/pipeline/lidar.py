@@ -316,6 +316,7 @@ def run_workflow(
     strips: list[int] | None = None,
     lidar: bool = True,
     resume: bool = True,
+    points: bool = True,
     cache_dir: str | Path | None = None,
     progress: Progress = _no_progress,
 ) -> WorkflowResult:
@@ -324,7 +325,8 @@ def run_workflow(
     Every step's result is cached in ``out/.cache`` (:mod:`georefine.pipeline.cache`); with
     ``resume`` a rerun loads what its inputs and configuration have not changed, e.g. after an
     interruption or when only the final georeferencing is repeated. ``metrics.json`` lists the
-    resumed steps under ``resumed``. ``cache_dir`` puts the cache elsewhere, e.g. one folder shared
+    resumed steps under ``resumed``. ``points=False`` skips the final point clouds (step 6), e.g.
+    when only the trajectory is wanted. ``cache_dir`` puts the cache elsewhere, e.g. one folder shared
     by a full and a single-pass run (they share the GNSS/IMU adjustment).
     """
     timings: dict[str, float] = {}
@@ -413,6 +415,18 @@ def run_workflow(
         write_json(out / "gil" / "adjustment.json", gil_report)
 
     t = _time.perf_counter()
+    georef = _final_points(nav, out, final, gil, key, strip_points, crs, cache, progress) if points else []
+    timings["final_georeferencing"] = _time.perf_counter() - t
+    metrics["points"] = [{k: v for k, v in r.items() if k != "stamp"} for r in georef]
+    metrics["resumed"] = list(cache.hits)
+    metrics["timings_s"] = timings
+    write_json(out / "metrics.json", metrics)
+    write_yaml(out / "config.resolved.yaml", nav.config)
+    return WorkflowResult(out, gi, gil, metrics)
+
+
+def _final_points(nav, out, final, gil, key, strip_points, crs, cache, progress) -> list[dict]:
+    """Step 6: the strips in the output CRS (cached: skipped while the files are those it wrote)."""
     traj = imu_rate_trajectory(nav, final.spline)  # cheap; the LAZ writing below is what is cached
     p_b_s = np.asarray(nav.config.scanner.lever_arm_m, dtype=float)
     R_b_s = boresight_matrix(nav.config.scanner.boresight_deg)
@@ -439,10 +453,4 @@ def run_workflow(
             georef.append({"strip": s.strip_id, "file": path.name, "points": r.points_written,
                            "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]})
         cache.store("points", key, georef)
-    timings["final_georeferencing"] = _time.perf_counter() - t
-    metrics["points"] = [{k: v for k, v in r.items() if k != "stamp"} for r in georef]
-    metrics["resumed"] = list(cache.hits)
-    metrics["timings_s"] = timings
-    write_json(out / "metrics.json", metrics)
-    write_yaml(out / "config.resolved.yaml", nav.config)
-    return WorkflowResult(out, gi, gil, metrics)
+    return georef
