@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import subprocess
 import sys
 import tempfile
@@ -29,13 +28,20 @@ import time
 from pathlib import Path
 
 
+# A fresh interpreter per case reports its own children's peak (getrusage's maximum is over all
+# children waited for so far, so measuring in this process would carry the first case's peak).
+_WRAP = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL); "
+         "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)")
+
+
 def run(args: list[str], out: Path) -> tuple[float, float, dict]:
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t = time.perf_counter()
-    subprocess.run([sys.executable, "-m", "georefine", "run", *args, "--out", str(out), "--fresh"], check=True,
-                   stdout=subprocess.DEVNULL)
+    proc = subprocess.run(
+        [sys.executable, "-c", _WRAP, sys.executable, "-m", "georefine", "run", *args, "--out", str(out), "--fresh"],
+        check=True, capture_output=True, text=True,
+    )
     wall = time.perf_counter() - t
-    peak = max(before, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss) / 1024**2  # KiB -> GiB
+    peak = int(proc.stdout.split()[-1]) / 1024**2  # KiB -> GiB
     return wall, peak, json.loads((out / "metrics.json").read_text())
 
 
