@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
-from georefine.evaluation.strip_differences import cell_planes, strip_differences, write_geotiff, write_png
+from georefine.evaluation.strip_differences import cell_planes, crop, strip_differences, write_geotiff, write_png
 
 
 def _tilted(rng, n, slope, offset, extent=20.0):
@@ -60,6 +60,11 @@ def test_strip_difference_raster_png_and_geotiff(tmp_path):
     np.testing.assert_allclose(m.spread_m[:, 10:], 0.05, atol=1e-9)
     s = m.summary()
     assert s["cells"] == 400 and s["p95_m"] == pytest.approx(0.05)
+    part = crop(m, (1012.0, 1015.5, 5001.0, 5003.0))  # whole cells covering the window
+    assert part.spread_m.shape == (2, 4) and (part.x0, part.y1) == (1012.0, 5003.0)
+    np.testing.assert_allclose(part.spread_m, 0.05, atol=1e-9)
+    with pytest.raises(ValueError):
+        crop(m, (0.0, 10.0, 0.0, 10.0))
     png = write_png(tmp_path / "map.png", m, epsg=25832)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     tif = write_geotiff(tmp_path / "map.tif", m, 25832)

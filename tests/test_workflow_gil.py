@@ -130,6 +130,7 @@ def test_demo_single_pass_and_report(project, tmp_path):
     assert metrics["timings_s"]["simulate"] < 1.0  # reused
     for rel in ("report.html", "metrics.json", "run/evaluation/attitude_differences.png",
                 "run/evaluation/gi/strip_differences.png", "run/evaluation/gil/strip_differences.tif",
+                "run/evaluation/gil/strip_differences_zoom.png",
                 "run/evaluation/gil/reference_planes.csv", "run-single-pass/gil/trajectory.sbet"):
         assert (out / rel).is_file(), rel
     # The single pass shared the G/I adjustment with the full run (one step cache).

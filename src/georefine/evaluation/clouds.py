@@ -28,7 +28,13 @@ from georefine.evaluation.reference_planes import (
     reference_planes,
     summarise_observations,
 )
-from georefine.evaluation.strip_differences import StripDifferenceMap, strip_differences, write_geotiff, write_png
+from georefine.evaluation.strip_differences import (
+    StripDifferenceMap,
+    crop,
+    strip_differences,
+    write_geotiff,
+    write_png,
+)
 from georefine.io._common import atomic_output
 from georefine.io.reference import read_reference_surfaces
 from georefine.products import write_json
@@ -143,8 +149,13 @@ def evaluate_reference_planes(
 def evaluate_strip_differences(
     files: list[Path], out: Path | None = None, *, cell_size_m: float = 1.0, min_points: int = 6,
     max_roughness_m: float = 0.03, title: str = "", layers: list[Layer] | None = None,
+    zoom: tuple[float, float, float, float] | None = None,
 ) -> StripDifferenceMap:
-    """The strip-difference raster over all strip x channel layers (files written to ``out``)."""
+    """The strip-difference raster over all strip x channel layers (files written to ``out``).
+
+    ``zoom``: ``(xmin, xmax, ymin, ymax)`` of an additional detail map,
+    ``strip_differences_zoom.png`` (as paper 000's Fig. 7 shows a semi-urban area).
+    """
     layers = read_layers(files) if layers is None else layers
     m = strip_differences([layer.xyz for layer in layers], cell_size_m, min_points, max_roughness_m)
     if out is not None:
@@ -156,6 +167,8 @@ def evaluate_strip_differences(
             "x0": m.x0, "y1": m.y1, "epsg": epsg,
         })
         write_png(out / "strip_differences.png", m, title=title, epsg=epsg)
+        if zoom is not None:
+            write_png(out / "strip_differences_zoom.png", crop(m, zoom), title=title + " (detail)", epsg=epsg)
         if epsg is not None:
             write_geotiff(out / "strip_differences.tif", m, epsg)
     return m

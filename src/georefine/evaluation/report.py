@@ -160,6 +160,13 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         parts.append("<h2>5. Strip differences (Fig. 7)</h2>")
         figs = []
         for label, v in sd.items():
+            if v.get("zoom_map"):
+                figs.append(f"<figure>{_img(ev / v['zoom_map'], label)}<figcaption>{html.escape(label)}: detail "
+                            "around the first reference site</figcaption></figure>")
+        if figs:
+            parts.append('<div class="maps">' + "".join(figs) + "</div>")
+        figs = []
+        for label, v in sd.items():
             cap = (f"{label}: median {_f(v.get('median_m'), 1e3)} mm, P95 {_f(v.get('p95_m'), 1e3)} mm "
                    f"over {v.get('cells', 0):,} planar 1 m cells")
             figs.append(f"<figure>{_img(ev / v['map'], label)}<figcaption>{html.escape(cap)}</figcaption></figure>")

@@ -31,6 +31,7 @@ from georefine.evaluation.clouds import (
 from georefine.evaluation.plots import plot_attitude_differences, plot_position_differences
 from georefine.evaluation.trajectory import TrajectoryComparison
 from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.io.reference import read_reference_surfaces
 from georefine.pipeline.navigation import run_georeference
 from georefine.products import write_json
 
@@ -110,6 +111,10 @@ def evaluate_run(
         run_georeference(project, run_dir / "gi" / "trajectory.sbet", gi_points, progress=report)
     ref_csv = project / "reference" / "surfaces.csv"
     summary["reference_planes"], summary["strip_differences"] = {}, {}
+    zoom = None
+    if ref_csv.is_file():  # a 250 m detail around the first reference site (cf. paper 000, Fig. 7)
+        c = read_reference_surfaces(ref_csv).xyz[:4].mean(axis=0)
+        zoom = (c[0] - 125.0, c[0] + 125.0, c[1] - 125.0, c[1] + 125.0)
     for label, folder, sub in (("G/I", gi_points, "gi"), ("G/I/L", run_dir / "points", "gil")):
         files = [f for f in point_files([folder])
                  if f.stem in {f"strip_{s}" for s in metrics["strips"]} or not f.stem.startswith("strip_")]
@@ -120,9 +125,11 @@ def evaluate_run(
             summary["reference_planes"][label] = {k: v for k, v in rp.to_dict().items() if k != "surfaces"}
             summary["reference_planes"][label]["surfaces"] = rp.per_surface
         report(f"point cloud evaluation {label}", 1, 2)
-        sd = evaluate_strip_differences(files, out / sub, title=f"strip differences, {label}", layers=layers)
+        sd = evaluate_strip_differences(files, out / sub, title=f"strip differences, {label}", layers=layers, zoom=zoom)
         del layers
         summary["strip_differences"][label] = {**sd.summary(), "map": f"{sub}/strip_differences.png"}
+        if zoom is not None:
+            summary["strip_differences"][label]["zoom_map"] = f"{sub}/strip_differences_zoom.png"
         report(f"point cloud evaluation {label}", 2, 2)
     write_json(out / "summary.json", summary)
     return summary

@@ -24,7 +24,7 @@ import numpy as np
 
 from georefine.io._common import atomic_path
 
-__all__ = ["CellPlanes", "cell_planes", "StripDifferenceMap", "strip_differences", "write_png", "write_geotiff"]
+__all__ = ["CellPlanes", "cell_planes", "StripDifferenceMap", "strip_differences", "crop", "write_png", "write_geotiff"]
 
 
 @dataclass(frozen=True)
@@ -143,6 +143,20 @@ def strip_differences(
     two = counts >= 2
     spread[r[two], c[two]] = (hi - lo)[two]
     return StripDifferenceMap(spread, nlay, float(i0 * cell_size_m), float((j1 + 1) * cell_size_m), cell_size_m)
+
+
+def crop(m: StripDifferenceMap, window: tuple[float, float, float, float]) -> StripDifferenceMap:
+    """The part of ``m`` inside ``(xmin, xmax, ymin, ymax)`` (whole cells)."""
+    xmin, xmax, ymin, ymax = window
+    rows, cols = m.spread_m.shape
+    c0 = int(np.clip(np.floor((xmin - m.x0) / m.cell_size_m), 0, cols))
+    c1 = int(np.clip(np.ceil((xmax - m.x0) / m.cell_size_m), c0, cols))
+    r0 = int(np.clip(np.floor((m.y1 - ymax) / m.cell_size_m), 0, rows))
+    r1 = int(np.clip(np.ceil((m.y1 - ymin) / m.cell_size_m), r0, rows))
+    if c1 <= c0 or r1 <= r0:
+        raise ValueError(f"crop window {window} does not overlap the map")
+    return StripDifferenceMap(m.spread_m[r0:r1, c0:c1], m.layers_m[r0:r1, c0:c1], m.x0 + c0 * m.cell_size_m,
+                              m.y1 - r0 * m.cell_size_m, m.cell_size_m)
 
 
 def write_png(path: str | Path, m: StripDifferenceMap, *, title: str = "", vmax_m: float = 0.1, epsg: int | None = None) -> Path:
