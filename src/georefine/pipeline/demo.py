@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import time as _time
 from dataclasses import dataclass
 from pathlib import Path
@@ -68,8 +69,6 @@ def run_demo(
     t = _time.perf_counter()
     if not _reusable(project, scenario, seed, overrides):
         if project.exists():
-            import shutil
-
             shutil.rmtree(project)
         simulate_project(scenario, project, seed=seed, overrides=overrides, progress=progress)
         write_json(project / "truth" / "demo.json", {"scenario": scenario, "seed": seed, "overrides": overrides})
@@ -93,7 +92,6 @@ def run_demo(
     timings["evaluate"] = _time.perf_counter() - t
     metrics = {"scenario": scenario, "seed": seed, "overrides": overrides, "evaluation": evaluation,
                "run": full.metrics, "timings_s": timings}
-    write_json(out / "metrics.json", metrics)
     t = _time.perf_counter()
     report = write_report(out / "run", out / "report.html", title=f"Georefine demo: {scenario}, seed {seed}")
     timings["report"] = _time.perf_counter() - t
