@@ -504,6 +504,8 @@ def test_backends_agree_on_the_same_system():
             assert f.backend == backend and f.n == 400
             np.testing.assert_allclose(f.solve(B), ref, rtol=1e-9, atol=1e-11)
             np.testing.assert_allclose(f.solve(B[:, 0]), ref[:, 0], rtol=1e-9, atol=1e-11)
+            with pytest.raises(ValueError, match="right-hand side"):
+                f.solve(np.ones(399))
     # Full solve: same estimate with either backend
     estimates = []
     for backend in _installed("cholmod", "cvxopt", "cholespy", "scipy"):

@@ -224,6 +224,11 @@ class SparseCholesky:
             raise
 
 
+def _check_rhs(b: np.ndarray, n: int) -> None:
+    if b.shape[0] != n or b.ndim not in (1, 2):
+        raise ValueError(f"solve: right-hand side must have shape ({n},) or ({n}, k), found {b.shape}")
+
+
 @dataclass
 class _EmptyFactorization:
     backend: str
@@ -241,8 +246,7 @@ class _CholespyFactorization:
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         b = np.ascontiguousarray(B, dtype=np.float64)
-        if b.shape[0] != self.n or b.ndim not in (1, 2):
-            raise ValueError(f"solve: right-hand side must have shape ({self.n},) or ({self.n}, k), found {b.shape}")
+        _check_rhs(b, self.n)
         x = np.empty_like(b)
         if b.size:
             self._solver.solve(b, x)
@@ -289,8 +293,7 @@ class _CholmodFactorization:
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         b = np.asarray(B, dtype=np.float64)
-        if b.shape[0] != self.n or b.ndim not in (1, 2):
-            raise ValueError(f"solve: right-hand side must have shape ({self.n},) or ({self.n}, k), found {b.shape}")
+        _check_rhs(b, self.n)
         return np.asarray(self._factor(b), dtype=np.float64).reshape(b.shape)
 
 
@@ -352,8 +355,7 @@ class _CvxoptFactorization:
         from cvxopt import cholmod, matrix
 
         b = np.asarray(B, dtype=np.float64)
-        if b.shape[0] != self.n or b.ndim not in (1, 2):
-            raise ValueError(f"solve: right-hand side must have shape ({self.n},) or ({self.n}, k), found {b.shape}")
+        _check_rhs(b, self.n)
         if b.size == 0:
             return b.copy()
         x = matrix(np.asfortranarray(b.reshape(self.n, -1)))
@@ -401,8 +403,7 @@ class _SuperLUFactorization:
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         b = np.asarray(B, dtype=np.float64)
-        if b.shape[0] != self.n or b.ndim not in (1, 2):
-            raise ValueError(f"solve: right-hand side must have shape ({self.n},) or ({self.n}, k), found {b.shape}")
+        _check_rhs(b, self.n)
         if b.size == 0:
             return b.copy()
         return self._lu.solve(b)
