@@ -224,32 +224,37 @@ class SparseCholesky:
             raise
 
 
-def _check_rhs(b: np.ndarray, n: int) -> None:
-    if b.shape[0] != n or b.ndim not in (1, 2):
-        raise ValueError(f"solve: right-hand side must have shape ({n},) or ({n}, k), found {b.shape}")
-
-
 @dataclass
-class _EmptyFactorization:
+class _BaseFactorization:
+    """``solve(B)`` for every backend: checks the right-hand side, then ``_solve`` (non-empty ``B``)."""
+
     backend: str
     n: int
-
-    def solve(self, B: np.ndarray) -> np.ndarray:
-        return np.array(B, dtype=float, copy=True)
-
-
-@dataclass
-class _CholespyFactorization:
-    backend: str
-    n: int
-    _solver: Any
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         b = np.ascontiguousarray(B, dtype=np.float64)
-        _check_rhs(b, self.n)
+        if b.shape[0] != self.n or b.ndim not in (1, 2):
+            raise ValueError(f"solve: right-hand side must have shape ({self.n},) or ({self.n}, k), found {b.shape}")
+        if b.size == 0:
+            return b.copy()
+        return self._solve(b)
+
+    def _solve(self, b: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+
+@dataclass
+class _EmptyFactorization(_BaseFactorization):
+    pass
+
+
+@dataclass
+class _CholespyFactorization(_BaseFactorization):
+    _solver: Any
+
+    def _solve(self, b: np.ndarray) -> np.ndarray:
         x = np.empty_like(b)
-        if b.size:
-            self._solver.solve(b, x)
+        self._solver.solve(b, x)
         return x
 
 
@@ -286,14 +291,10 @@ _SINGULAR_SOLVE_ERROR = 1e-2
 
 
 @dataclass
-class _CholmodFactorization:
-    backend: str
-    n: int
+class _CholmodFactorization(_BaseFactorization):
     _factor: Any
 
-    def solve(self, B: np.ndarray) -> np.ndarray:
-        b = np.asarray(B, dtype=np.float64)
-        _check_rhs(b, self.n)
+    def _solve(self, b: np.ndarray) -> np.ndarray:
         return np.asarray(self._factor(b), dtype=np.float64).reshape(b.shape)
 
 
@@ -346,18 +347,12 @@ def _cvxopt_analyse(A_lower: sp.csr_matrix, n: int) -> _CvxoptSymbolic:
 
 
 @dataclass
-class _CvxoptFactorization:
-    backend: str
-    n: int
+class _CvxoptFactorization(_BaseFactorization):
     _factor: Any
 
-    def solve(self, B: np.ndarray) -> np.ndarray:
+    def _solve(self, b: np.ndarray) -> np.ndarray:
         from cvxopt import cholmod, matrix
 
-        b = np.asarray(B, dtype=np.float64)
-        _check_rhs(b, self.n)
-        if b.size == 0:
-            return b.copy()
         x = matrix(np.asfortranarray(b.reshape(self.n, -1)))
         cholmod.solve(self._factor, x)
         return np.array(x).reshape(b.shape)
@@ -396,16 +391,10 @@ def _cvxopt_numeric(symbolic: _CvxoptSymbolic, A_lower: sp.csr_matrix, n: int) -
 
 
 @dataclass
-class _SuperLUFactorization:
-    backend: str
-    n: int
+class _SuperLUFactorization(_BaseFactorization):
     _lu: Any
 
-    def solve(self, B: np.ndarray) -> np.ndarray:
-        b = np.asarray(B, dtype=np.float64)
-        _check_rhs(b, self.n)
-        if b.size == 0:
-            return b.copy()
+    def _solve(self, b: np.ndarray) -> np.ndarray:
         return self._lu.solve(b)
 
 
