@@ -20,7 +20,6 @@ import logging
 from pathlib import Path
 from typing import Callable
 
-import numpy as np
 
 from georefine.evaluation.clouds import (
     evaluate_reference_planes,
@@ -42,12 +41,7 @@ __all__ = ["evaluate_run", "ANGLES"]
 ANGLES = ("roll", "pitch", "yaw")
 
 
-def _rmse(comparisons: list[TrajectoryComparison]) -> dict[str, float]:
-    d = np.concatenate([c.d_rph_rad for c in comparisons]) * (180.0 / np.pi * 1e3)
-    p = np.concatenate([c.d_ned_m for c in comparisons])
-    out = {f"{a}_rmse_mdeg": float(np.sqrt(np.mean(d[:, j] ** 2))) for j, a in enumerate(ANGLES)}
-    out["3d_rmse_m"] = float(np.sqrt(np.mean(np.sum(p**2, axis=1))))
-    return out
+_KEYS = ("roll_rmse_mdeg", "pitch_rmse_mdeg", "yaw_rmse_mdeg", "3d_rmse_m")
 
 
 def _windows(metrics: dict, inset_s: float = 1.0) -> dict[str, tuple[float, float]]:
@@ -86,16 +80,15 @@ def evaluate_run(
         if not sbet.is_file():
             continue
         wins = _windows(m)
-        comps = {sid: compare_sbet_files(sbet, reference, time_window=w) for sid, w in wins.items()}
-        summary["trajectory"][label] = {
-            "strips": {sid: {k: c.stats[k] for k in ("roll_rmse_mdeg", "pitch_rmse_mdeg", "yaw_rmse_mdeg", "3d_rmse_m")}
-                       for sid, c in comps.items()},
-            "all": _rmse(list(comps.values())),
-        }
         span = (min(w[0] for w in wins.values()), max(w[1] for w in wins.values()))
+        comp = compare_sbet_files(sbet, reference, time_window=span)  # one comparison, cut per strip
         # During the strips only (the turn between passes has no LiDAR data): gaps elsewhere.
-        plots[f"{label} - {summary['reference']}"] = compare_sbet_files(sbet, reference, time_window=span).within(
-            list(wins.values()))
+        strips = comp.within(list(wins.values()))
+        summary["trajectory"][label] = {
+            "strips": {sid: {k: comp.within([w]).stats[k] for k in _KEYS} for sid, w in wins.items()},
+            "all": {k: strips.stats[k] for k in _KEYS},
+        }
+        plots[f"{label} - {summary['reference']}"] = strips
     if plots:
         summary["plots"] = {
             "attitude": str(plot_attitude_differences(plots, out / "attitude_differences.png",
