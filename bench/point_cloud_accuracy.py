@@ -18,32 +18,16 @@ import argparse
 import tempfile
 from pathlib import Path
 
-import laspy
-import numpy as np
 import yaml
 
-from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
+from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.pipeline import run_georeference
 
 
 def cloud_metrics(points_dir: Path, project: Path, names: set[str]) -> dict:
-    dist, layers = [], []
-    for f in sorted(points_dir.glob("strip_*.laz")):
-        if f.name not in names:
-            continue
-        est = laspy.read(f)
-        tru = laspy.read(project / "truth" / f.name)
-        e = np.column_stack([est.x, est.y, est.z])
-        dist.append(surface_distances(e, np.column_stack([tru.x, tru.y, tru.z]), sample_step=20))
-        layers.append(e)
-    d = np.concatenate([x.distance_m for x in dist])
-    out = {"mean_abs_distance_mm": 1e3 * d.mean(), "rms_distance_mm": 1e3 * np.sqrt(np.mean(d**2)),
-           "p95_distance_mm": 1e3 * np.percentile(d, 95), "samples": d.size}
-    if len(layers) > 1:
-        s = strip_discrepancy(layers)
-        out.update(strip_median_mm=1e3 * s["median_m"], strip_p95_mm=1e3 * s["p95_m"], strip_cells=s["cells"])
-    return out
+    m = compare_with_truth(points_dir, project / "truth", names)
+    return {(k[:-2] + "_mm" if k.endswith("_m") else k): (v * 1e3 if k.endswith("_m") else v) for k, v in m.items()}
 
 
 def main() -> None:

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from georefine.errors import InputError
-from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
+from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import inject_wrong_matches, match_features
@@ -58,18 +58,6 @@ def _pass_rmse(sbet: Path, project: Path, strip: int) -> np.ndarray:
     return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
 
 
-def _point_metrics(points_dir: Path, project: Path) -> tuple[float, float]:
-    """Mean distance to the true surface (m) and median strip discrepancy (m)."""
-    dist, layers = [], []
-    for f in sorted(points_dir.glob("strip_*.laz")):
-        est = laspy.read(f)
-        tru = laspy.read(project / "truth" / f.name)
-        e = np.column_stack([est.x, est.y, est.z])
-        dist.append(surface_distances(e, np.column_stack([tru.x, tru.y, tru.z]), sample_step=20).distance_m)
-        layers.append(e)
-    return float(np.mean(np.concatenate(dist))), strip_discrepancy(layers)["median_m"]
-
-
 @pytest.mark.slow
 def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
     out = tmp_path / "run"
@@ -91,8 +79,10 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
     # The point cloud: closer to the true surface, and the strips agree better.
     gi_pts = run_georeference(project, out / "gi" / "trajectory.sbet", tmp_path / "gi_points")
     assert all(s.points_outside == 0 for s in gi_pts.strips)
-    d_gi, s_gi = _point_metrics(tmp_path / "gi_points", project)
-    d_gil, s_gil = _point_metrics(out / "points", project)
+    gi_m = compare_with_truth(tmp_path / "gi_points", project / "truth")
+    gil_m = compare_with_truth(out / "points", project / "truth")
+    d_gi, s_gi = gi_m["mean_abs_distance_m"], gi_m["strip_median_m"]
+    d_gil, s_gil = gil_m["mean_abs_distance_m"], gil_m["strip_median_m"]
     assert d_gil < d_gi and s_gil < s_gi, (d_gi, d_gil, s_gi, s_gil)
     # A rerun resumes every step from out/.cache and writes the same products.
     before = (out / "gil" / "trajectory.sbet").read_bytes()

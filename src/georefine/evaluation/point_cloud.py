@@ -17,11 +17,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from pathlib import Path
+
+import laspy
 from scipy.spatial import cKDTree
 
 from georefine.evaluation.strip_differences import strip_differences
 
-__all__ = ["SurfaceDistances", "surface_distances", "strip_discrepancy"]
+__all__ = ["SurfaceDistances", "surface_distances", "strip_discrepancy", "compare_with_truth"]
 
 
 @dataclass(frozen=True)
@@ -89,3 +92,34 @@ def strip_discrepancy(
     ``cells``, ``median_m``, ``p95_m`` and ``mean_m``.
     """
     return strip_differences(layers, cell_size_m, min_points, max_roughness_m).summary()
+
+
+def compare_with_truth(
+    points_dir: Path, truth_dir: Path, names: set[str] | None = None, *, sample_step: int = 20
+) -> dict[str, float]:
+    """Georeferenced strips ``points_dir/strip_N.laz`` against the simulated ``truth_dir/strip_N.laz``.
+
+    The files hold the same points in the same order. Returns the distance to the true surface
+    (:func:`surface_distances` over all strips: ``mean_abs_distance_m``, ``rms_distance_m``,
+    ``p95_distance_m``, ``samples``) and, with two or more strips, their discrepancy
+    (:func:`strip_discrepancy`, one layer per strip: ``strip_median_m``, ``strip_p95_m``,
+    ``strip_cells``). ``names`` restricts the strips (file names).
+    """
+    dist, layers = [], []
+    for f in sorted(Path(points_dir).glob("strip_*.laz")):
+        if names is not None and f.name not in names:
+            continue
+        est = laspy.read(f)
+        tru = laspy.read(Path(truth_dir) / f.name)
+        e = np.column_stack([est.x, est.y, est.z])
+        dist.append(surface_distances(e, np.column_stack([tru.x, tru.y, tru.z]), sample_step=sample_step).distance_m)
+        layers.append(e)
+    if not dist:
+        raise ValueError(f"no strip_*.laz to compare in {points_dir}")
+    d = np.concatenate(dist)
+    out = {"mean_abs_distance_m": float(d.mean()), "rms_distance_m": float(np.sqrt(np.mean(d**2))),
+           "p95_distance_m": float(np.percentile(d, 95)), "samples": int(d.size)}
+    if len(layers) > 1:
+        sd = strip_discrepancy(layers)
+        out.update(strip_median_m=sd["median_m"], strip_p95_m=sd["p95_m"], strip_cells=sd["cells"])
+    return out
