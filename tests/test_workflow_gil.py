@@ -23,7 +23,8 @@ from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.trajectory import read_sbet
-from georefine.lidar.correspondences import inject_wrong_matches, match_features
+from georefine.lidar.correspondences import inject_wrong_matches, match_features, read_objects
+from georefine.lidar.planes import read_features
 from georefine.pipeline import load_navigation, run_georeference, step_adjust_gnss_imu, step_initialise
 from georefine.pipeline.lidar import read_strips, run_workflow, step_adjust_gil, step_features
 from georefine.pipeline.navigation import imu_rate_trajectory
@@ -71,6 +72,13 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["strips"] == [1, 2] and 1 <= len(metrics["outer_iterations"]) <= 3
     assert all(p["outside_trajectory"] == 0 for p in metrics["points"])
+    # The feature tables hold the features that entered the adjustment; objects refer to their rows.
+    last = metrics["outer_iterations"][-1]
+    features = read_features(out / "features" / "features.csv")
+    objects = read_objects(out / "features" / "objects.csv")
+    assert last["features_used"] <= len(features) == objects.n_features.sum() < last["features"]
+    assert len(objects) == last["objects"]
+    assert np.all(objects.feature_object >= 0) and np.array_equal(np.bincount(objects.feature_object), objects.n_features)
     for strip in (1, 2):
         gi = _pass_rmse(out / "gi" / "trajectory.sbet", project, strip)
         gil = _pass_rmse(out / "gil" / "trajectory.sbet", project, strip)

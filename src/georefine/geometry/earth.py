@@ -92,10 +92,11 @@ def R_e_n(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
     """Rotation from local north-east-down to ECEF at ``(lat, lon)`` (rad). ``(..., 3, 3)``."""
     lat, lon = np.broadcast_arrays(np.asarray(lat, float), np.asarray(lon, float))
     sl, cl, so, co = np.sin(lat), np.cos(lat), np.sin(lon), np.cos(lon)
-    north = np.stack([-sl * co, -sl * so, cl], axis=-1)
-    east = np.stack([-so, co, np.zeros_like(co)], axis=-1)
-    down = np.stack([-cl * co, -cl * so, -sl], axis=-1)
-    return np.stack([north, east, down], axis=-1)
+    R = np.empty(lat.shape + (3, 3))  # columns: north, east, down
+    R[..., 0, 0], R[..., 1, 0], R[..., 2, 0] = -sl * co, -sl * so, cl
+    R[..., 0, 1], R[..., 1, 1], R[..., 2, 1] = -so, co, 0.0
+    R[..., 0, 2], R[..., 1, 2], R[..., 2, 2] = -cl * co, -cl * so, -sl
+    return R
 
 
 def R_e_enu(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:

@@ -309,6 +309,19 @@ def _lidar_key(nav: NavigationData, strips: list[StripPoints], upstream: str, it
     )
 
 
+def _write_matched_features(folder: Path, features: PlanarFeatures, objects: PlanarObjects) -> None:
+    """``features.csv`` and ``objects.csv`` of the matched features (members of objects).
+
+    Only the features the adjustment can observe are written (about 4 % of the extracted features on ``corridor``:
+    all 1.75 M of them made a 0.5 GB table that took 17 s to write); the objects' member
+    indices refer to rows of this ``features.csv``. The extracted count per view is in
+    ``metrics.json``.
+    """
+    used = np.flatnonzero(objects.feature_object >= 0)
+    write_features(folder / "features.csv", features.select(used))
+    write_objects(folder / "objects.csv", replace(objects, feature_object=objects.feature_object[used]))
+
+
 def run_workflow(
     project_dir: str | Path,
     out: str | Path,
@@ -403,8 +416,7 @@ def run_workflow(
         gil = posterior
         current = gil.result
         timings["gil_covariance"] = _time.perf_counter() - t
-        write_features(out / "features" / "features.csv", features)
-        write_objects(out / "features" / "objects.csv", objects)
+        _write_matched_features(out / "features", features, objects)
         final = current
         write_trajectory_products(out / "gil", nav, final, crs)
         gil_report = {"adjustment": final.solve.to_dict(), "imu_errors": final.imu_errors.to_dict(), "t0_gps": nav.t0_gps,
