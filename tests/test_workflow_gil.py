@@ -26,7 +26,7 @@ from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import inject_wrong_matches, match_features, read_objects
 from georefine.lidar.planes import read_features
 from georefine.pipeline import load_navigation, run_georeference, step_adjust_gnss_imu, step_initialise
-from georefine.pipeline.lidar import read_strips, run_workflow, step_adjust_gil, step_features
+from georefine.pipeline.lidar import precompute_gnss_imu, read_strips, run_workflow, step_adjust_gil, step_features
 from georefine.pipeline.navigation import imu_rate_trajectory
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.sampled import Trajectory, trajectory_from_sbet
@@ -223,6 +223,24 @@ def test_rerun_resumes_unchanged_steps_and_recomputes_changed_ones(sparse_projec
     st = imu.stat()
     os.utime(imu, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
     assert run_workflow(copy, out2, lidar=False).metrics["resumed"] == []
+
+
+def test_navigation_steps_run_while_the_scans_are_simulated(tmp_path):
+    """`georefine demo`'s pipelining: steps 1-2 start from the simulator's callback, the run resumes them."""
+    seen = []
+
+    def start(root: Path) -> None:
+        assert (root / "project.yaml").is_file() and (root / "imu" / "imu.csv").is_file()
+        seen.append(not any((root / "scans").iterdir()))  # before any scan is written
+        seen.append(precompute_gnss_imu(root, tmp_path / "cache"))
+
+    project = tmp_path / "p"
+    simulate_project("corridor-tiny", project, seed=8, on_navigation=start,
+                     overrides=["scanner.pulse_rate_hz=3000", "scanner.line_rate_hz=60"])
+    assert seen[0] is True and set(seen[1]) == {"filter", "gi_adjustment"}
+    # The temporary folder was renamed; names relative to the project keep the cache valid.
+    run = run_workflow(project, tmp_path / "run", lidar=False, points=False, cache_dir=tmp_path / "cache")
+    assert run.metrics["resumed"] == ["gi"]
 
 
 def test_points_outside_the_trajectory_are_counted_not_extrapolated(project):

@@ -36,9 +36,11 @@ from georefine.products import write_json
 
 log = logging.getLogger(__name__)
 
-__all__ = ["evaluate_run", "ANGLES"]
+__all__ = ["evaluate_run", "evaluate_cloud", "ANGLES", "CLOUDS"]
 
 ANGLES = ("roll", "pitch", "yaw")
+CLOUDS = {"G/I": "gi", "G/I/L": "gil"}
+"""The point clouds a run is evaluated on and their folders under ``RUN/evaluation``."""
 
 
 _KEYS = ("roll_rmse_mdeg", "pitch_rmse_mdeg", "yaw_rmse_mdeg", "3d_rmse_m")
@@ -53,9 +55,15 @@ def evaluate_run(
     run_dir: Path,
     single_dir: Path | None = None,
     *,
+    clouds: dict[str, dict] | None = None,
     progress: Callable[[str, float, float], None] | None = None,
 ) -> dict:
-    """Evaluate ``run_dir`` (and ``single_dir``); write ``run_dir/evaluation`` and return the summary."""
+    """Evaluate ``run_dir`` (and ``single_dir``); write ``run_dir/evaluation`` and return the summary.
+
+    ``clouds`` holds :func:`evaluate_cloud` results computed elsewhere (``georefine demo``
+    evaluates the G/I cloud in a second process while the run goes on); the others are
+    computed here.
+    """
     project, run_dir = Path(project), Path(run_dir)
     report = progress or (lambda *a: None)
     out = run_dir / "evaluation"
@@ -99,30 +107,69 @@ def evaluate_run(
     report("trajectory differences", 1, 1)
 
     # Point clouds: G/I (georeferenced here) and G/I/L (written by the run).
-    gi_points = run_dir / "gi" / "points"
-    if not any(gi_points.glob("*.laz")):
-        run_georeference(project, run_dir / "gi" / "trajectory.sbet", gi_points, progress=report)
-    ref_csv = project / "reference" / "surfaces.csv"
+    clouds = dict(clouds or {})
     summary["reference_planes"], summary["strip_differences"] = {}, {}
+    for label in CLOUDS:
+        result = clouds.get(label) or evaluate_cloud(project, run_dir, label, progress=report)
+        for part in ("reference_planes", "strip_differences"):
+            if part in result:
+                summary[part][label] = result[part]
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def evaluate_cloud(
+    project: Path,
+    run_dir: Path,
+    label: str,
+    *,
+    trajectory: Path | None = None,
+    strips: list[int] | None = None,
+    progress: Callable[[str, float, float], None] | None = None,
+) -> dict:
+    """Reference planes and the strip-difference map of one point cloud of a run.
+
+    ``label`` is ``"G/I"`` (georeferenced here into ``RUN/gi/points`` with ``trajectory``,
+    by default ``RUN/gi/trajectory.sbet``, unless the points there are newer than it) or ``"G/I/L"`` (``RUN/points``,
+    written by the run); ``strips`` (default: those of ``RUN/metrics.json``, else all) selects
+    the strip files. Writes ``RUN/evaluation/gi`` or ``.../gil`` and returns
+    ``{"reference_planes": ..., "strip_differences": ...}`` (the first only when the project has
+    reference surfaces).
+    """
+    project, run_dir = Path(project), Path(run_dir)
+    report = progress or (lambda *a: None)
+    sub = CLOUDS[label]
+    if strips is None and (run_dir / "metrics.json").is_file():
+        strips = json.loads((run_dir / "metrics.json").read_text())["strips"]
+    out = run_dir / "evaluation" / sub
+    out.mkdir(parents=True, exist_ok=True)
+    if label == "G/I":
+        folder = run_dir / "gi" / "points"
+        sbet = Path(trajectory or run_dir / "gi" / "trajectory.sbet")
+        laz = list(folder.glob("*.laz"))
+        if not laz or min(f.stat().st_mtime_ns for f in laz) < sbet.stat().st_mtime_ns:  # none, or older
+            run_georeference(project, sbet, folder, progress=report)
+    else:
+        folder = run_dir / "points"
+    ref_csv = project / "reference" / "surfaces.csv"
     zoom = None
     if ref_csv.is_file():  # a 250 m detail around the first reference site (cf. paper 000, Fig. 7)
         c = read_reference_surfaces(ref_csv).xyz[:4].mean(axis=0)
         zoom = (c[0] - 125.0, c[0] + 125.0, c[1] - 125.0, c[1] + 125.0)
-    for label, folder, sub in (("G/I", gi_points, "gi"), ("G/I/L", run_dir / "points", "gil")):
-        files = [f for f in point_files([folder])
-                 if f.stem in {f"strip_{s}" for s in metrics["strips"]} or not f.stem.startswith("strip_")]
-        report(f"point cloud evaluation {label}", 0, 2)
-        layers = read_layers(files)
-        if ref_csv.is_file():
-            obs, rp = evaluate_reference_planes(files, ref_csv, out / sub, layers=layers)
-            summary["reference_planes"][label] = {k: v for k, v in rp.to_dict().items() if k != "surfaces"}
-            summary["reference_planes"][label]["surfaces"] = rp.per_surface
-        report(f"point cloud evaluation {label}", 1, 2)
-        sd = evaluate_strip_differences(files, out / sub, title=f"strip differences, {label}", layers=layers, zoom=zoom)
-        del layers
-        summary["strip_differences"][label] = {**sd.summary(), "map": f"{sub}/strip_differences.png"}
-        if zoom is not None:
-            summary["strip_differences"][label]["zoom_map"] = f"{sub}/strip_differences_zoom.png"
-        report(f"point cloud evaluation {label}", 2, 2)
-    write_json(out / "summary.json", summary)
-    return summary
+    files = [f for f in point_files([folder])
+             if strips is None or f.stem in {f"strip_{s}" for s in strips} or not f.stem.startswith("strip_")]
+    result: dict = {}
+    report(f"point cloud evaluation {label}", 0, 2)
+    layers = read_layers(files)
+    if ref_csv.is_file():
+        _, rp = evaluate_reference_planes(files, ref_csv, out, layers=layers)
+        result["reference_planes"] = {k: v for k, v in rp.to_dict().items() if k != "surfaces"}
+        result["reference_planes"]["surfaces"] = rp.per_surface
+    report(f"point cloud evaluation {label}", 1, 2)
+    sd = evaluate_strip_differences(files, out, title=f"strip differences, {label}", layers=layers, zoom=zoom)
+    del layers
+    result["strip_differences"] = {**sd.summary(), "map": f"{sub}/strip_differences.png"}
+    if zoom is not None:
+        result["strip_differences"]["zoom_map"] = f"{sub}/strip_differences_zoom.png"
+    report(f"point cloud evaluation {label}", 2, 2)
+    return result

@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from functools import cached_property
 
+import numba
 import numpy as np
 
 from georefine.geometry import earth
@@ -57,8 +58,14 @@ class LocalFrame:
         return (np.asarray(p_e, dtype=float) - self.p_e_w) @ self.R_e_w
 
     def to_geodetic(self, p_w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Latitude, longitude (rad) and ellipsoidal height (m) of ``w`` positions."""
-        return earth.ecef_to_geodetic(self.to_ecef(p_w))
+        """Latitude, longitude (rad) and ellipsoidal height (m) of ``w`` positions ``(..., 3)``."""
+        p_w = np.asarray(p_w, dtype=float)
+        shape = p_w.shape[:-1]
+        out = np.empty((3, int(np.prod(shape, dtype=np.int64))))
+        # ECEF and geodetic in one pass (the kernel applies p_e = p_e_w + R_e_w p_w per point).
+        earth._geodetic_kernel(np.ascontiguousarray(p_w.reshape(-1, 3)), self.p_e_w, self.R_e_w, out)
+        lat, lon, h = out.reshape((3,) + shape)
+        return lat, lon, h
 
     def from_geodetic(self, lat: np.ndarray, lon: np.ndarray, h: np.ndarray) -> np.ndarray:
         """``w`` positions of geodetic coordinates (rad, rad, m)."""
@@ -85,11 +92,13 @@ class LocalFrame:
         return rph_from_R_n_b(R_n_w @ R_w_b)
 
     def R_w_b_from_rph(self, p_w: np.ndarray, rph: np.ndarray) -> np.ndarray:
-        """Body attitudes ``R_w_b`` from NED roll, pitch, heading (rad) at positions ``p_w``."""
-        from georefine.geometry.rotation import R_n_b_from_rph
-
-        rph = np.asarray(rph, dtype=float)
-        return self.R_w_n_at(p_w) @ R_n_b_from_rph(rph[..., 0], rph[..., 1], rph[..., 2])
+        """Body attitudes ``R_w_b = R_w_n R_n_b`` from NED roll, pitch, heading (rad) at positions ``p_w``."""
+        p_w, rph = np.broadcast_arrays(np.asarray(p_w, dtype=float), np.asarray(rph, dtype=float))
+        shape = p_w.shape[:-1]
+        lat, lon, _ = self.to_geodetic(p_w)
+        out = np.empty((int(np.prod(shape, dtype=np.int64)), 3, 3))
+        _R_w_b_kernel(np.ravel(lat), np.ravel(lon), np.ascontiguousarray(rph.reshape(-1, 3)), self.R_e_w, out)
+        return out.reshape(shape + (3, 3))
 
 
 @dataclass(frozen=True)
@@ -147,3 +156,32 @@ class OutputCRS:
     def to_w(self, frame: LocalFrame, xyz: np.ndarray) -> np.ndarray:
         """``w`` positions of output-CRS coordinates."""
         return frame.from_geodetic(*self.to_geodetic(xyz))
+
+
+@numba.njit(cache=True, nogil=True)
+def _R_w_b_kernel(lat, lon, rph, R_e_w, out):  # pragma: no cover - compiled
+    """``out[n] = R_e_w^T R_e_n(lat, lon) Rz(heading) Ry(pitch) Rx(roll)``, written out per point.
+
+    Per-pulse attitudes of the simulator pass through here (30 M per ``corridor``); the numpy
+    form needs two batched 3x3 products and half a dozen (N, 3, 3) temporaries.
+    """
+    A = np.empty((3, 3))
+    B = np.empty((3, 3))
+    for n in range(lat.shape[0]):
+        sl, cl, so, co = np.sin(lat[n]), np.cos(lat[n]), np.sin(lon[n]), np.cos(lon[n])
+        # R_e_n: columns north, east, down.
+        A[0, 0], A[1, 0], A[2, 0] = -sl * co, -sl * so, cl
+        A[0, 1], A[1, 1], A[2, 1] = -so, co, 0.0
+        A[0, 2], A[1, 2], A[2, 2] = -cl * co, -cl * so, -sl
+        sr, cr = np.sin(rph[n, 0]), np.cos(rph[n, 0])
+        sp, cp = np.sin(rph[n, 1]), np.cos(rph[n, 1])
+        sh, ch = np.sin(rph[n, 2]), np.cos(rph[n, 2])
+        B[0, 0], B[0, 1], B[0, 2] = cp * ch, sr * sp * ch - cr * sh, cr * sp * ch + sr * sh
+        B[1, 0], B[1, 1], B[1, 2] = cp * sh, sr * sp * sh + cr * ch, cr * sp * sh - sr * ch
+        B[2, 0], B[2, 1], B[2, 2] = -sp, sr * cp, cr * cp
+        for i in range(3):
+            r0 = R_e_w[0, i] * A[0, 0] + R_e_w[1, i] * A[1, 0] + R_e_w[2, i] * A[2, 0]
+            r1 = R_e_w[0, i] * A[0, 1] + R_e_w[1, i] * A[1, 1] + R_e_w[2, i] * A[2, 1]
+            r2 = R_e_w[0, i] * A[0, 2] + R_e_w[1, i] * A[1, 2] + R_e_w[2, i] * A[2, 2]
+            for j in range(3):
+                out[n, i, j] = r0 * B[0, j] + r1 * B[1, j] + r2 * B[2, j]

@@ -32,10 +32,16 @@ log = logging.getLogger(__name__)
 __all__ = ["StepCache", "file_stamp"]
 
 
-def file_stamp(path: Path) -> list:
-    """``[name, size, mtime_ns]`` of a file: what identifies an unchanged input."""
-    st = Path(path).stat()
-    return [str(path), st.st_size, st.st_mtime_ns]
+def file_stamp(path: Path, root: Path | None = None) -> list:
+    """``[name, size, mtime_ns]`` of a file: what identifies an unchanged input.
+
+    With ``root`` the name is relative to it, so that a project folder that is moved or renamed
+    (with its files' times kept, as ``mv`` does) keeps its cache.
+    """
+    path = Path(path)
+    st = path.stat()
+    name = path.relative_to(root).as_posix() if root is not None and path.is_relative_to(root) else str(path)
+    return [name, st.st_size, st.st_mtime_ns]
 
 
 class StepCache:
@@ -65,15 +71,28 @@ class StepCache:
             return None
         try:
             with open(path, "rb") as fh:
-                stored_key, value = pickle.load(fh)
+                if pickle.load(fh) != key:  # the key, then the value: two pickles
+                    return None
+                value = pickle.load(fh)
         except Exception as exc:  # unreadable (another version, truncated): recompute
             log.info("cache entry %s unusable (%s); recomputing", path, exc)
             return None
-        if stored_key != key or (valid is not None and not valid(value)):
+        if valid is not None and not valid(value):
             return None
         self.hits.append(name)
         log.info("resumed %s from %s", name, path)
         return value
+
+    def exists(self, name: str, key: str) -> bool:
+        """Whether an entry of step ``name`` is stored under ``key`` (without loading it)."""
+        path = self._path(name, key)
+        if not (self.enabled and path.is_file()):
+            return False
+        try:
+            with open(path, "rb") as fh:
+                return pickle.load(fh) == key  # the key is pickled ahead of the (large) value
+        except Exception:  # noqa: BLE001 - unreadable: as good as absent
+            return False
 
     def store(self, name: str, key: str, value: Any, *, latest_only: bool = False) -> None:
         """Store ``value`` for step ``name`` under ``key`` (atomically).
@@ -86,7 +105,8 @@ class StepCache:
         tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
         try:
             with open(tmp, "wb") as fh:
-                pickle.dump((key, value), fh, protocol=pickle.HIGHEST_PROTOCOL)
+                pickle.dump(key, fh, protocol=pickle.HIGHEST_PROTOCOL)
+                pickle.dump(value, fh, protocol=pickle.HIGHEST_PROTOCOL)
             os.replace(tmp, path)
         finally:
             tmp.unlink(missing_ok=True)

@@ -33,7 +33,7 @@ from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.observations.prior import RotationPrior
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolverOptions
-from georefine.config import boresight_matrix, write_yaml
+from georefine.config import ProjectConfig, boresight_matrix, load_project, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.frames import OutputCRS
 from georefine.geometry.rotation import log_so3, rph_from_R_n_b
@@ -292,9 +292,9 @@ def _outer_iteration(nav, current, strip_points, it, timings, progress, adjust=T
     return features, objects, gil, record
 
 
-def _navigation_key(nav: NavigationData) -> str:
-    cfg = nav.config
-    files = [file_stamp(nav.root / f) for f in cfg.gnss.files] + [file_stamp(nav.root / cfg.imu.file)]
+def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
+    """Key of steps 1-2: the GNSS and IMU files and their configuration (no data read)."""
+    files = [file_stamp(root / f, root) for f in [*cfg.gnss.files, cfg.imu.file]]
     return StepCache.key(
         "gi", files, cfg.crs.model_dump(), cfg.gnss.model_dump(), cfg.imu.model_dump(),
         cfg.processing.filter.model_dump(), cfg.processing.trajectory.model_dump(),
@@ -304,9 +304,41 @@ def _navigation_key(nav: NavigationData) -> str:
 def _lidar_key(nav: NavigationData, strips: list[StripPoints], upstream: str, iteration: int) -> str:
     cfg = nav.config
     return StepCache.key(
-        "gil", iteration, upstream, [file_stamp(s.path) for s in strips], cfg.scanner.model_dump(),
+        "gil", iteration, upstream, [file_stamp(s.path, nav.root) for s in strips], cfg.scanner.model_dump(),
         cfg.processing.planes.model_dump(), cfg.processing.matching.model_dump(), cfg.processing.lidar.model_dump(),
     )
+
+
+def _gnss_imu(nav: NavigationData, cache: StepCache, timings: dict[str, float],
+              progress: Progress = _no_progress) -> tuple[GnssImuResult, str]:
+    """Steps 1-2 (filter, G/I adjustment), or their cached result; and the cache key."""
+    t = _time.perf_counter()
+    key = _navigation_key(nav.config, nav.root)
+    gi = cache.load("gi", key)
+    if gi is None:
+        progress("initialisation filter", 0, 1)
+        filt = step_initialise(nav)
+        timings["filter"] = _time.perf_counter() - t
+        t = _time.perf_counter()
+        gi = step_adjust_gnss_imu(nav, filt, progress)
+        cache.store("gi", key, gi)
+    timings["gi_adjustment"] = _time.perf_counter() - t
+    return gi, key
+
+
+def precompute_gnss_imu(project_dir: str | Path, cache_dir: str | Path) -> dict[str, float]:
+    """Steps 1-2 of ``project_dir`` into the step cache ``cache_dir``; their timings.
+
+    They need the GNSS and IMU files only, so they can run while the scans are still being
+    written (``georefine demo`` runs them in a second process during the simulation); a
+    :func:`run_workflow` with the same ``cache_dir`` then resumes them. Nothing is read or
+    computed when the cache already holds them.
+    """
+    timings: dict[str, float] = {}
+    root, cache = Path(project_dir), StepCache(Path(cache_dir))
+    if not cache.exists("gi", _navigation_key(load_project(root), root)):
+        _gnss_imu(load_navigation(root), cache, timings)
+    return timings
 
 
 def _write_matched_features(folder: Path, features: PlanarFeatures, objects: PlanarObjects) -> None:
@@ -353,17 +385,7 @@ def run_workflow(
         (out / sub).mkdir(parents=True, exist_ok=True)
     cache = StepCache(Path(cache_dir) if cache_dir is not None else out / ".cache", enabled=resume)
 
-    t = _time.perf_counter()
-    key = _navigation_key(nav)
-    gi = cache.load("gi", key)
-    if gi is None:
-        progress("initialisation filter", 0, 1)
-        filt = step_initialise(nav)
-        timings["filter"] = _time.perf_counter() - t
-        t = _time.perf_counter()
-        gi = step_adjust_gnss_imu(nav, filt, progress)
-        cache.store("gi", key, gi)
-    timings["gi_adjustment"] = _time.perf_counter() - t
+    gi, key = _gnss_imu(nav, cache, timings, progress)
     write_trajectory_products(out / "gi", nav, gi, crs)
     write_json(out / "gi" / "adjustment.json", {"adjustment": gi.solve.to_dict(), "imu_errors": gi.imu_errors.to_dict(),
                                                  "t0_gps": nav.t0_gps, "timings_s": gi.timings_s})

@@ -224,7 +224,7 @@ class TrueTrajectory:
         for sl in _chunks(len(t)):
             (p[sl],) = self._model.position(t[sl], 0)
             (rph,) = self._model.attitude(t[sl], 0)
-            R[sl] = self._R_w_n(p[sl]) @ R_n_b_from_rph(rph[:, 0], rph[:, 1], rph[:, 2])
+            R[sl] = self.frame.R_w_b_from_rph(p[sl], rph)
         return p.reshape(shape + (3,)), R.reshape(shape + (3, 3))
 
     def state(self, t) -> TrueState:
@@ -270,10 +270,6 @@ class TrueTrajectory:
         return rph.reshape(shape + (3,))
 
     # ------------------------------------------------------------------ helpers
-    def _R_w_n(self, p_w):
-        lat, lon, _ = self.frame.to_geodetic(p_w)
-        return self.frame.R_w_n(lat, lon)
-
     def _times(self, t):
         t = np.asarray(t, dtype=float)
         shape = t.shape

@@ -199,15 +199,21 @@ def simulate_project(
     gnss_grade: str | None = None,
     write_imr: bool = False,
     progress: Progress = _no_progress,
+    on_navigation: Callable[[Path], None] | None = None,
 ) -> SimulationResult:
-    """Simulate scenario ``scenario`` and write a project folder at ``out`` (see module docstring)."""
+    """Simulate scenario ``scenario`` and write a project folder at ``out`` (see module docstring).
+
+    The project is written into a temporary folder beside ``out`` and renamed when complete.
+    ``on_navigation(folder)`` is called with that folder as soon as ``project.yaml``, the GNSS and
+    the IMU files are written, before the (long) scanning: the navigation steps can start then.
+    """
     cfg = resolve_scenario(
         scenario, seed_overrides=overrides, config_file=config_file, imu_grade=imu_grade, gnss_grade=gnss_grade
     )
     out = Path(out)
     tmp = _prepare_output(out)
     try:
-        result = _simulate_into(cfg, tmp, seed, write_imr, progress)
+        result = _simulate_into(cfg, tmp, seed, write_imr, progress, on_navigation)
         tmp.rename(out) if not out.exists() else _replace_empty_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -220,7 +226,8 @@ def _replace_empty_dir(tmp: Path, out: Path) -> None:
     tmp.rename(out)
 
 
-def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, progress: Progress) -> dict:
+def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, progress: Progress,
+                   on_navigation: Callable[[Path], None] | None = None) -> dict:
     from georefine.sim import writers
 
     timings: dict[str, float] = {}
@@ -256,10 +263,34 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
     np.savez_compressed(root / "truth" / "gnss_errors.npz", time_gps=gnss.t0_gps + gnss.time, error_ned=gnss.error_ned)
     timings["write navigation files"] = _time.perf_counter() - t
 
+    ext = "laz" if cfg.laz else "las"
+    errors = ImuErrorSpec(**{k: v for k, v in cfg.imu.model_dump().items() if k in ImuErrorSpec.model_fields})
+    project = ProjectConfig(
+        name=cfg.name,
+        crs=CrsConfig(output_epsg=cfg.output_epsg),
+        gnss=GnssFileConfig(files=["gnss/rover.pos"], lever_arm_m=cfg.gnss_lever_arm_m),
+        imu=ImuFileConfig(file="imu/imu.csv", format="csv", rate_hz=cfg.imu.rate_hz, errors=errors),
+        scanner=ScannerFileConfig(
+            files=[f"scans/strip_{s}.{ext}" for s, _, _ in traj.passes],
+            lever_arm_m=cfg.scanner_lever_arm_m,
+            boresight_deg=cfg.project_boresight_deg or cfg.boresight_deg,
+            range_sigma_m=cfg.scanner.range_sigma_m,
+            channels=[
+                ChannelConfig(id=i, name=n, tilt_deg=tilt)
+                for i, (n, tilt) in enumerate(zip(("nadir", "forward", "backward"), cfg.scanner.facet_tilt_deg))
+            ],
+        ),
+        reference=ReferenceConfig(surfaces="reference/surfaces.csv"),
+    )
+    # Sensor configuration only: the processing options keep their documented defaults unless a
+    # user writes them into project.yaml.
+    write_yaml(root / "project.yaml", project.model_dump(mode="json", exclude={"processing"}))
+    if on_navigation is not None:  # the navigation part of the project is complete
+        on_navigation(root)
+
     t = _time.perf_counter()
     p_b_s = np.asarray(cfg.scanner_lever_arm_m)
     R_b_s = boresight_matrix(cfg.boresight_deg)
-    ext = "laz" if cfg.laz else "las"
     points: dict[int, int] = {}
     total = sum(t1 - t0 for _, t0, t1 in traj.passes)
     done = 0.0
@@ -277,27 +308,6 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
         done += t1 - t0
     timings["scanning"] = _time.perf_counter() - t
 
-    errors = ImuErrorSpec(**{k: v for k, v in cfg.imu.model_dump().items() if k in ImuErrorSpec.model_fields})
-    project = ProjectConfig(
-        name=cfg.name,
-        crs=CrsConfig(output_epsg=cfg.output_epsg),
-        gnss=GnssFileConfig(files=["gnss/rover.pos"], lever_arm_m=cfg.gnss_lever_arm_m),
-        imu=ImuFileConfig(file="imu/imu.csv", format="csv", rate_hz=cfg.imu.rate_hz, errors=errors),
-        scanner=ScannerFileConfig(
-            files=[f"scans/strip_{s}.{ext}" for s in points],
-            lever_arm_m=cfg.scanner_lever_arm_m,
-            boresight_deg=cfg.project_boresight_deg or cfg.boresight_deg,
-            range_sigma_m=cfg.scanner.range_sigma_m,
-            channels=[
-                ChannelConfig(id=i, name=n, tilt_deg=tilt)
-                for i, (n, tilt) in enumerate(zip(("nadir", "forward", "backward"), cfg.scanner.facet_tilt_deg))
-            ],
-        ),
-        reference=ReferenceConfig(surfaces="reference/surfaces.csv"),
-    )
-    # Sensor configuration only: the processing options keep their documented defaults unless a
-    # user writes them into project.yaml.
-    write_yaml(root / "project.yaml", project.model_dump(mode="json", exclude={"processing"}))
     truth = {
         "seed": seed,
         "t0_gps": traj.t0_gps,
