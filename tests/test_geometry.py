@@ -155,6 +155,10 @@ def test_rph_in_w_round_trip():
     rph = np.column_stack([rng.uniform(-0.3, 0.3, 20), rng.uniform(-0.3, 0.3, 20), rng.uniform(0, 6.2, 20)])
     R_w_b = frame.R_w_b_from_rph(p_w, rph)
     np.testing.assert_allclose(frame.rph_from_R_w_b(p_w, R_w_b), rph, atol=1e-12)
+    # The per-point kernel is the product R_w_n R_n_b written out.
+    R_n_b = rotation.R_n_b_from_rph(rph[:, 0], rph[:, 1], rph[:, 2])
+    np.testing.assert_allclose(R_w_b, frame.R_w_n_at(p_w) @ R_n_b, atol=1e-15)
+    assert frame.R_w_b_from_rph(p_w[:4].reshape(2, 2, 3), rph[:4].reshape(2, 2, 3)).shape == (2, 2, 3, 3)
     # At the origin, heading 0 points the body x axis north (w y axis) and z down.
     R0 = frame.R_w_b_from_rph(np.zeros(3), np.zeros(3))
     np.testing.assert_allclose(R0, [[0, 1, 0], [1, 0, 0], [0, 0, -1]], atol=1e-12)

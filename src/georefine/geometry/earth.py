@@ -12,7 +12,6 @@ All functions are vectorised over leading axes; angles in radians, lengths in me
 
 from __future__ import annotations
 
-import numba
 import numpy as np
 
 WGS84_A = 6378137.0
@@ -68,40 +67,25 @@ def ecef_to_geodetic(p_e: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarra
     """Geodetic latitude, longitude (rad) and ellipsoidal height (m) of ECEF points ``(..., 3)``.
 
     Bowring's parametric-latitude start followed by two fixed-point iterations: accurate to
-    better than 1e-12 rad and 1e-8 m from the Earth's surface to aircraft heights. One numba
-    loop (:func:`_geodetic_kernel`; point clouds pass through here per point, and the numpy
-    form of the same formulas makes a dozen temporaries).
+    better than 1e-12 rad and 1e-8 m from the Earth's surface to aircraft heights.
     """
     p_e = np.asarray(p_e, dtype=float)
-    shape = p_e.shape[:-1]
-    flat = np.ascontiguousarray(p_e.reshape(-1, 3))
-    out = np.empty((3, flat.shape[0]))
-    _geodetic_kernel(flat, np.zeros(3), np.eye(3), out)
-    lat, lon, h = out.reshape((3,) + shape)
-    return lat, lon, h
-
-
-@numba.njit(cache=True, nogil=True)
-def _geodetic_kernel(p, origin, R, out):  # pragma: no cover - compiled
-    """``out[:, n] = (lat, lon, h)`` of the ECEF points ``origin + R p[n]``."""
-    for n in range(p.shape[0]):
-        x = origin[0] + R[0, 0] * p[n, 0] + R[0, 1] * p[n, 1] + R[0, 2] * p[n, 2]
-        y = origin[1] + R[1, 0] * p[n, 0] + R[1, 1] * p[n, 1] + R[1, 2] * p[n, 2]
-        z = origin[2] + R[2, 0] * p[n, 0] + R[2, 1] * p[n, 1] + R[2, 2] * p[n, 2]
-        r = np.hypot(x, y)
-        theta = np.arctan2(z * WGS84_A, r * WGS84_B)
-        st, ct = np.sin(theta), np.cos(theta)
-        lat = np.arctan2(z + WGS84_EP2 * WGS84_B * st * st * st, r - WGS84_E2 * WGS84_A * ct * ct * ct)
-        for _ in range(2):
-            s = np.sin(lat)
-            w = np.sqrt(1.0 - WGS84_E2 * s * s)
-            N = WGS84_A / w
-            h = r * np.cos(lat) + z * s - WGS84_A * w
-            lat = np.arctan2(z, r * (1.0 - WGS84_E2 * N / (N + h)))
+    x, y, z = p_e[..., 0], p_e[..., 1], p_e[..., 2]
+    lon = np.arctan2(y, x)
+    p = np.hypot(x, y)
+    theta = np.arctan2(z * WGS84_A, p * WGS84_B)
+    lat = np.arctan2(
+        z + WGS84_EP2 * WGS84_B * np.sin(theta) ** 3,
+        p - WGS84_E2 * WGS84_A * np.cos(theta) ** 3,
+    )
+    for _ in range(2):
         s = np.sin(lat)
-        out[0, n] = lat
-        out[1, n] = np.arctan2(y, x)
-        out[2, n] = r * np.cos(lat) + z * s - WGS84_A * np.sqrt(1.0 - WGS84_E2 * s * s)
+        N = WGS84_A / np.sqrt(1.0 - WGS84_E2 * s * s)
+        h = p * np.cos(lat) + z * s - WGS84_A * np.sqrt(1.0 - WGS84_E2 * s * s)
+        lat = np.arctan2(z, p * (1.0 - WGS84_E2 * N / (N + h)))
+    s = np.sin(lat)
+    h = p * np.cos(lat) + z * s - WGS84_A * np.sqrt(1.0 - WGS84_E2 * s * s)
+    return lat, lon, h
 
 
 def R_e_n(lat: np.ndarray, lon: np.ndarray) -> np.ndarray:

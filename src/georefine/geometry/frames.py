@@ -58,14 +58,8 @@ class LocalFrame:
         return (np.asarray(p_e, dtype=float) - self.p_e_w) @ self.R_e_w
 
     def to_geodetic(self, p_w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Latitude, longitude (rad) and ellipsoidal height (m) of ``w`` positions ``(..., 3)``."""
-        p_w = np.asarray(p_w, dtype=float)
-        shape = p_w.shape[:-1]
-        out = np.empty((3, int(np.prod(shape, dtype=np.int64))))
-        # ECEF and geodetic in one pass (the kernel applies p_e = p_e_w + R_e_w p_w per point).
-        earth._geodetic_kernel(np.ascontiguousarray(p_w.reshape(-1, 3)), self.p_e_w, self.R_e_w, out)
-        lat, lon, h = out.reshape((3,) + shape)
-        return lat, lon, h
+        """Latitude, longitude (rad) and ellipsoidal height (m) of ``w`` positions."""
+        return earth.ecef_to_geodetic(self.to_ecef(p_w))
 
     def from_geodetic(self, lat: np.ndarray, lon: np.ndarray, h: np.ndarray) -> np.ndarray:
         """``w`` positions of geodetic coordinates (rad, rad, m)."""
