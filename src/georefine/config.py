@@ -266,6 +266,16 @@ class ProcessingConfig(StrictModel):
     lidar: LidarAdjustmentConfig = Field(default_factory=LidarAdjustmentConfig)
 
 
+class PhotosFileConfig(StrictModel):
+    """Aerial photos of the project (optional; DESIGN §3): files relative to the project folder."""
+
+    folder: str = Field("photos", description="Folder of the image files named in eop.csv.")
+    cameras: str = Field("photos/cameras.yaml", description="Interior orientation (georefine.io.photos).")
+    eop: str = Field("photos/eop.csv", description="Approximate exterior orientation, output CRS.")
+    gcp: str | None = Field("photos/gcp.csv", description="Control and check points, output CRS.")
+    image_points: str | None = Field("photos/image_points.csv", description="Image measurements of the points.")
+
+
 class ProjectConfig(StrictModel):
     """``project.yaml``: where the sensor files are and how the system is built."""
 
@@ -275,6 +285,7 @@ class ProjectConfig(StrictModel):
     imu: ImuFileConfig
     scanner: ScannerFileConfig
     reference: ReferenceConfig = Field(default_factory=ReferenceConfig)
+    photos: PhotosFileConfig | None = None
     processing: ProcessingConfig = Field(default_factory=ProcessingConfig)
 
 

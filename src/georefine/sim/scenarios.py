@@ -37,6 +37,7 @@ from georefine.config import (
     ChannelConfig,
     CrsConfig,
     GnssFileConfig,
+    PhotosFileConfig,
     ImuErrorSpec,
     ImuFileConfig,
     ProjectConfig,
@@ -53,6 +54,7 @@ from georefine.config import (
 )
 from georefine.errors import ConfigError, InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.sim.camera import PhotoBlockConfig, write_photo_block
 from georefine.sim.flight import FlightConfig, TrueTrajectory, simulate_flight
 from georefine.sim.gnss import GnssConfig, simulate_gnss
 from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade, simulate_imu
@@ -66,6 +68,13 @@ Progress = Callable[[str, float, float], None]
 
 def _no_progress(name: str, done: float, total: float) -> None:
     return None
+
+
+class JammingConfig(StrictModel):
+    """A GNSS outage inside every scanning pass, e.g. jamming (paper 004's motivating case)."""
+
+    start_fraction: float = Field(0.3, ge=0.0, lt=1.0, description="outage start, as a fraction of the pass")
+    duration_s: float = Field(25.0, gt=0.0)
 
 
 class ScenarioConfig(StrictModel):
@@ -97,6 +106,9 @@ class ScenarioConfig(StrictModel):
     )
     reference_survey_sigma_m: float = Field(0.003, ge=0.0, description="RTK survey noise of the reference corners.")
     laz: bool = Field(True, description="Compress strips (LAZ) or not (LAS).")
+    jamming: JammingConfig | None = Field(None, description="GNSS outage in every pass (the LiDAR's trajectory).")
+    photos: PhotoBlockConfig | None = Field(None, description="A photo block over the scene (paper 004).")
+
 
 
 def _scenario_defaults(name: str) -> dict[str, Any]:
@@ -110,6 +122,19 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
             # neighbourhood; 30 M points keep simulation plus the whole workflow within minutes.
             "scanner": {"pulse_rate_hz": 100000.0, "line_rate_hz": 120.0},
         }
+    if name == "block":
+        return {
+            "name": "block",
+            "description": "Small town in a valley: a photo block of two strips at 8 cm GSD and two LiDAR passes "
+            "whose GNSS is jammed for 25 s each (paper 004).",
+            "scene": {"length_m": 500.0, "width_m": 640.0, "settlement_count": 4, "buildings_per_settlement": 30,
+                      "settlement_radius_m": 90.0, "scattered_building_count": 15, "vegetation_per_ha": 18.0,
+                      "power_line": False, "reference_surfaces_per_site": [1, 1]},
+            "flight": {"static_duration_s": 5.0, "manoeuvre": "s_turns"},
+            "scanner": {"pulse_rate_hz": 100000.0, "line_rate_hz": 120.0},
+            "jamming": {},
+            "photos": {},
+        }
     if name == "corridor-tiny":
         return {
             "name": "corridor-tiny",
@@ -121,7 +146,7 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
     raise ConfigError("unknown scenario", field="SCENARIO", expected="one of " + ", ".join(SCENARIOS), found=repr(name))
 
 
-SCENARIOS = ("corridor", "corridor-tiny")
+SCENARIOS = ("corridor", "corridor-tiny", "block")
 
 
 def resolve_scenario(
@@ -231,8 +256,8 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
     from georefine.sim import writers
 
     timings: dict[str, float] = {}
-    rng_scene, rng_imu, rng_gnss, rng_scan, rng_survey = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(5)
+    rng_scene, rng_imu, rng_gnss, rng_scan, rng_survey, rng_photos = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)
     )
     rp = cfg.reference_point
     frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
@@ -248,7 +273,12 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
     traj: TrueTrajectory = simulate_flight(cfg.flight, frame, cfg.scene.length_m, scene.terrain_height)
     imu = simulate_imu(traj, cfg.imu, 0.0, traj.duration_s, rng_imu)
     p_b_a = np.asarray(cfg.gnss_lever_arm_m)
-    gnss = simulate_gnss(traj, p_b_a, cfg.gnss, 0.0, traj.duration_s, rng_gnss)
+    gnss_cfg = cfg.gnss
+    if cfg.jamming is not None:
+        j = cfg.jamming
+        jams = [(a + j.start_fraction * (b - a), a + j.start_fraction * (b - a) + j.duration_s) for _, a, b in traj.passes]
+        gnss_cfg = gnss_cfg.model_copy(update={"outages": [*gnss_cfg.outages, *jams]})
+    gnss = simulate_gnss(traj, p_b_a, gnss_cfg, 0.0, traj.duration_s, rng_gnss)
     timings["flight and sensors"] = _time.perf_counter() - t
 
     t = _time.perf_counter()
@@ -281,12 +311,20 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
             ],
         ),
         reference=ReferenceConfig(surfaces="reference/surfaces.csv"),
+        photos=PhotosFileConfig() if cfg.photos is not None else None,
     )
     # Sensor configuration only: the processing options keep their documented defaults unless a
     # user writes them into project.yaml.
-    write_yaml(root / "project.yaml", project.model_dump(mode="json", exclude={"processing"}))
+    write_yaml(root / "project.yaml", project.model_dump(
+        mode="json", exclude={"processing"} | ({"photos"} if project.photos is None else set())))
     if on_navigation is not None:  # the navigation part of the project is complete
         on_navigation(root)
+
+    photo_summary = None
+    if cfg.photos is not None:
+        t = _time.perf_counter()
+        photo_summary = write_photo_block(root, scene, cfg.photos, frame, crs, rng_photos, progress)
+        timings["photos"] = _time.perf_counter() - t
 
     t = _time.perf_counter()
     p_b_s = np.asarray(cfg.scanner_lever_arm_m)
@@ -321,6 +359,10 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
         "points_per_strip": points,
         "scenario": cfg.model_dump(mode="json"),
     }
+    if photo_summary is not None:
+        truth["photos"] = photo_summary
+    if gnss_cfg.outages:
+        truth["gnss_outages_s"] = [list(o) for o in gnss_cfg.outages]
     write_yaml(root / "truth" / "scenario.yaml", truth)
     return dict(
         scenario=cfg, seed=seed, duration_s=traj.duration_s, points_per_strip=points,
