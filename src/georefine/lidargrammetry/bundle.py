@@ -1,0 +1,248 @@
+"""Co-adjustment of photos and lidargrams (DESIGN §4.8, paper 004 §3.1).
+
+One bundle block on the shared engine (:mod:`georefine.adjustment`): parameter blocks
+``image_rotation`` (so3) and ``image_position`` for every image -- photos first, then
+lidargrams -- and ``points`` for tie points and control/check points. Observation groups:
+
+* ``ties``: reprojection of tie points (tracks of matched keypoints) in photos and lidargrams,
+  Huber loss;
+* ``point_measurements``: reprojection of control and check points measured in photos;
+* ``control_coordinates``: the surveyed coordinates of control points with their sigma;
+* ``photo_eop_prior`` / ``lidargram_eop_prior``: the approximate exterior orientation with its
+  sigma (a lidargram's is the pose it was rendered from, with the a-priori accuracy of the
+  LiDAR's trajectory).
+
+The cases of the paper are named configurations (:data:`CASES`):
+
+1. *LiDAR refinement*: the photo block is first adjusted on its own with its control points,
+   then held fixed; the lidargrams are adjusted to it (their EOP change re-intersects the
+   cloud, :mod:`.reintersect`).
+2. *Photos and LiDAR*: photos and lidargrams adjusted together with the control points.
+3. *Photo refinement*: the lidargrams are held fixed as control; the photos are adjusted
+   without any control point (all points are check points).
+
+Check points never enter as coordinates: their image measurements are intersected with the
+adjusted photo orientation and compared with their surveyed coordinates (RMSE X/Y/Z as the
+paper's Tables 1-6); control points are reported the same way. The reprojection error (RE,
+px) is the RMS of the image residuals of those points.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
+from georefine.adjustment.observations.reprojection import ReprojectionObservation
+from georefine.adjustment.problem import Problem
+from georefine.adjustment.robust import make_loss
+from georefine.adjustment.solver import SolverOptions
+from georefine.lidargrammetry.camera import Camera
+
+log = logging.getLogger(__name__)
+
+__all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "coadjust", "intersect_points"]
+
+CASES = {
+    1: "LiDAR refinement: photos adjusted with control points, then fixed; lidargrams adjusted",
+    2: "photos and LiDAR: photos and lidargrams adjusted together with control points",
+    3: "photo refinement: lidargrams fixed as control; photos adjusted without control points",
+}
+
+
+@dataclass(frozen=True)
+class BlockImages:
+    """Images of the block: photos then lidargrams, with approximate poses in ``w``."""
+
+    names: tuple[str, ...]
+    cameras: tuple[Camera, ...]
+    is_lidargram: np.ndarray  # (n,) bool
+    R_w_c: np.ndarray  # (n, 3, 3)
+    p_w_c: np.ndarray  # (n, 3)
+    sigma_position_m: np.ndarray  # (n, 3) a-priori
+    sigma_rotation_rad: np.ndarray  # (n, 3) a-priori
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+
+@dataclass(frozen=True)
+class ControlData:
+    """Control and check points (``w``) and their image measurements (photos only)."""
+
+    ids: tuple[str, ...]
+    xyz_w: np.ndarray  # (m, 3) surveyed
+    sigma_m: np.ndarray  # (m, 3)
+    is_control: np.ndarray  # (m,) bool
+    image: np.ndarray  # (k,) image index of each measurement
+    point: np.ndarray  # (k,) point index
+    uv: np.ndarray  # (k, 2)
+
+
+@dataclass(frozen=True)
+class PointStats:
+    """RMSE X/Y/Z (m, against the given coordinates) and reprojection error (px) of a point class."""
+
+    n: int
+    rmse_xyz_m: np.ndarray
+    reprojection_px: float
+
+    def to_dict(self) -> dict:
+        return {"n": self.n, "rmse_x_m": float(self.rmse_xyz_m[0]), "rmse_y_m": float(self.rmse_xyz_m[1]),
+                "rmse_z_m": float(self.rmse_xyz_m[2]), "reprojection_px": self.reprojection_px}
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    """Adjusted poses, tie points and statistics of one case."""
+
+    case: int
+    R_w_c: np.ndarray
+    p_w_c: np.ndarray
+    tie_points_w: np.ndarray
+    control: PointStats | None
+    check: PointStats | None
+    tie_reprojection_px: dict[str, float]  # RMS per image kind ("photos", "lidargrams")
+    solve: object
+    point_xyz_w: np.ndarray  # (m, 3) control/check points intersected with the adjusted photos
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"case": self.case, "description": CASES[self.case],
+                "control_points": None if self.control is None else self.control.to_dict(),
+                "check_points": None if self.check is None else self.check.to_dict(),
+                "tie_reprojection_px": self.tie_reprojection_px, "adjustment": self.solve.to_dict(), **self.extra}
+
+
+# ---------------------------------------------------------------------------- geometry helpers
+def intersect_points(cameras, R_w_c, p_w_c, image: np.ndarray, point: np.ndarray, uv: np.ndarray,
+                     n_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares intersection of rays (midpoint of all rays of a point); ``(X (m,3), n_rays (m,))``."""
+    d = np.empty((len(image), 3))
+    for cam in dict.fromkeys(cameras[i] for i in np.unique(image)):
+        sel = np.array([cameras[i] is cam for i in image])
+        d[sel] = np.einsum("nij,nj->ni", R_w_c[image[sel]], cam.rays(uv[sel]))
+    o = p_w_c[image]
+    A = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projector orthogonal to each ray
+    M = np.zeros((n_points, 3, 3))
+    b = np.zeros((n_points, 3))
+    np.add.at(M, point, A)
+    np.add.at(b, point, np.einsum("nij,nj->ni", A, o))
+    n_rays = np.bincount(point, minlength=n_points)
+    X = np.full((n_points, 3), np.nan)
+    ok = n_rays >= 2
+    X[ok] = np.linalg.solve(M[ok], b[ok][..., None])[..., 0]
+    return X, n_rays
+
+
+def _rms(values: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
+
+# ---------------------------------------------------------------------------- the adjustment
+def coadjust(
+    images: BlockImages,
+    tie_image: np.ndarray,
+    tie_point: np.ndarray,
+    tie_uv: np.ndarray,
+    tie_xyz0: np.ndarray,
+    control: ControlData,
+    case: int,
+    *,
+    tie_sigma_px: float = 1.0,
+    measurement_sigma_px: float = 0.5,
+    tie_loss: str = "huber",
+    tie_loss_scale: float = 2.0,
+    options: SolverOptions | None = None,
+) -> BundleResult:
+    """Adjust the block as case ``case`` (module docstring).
+
+    ``tie_*`` are the tie observations (image, point index, uv) and the points' initial
+    coordinates in ``w`` (e.g. the ULPI points of lidargram observations).
+    """
+    if case not in CASES:
+        raise ValueError(f"case must be one of {sorted(CASES)}, got {case}")
+    options = options or SolverOptions(max_iterations=50, function_tolerance=1e-8)
+    photo = ~np.asarray(images.is_lidargram, dtype=bool)
+    R, p = images.R_w_c.copy(), images.p_w_c.copy()
+    extra: dict = {}
+    if case == 1:  # the photo block alone with its control points, then fixed
+        sel = np.isin(tie_image, np.flatnonzero(photo))
+        pre = _solve(images, R, p, tie_image[sel], tie_point[sel], tie_uv[sel], tie_xyz0, control,
+                     use_control=True, fixed=~photo, tie_sigma_px=tie_sigma_px, m_sigma=measurement_sigma_px,
+                     tie_loss=tie_loss, tie_loss_scale=tie_loss_scale, options=options)
+        R, p = pre["R"], pre["p"]
+        extra["photo_block_adjustment"] = pre["solve"].to_dict()
+        fixed, use_control = photo, False
+    elif case == 2:
+        fixed, use_control = np.zeros(len(images), dtype=bool), True
+    else:
+        fixed, use_control = ~photo, False
+    out = _solve(images, R, p, tie_image, tie_point, tie_uv, tie_xyz0, control, use_control=use_control,
+                 fixed=fixed, tie_sigma_px=tie_sigma_px, m_sigma=measurement_sigma_px, tie_loss=tie_loss,
+                 tie_loss_scale=tie_loss_scale, options=options)
+    R, p = out["R"], out["p"]
+    # Control/check points: intersected with the adjusted photos, compared with the given coordinates.
+    X, n_rays = intersect_points(images.cameras, R, p, control.image, control.point, control.uv, len(control.ids))
+    stats = {}
+    for label, mask in (("control", control.is_control), ("check", ~control.is_control)):
+        pts = np.flatnonzero(mask & (n_rays >= 2))
+        if case == 3 and label == "control":
+            stats[label] = None
+            continue
+        if pts.size == 0:
+            stats[label] = None
+            continue
+        meas = np.isin(control.point, pts)
+        grp = ReprojectionObservation("tmp", images.cameras, control.image[meas], control.point[meas],
+                                      control.uv[meas])
+        uv, _ = grp.predict({"image_rotation": R, "image_position": p, "points": X})
+        stats[label] = PointStats(int(pts.size), np.sqrt(np.mean((X[pts] - control.xyz_w[pts]) ** 2, axis=0)),
+                                  _rms(np.linalg.norm(uv - control.uv[meas], axis=1)))
+    tie_grp = ReprojectionObservation("tmp", images.cameras, tie_image, tie_point, tie_uv)
+    uv, front = tie_grp.predict({"image_rotation": R, "image_position": p, "points": out["ties"]})
+    err = np.linalg.norm(uv - tie_uv, axis=1)
+    inlier = front & (err < 3.0 * tie_loss_scale * tie_sigma_px)
+    rms = {kind: _rms(err[inlier & (images.is_lidargram[tie_image] == lg)])
+           for kind, lg in (("photos", False), ("lidargrams", True))}
+    extra["tie_inlier_fraction"] = float(inlier.mean()) if inlier.size else float("nan")
+    return BundleResult(case, R, p, out["ties"], stats["control"], stats["check"], rms, out["solve"], X, extra)
+
+
+def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: ControlData, *, use_control: bool,
+           fixed: np.ndarray, tie_sigma_px: float, m_sigma: float, tie_loss: str, tie_loss_scale: float,
+           options: SolverOptions) -> dict:
+    used = np.unique(t_pt)
+    remap = np.full(len(t_xyz0), -1)
+    remap[used] = np.arange(used.size)
+    n_tie = used.size
+    pts0 = [t_xyz0[used]]
+    if use_control:
+        pts0.append(control.xyz_w)
+    P = Problem()
+    P.add_block("image_rotation", R, manifold="so3", constant=fixed)
+    P.add_block("image_position", p, constant=fixed)
+    P.add_block("points", np.concatenate(pts0))
+    P.add_group(ReprojectionObservation("ties", images.cameras, t_img, remap[t_pt], t_uv, tie_sigma_px,
+                                        loss=make_loss(tie_loss, tie_loss_scale)))
+    free = np.flatnonzero(~fixed)
+    for kind, mask in (("photo", ~images.is_lidargram), ("lidargram", images.is_lidargram)):
+        el = np.flatnonzero(mask & ~fixed)
+        if el.size:
+            P.add_group(EuclideanPrior(f"{kind}_position_prior", "image_position", el, images.p_w_c[el],
+                                       images.sigma_position_m[el]))
+            P.add_group(RotationPrior(f"{kind}_rotation_prior", "image_rotation", el, images.R_w_c[el],
+                                      images.sigma_rotation_rad[el]))
+    if use_control:
+        P.add_group(ReprojectionObservation("point_measurements", images.cameras, control.image,
+                                            n_tie + control.point, control.uv, m_sigma))
+        ctl = np.flatnonzero(control.is_control)
+        P.add_group(EuclideanPrior("control_coordinates", "points", n_tie + ctl, control.xyz_w[ctl],
+                                   control.sigma_m[ctl]))
+        # Check points: observed in the images but free (no coordinates).
+    result = P.solve(options)
+    ties = np.full_like(t_xyz0, np.nan)
+    ties[used] = P.values("points")[:n_tie]
+    return {"R": P.values("image_rotation"), "p": P.values("image_position"), "ties": ties, "solve": result}
