@@ -48,3 +48,15 @@ def test_points_behind_an_image_get_a_large_residual_and_no_jacobian():
         assert np.all(jb.values[bad] == 0.0)
     _, front = grp.predict({"image_rotation": R, "image_position": p, "points": X})
     assert not front[bad].any() and front[point != 0].all()
+
+
+def test_depth_jacobians_match_finite_differences():
+    from georefine.adjustment.observations.reprojection import DepthObservation
+
+    cameras, R, p, X, image, point, uv = _setup(33)
+    z = np.einsum("nji,nj->ni", R[image], X[point] - p[image])[:, 2]
+    grp = DepthObservation("d", image, point, z + 0.03, sigma_m=0.05)
+    values = {"image_rotation": R, "image_position": p, "points": X}
+    chk = check_jacobians(grp, values, {"image_rotation": "so3", "image_position": "euclidean", "points": "euclidean"})
+    assert chk.max_rel_error < 1e-6, chk
+    np.testing.assert_allclose(grp.linearize(values).residuals, -0.6)

@@ -35,7 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
-from georefine.adjustment.observations.reprojection import ReprojectionObservation
+from georefine.adjustment.observations.reprojection import DepthObservation, ReprojectionObservation
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolverOptions
@@ -121,9 +121,12 @@ def intersect_points(cameras, R_w_c, p_w_c, image: np.ndarray, point: np.ndarray
                      n_points: int) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares intersection of rays (midpoint of all rays of a point); ``(X (m,3), n_rays (m,))``."""
     d = np.empty((len(image), 3))
-    for cam in dict.fromkeys(cameras[i] for i in np.unique(image)):
-        sel = np.array([cameras[i] is cam for i in image])
-        d[sel] = np.einsum("nij,nj->ni", R_w_c[image[sel]], cam.rays(uv[sel]))
+    cam_index = {c: k for k, c in enumerate(dict.fromkeys(cameras))}  # equal cameras are one
+    of_obs = np.array([cam_index[cameras[i]] for i in image], dtype=np.int64)
+    for cam, k in cam_index.items():
+        sel = of_obs == k
+        if sel.any():
+            d[sel] = np.einsum("nij,nj->ni", R_w_c[image[sel]], cam.rays(uv[sel]))
     o = p_w_c[image]
     A = np.eye(3)[None] - d[:, :, None] * d[:, None, :]  # projector orthogonal to each ray
     M = np.zeros((n_points, 3, 3))
@@ -151,7 +154,9 @@ def coadjust(
     control: ControlData,
     case: int,
     *,
+    tie_depth_m: np.ndarray | None = None,
     tie_sigma_px: float = 1.0,
+    depth_sigma_m: float = 0.05,
     measurement_sigma_px: float = 0.5,
     tie_loss: str = "huber",
     tie_loss_scale: float = 2.0,
@@ -160,7 +165,10 @@ def coadjust(
     """Adjust the block as case ``case`` (module docstring).
 
     ``tie_*`` are the tie observations (image, point index, uv) and the points' initial
-    coordinates in ``w`` (e.g. the ULPI points of lidargram observations).
+    coordinates in ``w`` (e.g. the ULPI points of lidargram observations). ``tie_depth_m``
+    (aligned with the observations, NaN where none): the depth a lidargram shows at the
+    keypoint, observed with ``depth_sigma_m`` (``ties_depth`` group); ``None`` keeps the
+    paper's image-only formulation.
     """
     if case not in CASES:
         raise ValueError(f"case must be one of {sorted(CASES)}, got {case}")
@@ -170,9 +178,9 @@ def coadjust(
     extra: dict = {}
     if case == 1:  # the photo block alone with its control points, then fixed
         sel = np.isin(tie_image, np.flatnonzero(photo))
-        pre = _solve(images, R, p, tie_image[sel], tie_point[sel], tie_uv[sel], tie_xyz0, control,
+        pre = _solve(images, R, p, tie_image[sel], tie_point[sel], tie_uv[sel], tie_xyz0, control, None,
                      use_control=True, fixed=~photo, tie_sigma_px=tie_sigma_px, m_sigma=measurement_sigma_px,
-                     tie_loss=tie_loss, tie_loss_scale=tie_loss_scale, options=options)
+                     tie_loss=tie_loss, tie_loss_scale=tie_loss_scale, options=options, depth_sigma_m=depth_sigma_m)
         R, p = pre["R"], pre["p"]
         extra["photo_block_adjustment"] = pre["solve"].to_dict()
         fixed, use_control = photo, False
@@ -180,9 +188,9 @@ def coadjust(
         fixed, use_control = np.zeros(len(images), dtype=bool), True
     else:
         fixed, use_control = ~photo, False
-    out = _solve(images, R, p, tie_image, tie_point, tie_uv, tie_xyz0, control, use_control=use_control,
+    out = _solve(images, R, p, tie_image, tie_point, tie_uv, tie_xyz0, control, tie_depth_m, use_control=use_control,
                  fixed=fixed, tie_sigma_px=tie_sigma_px, m_sigma=measurement_sigma_px, tie_loss=tie_loss,
-                 tie_loss_scale=tie_loss_scale, options=options)
+                 tie_loss_scale=tie_loss_scale, options=options, depth_sigma_m=depth_sigma_m)
     R, p = out["R"], out["p"]
     # Control/check points: intersected with the adjusted photos, compared with the given coordinates.
     X, n_rays = intersect_points(images.cameras, R, p, control.image, control.point, control.uv, len(control.ids))
@@ -211,9 +219,9 @@ def coadjust(
     return BundleResult(case, R, p, out["ties"], stats["control"], stats["check"], rms, out["solve"], X, extra)
 
 
-def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: ControlData, *, use_control: bool,
-           fixed: np.ndarray, tie_sigma_px: float, m_sigma: float, tie_loss: str, tie_loss_scale: float,
-           options: SolverOptions) -> dict:
+def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: ControlData, t_depth, *,
+           use_control: bool, fixed: np.ndarray, tie_sigma_px: float, m_sigma: float, tie_loss: str,
+           tie_loss_scale: float, options: SolverOptions, depth_sigma_m: float) -> dict:
     used = np.unique(t_pt)
     remap = np.full(len(t_xyz0), -1)
     remap[used] = np.arange(used.size)
@@ -227,7 +235,10 @@ def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: Contro
     P.add_block("points", np.concatenate(pts0))
     P.add_group(ReprojectionObservation("ties", images.cameras, t_img, remap[t_pt], t_uv, tie_sigma_px,
                                         loss=make_loss(tie_loss, tie_loss_scale)))
-    free = np.flatnonzero(~fixed)
+    if t_depth is not None and np.isfinite(t_depth).any():
+        d = np.isfinite(t_depth)
+        P.add_group(DepthObservation("ties_depth", t_img[d], remap[t_pt[d]], t_depth[d], depth_sigma_m,
+                                     loss=make_loss(tie_loss, tie_loss_scale)))
     for kind, mask in (("photo", ~images.is_lidargram), ("lidargram", images.is_lidargram)):
         el = np.flatnonzero(mask & ~fixed)
         if el.size:

@@ -25,7 +25,7 @@ from georefine.adjustment.problem import JacobianBlock, Linearization
 from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.rotation import skew
 
-__all__ = ["ReprojectionObservation", "BEHIND_RESIDUAL"]
+__all__ = ["ReprojectionObservation", "DepthObservation", "BEHIND_RESIDUAL"]
 
 BEHIND_RESIDUAL = 1e3
 """Whitened residual (per axis) of an observation whose point lies behind its image."""
@@ -74,9 +74,9 @@ class ReprojectionObservation:
             raise ValueError(f"{self.name}: sigma_px must be positive")
         if n and (self.image.min() < 0 or self.image.max() >= len(self.cameras)):
             raise ValueError(f"{self.name}: image index outside 0..{len(self.cameras) - 1}")
-        cam_id = {id(c): k for k, c in enumerate(dict.fromkeys(self.cameras))}
-        distinct = list(dict.fromkeys(self.cameras))
-        of_image = np.array([cam_id[id(c)] for c in self.cameras])
+        distinct = list(dict.fromkeys(self.cameras))  # equal cameras are one (cameras are hashable values)
+        cam_index = {c: k for k, c in enumerate(distinct)}
+        of_image = np.array([cam_index[c] for c in self.cameras])
         self._by_camera = [(distinct[k], np.flatnonzero(of_image[self.image] == k)) for k in range(len(distinct))]
 
     def __len__(self) -> int:
@@ -126,3 +126,55 @@ class ReprojectionObservation:
                           JacobianBlock(self.position_block, rows, self.image, Jp),
                           JacobianBlock(self.point_block, rows, self.point, JX)]
         return Linearization(r.ravel(), jac_blocks, np.repeat(np.arange(n), 2))
+
+
+@dataclass
+class DepthObservation:
+    """Depth of points along the optical axis of images: ``r = (z_c(X[k]) - depth) / sigma_m``.
+
+    A lidargram pixel shows a LiDAR point, so a keypoint in a lidargram observes the depth of
+    the surface there as well as its direction: the range the scanner measured. With
+    ``z_c = e3^T R^T (X - p)``: ``d z_c / d delta = e3^T [x_c]_x = (-y_c, x_c, 0)``,
+    ``d z_c / d p = -e3^T R^T``, ``d z_c / d X = e3^T R^T``.
+    """
+
+    name: str
+    image: np.ndarray
+    point: np.ndarray
+    depth_m: np.ndarray
+    sigma_m: float | np.ndarray = 0.05
+    rotation_block: str = "image_rotation"
+    position_block: str = "image_position"
+    point_block: str = "points"
+    loss: RobustLoss | None = None
+
+    def __post_init__(self) -> None:
+        self.image = np.asarray(self.image, dtype=np.int64)
+        self.point = np.asarray(self.point, dtype=np.int64)
+        self.depth_m = np.asarray(self.depth_m, dtype=float)
+        n = len(self.image)
+        if self.point.shape != (n,) or self.depth_m.shape != (n,):
+            raise ValueError(f"{self.name}: image, point and depth must have the same length")
+        self.sigma_m = np.broadcast_to(np.asarray(self.sigma_m, dtype=float), (n,)).copy()
+        if np.any(self.sigma_m <= 0):
+            raise ValueError(f"{self.name}: sigma_m must be positive")
+
+    def __len__(self) -> int:
+        return len(self.image)
+
+    def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
+        R, p, X = (np.asarray(values[b]) for b in (self.rotation_block, self.position_block, self.point_block))
+        Ri = R[self.image]
+        x_c = np.einsum("nji,nj->ni", Ri, X[self.point] - p[self.image])
+        w = 1.0 / self.sigma_m
+        r = (x_c[:, 2] - self.depth_m) * w
+        n = len(self)
+        jac = []
+        if jacobians:
+            rows = np.arange(n)[:, None]
+            axis = Ri[:, :, 2] * w[:, None]  # e3^T R^T = third column of R
+            JR = np.stack([-x_c[:, 1], x_c[:, 0], np.zeros(n)], axis=1) * w[:, None]
+            jac = [JacobianBlock(self.rotation_block, rows, self.image, JR[:, None, :]),
+                   JacobianBlock(self.position_block, rows, self.image, -axis[:, None, :]),
+                   JacobianBlock(self.point_block, rows, self.point, axis[:, None, :])]
+        return Linearization(r, jac, np.arange(n))

@@ -1,0 +1,328 @@
+"""Lidargrammetric co-matching and co-adjustment of a project (paper 004; DESIGN §4.8).
+
+:func:`run_coadjust` takes a project with photos (``project.yaml`` section ``photos``) and a
+georeferenced point cloud (LAZ strips in the output CRS, e.g. ``georefine run`` output) and
+
+1. renders lidargrams at the photos' approximate orientation -- one per photo and strip by
+   default, so that each lidargram belongs to one trajectory (a strip's error is one smooth
+   function, two strips' errors are not) -- at ``lidargram_scale`` of the photo resolution
+   (the paper's point spacing is 2.5-3 GSD);
+2. matches photo-photo and photo-lidargram pairs whose footprints overlap (SIFT by default,
+   XFeat with ``method="xfeat"``), builds tracks and keeps those seen from two or more stations
+   (a photo and the lidargram rendered at its pose are one station: no base between them);
+3. adjusts the block as case 1, 2 or 3 (:mod:`georefine.lidargrammetry.bundle`), with the
+   depth a lidargram shows at each tie keypoint as an observation (``use_depth``; off: the
+   paper's image-only formulation);
+4. writes the adjusted orientation of photos and lidargrams (``eop_photos.csv``,
+   ``eop_lidargrams.csv``, output CRS), for cases 1 and 2 the refined point cloud
+   (``points/``, same files and point order as the input, :mod:`.reintersect`), a match picture
+   of one photo-lidargram pair (cf. paper Fig. 6) and ``metrics.json``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time as _time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from georefine.adjustment.observations.reprojection import ReprojectionObservation
+from georefine.config import load_project
+from georefine.errors import InputError
+from georefine.evaluation.clouds import point_files
+from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.io import photos as pio
+from georefine.io.las import LasWriter, PointCloud, iter_las_chunks
+from georefine.lidargrammetry.bundle import (
+    CASES,
+    BlockImages,
+    BundleResult,
+    ControlData,
+    coadjust,
+    intersect_points,
+)
+from georefine.lidargrammetry.camera import Camera
+from georefine.lidargrammetry.matching import (
+    Keypoints,
+    PairMatches,
+    Tracks,
+    XFeatMatcher,
+    build_tracks,
+    detect_sift,
+    draw_matches,
+    match_pair,
+    verify_pair,
+)
+from georefine.lidargrammetry.reintersect import reintersect
+from georefine.lidargrammetry.render import Lidargram, render_lidargram
+from georefine.pipeline.navigation import Progress, _no_progress
+from georefine.products import write_json
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PhotoProject", "Cloud", "load_photo_project", "read_cloud", "render_lidargrams", "match_block",
+           "run_coadjust"]
+
+
+@dataclass(frozen=True)
+class PhotoProject:
+    """The photo block of a project, checked, with approximate poses in a local frame ``w``."""
+
+    root: Path
+    frame: LocalFrame
+    crs: OutputCRS
+    cameras: dict[str, Camera]
+    eop: pio.ExteriorOrientation
+    gcps: pio.ControlPoints
+    image_points: pio.ImagePoints
+    folder: Path
+    R_w_c: np.ndarray
+    p_w_c: np.ndarray
+
+    def camera(self, i: int) -> Camera:
+        return self.cameras[self.eop.cameras[i]]
+
+
+@dataclass(frozen=True)
+class Cloud:
+    """A georeferenced point cloud in ``w``, strip by strip (files kept for writing back)."""
+
+    files: tuple[Path, ...]
+    xyz_w: np.ndarray
+    intensity: np.ndarray
+    strip: np.ndarray  # (N,) index into files
+
+
+def load_photo_project(project_dir: str | Path) -> PhotoProject:
+    """Read and check the photo files of a project (:func:`georefine.io.photos.check_photo_block`)."""
+    root = Path(project_dir)
+    cfg = load_project(root)
+    ph = cfg.photos
+    if ph is None:
+        raise InputError("the project has no photos", path=root / "project.yaml", field="photos",
+                         expected="a photos section (folder, cameras, eop, gcp, image_points)")
+    cameras = pio.read_cameras(root / ph.cameras)
+    eop = pio.read_eop(root / ph.eop, cameras)
+    gcps = pio.read_gcps(root / ph.gcp) if ph.gcp else None
+    pts = pio.read_image_points(root / ph.image_points) if ph.image_points else None
+    block = pio.PhotoBlock(cameras, eop, gcps, pts, root / ph.folder)
+    pio.check_photo_block(block, eop_path=root / ph.eop, gcp_path=root / (ph.gcp or "gcp.csv"),
+                          image_points_path=root / (ph.image_points or "image_points.csv"))
+    crs = OutputCRS(cfg.crs.output_epsg)
+    lat, lon, _ = crs.to_geodetic(eop.xyz.mean(axis=0))
+    h0 = float(np.median(gcps.xyz[:, 2])) if gcps is not None and len(gcps) else 0.0
+    frame = LocalFrame(float(lat), float(lon), h0)
+    R, p = pio.poses_in_w(eop, frame, crs)
+    empty = pio.ImagePoints((), (), np.zeros((0, 2)), np.zeros(0, np.int64))
+    gc = gcps if gcps is not None else pio.ControlPoints((), np.zeros((0, 3)), np.zeros((0, 3)), ())
+    return PhotoProject(root, frame, crs, cameras, eop, gc, pts or empty, root / ph.folder, R, p)
+
+
+def read_cloud(paths: list[Path], pp: PhotoProject) -> Cloud:
+    """Georeferenced LAZ/LAS strips (output CRS) into ``w``."""
+    files = point_files([Path(p) for p in paths])
+    xyz, inten, strip = [], [], []
+    for k, f in enumerate(files):
+        for c in iter_las_chunks(f, 5_000_000):
+            xyz.append(pp.crs.to_w(pp.frame, c.xyz))
+            inten.append(np.asarray(c.intensity, dtype=float))
+            strip.append(np.full(len(c.xyz), k, dtype=np.int32))
+    return Cloud(tuple(files), np.concatenate(xyz), np.concatenate(inten), np.concatenate(strip))
+
+
+def render_lidargrams(pp: PhotoProject, cloud: Cloud, *, scale: float = 0.5, per_strip: bool = True,
+                      point_spacing_m: float | None = None, splat_scale: float = 2.0, min_coverage: float = 0.3,
+                      progress: Progress = _no_progress) -> list[tuple[Lidargram, int, int]]:
+    """Lidargrams ``(lidargram, photo index, strip or -1)`` at the photos' approximate poses."""
+    groups = [np.flatnonzero(cloud.strip == s) for s in range(len(cloud.files))] if per_strip else \
+        [np.arange(len(cloud.xyz_w))]
+    if point_spacing_m is None:  # from the density of the cloud: mean spacing of its strips together
+        lo, hi = cloud.xyz_w[:, :2].min(axis=0), cloud.xyz_w[:, :2].max(axis=0)
+        point_spacing_m = float(np.sqrt(np.prod(hi - lo) / len(cloud.xyz_w)))
+    out = []
+    total = len(groups) * len(pp.eop)
+    for g, sel in enumerate(groups):
+        for i in range(len(pp.eop)):
+            progress("lidargrams", g * len(pp.eop) + i, total)
+            lg = render_lidargram(cloud.xyz_w[sel], cloud.intensity[sel], pp.camera(i).scaled(scale), pp.R_w_c[i],
+                                  pp.p_w_c[i], point_spacing_m=point_spacing_m, splat_scale=splat_scale,
+                                  fill_holes=True)
+            if np.mean(lg.ulpi >= 0) < min_coverage:
+                continue
+            lg = replace(lg, ulpi=np.where(lg.ulpi >= 0, sel[np.maximum(lg.ulpi, 0)], -1),
+                         point_index=sel[lg.point_index])
+            out.append((lg, i, g if per_strip else -1))
+    progress("lidargrams", total, total)
+    return out
+
+
+@dataclass(frozen=True)
+class BlockMatches:
+    keypoints: list[Keypoints]
+    pairs: list[PairMatches]
+    tracks: Tracks
+
+
+def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.ndarray, is_lidargram: np.ndarray,
+                centres: np.ndarray, masks: list, *, method: str = "sift", max_pair_distance_m: float = 150.0,
+                progress: Progress = _no_progress) -> BlockMatches:
+    """Keypoints of every image, verified matches of overlapping pairs (not lidargram-lidargram), tracks."""
+    clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))
+    enhanced = [clahe.apply(im) for im in images]
+    if method == "sift":
+        kps = [detect_sift(im, mask=m) for im, m in zip(enhanced, masks)]
+        matcher = None
+    elif method == "xfeat":
+        matcher = XFeatMatcher(max_features=6000)
+        kps = [matcher.detect(im) for im in enhanced]
+    else:
+        raise ValueError(f"matching method must be 'sift' or 'xfeat', got {method!r}")
+    n = len(images)
+    pairs = [(a, b) for a in range(n) for b in range(a + 1, n)
+             if not (is_lidargram[a] and is_lidargram[b]) and np.linalg.norm(centres[a] - centres[b]) < max_pair_distance_m]
+    out = []
+    for k, (a, b) in enumerate(pairs):
+        progress("matching", k, len(pairs))
+        if matcher is None:
+            m = match_pair(kps[a], kps[b], cameras[a], cameras[b], a, b, ratio=0.9, threshold_px=2.0)
+        else:
+            ia, ib = matcher.match(kps[a], kps[b], images[a].shape[::-1], images[b].shape[::-1])
+            ok = verify_pair(kps[a].uv[ia], kps[b].uv[ib], cameras[a], cameras[b], threshold_px=2.0)
+            ok = ok if ok.sum() >= 15 else np.zeros_like(ok)
+            m = PairMatches(a, b, ia[ok], ib[ok], len(ia))
+        out.append(m)
+    progress("matching", len(pairs), len(pairs))
+    return BlockMatches(kps, out, build_tracks(kps, out))
+
+
+def _ties(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: Cloud, n_photos: int,
+          max_initial_px: float = 15.0):
+    """Tie observations, initial points (ULPI points, else photo intersections), lidargram depths."""
+    tr = matches.tracks
+    ntr = tr.n_tracks
+    is_lg = tr.image >= n_photos
+    acc, cnt = np.zeros((ntr, 3)), np.zeros(ntr)
+    depth = np.full(len(tr), np.nan)
+    for o in np.flatnonzero(is_lg):
+        lg = lgs[tr.image[o] - n_photos][0]
+        u = lg.ulpi_at(tr.uv[o][None])[0]
+        if u >= 0:
+            acc[tr.track[o]] += cloud.xyz_w[u]
+            cnt[tr.track[o]] += 1
+            c, r = np.floor(tr.uv[o]).astype(int)
+            depth[o] = lg.depth[r, c]
+    xyz0 = np.full((ntr, 3), np.nan)
+    has = cnt > 0
+    xyz0[has] = acc[has] / cnt[has, None]
+    Xi, nr = intersect_points(cameras, imgs_R, imgs_p, tr.image[~is_lg], tr.track[~is_lg], tr.uv[~is_lg], ntr)
+    fill = ~has & (nr >= 2)
+    xyz0[fill] = Xi[fill]
+    ok = np.isfinite(xyz0[:, 0])
+    grp = ReprojectionObservation("init", cameras, tr.image, tr.track, tr.uv)
+    uv, front = grp.predict({"image_rotation": imgs_R, "image_position": imgs_p,
+                             "points": np.where(ok[:, None], xyz0, 0.0)})
+    keep = ok[tr.track] & front & (np.linalg.norm(uv - tr.uv, axis=1) < max_initial_px)
+    st = np.unique(np.column_stack([tr.track[keep], station[tr.image[keep]]]), axis=0)
+    keep &= np.bincount(st[:, 0], minlength=ntr)[tr.track] >= 2  # two stations or more
+    return keep, xyz0, depth
+
+
+def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | Path, case: int, *,
+                 method: str = "sift", use_depth: bool = True, lidargram_scale: float = 0.5,
+                 lidargram_sigma_position_m: float = 1.0, lidargram_sigma_rotation_deg: float = 0.01,
+                 progress: Progress = _no_progress) -> tuple[BundleResult, dict]:
+    """Steps 1-4 of the module docstring; returns the adjustment and the metrics written."""
+    if case not in CASES:
+        raise InputError("unknown case", field="--case", expected="1, 2 or 3", found=str(case))
+    timings: dict[str, float] = {}
+    t = _time.perf_counter()
+    out = Path(out)
+    pp = load_photo_project(project_dir)
+    if out.resolve() == pp.root.resolve() or pp.root.resolve() in out.resolve().parents:
+        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside it")
+    out.mkdir(parents=True, exist_ok=True)
+    cloud = read_cloud([Path(p) for p in points], pp)
+    timings["read"] = _time.perf_counter() - t
+    t = _time.perf_counter()
+    lgs = render_lidargrams(pp, cloud, scale=lidargram_scale, progress=progress)
+    timings["lidargrams"] = _time.perf_counter() - t
+    n = len(pp.eop)
+    photos = [cv2.imread(str(pp.folder / name), cv2.IMREAD_GRAYSCALE) for name in pp.eop.images]
+    for name, img in zip(pp.eop.images, photos):
+        if img is None:
+            raise InputError("image does not open", path=pp.folder / name, expected="an image file OpenCV reads")
+    cameras = [pp.camera(i) for i in range(n)] + [lg.camera for lg, _, _ in lgs]
+    station = np.array(list(range(n)) + [i for _, i, _ in lgs])
+    is_lg = np.r_[np.zeros(n, bool), np.ones(len(lgs), bool)]
+    R0 = np.concatenate([pp.R_w_c, pp.R_w_c[station[n:]]])
+    p0 = np.concatenate([pp.p_w_c, pp.p_w_c[station[n:]]])
+    t = _time.perf_counter()
+    images = photos + [lg.image for lg, _, _ in lgs]
+    masks = [None] * n + [np.isfinite(lg.depth) for lg, _, _ in lgs]
+    matches = match_block(images, cameras, station, is_lg, p0[:, :2], masks, method=method, progress=progress)
+    timings["matching"] = _time.perf_counter() - t
+    keep, xyz0, depth = _ties(lgs, R0, p0, cameras, station, matches, cloud, n)
+    tr = matches.tracks
+    sig_p = np.r_[pp.eop.sigma_xyz if pp.eop.sigma_xyz is not None else np.full((n, 3), 0.1),
+                  np.full((len(lgs), 3), lidargram_sigma_position_m)]
+    sig_r = np.radians(np.r_[pp.eop.sigma_opk_deg if pp.eop.sigma_opk_deg is not None else np.full((n, 3), 0.02),
+                             np.full((len(lgs), 3), lidargram_sigma_rotation_deg)])
+    names = tuple(pp.eop.images) + tuple(f"LG_{Path(cloud.files[s]).stem}_{pp.eop.images[i]}" for _, i, s in lgs)
+    block = BlockImages(names, tuple(cameras), is_lg, R0, p0, sig_p, sig_r)
+    idx = pp.eop.index()
+    gi = {g: k for k, g in enumerate(pp.gcps.ids)}
+    ip = pp.image_points
+    control = ControlData(pp.gcps.ids, pp.crs.to_w(pp.frame, pp.gcps.xyz) if len(pp.gcps) else np.zeros((0, 3)),
+                          pp.gcps.sigma, pp.gcps.is_control, np.array([idx[x] for x in ip.images], dtype=np.int64),
+                          np.array([gi[x] for x in ip.ids], dtype=np.int64), ip.uv)
+    t = _time.perf_counter()
+    result = coadjust(block, tr.image[keep], tr.track[keep], tr.uv[keep], xyz0, control, case,
+                      tie_depth_m=depth[keep] if use_depth else None)
+    timings["coadjustment"] = _time.perf_counter() - t
+    # Products.
+    pio.write_eop(out / "eop_photos.csv", pio.eop_from_w(pp.eop.images, result.R_w_c[:n], result.p_w_c[:n], pp.frame,
+                                                         pp.crs, pp.eop.cameras))
+    pio.write_eop(out / "eop_lidargrams.csv", pio.eop_from_w(names[n:], result.R_w_c[n:], result.p_w_c[n:], pp.frame,
+                                                             pp.crs, "lidargram"))
+    pair_counts = [(names[m.a], names[m.b], len(m)) for m in matches.pairs if is_lg[m.a] != is_lg[m.b]]
+    best = max((m for m in matches.pairs if is_lg[m.a] != is_lg[m.b]), key=len, default=None)
+    if best is not None and len(best):
+        a, b = (best.a, best.b) if is_lg[best.a] else (best.b, best.a)
+        ia, ib = (best.ia, best.ib) if a == best.a else (best.ib, best.ia)
+        draw_matches(images[a], images[b], matches.keypoints[a].uv[ia], matches.keypoints[b].uv[ib],
+                     out / "matches_lidargram_photo.png")
+    metrics = {"case": case, "description": CASES[case], "method": method, "use_depth": use_depth,
+               "photos": n, "lidargrams": len(lgs), "tracks": int(np.unique(tr.track[keep]).size),
+               "tie_observations": int(keep.sum()),
+               "photo_lidargram_matches": {"pairs": len(pair_counts),
+                                           "median": float(np.median([c for *_, c in pair_counts])) if pair_counts else 0.0,
+                                           "per_pair": [{"a": a, "b": b, "verified": c} for a, b, c in pair_counts]},
+               **result.to_dict()}
+    if case in (1, 2):
+        t = _time.perf_counter()
+        ref = reintersect(cloud.xyz_w, cloud.strip, [lg.point_index for lg, _, _ in lgs], R0[n:], p0[n:],
+                          result.R_w_c[n:], result.p_w_c[n:])
+        _write_cloud(cloud, pp, ref.xyz_w, out / "points")
+        metrics["reintersection"] = ref.summary()
+        timings["reintersection"] = _time.perf_counter() - t
+    metrics["timings_s"] = timings
+    write_json(out / "metrics.json", metrics)
+    return result, metrics
+
+
+def _write_cloud(cloud: Cloud, pp: PhotoProject, xyz_w: np.ndarray, folder: Path) -> None:
+    """The refined strips, same files and point order as the input (output CRS)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, f in enumerate(cloud.files):
+        sel = np.flatnonzero(cloud.strip == k)
+        xyz = pp.crs.from_w(pp.frame, xyz_w[sel])
+        done = 0
+        with LasWriter(folder / (f.stem + ".laz"), scale=0.001, crs=pp.crs.crs, protect=[pp.root, f]) as w:
+            for c in iter_las_chunks(f, 5_000_000):
+                m = len(c.xyz)
+                w.write(PointCloud(c.time_gps, xyz[done:done + m], c.intensity, c.scanner_channel, c.point_source_id,
+                                   c.return_number, c.number_of_returns))
+                done += m
