@@ -222,6 +222,64 @@ def demo(
     stdout.print(f"report: {result.report.resolve()}")
 
 
+@app.command()
+def lidargrams(
+    project: Path = typer.Argument(..., help="Project folder with a photos section in project.yaml."),
+    points: list[Path] = typer.Option(..., "--points", "-p", help="Georeferenced LAZ strips or their folder (output CRS)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
+    scale: float = typer.Option(0.5, "--scale", help="Lidargram resolution relative to the photos."),
+    merged: bool = typer.Option(False, "--merged", help="One lidargram per photo of all strips together."),
+) -> None:
+    """Render lidargrams at the photos' approximate orientation: OUT/NAME.png and NAME.npz (ULPI raster)."""
+    with _user_errors():
+        from georefine.errors import InputError
+        from georefine.lidargrammetry.render import save_lidargram
+        from georefine.pipeline.lidargrammetry import load_photo_project, read_cloud, render_lidargrams
+
+        pp = load_photo_project(project)
+        if out.resolve() == pp.root.resolve() or pp.root.resolve() in out.resolve().parents:
+            raise InputError("refusing to write into the project folder", path=out)
+        out.mkdir(parents=True, exist_ok=True)
+        cloud = read_cloud(points, pp)
+        with _progress() as report:
+            lgs = render_lidargrams(pp, cloud, scale=scale, per_strip=not merged, progress=report)
+        for lg, i, s in lgs:
+            stem = Path(pp.eop.images[i]).stem + ("" if s < 0 else f"_{cloud.files[s].stem}")
+            save_lidargram(lg, out, stem)
+    stdout.print(f"{len(lgs)} lidargrams written to {out}")
+
+
+@app.command()
+def coadjust(
+    project: Path = typer.Argument(..., help="Project folder with a photos section in project.yaml."),
+    points: list[Path] = typer.Option(..., "--points", "-p", help="Georeferenced LAZ strips or their folder (output CRS)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
+    case: int = typer.Option(..., "--case", help="1: refine LiDAR, 2: photos and LiDAR, 3: refine photos (paper 004)."),
+    method: str = typer.Option("sift", "--method", help="Matcher: sift, or xfeat (the deep extra)."),
+    no_depth: bool = typer.Option(False, "--no-depth", help="Image-only lidargram observations (the paper's formulation)."),
+) -> None:
+    """Co-match photos and lidargrams and co-adjust them (paper 004, cases 1-3).
+
+    Writes eop_photos.csv and eop_lidargrams.csv (output CRS), points/*.laz (cases 1 and 2: the
+    refined cloud, same point order as the input), matches_lidargram_photo.png and metrics.json.
+    """
+    with _user_errors():
+        from georefine.pipeline.lidargrammetry import run_coadjust
+
+        with _progress() as report:
+            _, m = run_coadjust(project, points, out, case, method=method, use_depth=not no_depth, progress=report)
+    stdout.print(f"case {case}: {m['description']}")
+    for label in ("control_points", "check_points"):
+        st = m.get(label)
+        if st:
+            stdout.print(f"  {label.replace('_', ' ')} ({st['n']}): RMSE X {st['rmse_x_m']:.3f} Y {st['rmse_y_m']:.3f} "
+                         f"Z {st['rmse_z_m']:.3f} m, RE {st['reprojection_px']:.2f} px")
+    pl = m["photo_lidargram_matches"]
+    stdout.print(f"  {m['photos']} photos, {m['lidargrams']} lidargrams, {pl['pairs']} photo-lidargram pairs "
+                 f"(median {pl['median']:.0f} verified matches), {m['tracks']} tie points")
+    stdout.print(f"  results in {out}")
+
+
 # ---------------------------------------------------------------------------
 # georefine evaluate ...
 # ---------------------------------------------------------------------------

@@ -195,7 +195,9 @@ def coadjust(
     # Control/check points: intersected with the adjusted photos, compared with the given coordinates.
     X, n_rays = intersect_points(images.cameras, R, p, control.image, control.point, control.uv, len(control.ids))
     stats = {}
-    for label, mask in (("control", control.is_control), ("check", ~control.is_control)):
+    # Case 3 uses no control point: all of them are check points (paper 004, Tables 3 and 6).
+    check_mask = np.ones(len(control.ids), dtype=bool) if case == 3 else ~control.is_control
+    for label, mask in (("control", control.is_control), ("check", check_mask)):
         pts = np.flatnonzero(mask & (n_rays >= 2))
         if case == 3 and label == "control":
             stats[label] = None

@@ -12,9 +12,11 @@ raster each shown point knows its lidargrams:
   depth-preserving moves keeps it and is the intersection whenever the moved rays agree;
 * shown in one lidargram: moved rigidly with it, ``X' = p1 + R1 R0^T (X - p0)`` (depth
   preserved);
-* shown in none (hidden by a neighbour's splat, outside every lidargram): the displacement
-  interpolated from the shown points of the same strip nearby (inverse-distance weights over
-  the ``k`` nearest, :class:`scipy.spatial.cKDTree`).
+* shown in none (hidden by a neighbour's splat): the displacement interpolated from the shown
+  points of the same strip nearby (inverse-distance weights over the ``k`` nearest,
+  :class:`scipy.spatial.cKDTree`), if the nearest is within ``max_distance_m``; farther away
+  (outside every lidargram, e.g. the strip beyond the photo block) nothing is known and the
+  point keeps its coordinates.
 
 Points keep their order, so the refined strips can be compared point by point with the input
 and, in simulation, with the truth.
@@ -35,16 +37,23 @@ class Reintersection:
     """Refined coordinates and how each point got them."""
 
     xyz_w: np.ndarray  # (N, 3)
-    n_lidargrams: np.ndarray  # (N,) lidargrams that show the point (0: interpolated)
+    n_lidargrams: np.ndarray  # (N,) lidargrams that show the point (0: interpolated, -1: unchanged)
+
+    @property
+    def covered(self) -> np.ndarray:
+        """Points that were moved (shown, or interpolated near shown ones)."""
+        return self.n_lidargrams >= 0
 
     def summary(self) -> dict:
         n = self.n_lidargrams
         return {"points": int(n.size), "multi_ray": int(np.count_nonzero(n >= 2)),
-                "single_ray": int(np.count_nonzero(n == 1)), "interpolated": int(np.count_nonzero(n == 0))}
+                "single_ray": int(np.count_nonzero(n == 1)), "interpolated": int(np.count_nonzero(n == 0)),
+                "unchanged": int(np.count_nonzero(n < 0))}
 
 
 def reintersect(points_w: np.ndarray, groups: np.ndarray, shown: list[np.ndarray], R0: np.ndarray, p0: np.ndarray,
-                R1: np.ndarray, p1: np.ndarray, *, k: int = 8, min_distance_m: float = 0.1) -> Reintersection:
+                R1: np.ndarray, p1: np.ndarray, *, k: int = 8, min_distance_m: float = 0.1,
+                max_distance_m: float = 5.0) -> Reintersection:
     """Refine ``points_w`` (N, 3) from lidargram poses before ``(R0, p0)`` and after ``(R1, p1)``.
 
     ``shown[j]``: indices of the points lidargram ``j`` shows (its ``point_index``);
@@ -70,6 +79,9 @@ def reintersect(points_w: np.ndarray, groups: np.ndarray, shown: list[np.ndarray
             continue
         dist, nb = cKDTree(X[src]).query(X[dst], k=min(k, src.size))
         dist, nb = dist.reshape(len(dst), -1), nb.reshape(len(dst), -1)
-        w = 1.0 / np.maximum(dist, min_distance_m)
-        disp[dst] = np.einsum("nk,nkd->nd", w, disp[src][nb]) / w.sum(axis=1, keepdims=True)
+        near = dist[:, 0] <= max_distance_m
+        w = 1.0 / np.maximum(dist[near], min_distance_m)
+        disp[dst[near]] = np.einsum("nk,nkd->nd", w, disp[src][nb[near]]) / w.sum(axis=1, keepdims=True)
+        count[dst[~near]] = -1
+    count[~seen & (count == 0) & ~np.isin(groups, np.unique(groups[seen]))] = -1  # strips no lidargram shows
     return Reintersection(X + disp, count)

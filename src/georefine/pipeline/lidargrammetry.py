@@ -305,7 +305,7 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
         t = _time.perf_counter()
         ref = reintersect(cloud.xyz_w, cloud.strip, [lg.point_index for lg, _, _ in lgs], R0[n:], p0[n:],
                           result.R_w_c[n:], result.p_w_c[n:])
-        _write_cloud(cloud, pp, ref.xyz_w, out / "points")
+        _write_cloud(cloud, pp, ref.xyz_w, ref.n_lidargrams, out / "points")
         metrics["reintersection"] = ref.summary()
         timings["reintersection"] = _time.perf_counter() - t
     metrics["timings_s"] = timings
@@ -313,16 +313,22 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     return result, metrics
 
 
-def _write_cloud(cloud: Cloud, pp: PhotoProject, xyz_w: np.ndarray, folder: Path) -> None:
-    """The refined strips, same files and point order as the input (output CRS)."""
+def _write_cloud(cloud: Cloud, pp: PhotoProject, xyz_w: np.ndarray, n_lidargrams: np.ndarray, folder: Path) -> None:
+    """The refined strips, same files and point order as the input (output CRS).
+
+    Extra dimension ``lidargrams``: how many lidargrams showed the point (0: interpolated from
+    its neighbours, -1: outside every lidargram, unchanged).
+    """
     folder.mkdir(parents=True, exist_ok=True)
     for k, f in enumerate(cloud.files):
         sel = np.flatnonzero(cloud.strip == k)
         xyz = pp.crs.from_w(pp.frame, xyz_w[sel])
         done = 0
-        with LasWriter(folder / (f.stem + ".laz"), scale=0.001, crs=pp.crs.crs, protect=[pp.root, f]) as w:
-            for c in iter_las_chunks(f, 5_000_000):
+        count = n_lidargrams[sel].astype(np.float64)
+        with LasWriter(folder / (f.stem + ".laz"), scale=0.001, crs=pp.crs.crs, protect=[pp.root, f],
+                       extra_dims=["lidargrams"]) as w:
+            for c in iter_las_chunks(f, 5_000_000, extra_dims=()):
                 m = len(c.xyz)
                 w.write(PointCloud(c.time_gps, xyz[done:done + m], c.intensity, c.scanner_channel, c.point_source_id,
-                                   c.return_number, c.number_of_returns))
+                                   c.return_number, c.number_of_returns, {"lidargrams": count[done:done + m]}))
                 done += m

@@ -71,10 +71,12 @@ def _no_progress(name: str, done: float, total: float) -> None:
 
 
 class JammingConfig(StrictModel):
-    """A GNSS outage in every scanning pass, e.g. jamming (paper 004's motivating case)."""
+    """GNSS jamming over the scanning (paper 004's motivating case): one outage from shortly after
+    the first pass starts to shortly before the last pass ends, turn included, so that the
+    trajectory drifts on the IMU alone for minutes while GNSS still frames the strips."""
 
-    start_s: float = Field(-10.0, description="outage start relative to the start of each pass (s)")
-    duration_s: float = Field(70.0, gt=0.0, description="outage length (s); the default covers a whole block pass")
+    after_first_pass_start_s: float = Field(5.0, ge=0.0, description="outage start after the first pass starts (s)")
+    before_last_pass_end_s: float = Field(5.0, ge=0.0, description="outage end before the last pass ends (s)")
 
 
 class ScenarioConfig(StrictModel):
@@ -126,7 +128,7 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
         return {
             "name": "block",
             "description": "Small town in a valley: a photo block of two strips at 8 cm GSD and two LiDAR passes "
-            "whose GNSS is jammed throughout (70 s each, paper 004).",
+            "whose GNSS is jammed from the first pass to the last, turn included (paper 004).",
             "scene": {"length_m": 500.0, "width_m": 640.0, "settlement_count": 4, "buildings_per_settlement": 30,
                       "settlement_radius_m": 90.0, "scattered_building_count": 15, "vegetation_per_ha": 18.0,
                       "power_line": False, "reference_surfaces_per_site": [1, 1]},
@@ -276,7 +278,7 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
     gnss_cfg = cfg.gnss
     if cfg.jamming is not None:
         j = cfg.jamming
-        jams = [(a + j.start_s, a + j.start_s + j.duration_s) for _, a, _ in traj.passes]
+        jams = [(traj.passes[0][1] + j.after_first_pass_start_s, traj.passes[-1][2] - j.before_last_pass_end_s)]
         gnss_cfg = gnss_cfg.model_copy(update={"outages": [*gnss_cfg.outages, *jams]})
     gnss = simulate_gnss(traj, p_b_a, gnss_cfg, 0.0, traj.duration_s, rng_gnss)
     timings["flight and sensors"] = _time.perf_counter() - t
