@@ -78,3 +78,18 @@ def test_coadjust_refuses_a_project_without_photos(tmp_path):
                            str(project / "truth"), "--out", str(tmp_path / "o"), "--case", "1"],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "project.yaml" in proc.stderr and "has no photos" in proc.stderr, proc.stderr
+
+
+@pytest.mark.slow
+def test_lidargrams_command_writes_loadable_lidargrams(block, tmp_path):
+    from georefine.lidargrammetry.render import load_lidargram
+
+    project, cloud = block
+    proc = subprocess.run([sys.executable, "-m", "georefine", "lidargrams", str(project), "--points", str(cloud),
+                           "--out", str(tmp_path / "lg")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    npz = sorted((tmp_path / "lg").glob("*.npz"))
+    assert npz and len(npz) == len(list((tmp_path / "lg").glob("*.png")))
+    cam = photos.read_cameras(project / "photos" / "cameras.yaml")["camera"].scaled(0.5)
+    lg = load_lidargram(tmp_path / "lg", npz[0].stem, cam)
+    assert (lg.ulpi >= 0).mean() > 0.3 and np.all(np.diff(lg.point_index) > 0)

@@ -232,13 +232,12 @@ def lidargrams(
 ) -> None:
     """Render lidargrams at the photos' approximate orientation: OUT/NAME.png and NAME.npz (ULPI raster)."""
     with _user_errors():
-        from georefine.errors import InputError
         from georefine.lidargrammetry.render import save_lidargram
         from georefine.pipeline.lidargrammetry import load_photo_project, read_cloud, render_lidargrams
+        from georefine.pipeline.navigation import output_folder
 
         pp = load_photo_project(project)
-        if out.resolve() == pp.root.resolve() or pp.root.resolve() in out.resolve().parents:
-            raise InputError("refusing to write into the project folder", path=out)
+        out = output_folder(out, pp.root)
         out.mkdir(parents=True, exist_ok=True)
         cloud = read_cloud(points, pp)
         with _progress() as report:

@@ -58,7 +58,7 @@ from georefine.lidargrammetry.matching import (
 )
 from georefine.lidargrammetry.reintersect import reintersect
 from georefine.lidargrammetry.render import Lidargram, render_lidargram
-from georefine.pipeline.navigation import Progress, _no_progress
+from georefine.pipeline.navigation import Progress, _no_progress, output_folder
 from georefine.products import write_json
 
 log = logging.getLogger(__name__)
@@ -239,10 +239,8 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
         raise InputError("unknown case", field="--case", expected="1, 2 or 3", found=str(case))
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    out = Path(out)
     pp = load_photo_project(project_dir)
-    if out.resolve() == pp.root.resolve() or pp.root.resolve() in out.resolve().parents:
-        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside it")
+    out = output_folder(out, pp.root)
     out.mkdir(parents=True, exist_ok=True)
     cloud = read_cloud([Path(p) for p in points], pp)
     timings["read"] = _time.perf_counter() - t
