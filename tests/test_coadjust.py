@@ -12,6 +12,8 @@ import numpy as np
 import pytest
 
 from georefine.io import photos
+from georefine.io.colmap import block_from_reconstruction, read_model
+from georefine.lidargrammetry.crosscheck import solve_both
 from georefine.pipeline.lidar import run_workflow
 from georefine.pipeline.lidargrammetry import run_coadjust
 from georefine.sim.scenarios import simulate_project
@@ -50,7 +52,16 @@ def test_case_1_refines_the_jammed_cloud(block, tmp_path):
     covered = {f.name: np.asarray(laspy.read(f).lidargrams) >= 0 for f in (tmp_path / "c1" / "points").glob("*.laz")}
     before = _cloud_error(cloud, project / "truth", covered)  # inside the photo block
     after = _cloud_error(tmp_path / "c1" / "points", project / "truth", covered)
+    print(f"case 1 cloud: {before:.3f} -> {after:.3f} m ({after / before:.2f}x)")
     assert after < 0.8 * before, (before, after)
+    # The exported COLMAP model opens in pycolmap, and COLMAP's bundle adjuster on its tie problem
+    # (photos fixed) reaches the reprojection error of Georefine's engine on the same problem.
+    b = block_from_reconstruction(read_model(tmp_path / "c1" / "colmap"))
+    is_lg = np.array([name.startswith("LG_") for name in b.names])
+    assert len(b.names) == m["photos"] + m["lidargrams"] and is_lg.sum() == m["lidargrams"]
+    ours, theirs = solve_both(b, ~is_lg)
+    assert theirs.re_px == pytest.approx(ours.re_px, rel=0.05), (ours.re_px, theirs.re_px)
+    assert ours.re_px <= 0.5
     eop = photos.read_eop(tmp_path / "c1" / "eop_lidargrams.csv")
     assert len(eop) == m["lidargrams"] and (tmp_path / "c1" / "matches_lidargram_photo.png").is_file()
     saved = json.loads((tmp_path / "c1" / "metrics.json").read_text())

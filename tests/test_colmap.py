@@ -6,11 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from georefine.adjustment.observations.reprojection import ReprojectionObservation
-from georefine.adjustment.problem import Problem
 from georefine.io.colmap import (
-    colmap_bundle_adjustment, poses_from_reconstruction, read_model, to_reconstruction, write_model,
+    block_from_reconstruction, mean_reprojection_error, poses_from_reconstruction, read_model, to_reconstruction,
+    write_model,
 )
+from georefine.lidargrammetry.crosscheck import reprojection_errors, solve_both
 from georefine.lidargrammetry.camera import Camera, R_w_c_from_opk, project_points
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -57,21 +57,44 @@ def test_model_round_trip(tmp_path):
                                                for i in range(6)]), axis=1)), rel=1e-2)  # text model rounding
 
 
+def test_block_round_trip_and_colmap_statistic(tmp_path):
+    cameras, R, p, X, *_, img, pt, uv = _block()
+    names = [f"img{i}.jpg" for i in range(len(cameras))]
+    write_model(to_reconstruction(names, cameras, R, p, img, pt, uv, X), tmp_path / "m")
+    rec = read_model(tmp_path / "m")
+    b = block_from_reconstruction(rec)
+    assert b.names == tuple(names) and b.cameras[0].fx_px == 4000.0 and b.cameras[3].width_px == 1500
+    assert b.cameras[0].k1 == pytest.approx(-0.05) and b.cameras[0].p2 == pytest.approx(-2e-4)
+    assert len(b.obs_image) == len(img) and len(b.points_w) == len(np.unique(pt))
+    np.testing.assert_allclose(b.p_w_c, p, atol=1e-6)
+    e = reprojection_errors(b, b.R_w_c, b.p_w_c, b.points_w)
+    rec.update_point_3d_errors()
+    # COLMAP's mean reprojection error is the mean over points of each point's mean error.
+    assert mean_reprojection_error(e, b.obs_point) == pytest.approx(rec.compute_mean_reprojection_error(), rel=1e-4)
+    assert mean_reprojection_error(e, b.obs_point) != pytest.approx(e.mean(), rel=1e-3)
+
+
+def test_colmap_camera_models_read_back():
+    from georefine.io.colmap import _camera_from_colmap
+
+    c = _camera_from_colmap(pycolmap.Camera(model="SIMPLE_RADIAL", width=100, height=80, params=[90.0, 50.0, 40.0, 0.1],
+                                            camera_id=3))
+    assert (c.fx_px, c.fy_px, c.cx_px, c.cy_px, c.k1) == (90.0, 90.0, 50.0, 40.0, 0.1)
+    with pytest.raises(ValueError, match="model .* is not supported"):
+        _camera_from_colmap(pycolmap.Camera(model="FOV", width=100, height=80, params=[90.0, 90.0, 50.0, 40.0, 0.1],
+                                            camera_id=4))
+
+
 def test_colmap_bundle_adjustment_agrees_with_ours():
     cameras, R, p, X, R0, p0, X0, img, pt, uv = _block()
     fixed = np.array([True, True, True, False, False, False])  # photos fixed, lidargram-like images free
-    P = Problem()
-    P.add_block("image_rotation", R0, manifold="so3", constant=fixed)
-    P.add_block("image_position", p0, constant=fixed)
-    P.add_block("points", X0)
-    P.add_group(ReprojectionObservation("ties", cameras, img, pt, uv))
-    P.solve()
-    values = {"image_rotation": P.values("image_rotation"), "image_position": P.values("image_position"),
-              "points": P.values("points")}
-    uv_ours, _ = ReprojectionObservation("t", cameras, img, pt, uv).predict(values)
-    ours = np.mean(np.linalg.norm(uv_ours - uv, axis=1))
     rec = to_reconstruction([f"i{i}" for i in range(6)], cameras, R0, p0, img, pt, uv, X0)
-    theirs = colmap_bundle_adjustment(rec, fixed_images=np.flatnonzero(fixed))
-    assert theirs == pytest.approx(ours, rel=0.05), (ours, theirs)
-    R_c, p_c = poses_from_reconstruction(rec, [f"i{i}" for i in range(6)])
-    np.testing.assert_allclose(p_c, values["image_position"], atol=0.01)
+    b = block_from_reconstruction(rec)
+    ours, theirs = solve_both(b, fixed)
+    # The same minimum: equal sums of squares (COLMAP's solution evaluated with our camera model),
+    # equal reprojection error by either statistic, equal poses.
+    assert theirs.sum_of_squares == pytest.approx(ours.sum_of_squares, rel=1e-6)
+    assert theirs.re_px == pytest.approx(ours.re_px, rel=0.05) and theirs.re_px == pytest.approx(ours.re_px, rel=1e-4)
+    assert ours.errors_px.mean() < 0.6 and ours.re_px < 0.6  # 0.5 px noise
+    np.testing.assert_allclose(theirs.p_w_c, ours.p_w_c, atol=1e-4)
+    assert reprojection_errors(b, R0, p0, X0).mean() > 4 * ours.errors_px.mean()  # both started well off

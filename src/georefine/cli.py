@@ -256,6 +256,9 @@ def coadjust(
     case: int = typer.Option(..., "--case", help="1: refine LiDAR, 2: photos and LiDAR, 3: refine photos (paper 004)."),
     method: str = typer.Option("sift", "--method", help="Matcher: sift, or xfeat (the deep extra)."),
     no_depth: bool = typer.Option(False, "--no-depth", help="Image-only lidargram observations (the paper's formulation)."),
+    sigma_position: float = typer.Option(1.0, "--lidargram-sigma-position", help="A-priori sigma of lidargram positions [m]."),
+    sigma_rotation: str = typer.Option("0.01,0.01,0.1", "--lidargram-sigma-rotation",
+                                       help="A-priori sigma of lidargram rotations about the camera x,y,z axes [deg]."),
 ) -> None:
     """Co-match photos and lidargrams and co-adjust them (paper 004, cases 1-3).
 
@@ -263,10 +266,23 @@ def coadjust(
     refined cloud, same point order as the input), matches_lidargram_photo.png and metrics.json.
     """
     with _user_errors():
+        from georefine.errors import InputError
         from georefine.pipeline.lidargrammetry import run_coadjust
 
+        try:
+            sig_r = tuple(float(v) for v in sigma_rotation.split(","))
+        except ValueError:
+            sig_r = ()
+        if len(sig_r) not in (1, 3) or min(sig_r) <= 0:
+            raise InputError("bad lidargram rotation sigma", field="--lidargram-sigma-rotation",
+                             expected="one or three positive numbers in degrees, comma-separated", found=sigma_rotation)
+        if sigma_position <= 0:
+            raise InputError("bad lidargram position sigma", field="--lidargram-sigma-position",
+                             expected="a positive number of metres", found=str(sigma_position))
         with _progress() as report:
-            _, m = run_coadjust(project, points, out, case, method=method, use_depth=not no_depth, progress=report)
+            _, m = run_coadjust(project, points, out, case, method=method, use_depth=not no_depth,
+                                lidargram_sigma_position_m=sigma_position,
+                                lidargram_sigma_rotation_deg=sig_r if len(sig_r) == 3 else sig_r[0], progress=report)
     stdout.print(f"case {case}: {m['description']}")
     for label in ("control_points", "check_points"):
         st = m.get(label)

@@ -3,17 +3,21 @@
 :func:`to_reconstruction` builds a ``pycolmap.Reconstruction`` from cameras, poses in ``w``
 (``x_c = R_w_c^T (X - p_w_c)``, COLMAP's ``cam_from_world``) and tracks; :func:`write_model`
 writes it as a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``) that
-COLMAP opens; :func:`read_model` and :func:`poses_from_reconstruction` read one back.
+COLMAP opens; :func:`read_model`, :func:`poses_from_reconstruction` and
+:func:`block_from_reconstruction` read one back (the last as Georefine cameras, poses and
+observations, ready for :mod:`georefine.adjustment`).
 :func:`colmap_bundle_adjustment` runs COLMAP's own bundle adjuster (Ceres) with chosen images
 held fixed -- the reference the co-adjustment is checked against.
 
-Cameras: ``OPENCV`` (fx, fy, cx, cy, k1, k2, p1, p2), or ``FULL_OPENCV`` when ``k3 != 0``.
+Cameras: ``OPENCV`` (fx, fy, cx, cy, k1, k2, p1, p2), or ``FULL_OPENCV`` when ``k3 != 0``;
+read back also ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL`` and ``RADIAL``.
 COLMAP's pixel origin is ours (top-left pixel centre at (0.5, 0.5)), so pixels pass unchanged.
 Image ids are 1-based in the order given; point ids follow the tracks' order.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +25,8 @@ from scipy.spatial.transform import Rotation
 
 from georefine.lidargrammetry.camera import Camera
 
-__all__ = ["to_reconstruction", "write_model", "read_model", "poses_from_reconstruction", "colmap_bundle_adjustment"]
+__all__ = ["to_reconstruction", "write_model", "read_model", "poses_from_reconstruction", "ColmapBlock",
+           "block_from_reconstruction", "colmap_bundle_adjustment", "mean_reprojection_error"]
 
 
 def _colmap_camera(camera: Camera, camera_id: int):
@@ -94,6 +99,74 @@ def poses_from_reconstruction(rec, names) -> tuple[np.ndarray, np.ndarray]:
         R[k] = m[:, :3].T
         p[k] = -m[:, :3].T @ m[:, 3]
     return R, p
+
+
+def _camera_from_colmap(cam) -> Camera:
+    model, q = cam.model.name, [float(v) for v in cam.params]
+    w, h = int(cam.width), int(cam.height)
+    if model == "SIMPLE_PINHOLE":
+        return Camera(w, h, q[0], q[0], q[1], q[2], name=f"colmap{cam.camera_id}")
+    if model == "PINHOLE":
+        return Camera(w, h, q[0], q[1], q[2], q[3], name=f"colmap{cam.camera_id}")
+    if model == "SIMPLE_RADIAL":
+        return Camera(w, h, q[0], q[0], q[1], q[2], k1=q[3], name=f"colmap{cam.camera_id}")
+    if model == "RADIAL":
+        return Camera(w, h, q[0], q[0], q[1], q[2], k1=q[3], k2=q[4], name=f"colmap{cam.camera_id}")
+    if model in ("OPENCV", "FULL_OPENCV"):
+        if model == "FULL_OPENCV" and any(q[9:12]):
+            raise ValueError(f"COLMAP camera {cam.camera_id}: FULL_OPENCV with k4-k6 (rational model) is not supported")
+        return Camera(w, h, q[0], q[1], q[2], q[3], k1=q[4], k2=q[5], p1=q[6], p2=q[7],
+                      k3=q[8] if model == "FULL_OPENCV" else 0.0, name=f"colmap{cam.camera_id}")
+    raise ValueError(f"COLMAP camera {cam.camera_id}: model {model} is not supported "
+                     "(SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV, FULL_OPENCV)")
+
+
+@dataclass(frozen=True)
+class ColmapBlock:
+    """A COLMAP model as Georefine arrays: images in image-id order, points in point-id order."""
+
+    names: tuple[str, ...]
+    cameras: tuple[Camera, ...]
+    R_w_c: np.ndarray  # (n, 3, 3)
+    p_w_c: np.ndarray  # (n, 3)
+    obs_image: np.ndarray  # (k,) index into names
+    obs_point: np.ndarray  # (k,) index into points_w
+    obs_uv: np.ndarray  # (k, 2)
+    points_w: np.ndarray  # (m, 3)
+    point_ids: np.ndarray  # (m,) COLMAP point3D ids
+
+
+def block_from_reconstruction(rec) -> ColmapBlock:
+    """Cameras, poses, tracks and 3-D points of a reconstruction (registered images only)."""
+    image_ids = sorted(rec.reg_image_ids())
+    at = {iid: k for k, iid in enumerate(image_ids)}
+    cams = {cid: _camera_from_colmap(rec.camera(cid)) for cid in rec.cameras}
+    names = tuple(rec.image(i).name for i in image_ids)
+    R, p = poses_from_reconstruction(rec, names)
+    point_ids = np.array(sorted(rec.points3D), dtype=np.int64)
+    row = {pid: k for k, pid in enumerate(point_ids)}
+    img, pt, uv = [], [], []
+    for pid in point_ids:
+        for el in rec.points3D[pid].track.elements:
+            img.append(at[el.image_id])
+            pt.append(row[pid])
+            uv.append(rec.image(el.image_id).points2D[el.point2D_idx].xy)
+    X = np.array([rec.points3D[pid].xyz for pid in point_ids], dtype=float).reshape(-1, 3)
+    return ColmapBlock(names, tuple(cams[rec.image(i).camera_id] for i in image_ids), R, p,
+                       np.array(img, dtype=np.int64), np.array(pt, dtype=np.int64),
+                       np.array(uv, dtype=float).reshape(-1, 2), X, point_ids)
+
+
+def mean_reprojection_error(errors: np.ndarray, obs_point: np.ndarray) -> float:
+    """COLMAP's statistic: the mean over 3-D points of each point's mean reprojection error (px).
+
+    (The mean over observations weighs long tracks more; on a block with tracks of 2-10
+    observations the two differ by a few per cent.)
+    """
+    errors, obs_point = np.asarray(errors, dtype=float), np.asarray(obs_point)
+    n = np.bincount(obs_point)
+    s = np.bincount(obs_point, weights=errors)
+    return float(np.mean(s[n > 0] / n[n > 0]))
 
 
 def colmap_bundle_adjustment(rec, fixed_images=(), max_iterations: int = 100) -> float:

@@ -108,6 +108,7 @@ class BundleResult:
     solve: object
     point_xyz_w: np.ndarray  # (m, 3) control/check points intersected with the adjusted photos
     extra: dict = field(default_factory=dict)
+    tie_inlier: np.ndarray | None = None  # (k,) tie observations within 3 loss scales after the adjustment
 
     def to_dict(self) -> dict:
         return {"case": self.case, "description": CASES[self.case],
@@ -218,7 +219,7 @@ def coadjust(
     rms = {kind: _rms(err[inlier & (images.is_lidargram[tie_image] == lg)])
            for kind, lg in (("photos", False), ("lidargrams", True))}
     extra["tie_inlier_fraction"] = float(inlier.mean()) if inlier.size else float("nan")
-    return BundleResult(case, R, p, out["ties"], stats["control"], stats["check"], rms, out["solve"], X, extra)
+    return BundleResult(case, R, p, out["ties"], stats["control"], stats["check"], rms, out["solve"], X, extra, inlier)
 
 
 def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: ControlData, t_depth, *,
