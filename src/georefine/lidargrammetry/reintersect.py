@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["Reintersection", "reintersect"]
+__all__ = ["Reintersection", "reintersect", "feather_weights"]
 
 
 @dataclass(frozen=True)
@@ -51,9 +51,16 @@ class Reintersection:
                 "unchanged": int(np.count_nonzero(n < 0))}
 
 
+def feather_weights(uv: np.ndarray, width: int, height: int, floor: float = 0.05) -> np.ndarray:
+    """Weights of the points a lidargram shows: 1 at the image centre, falling linearly to ``floor`` at the border."""
+    tu = 1.0 - np.abs(2.0 * uv[:, 0] / width - 1.0)
+    tv = 1.0 - np.abs(2.0 * uv[:, 1] / height - 1.0)
+    return np.maximum(np.clip(tu, 0.0, 1.0) * np.clip(tv, 0.0, 1.0), floor)
+
+
 def reintersect(points_w: np.ndarray, groups: np.ndarray, shown: list[np.ndarray], R0: np.ndarray, p0: np.ndarray,
-                R1: np.ndarray, p1: np.ndarray, *, k: int = 8, min_distance_m: float = 0.1,
-                max_distance_m: float = 5.0) -> Reintersection:
+                R1: np.ndarray, p1: np.ndarray, *, weights: list[np.ndarray] | None = None, k: int = 8,
+                min_distance_m: float = 0.1, max_distance_m: float = 5.0) -> Reintersection:
     """Refine ``points_w`` (N, 3) from lidargram poses before ``(R0, p0)`` and after ``(R1, p1)``.
 
     ``shown[j]``: indices of the points lidargram ``j`` shows (its ``point_index``);
@@ -63,13 +70,16 @@ def reintersect(points_w: np.ndarray, groups: np.ndarray, shown: list[np.ndarray
     X = np.asarray(points_w, dtype=float)
     disp = np.zeros_like(X)
     count = np.zeros(len(X), dtype=np.int64)
+    wsum = np.zeros(len(X))
     for j, idx in enumerate(shown):
         idx = np.asarray(idx, dtype=np.int64)
         moved = p1[j] + (X[idx] - p0[j]) @ R0[j] @ R1[j].T
-        np.add.at(disp, idx, moved - X[idx])
+        w = np.ones(idx.size) if weights is None else np.asarray(weights[j], dtype=float)
+        np.add.at(disp, idx, w[:, None] * (moved - X[idx]))
+        np.add.at(wsum, idx, w)
         np.add.at(count, idx, 1)
     seen = count > 0
-    disp[seen] /= count[seen, None]
+    disp[seen] /= wsum[seen, None]
     for g in np.unique(groups):
         src = np.flatnonzero(seen & (groups == g))
         dst = np.flatnonzero(~seen & (groups == g))

@@ -35,6 +35,7 @@ from georefine.errors import InputError
 from georefine.evaluation.clouds import point_files
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import photos as pio
+from georefine.io._common import atomic_output
 from georefine.io.las import LasWriter, PointCloud, iter_las_chunks
 from georefine.lidargrammetry.bundle import (
     CASES,
@@ -47,6 +48,7 @@ from georefine.lidargrammetry.bundle import (
 from georefine.lidargrammetry.camera import Camera
 from georefine.lidargrammetry.matching import (
     Keypoints,
+    LightGlueMatcher,
     PairMatches,
     Tracks,
     XFeatMatcher,
@@ -56,15 +58,16 @@ from georefine.lidargrammetry.matching import (
     match_pair,
     verify_pair,
 )
-from georefine.lidargrammetry.reintersect import reintersect
+from georefine.lidargrammetry.reintersect import feather_weights, reintersect
 from georefine.lidargrammetry.render import Lidargram, render_lidargram
+from georefine.pipeline.cache import StepCache, file_stamp
 from georefine.pipeline.navigation import Progress, _no_progress, output_folder
 from georefine.products import write_json
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PhotoProject", "Cloud", "load_photo_project", "read_cloud", "render_lidargrams", "match_block",
-           "run_coadjust", "export_colmap"]
+__all__ = ["PhotoProject", "Cloud", "PAIR_KINDS", "load_photo_project", "read_cloud", "render_lidargrams",
+           "make_matcher", "match_block", "run_match", "run_coadjust", "export_colmap"]
 
 
 @dataclass(frozen=True)
@@ -166,23 +169,57 @@ class BlockMatches:
     tracks: Tracks
 
 
+PAIR_KINDS = ("photo-photo", "photo-lidargram", "lidargram-lidargram")
+
+
+def make_matcher(method: str = "sift", *, lightglue_features: str = "disk", extractor_weights: Path | None = None,
+                 lightglue_weights: Path | None = None, max_features: int = 6000):
+    """``None`` for SIFT (OpenCV), else a matcher object with ``detect`` and ``match``."""
+    if method == "sift":
+        return None
+    if method == "xfeat":
+        return XFeatMatcher(max_features=max_features)
+    if method == "lightglue":
+        if extractor_weights is None or lightglue_weights is None:
+            raise InputError("LightGlue needs local weight files", field="--extractor-weights/--lightglue-weights",
+                             expected="the extractor's and LightGlue's .pth files (nothing is downloaded)")
+        return LightGlueMatcher(lightglue_features, extractor_weights, lightglue_weights, max_features=max_features)
+    raise InputError("unknown matching method", field="--method", expected="sift, xfeat or lightglue", found=method)
+
+
 def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.ndarray, is_lidargram: np.ndarray,
-                centres: np.ndarray, masks: list, *, method: str = "sift", max_pair_distance_m: float = 150.0,
+                centres: np.ndarray, masks: list, *, method="sift", max_pair_distance_m: float = 150.0,
+                pair_kinds: tuple[str, ...] = ("photo-photo", "photo-lidargram"),
                 progress: Progress = _no_progress) -> BlockMatches:
-    """Keypoints of every image, verified matches of overlapping pairs (not lidargram-lidargram), tracks."""
+    """Keypoints of every image, verified matches of overlapping pairs of the kinds asked, tracks.
+
+    ``method``: ``"sift"``, ``"xfeat"`` or a matcher object (:func:`make_matcher`). Pairs whose
+    approximate centres are closer than ``max_pair_distance_m``; lidargram-lidargram pairs are
+    left out by default (two lidargrams of one station have no base, two of one strip repeat the
+    same trajectory error).
+    """
+    bad = set(pair_kinds) - set(PAIR_KINDS)
+    if bad:
+        raise InputError("unknown pair kind", field="pairs", expected=", ".join(PAIR_KINDS), found=", ".join(sorted(bad)))
     clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))
     enhanced = [clahe.apply(im) for im in images]
-    if method == "sift":
-        kps = [detect_sift(im, mask=m) for im, m in zip(enhanced, masks)]
-        matcher = None
-    elif method == "xfeat":
-        matcher = XFeatMatcher(max_features=6000)
-        kps = [matcher.detect(im) for im in enhanced]
-    else:
-        raise ValueError(f"matching method must be 'sift' or 'xfeat', got {method!r}")
+    matcher = make_matcher(method) if isinstance(method, str) else method
     n = len(images)
+    if matcher is None:
+        kps = [detect_sift(im, mask=m) for im, m in zip(enhanced, masks)]
+    else:
+        kps = []
+        for k, im in enumerate(enhanced):
+            progress("keypoints", k, n)
+            kps.append(matcher.detect(im))
+        progress("keypoints", n, n)
+
+    def kind(a: int, b: int) -> str:
+        la, lb = bool(is_lidargram[a]), bool(is_lidargram[b])
+        return "lidargram-lidargram" if la and lb else "photo-lidargram" if la or lb else "photo-photo"
+
     pairs = [(a, b) for a in range(n) for b in range(a + 1, n)
-             if not (is_lidargram[a] and is_lidargram[b]) and np.linalg.norm(centres[a] - centres[b]) < max_pair_distance_m]
+             if kind(a, b) in pair_kinds and np.linalg.norm(centres[a] - centres[b]) < max_pair_distance_m]
     out = []
     for k, (a, b) in enumerate(pairs):
         progress("matching", k, len(pairs))
@@ -230,11 +267,124 @@ def _ties(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: C
     return keep, xyz0, depth
 
 
+@dataclass(frozen=True)
+class _Block:
+    """Photos and the lidargrams rendered at their stations, as one list of images."""
+
+    lgs: list
+    n_photos: int
+    cameras: list
+    station: np.ndarray  # (n,) photo index each image was taken or rendered at
+    is_lidargram: np.ndarray
+    R0: np.ndarray
+    p0: np.ndarray
+    images: list
+    masks: list
+    names: tuple
+
+
+def _block_images(pp: PhotoProject, cloud: Cloud, scale: float, progress: Progress) -> _Block:
+    lgs = render_lidargrams(pp, cloud, scale=scale, progress=progress)
+    n = len(pp.eop)
+    photos = [cv2.imread(str(pp.folder / name), cv2.IMREAD_GRAYSCALE) for name in pp.eop.images]
+    for name, img in zip(pp.eop.images, photos):
+        if img is None:
+            raise InputError("image does not open", path=pp.folder / name, expected="an image file OpenCV reads")
+    station = np.array(list(range(n)) + [i for _, i, _ in lgs], dtype=np.int64)
+    names = tuple(pp.eop.images) + tuple(f"LG_{Path(cloud.files[s]).stem if s >= 0 else 'all'}_{pp.eop.images[i]}"
+                                         for _, i, s in lgs)
+    return _Block(lgs, n, [pp.camera(i) for i in range(n)] + [lg.camera for lg, _, _ in lgs], station,
+                  np.r_[np.zeros(n, bool), np.ones(len(lgs), bool)], pp.R_w_c[station], pp.p_w_c[station],
+                  photos + [lg.image for lg, _, _ in lgs], [None] * n + [np.isfinite(lg.depth) for lg, _, _ in lgs],
+                  names)
+
+
+def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path, *, method: str = "sift",
+              matcher=None, pair_kinds: tuple[str, ...] = ("photo-photo", "photo-lidargram"),
+              lidargram_scale: float = 0.5, max_pair_distance_m: float = 150.0,
+              progress: Progress = _no_progress) -> dict:
+    """Render the lidargrams, match the pairs of the kinds asked and write the matches.
+
+    Writes into ``out``: ``lidargrams/`` (PNG and ULPI npz of each lidargram matched),
+    ``pairs.csv`` (``image_a,image_b,kind,putative,verified`` for every pair tried),
+    ``matches.csv`` (``image_a,image_b,u_a,v_a,u_b,v_b``: the verified matches, pixels with the
+    top-left pixel centre at (0.5, 0.5)), ``tracks.csv`` (``track,image,u,v``), a match picture
+    per pair kind (``matches_<kind>.png``, the pair with most matches) and ``summary.json``
+    (pairs and verified matches per kind). Returns the summary.
+    """
+    from georefine.lidargrammetry.render import save_lidargram
+
+    bad = set(pair_kinds) - set(PAIR_KINDS)
+    if bad or not pair_kinds:  # before anything is written
+        raise InputError("unknown pair kind", field="pairs", expected=", ".join(PAIR_KINDS),
+                         found=", ".join(sorted(bad)) or "nothing")
+    timings: dict[str, float] = {}
+    t = _time.perf_counter()
+    pp = load_photo_project(project_dir)
+    out = output_folder(out, pp.root)
+    out.mkdir(parents=True, exist_ok=True)
+    cloud = read_cloud([Path(p) for p in points], pp)
+    blk = _block_images(pp, cloud, lidargram_scale, progress)
+    (out / "lidargrams").mkdir(exist_ok=True)
+    for (lg, _, _), name in zip(blk.lgs, blk.names[blk.n_photos:]):
+        save_lidargram(lg, out / "lidargrams", Path(name).stem)
+    timings["lidargrams"] = _time.perf_counter() - t
+    t = _time.perf_counter()
+    m = match_block(blk.images, blk.cameras, blk.station, blk.is_lidargram, blk.p0[:, :2], blk.masks,
+                    method=method if matcher is None else matcher, max_pair_distance_m=max_pair_distance_m,
+                    pair_kinds=pair_kinds, progress=progress)
+    timings["matching"] = _time.perf_counter() - t
+    names, lg = blk.names, blk.is_lidargram
+
+    def kind(p: PairMatches) -> str:
+        return "lidargram-lidargram" if lg[p.a] and lg[p.b] else "photo-lidargram" if lg[p.a] or lg[p.b] \
+            else "photo-photo"
+
+    with atomic_output(out / "pairs.csv") as fh:
+        fh.write("image_a,image_b,kind,putative,verified\n")
+        for p in m.pairs:
+            fh.write(f"{names[p.a]},{names[p.b]},{kind(p)},{p.n_putative},{len(p)}\n")
+    with atomic_output(out / "matches.csv") as fh:
+        fh.write("image_a,image_b,u_a,v_a,u_b,v_b\n")
+        for p in m.pairs:
+            ua, ub = m.keypoints[p.a].uv[p.ia], m.keypoints[p.b].uv[p.ib]
+            for (x0, y0), (x1, y1) in zip(ua, ub):
+                fh.write(f"{names[p.a]},{names[p.b]},{x0:.3f},{y0:.3f},{x1:.3f},{y1:.3f}\n")
+    tr = m.tracks
+    with atomic_output(out / "tracks.csv") as fh:
+        fh.write("track,image,u,v\n")
+        for k in range(len(tr)):
+            fh.write(f"{tr.track[k]},{names[tr.image[k]]},{tr.uv[k, 0]:.3f},{tr.uv[k, 1]:.3f}\n")
+    summary: dict = {"method": method if matcher is None else repr(matcher), "photos": blk.n_photos,
+                     "lidargrams": len(blk.lgs), "tracks": tr.n_tracks, "pair_kinds": {}, "timings_s": timings}
+    for k in pair_kinds:
+        ps = [p for p in m.pairs if kind(p) == k]
+        counts = np.array([len(p) for p in ps])
+        summary["pair_kinds"][k] = {"pairs": len(ps), "pairs_with_matches": int(np.count_nonzero(counts)),
+                                    "median_verified": float(np.median(counts)) if ps else 0.0,
+                                    "mean_verified": float(np.mean(counts)) if ps else 0.0}
+        best = max(ps, key=len, default=None)
+        if best is not None and len(best):
+            a, b, ia, ib = best.a, best.b, best.ia, best.ib
+            if lg[b] and not lg[a]:  # the lidargram on the left, as in run_coadjust's picture
+                a, b, ia, ib = b, a, ib, ia
+            draw_matches(blk.images[a], blk.images[b], m.keypoints[a].uv[ia], m.keypoints[b].uv[ib],
+                         out / f"matches_{k.replace('-', '_')}.png")
+    write_json(out / "summary.json", summary)
+    return summary
+
+
 def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | Path, case: int, *,
-                 method: str = "sift", use_depth: bool = True, lidargram_scale: float = 0.5,
+                 method: str = "sift", matcher=None, use_depth: bool = True, lidargram_scale: float = 0.5,
                  lidargram_sigma_position_m: float = 1.0, lidargram_sigma_rotation_deg: float | tuple[float, float, float] = (0.01, 0.01, 0.1),
+                 cache_dir: str | Path | None = None, feather: bool = True,
                  progress: Progress = _no_progress) -> tuple[BundleResult, dict]:
     """Steps 1-4 of the module docstring; returns the adjustment and the metrics written.
+
+    ``matcher``: a matcher object (:func:`make_matcher`) instead of ``method``'s default one.
+    ``cache_dir``: a step cache (:class:`georefine.pipeline.cache.StepCache`) for the matches,
+    keyed by the photos, the point files, the matcher and the lidargram scale: cases 1 and 2
+    of one cloud match once.
 
     A lidargram's a-priori pose is the one it was rendered from, with the accuracy of the
     LiDAR trajectory: ``lidargram_sigma_position_m`` and ``lidargram_sigma_rotation_deg`` (one
@@ -254,22 +404,21 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     cloud = read_cloud([Path(p) for p in points], pp)
     timings["read"] = _time.perf_counter() - t
     t = _time.perf_counter()
-    lgs = render_lidargrams(pp, cloud, scale=lidargram_scale, progress=progress)
+    blk = _block_images(pp, cloud, lidargram_scale, progress)
     timings["lidargrams"] = _time.perf_counter() - t
-    n = len(pp.eop)
-    photos = [cv2.imread(str(pp.folder / name), cv2.IMREAD_GRAYSCALE) for name in pp.eop.images]
-    for name, img in zip(pp.eop.images, photos):
-        if img is None:
-            raise InputError("image does not open", path=pp.folder / name, expected="an image file OpenCV reads")
-    cameras = [pp.camera(i) for i in range(n)] + [lg.camera for lg, _, _ in lgs]
-    station = np.array(list(range(n)) + [i for _, i, _ in lgs])
-    is_lg = np.r_[np.zeros(n, bool), np.ones(len(lgs), bool)]
-    R0 = np.concatenate([pp.R_w_c, pp.R_w_c[station[n:]]])
-    p0 = np.concatenate([pp.p_w_c, pp.p_w_c[station[n:]]])
+    lgs, n, cameras, station, is_lg, R0, p0, images = (blk.lgs, blk.n_photos, blk.cameras, blk.station,
+                                                       blk.is_lidargram, blk.R0, blk.p0, blk.images)
     t = _time.perf_counter()
-    images = photos + [lg.image for lg, _, _ in lgs]
-    masks = [None] * n + [np.isfinite(lg.depth) for lg, _, _ in lgs]
-    matches = match_block(images, cameras, station, is_lg, p0[:, :2], masks, method=method, progress=progress)
+    cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
+    key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
+                        [file_stamp(f) for f in cloud.files], method if matcher is None else repr(matcher),
+                        lidargram_scale, len(lgs))
+    matches = cache.load("matches", key) if cache is not None else None
+    if matches is None:
+        matches = match_block(images, cameras, station, is_lg, p0[:, :2], blk.masks,
+                              method=method if matcher is None else matcher, progress=progress)
+        if cache is not None:
+            cache.store("matches", key, matches)
     timings["matching"] = _time.perf_counter() - t
     keep, xyz0, depth = _ties(lgs, R0, p0, cameras, station, matches, cloud, n)
     tr = matches.tracks
@@ -277,7 +426,7 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
                   np.full((len(lgs), 3), lidargram_sigma_position_m)]
     sig_r = np.radians(np.r_[pp.eop.sigma_opk_deg if pp.eop.sigma_opk_deg is not None else np.full((n, 3), 0.02),
                              np.broadcast_to(np.asarray(lidargram_sigma_rotation_deg, dtype=float), (len(lgs), 3))])
-    names = tuple(pp.eop.images) + tuple(f"LG_{Path(cloud.files[s]).stem}_{pp.eop.images[i]}" for _, i, s in lgs)
+    names = blk.names
     block = BlockImages(names, tuple(cameras), is_lg, R0, p0, sig_p, sig_r)
     idx = pp.eop.index()
     gi = {g: k for k, g in enumerate(pp.gcps.ids)}
@@ -304,7 +453,8 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     t = _time.perf_counter()
     export_colmap(out / "colmap", names, cameras, result, tr.image[keep], tr.track[keep], tr.uv[keep])
     timings["colmap_export"] = _time.perf_counter() - t
-    metrics = {"case": case, "description": CASES[case], "method": method, "use_depth": use_depth,
+    metrics = {"case": case, "description": CASES[case], "method": method if matcher is None else repr(matcher),
+               "use_depth": use_depth,
                "photos": n, "lidargrams": len(lgs), "tracks": int(np.unique(tr.track[keep]).size),
                "tie_observations": int(keep.sum()),
                "photo_lidargram_matches": {"pairs": len(pair_counts),
@@ -317,8 +467,10 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
                                 "origin_h_m": pp.frame.h0_m}}
     if case in (1, 2):
         t = _time.perf_counter()
+        w = [feather_weights(lg.point_uv, lg.camera.width_px, lg.camera.height_px) for lg, _, _ in lgs] \
+            if feather else None
         ref = reintersect(cloud.xyz_w, cloud.strip, [lg.point_index for lg, _, _ in lgs], R0[n:], p0[n:],
-                          result.R_w_c[n:], result.p_w_c[n:])
+                          result.R_w_c[n:], result.p_w_c[n:], weights=w)
         _write_cloud(cloud, pp, ref.xyz_w, ref.n_lidargrams, out / "points")
         metrics["reintersection"] = ref.summary()
         timings["reintersection"] = _time.perf_counter() - t
