@@ -20,21 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
-import laspy
-import numpy as np
-
+from georefine.evaluation.coadjust import cloud_errors
 from georefine.pipeline.lidargrammetry import run_coadjust
-
-
-def cloud_errors(jammed: Path, refined: Path, truth: Path) -> tuple[float, float]:
-    e0, e1 = [], []
-    for f in sorted(refined.glob("*.laz")):
-        a, b, c = laspy.read(jammed / f.name), laspy.read(truth / f.name), laspy.read(f)
-        inside = np.asarray(c.lidargrams) >= 0
-        e0.append(np.column_stack([a.x - b.x, a.y - b.y, a.z - b.z])[inside])
-        e1.append(np.column_stack([c.x - b.x, c.y - b.y, c.z - b.z])[inside])
-    rms = lambda e: float(np.sqrt(np.mean(np.sum(np.concatenate(e) ** 2, axis=1))))  # noqa: E731
-    return rms(e0), rms(e1)
 
 
 def main() -> None:
@@ -62,8 +49,9 @@ def main() -> None:
         note = (f"case {case}: {wall:.0f} s, {m['lidargrams']} lidargrams, median {pl['median']:.0f} verified matches "
                 f"per photo-lidargram pair, tie RE {m['tie_reprojection_px']}")
         if case in (1, 2):
-            before, after = cloud_errors(a.points, base / f"case{case}" / "points", a.project / "truth")
-            note += f", cloud RMS inside the block {before:.3f} -> {after:.3f} m ({after / before:.2f}x)"
+            e = cloud_errors(a.points, base / f"case{case}" / "points", a.project / "truth").to_dict()
+            note += (f", cloud RMS inside the block {e['rms_before_m']:.3f} -> {e['rms_after_m']:.3f} m "
+                     f"({e['ratio']:.2f}x)")
         notes.append(note)
     print("\n".join(notes))
 

@@ -64,9 +64,11 @@ def main() -> None:
         g, c = solve_both(b, fixed, R0, p0)
         for r in (g, c):
             it = f" ({r.iterations} it.)" if r.iterations >= 0 else ""
-            print(f"| {start} | {r.solver}{it} | {r.re_px:.4f} | {r.errors_px.mean():.4f} | {r.sum_of_squares:.1f} "
-                  f"| {r.seconds:.2f} |")
-        print(f"|   | COLMAP / Georefine | {c.re_px / g.re_px:.4f} | {c.errors_px.mean() / g.errors_px.mean():.4f} | "
+            bad = f" ({r.invalid} observations behind their camera)" if r.invalid else ""
+            print(f"| {start} | {r.solver}{it}{bad} | {r.re_px:.4f} | {np.nanmean(r.errors_px):.4f} "
+                  f"| {r.sum_of_squares:.1f} | {r.seconds:.2f} |")
+        print(f"|   | COLMAP / Georefine | {c.re_px / g.re_px:.4f} | "
+              f"{np.nanmean(c.errors_px) / np.nanmean(g.errors_px):.4f} | "
               f"{c.sum_of_squares / g.sum_of_squares:.4f} | {c.seconds / g.seconds:.2f} |")
 
 

@@ -11,7 +11,7 @@ import laspy
 import numpy as np
 import pytest
 
-from georefine.io import photos
+from georefine.io import metashape, photos
 from georefine.io.colmap import block_from_reconstruction, read_model
 from georefine.lidargrammetry.crosscheck import solve_both
 from georefine.sim.scenarios import simulate_project
@@ -83,6 +83,10 @@ def test_case_1_refines_the_jammed_cloud(demo):
     saved = json.loads((c1 / "metrics.json").read_text())
     assert len(eop) == saved["lidargrams"] and (c1 / "matches_lidargram_photo.png").is_file()
     assert saved["reintersection"]["points"] > 0 and saved["check_points"] == m["cases"]["1"]["check_points"]
+    ms = metashape.read_cameras(c1 / "metashape_cameras.csv")
+    assert len(ms) == saved["photos"] + saved["lidargrams"] and ms.images[-len(eop):] == eop.images
+    np.testing.assert_allclose(ms.xyz[-len(eop):], eop.xyz, atol=1e-4)
+    assert metashape.read_markers(c1 / "metashape_markers.csv").role.count("check") == 12
     # The exported COLMAP model opens in pycolmap, and COLMAP's bundle adjuster on its tie problem
     # (photos fixed) reaches the reprojection error of Georefine's engine on the same problem.
     b = block_from_reconstruction(read_model(c1 / "colmap"))

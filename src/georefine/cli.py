@@ -85,7 +85,7 @@ def _progress() -> Iterator:
 
 @app.command()
 def simulate(
-    scenario: str = typer.Argument(..., help="Scenario name: corridor or corridor-tiny."),
+    scenario: str = typer.Argument(..., help="Scenario name: corridor, corridor-tiny or block."),
     out: Path = typer.Option(..., "--out", "-o", help="Project folder to create (must not exist or be empty)."),
     seed: int = typer.Option(42, "--seed", help="Random seed; the same seed gives the same files."),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="Override a parameter: key.sub=value (repeatable)."),
@@ -195,7 +195,8 @@ def georeference(
 
 @app.command()
 def demo(
-    out: Path = typer.Option(Path("georefine-demo"), "--out", "-o", help="Output folder."),
+    out: Optional[Path] = typer.Option(None, "--out", "-o",
+                                       help="Output folder (default georefine-demo, or georefine-demo-block)."),
     scenario: str = typer.Option("corridor", "--scenario",
                                  help="corridor (paper 000: trajectory) or block (paper 004: lidargrammetry)."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Simulation seed (default 42 corridor, 3 block)."),
@@ -210,8 +211,9 @@ def demo(
     jammed G/I cloud and the three co-adjustment cases of paper 004.
     """
     if scenario == "block":
-        _block_demo(out, 3 if seed is None else seed, overrides or [], method)
+        _block_demo(out or Path("georefine-demo-block"), 3 if seed is None else seed, overrides or [], method)
         return
+    out = out or Path("georefine-demo")
     seed = 42 if seed is None else seed
     with _user_errors():
         from georefine.pipeline.demo import run_demo

@@ -84,8 +84,11 @@ def plot_cloud_errors(errors: CloudErrors, path: Path, *, title: str = "", max_p
         errors = CloudErrors(errors.xy[pick], errors.before[pick], errors.after[pick])
     n0, n1 = np.linalg.norm(errors.before, axis=1), np.linalg.norm(errors.after, axis=1)
     vmax = float(np.percentile(n0, 99)) if len(n0) else 1.0
-    fig, axes = plt.subplots(1, 2, figsize=(12, 5), sharex=True, sharey=True, constrained_layout=True)
     origin = errors.xy.min(axis=0) if len(errors.xy) else np.zeros(2)
+    span = np.ptp(errors.xy, axis=0) if len(errors.xy) else np.ones(2)
+    aspect = float(np.clip(span[1] / max(span[0], 1e-9), 0.3, 2.0))
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4 * aspect + 1.2), sharex=True, sharey=True,
+                             constrained_layout=True)
     for ax, n, rms, label in ((axes[0], n0, rms0, "jammed G/I cloud"), (axes[1], n1, rms1, "refined")):
         order = np.argsort(n)
         sc = ax.scatter(*(errors.xy[order] - origin).T, c=n[order], s=0.3, cmap="viridis", vmin=0, vmax=vmax,

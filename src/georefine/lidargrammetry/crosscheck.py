@@ -34,14 +34,19 @@ class SolverRun:
     R_w_c: np.ndarray
     p_w_c: np.ndarray
     points_w: np.ndarray
-    errors_px: np.ndarray  # (k,) per observation
-    re_px: float  # COLMAP's statistic
+    errors_px: np.ndarray  # (k,) per observation (NaN where the point does not project: behind the camera)
+    re_px: float  # COLMAP's statistic, over the observations that project
     seconds: float
     iterations: int
 
     @property
+    def invalid(self) -> int:
+        """Observations whose point no longer projects into its image."""
+        return int(np.count_nonzero(~np.isfinite(self.errors_px)))
+
+    @property
     def sum_of_squares(self) -> float:
-        return float(np.sum(self.errors_px**2))
+        return float(np.nansum(self.errors_px**2))
 
 
 def reprojection_errors(b: ColmapBlock, R: np.ndarray, p: np.ndarray, X: np.ndarray) -> np.ndarray:
@@ -53,7 +58,8 @@ def reprojection_errors(b: ColmapBlock, R: np.ndarray, p: np.ndarray, X: np.ndar
 
 def _run(name, b, R, p, X, seconds, iterations) -> SolverRun:
     e = reprojection_errors(b, R, p, X)
-    return SolverRun(name, R, p, X, e, mean_reprojection_error(e, b.obs_point), seconds, iterations)
+    ok = np.isfinite(e)
+    return SolverRun(name, R, p, X, e, mean_reprojection_error(e[ok], b.obs_point[ok]), seconds, iterations)
 
 
 def solve_both(b: ColmapBlock, fixed: np.ndarray, R0: np.ndarray | None = None, p0: np.ndarray | None = None,

@@ -34,6 +34,7 @@ from georefine.config import load_project
 from georefine.errors import InputError
 from georefine.evaluation.clouds import point_files
 from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.io import metashape
 from georefine.io import photos as pio
 from georefine.io._common import atomic_output
 from georefine.io.las import LasWriter, PointCloud, iter_las_chunks
@@ -439,10 +440,16 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
                       tie_depth_m=depth[keep] if use_depth else None)
     timings["coadjustment"] = _time.perf_counter() - t
     # Products.
-    pio.write_eop(out / "eop_photos.csv", pio.eop_from_w(pp.eop.images, result.R_w_c[:n], result.p_w_c[:n], pp.frame,
-                                                         pp.crs, pp.eop.cameras))
-    pio.write_eop(out / "eop_lidargrams.csv", pio.eop_from_w(names[n:], result.R_w_c[n:], result.p_w_c[n:], pp.frame,
-                                                             pp.crs, "lidargram"))
+    eop_ph = pio.eop_from_w(pp.eop.images, result.R_w_c[:n], result.p_w_c[:n], pp.frame, pp.crs, pp.eop.cameras)
+    pio.write_eop(out / "eop_photos.csv", eop_ph)
+    eop_lg = pio.eop_from_w(names[n:], result.R_w_c[n:], result.p_w_c[n:], pp.frame, pp.crs, "lidargram")
+    pio.write_eop(out / "eop_lidargrams.csv", eop_lg)
+    # The same for Metashape's Import Reference (paper 004's workflow continues there).
+    both = pio.ExteriorOrientation(eop_ph.images + eop_lg.images, np.r_[eop_ph.xyz, eop_lg.xyz],
+                                   np.r_[eop_ph.opk_deg, eop_lg.opk_deg], eop_ph.cameras + eop_lg.cameras)
+    metashape.write_cameras(out / "metashape_cameras.csv", both, crs_name=f"EPSG:{pp.crs.epsg}")
+    if len(pp.gcps):
+        metashape.write_markers(out / "metashape_markers.csv", pp.gcps, crs_name=f"EPSG:{pp.crs.epsg}")
     pair_counts = [(names[m.a], names[m.b], len(m)) for m in matches.pairs if is_lg[m.a] != is_lg[m.b]]
     best = max((m for m in matches.pairs if is_lg[m.a] != is_lg[m.b]), key=len, default=None)
     if best is not None and len(best):
@@ -451,7 +458,7 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
         draw_matches(images[a], images[b], matches.keypoints[a].uv[ia], matches.keypoints[b].uv[ib],
                      out / "matches_lidargram_photo.png")
     t = _time.perf_counter()
-    export_colmap(out / "colmap", names, cameras, result, tr.image[keep], tr.track[keep], tr.uv[keep])
+    export_colmap(out / "colmap", names, cameras, result, tr.image[keep], tr.track[keep], tr.uv[keep], station)
     timings["colmap_export"] = _time.perf_counter() - t
     metrics = {"case": case, "description": CASES[case], "method": method if matcher is None else repr(matcher),
                "use_depth": use_depth,
@@ -480,11 +487,12 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
 
 
 def export_colmap(folder: Path, names, cameras, result: BundleResult, obs_image: np.ndarray, obs_point: np.ndarray,
-                  obs_uv: np.ndarray) -> Path | None:
+                  obs_uv: np.ndarray, station: np.ndarray | None = None) -> Path | None:
     """The adjusted block as a COLMAP text model in the local frame ``w`` (:mod:`georefine.io.colmap`).
 
     Photos and lidargrams with their adjusted poses, the tie points and their inlier
-    observations (the tracks COLMAP keeps); control points are left out (COLMAP has no
+    observations seen from two stations or more (``station``: of each image; without a base a
+    track's depth is free in a tie-only adjustment); control points are left out (COLMAP has no
     coordinate observations). Skipped with a log message when pycolmap is not installed.
     """
     try:
@@ -494,7 +502,10 @@ def export_colmap(folder: Path, names, cameras, result: BundleResult, obs_image:
         return None
     from georefine.io.colmap import to_reconstruction, write_model
 
-    inl = result.tie_inlier if result.tie_inlier is not None else np.ones(len(obs_image), bool)
+    inl = result.tie_inlier.copy() if result.tie_inlier is not None else np.ones(len(obs_image), bool)
+    if station is not None:  # tracks still seen from two stations (a photo and its lidargrams are one)
+        st = np.unique(np.column_stack([obs_point[inl], station[obs_image[inl]]]), axis=0)
+        inl &= np.bincount(st[:, 0], minlength=int(obs_point.max()) + 1)[obs_point] >= 2
     rec = to_reconstruction(names, cameras, result.R_w_c, result.p_w_c, obs_image[inl], obs_point[inl], obs_uv[inl],
                             np.nan_to_num(result.tie_points_w))
     tmp = folder.with_name(folder.name + ".partial")
