@@ -54,6 +54,12 @@ def test_demo_block_runs_the_three_cases(demo):
         assert c["photo_lidargram_matches"]["median"] >= 15
         assert max(c["tie_reprojection_px"].values()) < 3.0
     assert m["cases"]["3"]["control_points"] is None and m["cases"]["3"]["check_points"]["n"] == 18
+    # Consistency: the check points' posterior sigmas against their actual errors (12 points, 36
+    # coordinates: a normalised RMS within [0.5, 2] is honest).
+    for case, key in (("1", "photo_block_precision"), ("2", "precision")):
+        cp = m["cases"][case][key]["check_points"]
+        assert 0.5 <= cp["normalised_rms"] <= 2.0, (case, cp)
+    assert m["cases"]["1"]["precision"]["lidargrams"]["images"] == m["cases"]["1"]["lidargrams"]
     for case in ("1", "2"):
         assert m["cases"][case]["control_points"]["reprojection_px"] <= 0.5
         assert (out / f"case{case}" / "cloud_errors.png").is_file()

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from georefine.adjustment.linalg import NotPositiveDefiniteError
 from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
 from georefine.adjustment.observations.reprojection import DepthObservation, ReprojectionObservation
 from georefine.adjustment.problem import Problem
@@ -63,6 +64,10 @@ class BlockImages:
     p_w_c: np.ndarray  # (n, 3)
     sigma_position_m: np.ndarray  # (n, 3) a-priori
     sigma_rotation_rad: np.ndarray  # (n, 3) a-priori
+    station: np.ndarray | None = None  # (n,) where each image was taken or rendered (None: each its own)
+
+    def stations(self) -> np.ndarray:
+        return np.arange(len(self.names)) if self.station is None else np.asarray(self.station)
 
     def __len__(self) -> int:
         return len(self.names)
@@ -184,6 +189,7 @@ def coadjust(
                      tie_loss=tie_loss, tie_loss_scale=tie_loss_scale, options=options, depth_sigma_m=depth_sigma_m)
         R, p = pre["R"], pre["p"]
         extra["photo_block_adjustment"] = pre["solve"].to_dict()
+        extra["photo_block_precision"] = _precision(images, pre, control, ~control.is_control)
         fixed, use_control = photo, False
     elif case == 2:
         fixed, use_control = np.zeros(len(images), dtype=bool), True
@@ -193,6 +199,7 @@ def coadjust(
                  fixed=fixed, tie_sigma_px=tie_sigma_px, m_sigma=measurement_sigma_px, tie_loss=tie_loss,
                  tie_loss_scale=tie_loss_scale, options=options, depth_sigma_m=depth_sigma_m)
     R, p = out["R"], out["p"]
+    extra["precision"] = _precision(images, out, control, ~control.is_control)
     # Control/check points: intersected with the adjusted photos, compared with the given coordinates.
     X, n_rays = intersect_points(images.cameras, R, p, control.image, control.point, control.uv, len(control.ids))
     stats = {}
@@ -225,6 +232,16 @@ def coadjust(
 def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: ControlData, t_depth, *,
            use_control: bool, fixed: np.ndarray, tie_sigma_px: float, m_sigma: float, tie_loss: str,
            tie_loss_scale: float, options: SolverOptions, depth_sigma_m: float) -> dict:
+    # Tie points seen from two stations or more (a photo and the lidargrams rendered at its pose
+    # are one station: no base), or from one with a lidargram depth; the others have a free
+    # depth (the damping of Levenberg-Marquardt hides that, the covariance does not).
+    st = np.unique(np.column_stack([t_pt, images.stations()[t_img]]), axis=0)
+    n_st = np.bincount(st[:, 0], minlength=len(t_xyz0))
+    ok = n_st[t_pt] >= 2
+    if t_depth is not None:
+        ok |= np.isin(t_pt, t_pt[np.isfinite(t_depth)])
+    t_img, t_pt, t_uv = t_img[ok], t_pt[ok], t_uv[ok]
+    t_depth = None if t_depth is None else t_depth[ok]
     used = np.unique(t_pt)
     remap = np.full(len(t_xyz0), -1)
     remap[used] = np.arange(used.size)
@@ -259,4 +276,45 @@ def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: Contro
     result = P.solve(options)
     ties = np.full_like(t_xyz0, np.nan)
     ties[used] = P.values("points")[:n_tie]
-    return {"R": P.values("image_rotation"), "p": P.values("image_position"), "ties": ties, "solve": result}
+    out = {"R": P.values("image_rotation"), "p": P.values("image_position"), "ties": ties, "solve": result}
+    # Posterior precision (marginal covariances, scaled by sigma0^2) of the free images and, when
+    # they are in the block, of the control and check points.
+    free = np.flatnonzero(~fixed)
+    out["sigma_position"] = np.full((len(images), 3), np.nan)
+    out["sigma_rotation"] = np.full((len(images), 3), np.nan)
+    try:
+        if free.size:
+            for key, block in (("sigma_position", "image_position"), ("sigma_rotation", "image_rotation")):
+                cov = P.covariance(block, free)
+                out[key][free] = np.sqrt(np.einsum("kii->ki", cov))
+        if use_control and len(control.ids):
+            cov = P.covariance("points", n_tie + np.arange(len(control.ids)))
+            out["points"] = P.values("points")[n_tie:]
+            out["sigma_points"] = np.sqrt(np.einsum("kii->ki", cov))
+    except (NotPositiveDefiniteError, ValueError) as exc:  # a weak block: no precision, the estimate stands
+        log.warning("no posterior precision: %s", exc)
+    return out
+
+
+def _precision(images: BlockImages, sol: dict, control: ControlData, check_mask: np.ndarray) -> dict:
+    """Estimated precision and, on the check points, its consistency with the actual errors.
+
+    ``normalised_rms``: RMS over check points and axes of (adjusted - surveyed) / sqrt(sigma_est^2
+    + sigma_survey^2); about 1 when the estimated sigmas are honest.
+    """
+    out: dict = {}
+    deg = np.degrees
+    for kind, mask in (("photos", ~images.is_lidargram), ("lidargrams", images.is_lidargram)):
+        sp, sr = sol["sigma_position"][mask], sol["sigma_rotation"][mask]
+        ok = np.isfinite(sp[:, 0])
+        if ok.any():
+            out[kind] = {"images": int(ok.sum()), "sigma_position_m_median": np.median(sp[ok], axis=0).tolist(),
+                         "sigma_rotation_deg_median": deg(np.median(sr[ok], axis=0)).tolist()}
+    if "sigma_points" in sol and check_mask.any():
+        e = sol["points"][check_mask] - control.xyz_w[check_mask]
+        s = np.sqrt(sol["sigma_points"][check_mask] ** 2 + control.sigma_m[check_mask] ** 2)
+        out["check_points"] = {"n": int(check_mask.sum()),
+                               "sigma_xyz_m_rms": np.sqrt(np.mean(sol["sigma_points"][check_mask] ** 2, axis=0)).tolist(),
+                               "error_xyz_m_rms": np.sqrt(np.mean(e**2, axis=0)).tolist(),
+                               "normalised_rms": float(np.sqrt(np.mean((e / s) ** 2)))}
+    return out

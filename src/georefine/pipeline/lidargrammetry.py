@@ -428,7 +428,7 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     sig_r = np.radians(np.r_[pp.eop.sigma_opk_deg if pp.eop.sigma_opk_deg is not None else np.full((n, 3), 0.02),
                              np.broadcast_to(np.asarray(lidargram_sigma_rotation_deg, dtype=float), (len(lgs), 3))])
     names = blk.names
-    block = BlockImages(names, tuple(cameras), is_lg, R0, p0, sig_p, sig_r)
+    block = BlockImages(names, tuple(cameras), is_lg, R0, p0, sig_p, sig_r, station)
     idx = pp.eop.index()
     gi = {g: k for k, g in enumerate(pp.gcps.ids)}
     ip = pp.image_points
