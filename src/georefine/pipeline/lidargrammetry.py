@@ -284,6 +284,14 @@ class _Block:
     names: tuple
 
 
+def _open(project_dir, out, points) -> tuple[PhotoProject, Path, Cloud]:
+    """The photo project, the output folder (created, outside the project) and the cloud."""
+    pp = load_photo_project(project_dir)
+    out = output_folder(out, pp.root)
+    out.mkdir(parents=True, exist_ok=True)
+    return pp, out, read_cloud([Path(p) for p in points], pp)
+
+
 def _block_images(pp: PhotoProject, cloud: Cloud, scale: float, progress: Progress) -> _Block:
     lgs = render_lidargrams(pp, cloud, scale=scale, progress=progress)
     n = len(pp.eop)
@@ -321,10 +329,7 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
                          found=", ".join(sorted(bad)) or "nothing")
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    pp = load_photo_project(project_dir)
-    out = output_folder(out, pp.root)
-    out.mkdir(parents=True, exist_ok=True)
-    cloud = read_cloud([Path(p) for p in points], pp)
+    pp, out, cloud = _open(project_dir, out, points)
     blk = _block_images(pp, cloud, lidargram_scale, progress)
     (out / "lidargrams").mkdir(exist_ok=True)
     for (lg, _, _), name in zip(blk.lgs, blk.names[blk.n_photos:]):
@@ -399,10 +404,7 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
         raise InputError("unknown case", field="--case", expected="1, 2 or 3", found=str(case))
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    pp = load_photo_project(project_dir)
-    out = output_folder(out, pp.root)
-    out.mkdir(parents=True, exist_ok=True)
-    cloud = read_cloud([Path(p) for p in points], pp)
+    pp, out, cloud = _open(project_dir, out, points)
     timings["read"] = _time.perf_counter() - t
     t = _time.perf_counter()
     blk = _block_images(pp, cloud, lidargram_scale, progress)
