@@ -70,7 +70,7 @@ def test_demo_block_runs_the_three_cases(demo):
     assert max(chk["rmse_x_m"], chk["rmse_y_m"]) <= 1.5 * GSD and chk["rmse_z_m"] <= 2 * GSD, chk
     assert not (out / "case3" / "points").exists()
     report = (out / "report.html").read_text()
-    assert "Tables 1-3" in report and report.count("data:image/png;base64") >= 3
+    assert "Tables 1-6" in report and report.count("data:image/png;base64") >= 3
 
 
 @pytest.mark.slow

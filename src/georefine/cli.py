@@ -247,8 +247,9 @@ def _block_demo(out: Path, seed: int, overrides: list[str], method: str) -> None
             result = run_block_demo(out, seed=seed, overrides=overrides, method=method, progress=report)
     from rich.table import Table
 
-    table = Table(title=f"Georefine demo (block, seed {seed}): co-adjustment, beside paper 004 (Graz)")
-    for column in ("case", "points", "RMSE X [m]", "RMSE Y [m]", "RMSE Z [m]", "RE [px]", "paper 004 X / Y / Z, RE"):
+    table = Table(title=f"Georefine demo (block, seed {seed}): co-adjustment, beside paper 004")
+    for column in ("case", "points", "RMSE X [m]", "RMSE Y [m]", "RMSE Z [m]", "RE [px]", "Graz X / Y / Z, RE",
+                   "Loosdorf X / Y / Z, RE"):
         table.add_column(column, justify="left" if column in ("case", "points") else "right")
     for row in result.summary_table():
         table.add_row(*row)

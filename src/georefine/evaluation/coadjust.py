@@ -17,13 +17,20 @@ import numpy as np
 
 from georefine.errors import InputError
 
-__all__ = ["CloudErrors", "cloud_errors", "plot_cloud_errors", "PAPER_004_GRAZ"]
+__all__ = ["CloudErrors", "cloud_errors", "plot_cloud_errors", "PAPER_004_GRAZ", "PAPER_004_LOOSDORF"]
 
 #: Paper 004, Graz block (5 cm GSD), Tables 1-3: RMSE X/Y/Z (m) and reprojection error (px).
 PAPER_004_GRAZ = {
     1: {"control_points": (0.079, 0.059, 0.126, 0.459), "check_points": (0.031, 0.040, 0.113, 0.335)},
     2: {"control_points": (0.077, 0.051, 0.084, 0.448), "check_points": (0.012, 0.028, 0.111, 0.335)},
     3: {"control_points": None, "check_points": (0.077, 0.043, 0.211, 0.375)},
+}
+
+#: Paper 004, Loosdorf strip (8 cm GSD), Tables 4-6.
+PAPER_004_LOOSDORF = {
+    1: {"control_points": (0.044, 0.138, 0.074, 0.131), "check_points": (0.044, 0.090, 0.070, 0.229)},
+    2: {"control_points": (0.001, 0.002, 0.005, 0.131), "check_points": (0.002, 0.002, 0.005, 0.229)},
+    3: {"control_points": None, "check_points": (0.022, 0.022, 0.033, 0.219)},
 }
 
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from georefine import __version__
-from georefine.evaluation.coadjust import PAPER_004_GRAZ, cloud_errors, plot_cloud_errors
+from georefine.evaluation.coadjust import PAPER_004_GRAZ, PAPER_004_LOOSDORF, cloud_errors, plot_cloud_errors
 from georefine.evaluation.report import _CSS, _img, _table
 from georefine.io._common import atomic_output
 from georefine.pipeline.demo import _init_worker, _queued, _Relay, _reusable
@@ -50,18 +50,19 @@ class BlockDemoResult:
     metrics: dict
 
     def summary_table(self) -> list[list[str]]:
-        """Rows ``[case, points, RMSE X, Y, Z (m), RE (px), paper 004 Graz]``."""
+        """Rows ``[case, points, RMSE X, Y, Z (m), RE (px), paper 004 Graz, paper 004 Loosdorf]``."""
         rows = []
         for case, m in sorted(self.metrics["cases"].items()):
             for label in _POINTS:
                 st = m.get(label)
                 if not st:
                     continue
-                paper = PAPER_004_GRAZ[int(case)][label]
+                papers = [PAPER_004_GRAZ[int(case)][label], PAPER_004_LOOSDORF[int(case)][label]]
                 rows.append([str(case), f"{'GCPs' if label == 'control_points' else 'ChPs'} ({st['n']})",
                              f"{st['rmse_x_m']:.3f}", f"{st['rmse_y_m']:.3f}", f"{st['rmse_z_m']:.3f}",
                              f"{st['reprojection_px']:.2f}",
-                             "–" if paper is None else " / ".join(f"{v:.3f}" for v in paper[:3]) + f", {paper[3]:.3f}"])
+                             *("–" if q is None else " / ".join(f"{v:.3f}" for v in q[:3]) + f", {q[3]:.3f}"
+                               for q in papers)])
         return rows
 
 
@@ -152,9 +153,10 @@ def _write_report(result: BlockDemoResult) -> None:
         "adjusted with control points, then fixed), case 2 adjusts photos and lidargrams together, case 3 "
         "orients the photos on the LiDAR without control points (here on the true cloud, standing for a "
         f"cloud refined beforehand). Matcher: {html.escape(m['method'])}. Georefine {__version__}.</p>",
-        "<h2>Control and check points (the paper's Tables 1-3)</h2>",
+        "<h2>Control and check points (the paper's Tables 1-6)</h2>",
         _table(["case", "points", "RMSE X [m]", "RMSE Y [m]", "RMSE Z [m]", "RE [px]",
-                "paper 004, Graz: X / Y / Z [m], RE [px]"], rows),
+                "paper 004, Graz (5 cm GSD): X / Y / Z [m], RE [px]",
+                "paper 004, Loosdorf (8 cm GSD, one strip)"], rows),
         "<h3>Estimated precision against the actual errors</h3>",
         '<p class="note">Check points as free points of the adjustment: their posterior sigma (marginal '
         "covariance scaled by the variance factor) beside their actual error; the normalised RMS of "
