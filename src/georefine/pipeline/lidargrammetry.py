@@ -22,6 +22,7 @@ georeferenced point cloud (LAZ strips in the output CRS, e.g. ``georefine run`` 
 from __future__ import annotations
 
 import logging
+import shutil
 import time as _time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -285,11 +286,12 @@ class _Block:
 
 
 def _open(project_dir, out, points) -> tuple[PhotoProject, Path, Cloud]:
-    """The photo project, the output folder (created, outside the project) and the cloud."""
+    """The photo project, the output folder (outside the project; created once the inputs read) and the cloud."""
     pp = load_photo_project(project_dir)
     out = output_folder(out, pp.root)
+    cloud = read_cloud([Path(p) for p in points], pp)
     out.mkdir(parents=True, exist_ok=True)
-    return pp, out, read_cloud([Path(p) for p in points], pp)
+    return pp, out, cloud
 
 
 def _block_images(pp: PhotoProject, cloud: Cloud, scale: float, progress: Progress) -> _Block:
@@ -382,7 +384,8 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
 
 def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | Path, case: int, *,
                  method: str = "sift", matcher=None, use_depth: bool = True, lidargram_scale: float = 0.5,
-                 lidargram_sigma_position_m: float = 1.0, lidargram_sigma_rotation_deg: float | tuple[float, float, float] = (0.01, 0.01, 0.1),
+                 lidargram_sigma_position_m: float = 1.0,
+                 lidargram_sigma_rotation_deg: float | tuple[float, float, float] = (0.01, 0.01, 0.1),
                  cache_dir: str | Path | None = None, feather: bool = True,
                  progress: Progress = _no_progress) -> tuple[BundleResult, dict]:
     """Steps 1-4 of the module docstring; returns the adjustment and the metrics written.
@@ -470,7 +473,7 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
                                            "median": float(np.median([c for *_, c in pair_counts])) if pair_counts else 0.0,
                                            "per_pair": [{"a": a, "b": b, "verified": c} for a, b, c in pair_counts]},
                **result.to_dict(),
-               "colmap_model": {"folder": "colmap", "frame": "east-north-up, origin at",
+               "colmap_model": {"folder": "colmap", "frame": "local east-north-up",
                                 "origin_lat_deg": float(np.degrees(pp.frame.lat0_rad)),
                                 "origin_lon_deg": float(np.degrees(pp.frame.lon0_rad)),
                                 "origin_h_m": pp.frame.h0_m}}
@@ -505,20 +508,16 @@ def export_colmap(folder: Path, names, cameras, result: BundleResult, obs_image:
     from georefine.io.colmap import to_reconstruction, write_model
 
     inl = result.tie_inlier.copy() if result.tie_inlier is not None else np.ones(len(obs_image), bool)
-    if station is not None:  # tracks still seen from two stations (a photo and its lidargrams are one)
+    if station is not None and inl.any():  # tracks still seen from two stations (a photo and its lidargrams are one)
         st = np.unique(np.column_stack([obs_point[inl], station[obs_image[inl]]]), axis=0)
         inl &= np.bincount(st[:, 0], minlength=int(obs_point.max()) + 1)[obs_point] >= 2
     rec = to_reconstruction(names, cameras, result.R_w_c, result.p_w_c, obs_image[inl], obs_point[inl], obs_uv[inl],
                             np.nan_to_num(result.tie_points_w))
-    tmp = folder.with_name(folder.name + ".partial")
+    tmp = folder.with_name(folder.name + ".partial")  # written whole, then renamed
     if tmp.exists():
-        import shutil
-
         shutil.rmtree(tmp)
     write_model(rec, tmp)
     if folder.exists():
-        import shutil
-
         shutil.rmtree(folder)
     tmp.rename(folder)
     return folder
