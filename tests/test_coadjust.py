@@ -150,3 +150,10 @@ def test_lidargrams_command_writes_loadable_lidargrams(demo, tmp_path):
     cam = photos.read_cameras(project / "photos" / "cameras.yaml")["camera"].scaled(0.5)
     lg = load_lidargram(tmp_path / "lg", npz[0].stem, cam)
     assert (lg.ulpi >= 0).mean() > 0.3 and np.all(np.diff(lg.point_index) > 0)
+
+
+def test_lightglue_without_weight_files_is_refused(tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "georefine", "coadjust", str(tmp_path), "--points", str(tmp_path),
+                           "--out", str(tmp_path / "o"), "--case", "1", "--method", "lightglue"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "weight files" in proc.stderr and not (tmp_path / "o").exists(), proc.stderr

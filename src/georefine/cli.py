@@ -281,9 +281,8 @@ def lidargrams(
         cloud = read_cloud(points, pp)
         with _progress() as report:
             lgs = render_lidargrams(pp, cloud, scale=scale, per_strip=not merged, progress=report)
-        for lg, i, s in lgs:
-            stem = Path(pp.eop.images[i]).stem + ("" if s < 0 else f"_{cloud.files[s].stem}")
-            save_lidargram(lg, out, stem)
+        for lg, i, s in lgs:  # named as in georefine match and coadjust: LG_<strip>_<photo>
+            save_lidargram(lg, out, f"LG_{cloud.files[s].stem if s >= 0 else 'all'}_{Path(pp.eop.images[i]).stem}")
     stdout.print(f"{len(lgs)} lidargrams written to {out}")
 
 
