@@ -82,8 +82,8 @@ def solve_both(b: ColmapBlock, fixed: np.ndarray, R0: np.ndarray | None = None, 
     rec = to_reconstruction(b.names, b.cameras, R0, p0, b.obs_image, b.obs_point, b.obs_uv, X0)
     colmap_bundle_adjustment(rec, fixed_images=np.flatnonzero(fixed), max_iterations=max_iterations)
     seconds = time.perf_counter() - t
-    c = block_from_reconstruction(rec)  # points in the order to_reconstruction added them: by index
-    X = X0.copy()
-    X[np.unique(b.obs_point)] = c.points_w
+    c = block_from_reconstruction(rec)
+    X = X0.copy()  # to_reconstruction adds the points with two observations or more, by index
+    X[np.flatnonzero(np.bincount(b.obs_point, minlength=len(X0)) >= 2)] = c.points_w
     theirs = _run("COLMAP", b, c.R_w_c, c.p_w_c, X, seconds, -1)
     return ours, theirs
