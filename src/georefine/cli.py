@@ -290,12 +290,8 @@ _METHOD_HELP = "Matcher: sift, xfeat (the deep extra), or lightglue (the deep ex
 
 
 def _matcher(method: str, features: str, extractor_weights: Optional[Path], lightglue_weights: Optional[Path]):
-    from georefine.pipeline.lidargrammetry import make_matcher
+    from georefine.pipeline.lidargrammetry import make_matcher  # refuses an unknown method (InputError)
 
-    if method not in ("sift", "xfeat", "lightglue"):
-        from georefine.errors import InputError
-
-        raise InputError("unknown matching method", field="--method", expected="sift, xfeat or lightglue", found=method)
     return make_matcher(method, lightglue_features=features, extractor_weights=extractor_weights,
                         lightglue_weights=lightglue_weights)
 

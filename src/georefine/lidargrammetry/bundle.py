@@ -44,7 +44,8 @@ from georefine.lidargrammetry.camera import Camera
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "coadjust", "intersect_points"]
+__all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "coadjust", "intersect_points",
+           "stations_per_point"]
 
 CASES = {
     1: "LiDAR refinement: photos adjusted with control points, then fixed; lidargrams adjusted",
@@ -146,6 +147,16 @@ def intersect_points(cameras, R_w_c, p_w_c, image: np.ndarray, point: np.ndarray
     return X, n_rays
 
 
+def stations_per_point(point: np.ndarray, station_of_obs: np.ndarray, n_points: int) -> np.ndarray:
+    """``(n_points,)`` number of distinct stations that observe each point (a photo and the
+    lidargrams rendered at its pose are one station: no base between them)."""
+    point = np.asarray(point, dtype=np.int64)
+    if point.size == 0:
+        return np.zeros(n_points, dtype=np.int64)
+    st = np.unique(np.column_stack([point, np.asarray(station_of_obs, dtype=np.int64)]), axis=0)
+    return np.bincount(st[:, 0], minlength=n_points)
+
+
 def _rms(values: np.ndarray) -> float:
     return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
 
@@ -235,9 +246,7 @@ def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: Contro
     # Tie points seen from two stations or more (a photo and the lidargrams rendered at its pose
     # are one station: no base), or from one with a lidargram depth; the others have a free
     # depth (the damping of Levenberg-Marquardt hides that, the covariance does not).
-    st = np.unique(np.column_stack([t_pt, images.stations()[t_img]]), axis=0)
-    n_st = np.bincount(st[:, 0], minlength=len(t_xyz0))
-    ok = n_st[t_pt] >= 2
+    ok = stations_per_point(t_pt, images.stations()[t_img], len(t_xyz0))[t_pt] >= 2
     if t_depth is not None:
         ok |= np.isin(t_pt, t_pt[np.isfinite(t_depth)])
     t_img, t_pt, t_uv = t_img[ok], t_pt[ok], t_uv[ok]

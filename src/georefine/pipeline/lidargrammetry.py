@@ -46,6 +46,7 @@ from georefine.lidargrammetry.bundle import (
     ControlData,
     coadjust,
     intersect_points,
+    stations_per_point,
 )
 from georefine.lidargrammetry.camera import Camera
 from georefine.lidargrammetry.matching import (
@@ -174,6 +175,30 @@ class BlockMatches:
 PAIR_KINDS = ("photo-photo", "photo-lidargram", "lidargram-lidargram")
 
 
+def _check_pair_kinds(pair_kinds) -> None:
+    bad = set(pair_kinds) - set(PAIR_KINDS)
+    if bad or not pair_kinds:
+        raise InputError("unknown pair kind", field="pairs", expected=", ".join(PAIR_KINDS),
+                         found=", ".join(sorted(bad)) or "nothing")
+
+
+def _pair_kind(is_lidargram: np.ndarray, a: int, b: int) -> str:
+    la, lb = bool(is_lidargram[a]), bool(is_lidargram[b])
+    return "lidargram-lidargram" if la and lb else "photo-lidargram" if la or lb else "photo-photo"
+
+
+def _draw_best(pairs: list[PairMatches], is_lidargram: np.ndarray, images: list, keypoints: list[Keypoints],
+               path: Path) -> None:
+    """Picture of the pair with the most verified matches, a lidargram on the left (cf. paper Fig. 6)."""
+    best = max(pairs, key=len, default=None)
+    if best is None or not len(best):
+        return
+    a, b, ia, ib = best.a, best.b, best.ia, best.ib
+    if is_lidargram[b] and not is_lidargram[a]:
+        a, b, ia, ib = b, a, ib, ia
+    draw_matches(images[a], images[b], keypoints[a].uv[ia], keypoints[b].uv[ib], path)
+
+
 def make_matcher(method: str = "sift", *, lightglue_features: str = "disk", extractor_weights: Path | None = None,
                  lightglue_weights: Path | None = None, max_features: int = 6000):
     """``None`` for SIFT (OpenCV), else a matcher object with ``detect`` and ``match``."""
@@ -200,9 +225,7 @@ def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.nda
     left out by default (two lidargrams of one station have no base, two of one strip repeat the
     same trajectory error).
     """
-    bad = set(pair_kinds) - set(PAIR_KINDS)
-    if bad:
-        raise InputError("unknown pair kind", field="pairs", expected=", ".join(PAIR_KINDS), found=", ".join(sorted(bad)))
+    _check_pair_kinds(pair_kinds)
     clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))
     enhanced = [clahe.apply(im) for im in images]
     matcher = make_matcher(method) if isinstance(method, str) else method
@@ -215,13 +238,8 @@ def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.nda
             progress("keypoints", k, n)
             kps.append(matcher.detect(im))
         progress("keypoints", n, n)
-
-    def kind(a: int, b: int) -> str:
-        la, lb = bool(is_lidargram[a]), bool(is_lidargram[b])
-        return "lidargram-lidargram" if la and lb else "photo-lidargram" if la or lb else "photo-photo"
-
     pairs = [(a, b) for a in range(n) for b in range(a + 1, n)
-             if kind(a, b) in pair_kinds and np.linalg.norm(centres[a] - centres[b]) < max_pair_distance_m]
+             if _pair_kind(is_lidargram, a, b) in pair_kinds and np.linalg.norm(centres[a] - centres[b]) < max_pair_distance_m]
     out = []
     for k, (a, b) in enumerate(pairs):
         progress("matching", k, len(pairs))
@@ -264,8 +282,7 @@ def _ties(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: C
     uv, front = grp.predict({"image_rotation": imgs_R, "image_position": imgs_p,
                              "points": np.where(ok[:, None], xyz0, 0.0)})
     keep = ok[tr.track] & front & (np.linalg.norm(uv - tr.uv, axis=1) < max_initial_px)
-    st = np.unique(np.column_stack([tr.track[keep], station[tr.image[keep]]]), axis=0)
-    keep &= np.bincount(st[:, 0], minlength=ntr)[tr.track] >= 2  # two stations or more
+    keep &= stations_per_point(tr.track[keep], station[tr.image[keep]], ntr)[tr.track] >= 2
     return keep, xyz0, depth
 
 
@@ -325,10 +342,7 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
     """
     from georefine.lidargrammetry.render import save_lidargram
 
-    bad = set(pair_kinds) - set(PAIR_KINDS)
-    if bad or not pair_kinds:  # before anything is written
-        raise InputError("unknown pair kind", field="pairs", expected=", ".join(PAIR_KINDS),
-                         found=", ".join(sorted(bad)) or "nothing")
+    _check_pair_kinds(pair_kinds)  # before anything is written
     timings: dict[str, float] = {}
     t = _time.perf_counter()
     pp, out, cloud = _open(project_dir, out, points)
@@ -345,8 +359,7 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
     names, lg = blk.names, blk.is_lidargram
 
     def kind(p: PairMatches) -> str:
-        return "lidargram-lidargram" if lg[p.a] and lg[p.b] else "photo-lidargram" if lg[p.a] or lg[p.b] \
-            else "photo-photo"
+        return _pair_kind(lg, p.a, p.b)
 
     with atomic_output(out / "pairs.csv") as fh:
         fh.write("image_a,image_b,kind,putative,verified\n")
@@ -371,13 +384,7 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
         summary["pair_kinds"][k] = {"pairs": len(ps), "pairs_with_matches": int(np.count_nonzero(counts)),
                                     "median_verified": float(np.median(counts)) if ps else 0.0,
                                     "mean_verified": float(np.mean(counts)) if ps else 0.0}
-        best = max(ps, key=len, default=None)
-        if best is not None and len(best):
-            a, b, ia, ib = best.a, best.b, best.ia, best.ib
-            if lg[b] and not lg[a]:  # the lidargram on the left, as in run_coadjust's picture
-                a, b, ia, ib = b, a, ib, ia
-            draw_matches(blk.images[a], blk.images[b], m.keypoints[a].uv[ia], m.keypoints[b].uv[ib],
-                         out / f"matches_{k.replace('-', '_')}.png")
+        _draw_best(ps, lg, blk.images, m.keypoints, out / f"matches_{k.replace('-', '_')}.png")
     write_json(out / "summary.json", summary)
     return summary
 
@@ -455,13 +462,9 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     metashape.write_cameras(out / "metashape_cameras.csv", both, crs_name=f"EPSG:{pp.crs.epsg}")
     if len(pp.gcps):
         metashape.write_markers(out / "metashape_markers.csv", pp.gcps, crs_name=f"EPSG:{pp.crs.epsg}")
-    pair_counts = [(names[m.a], names[m.b], len(m)) for m in matches.pairs if is_lg[m.a] != is_lg[m.b]]
-    best = max((m for m in matches.pairs if is_lg[m.a] != is_lg[m.b]), key=len, default=None)
-    if best is not None and len(best):
-        a, b = (best.a, best.b) if is_lg[best.a] else (best.b, best.a)
-        ia, ib = (best.ia, best.ib) if a == best.a else (best.ib, best.ia)
-        draw_matches(images[a], images[b], matches.keypoints[a].uv[ia], matches.keypoints[b].uv[ib],
-                     out / "matches_lidargram_photo.png")
+    photo_lg = [m for m in matches.pairs if is_lg[m.a] != is_lg[m.b]]
+    pair_counts = [(names[m.a], names[m.b], len(m)) for m in photo_lg]
+    _draw_best(photo_lg, is_lg, images, matches.keypoints, out / "matches_lidargram_photo.png")
     t = _time.perf_counter()
     export_colmap(out / "colmap", names, cameras, result, tr.image[keep], tr.track[keep], tr.uv[keep], station)
     timings["colmap_export"] = _time.perf_counter() - t
@@ -508,9 +511,8 @@ def export_colmap(folder: Path, names, cameras, result: BundleResult, obs_image:
     from georefine.io.colmap import to_reconstruction, write_model
 
     inl = result.tie_inlier.copy() if result.tie_inlier is not None else np.ones(len(obs_image), bool)
-    if station is not None and inl.any():  # tracks still seen from two stations (a photo and its lidargrams are one)
-        st = np.unique(np.column_stack([obs_point[inl], station[obs_image[inl]]]), axis=0)
-        inl &= np.bincount(st[:, 0], minlength=int(obs_point.max()) + 1)[obs_point] >= 2
+    if station is not None and inl.any():  # tracks still seen from two stations
+        inl &= stations_per_point(obs_point[inl], station[obs_image[inl]], int(obs_point.max()) + 1)[obs_point] >= 2
     rec = to_reconstruction(names, cameras, result.R_w_c, result.p_w_c, obs_image[inl], obs_point[inl], obs_uv[inl],
                             np.nan_to_num(result.tie_points_w))
     tmp = folder.with_name(folder.name + ".partial")  # written whole, then renamed
