@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 
 from georefine.evaluation.coadjust import cloud_errors
-from georefine.pipeline.lidargrammetry import run_coadjust
+from georefine.workflows.lidargrammetry import run_coadjust
 
 
 def main() -> None:

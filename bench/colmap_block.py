@@ -33,9 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
-from georefine.io.colmap import block_from_reconstruction, mean_reprojection_error, read_model
+from georefine.io.colmap import (
+    block_from_reconstruction,
+    mean_reprojection_error,
+    read_model,
+)
 from georefine.lidargrammetry.crosscheck import reprojection_errors, solve_both
-from georefine.pipeline.lidargrammetry import load_photo_project
+from georefine.workflows.lidargrammetry import load_photo_project
 
 
 def main() -> None:

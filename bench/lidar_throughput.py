@@ -38,9 +38,9 @@ from georefine.io.las import iter_las_chunks
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.georeference import PoseInterpolator, georeference
 from georefine.lidar.planes import extract_features
-from georefine.pipeline import load_navigation
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.sampled import trajectory_from_sbet
+from georefine.workflows import load_navigation
 
 
 def rate(n: int, seconds: float) -> str:

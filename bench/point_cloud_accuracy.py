@@ -22,7 +22,7 @@ import yaml
 
 from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.trajectory_files import compare_sbet_files
-from georefine.pipeline import run_georeference
+from georefine.workflows import run_georeference
 
 
 def cloud_metrics(points_dir: Path, project: Path, names: set[str]) -> dict:

@@ -27,7 +27,6 @@ import tempfile
 import time
 from pathlib import Path
 
-
 # A fresh interpreter per case reports its own children's peak (getrusage's maximum is over all
 # children waited for so far, so measuring in this process would carry the first case's peak).
 _WRAP = ("import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True, stdout=subprocess.DEVNULL); "

@@ -69,15 +69,15 @@ def adjust(project: str) -> dict:
     """Child process: filter and G/I adjustment of one project; timings, sizes and peak RSS."""
     import psutil
 
-    from georefine import pipeline
+    from georefine import workflows
 
-    nav = pipeline.load_navigation(project)
+    nav = workflows.load_navigation(project)
     t = time.perf_counter()
-    filt = pipeline.step_initialise(nav)
+    filt = workflows.step_initialise(nav)
     t_filter = time.perf_counter() - t
     rss_before = psutil.Process().memory_info().rss
     t = time.perf_counter()
-    adj = pipeline.step_adjust_gnss_imu(nav, filt)
+    adj = workflows.step_adjust_gnss_imu(nav, filt)
     t_adjust = time.perf_counter() - t
     s = adj.solve
     return {

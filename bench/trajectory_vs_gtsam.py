@@ -124,7 +124,7 @@ def errors(nav, truth, t: np.ndarray, p_w_b: np.ndarray, R_w_b: np.ndarray, mask
 
 def run_georefine(nav) -> tuple[object, Solution]:
     """Steps 1-2 of the workflow, timed; returns the filter result (shared with gtsam) and the solution."""
-    from georefine.pipeline import step_adjust_gnss_imu, step_initialise
+    from georefine.workflows import step_adjust_gnss_imu, step_initialise
 
     sol = Solution("Georefine")
     t = time.perf_counter()
@@ -310,7 +310,7 @@ def main() -> None:
 
     import gtsam  # noqa: F401  (fail early if the peer is missing)
 
-    from georefine.pipeline import load_navigation
+    from georefine.workflows import load_navigation
 
     base = args.keep or Path(tempfile.mkdtemp(prefix="georefine-bench-"))
     base.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,11 @@ import scipy.optimize
 import scipy.sparse as sp
 
 from georefine.adjustment import linalg
-from georefine.adjustment.linalg import NotPositiveDefiniteError, cholesky, marginal_covariance_blocks
+from georefine.adjustment.linalg import (
+    NotPositiveDefiniteError,
+    cholesky,
+    marginal_covariance_blocks,
+)
 from georefine.adjustment.problem import JacobianBlock, Linearization, Problem
 from georefine.adjustment.robust import CauchyLoss, HuberLoss, TrivialLoss, make_loss
 from georefine.adjustment.solver import SolverOptions

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from georefine.geometry.camera import Camera, R_w_c_from_opk, project_points
 from georefine.lidargrammetry.bundle import BlockImages, ControlData, coadjust
-from georefine.lidargrammetry.camera import Camera, R_w_c_from_opk, project_points
 
 PHOTO = Camera(3000, 2000, 4000.0, 4000.0, 1503.0, 997.0, k1=-0.05, k2=0.01, name="photo")
 LG = PHOTO.scaled(0.5)

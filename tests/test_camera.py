@@ -6,8 +6,13 @@ import cv2
 import numpy as np
 import pytest
 
+from georefine.geometry.camera import (
+    Camera,
+    R_w_c_from_opk,
+    opk_from_R_w_c,
+    project_points,
+)
 from georefine.geometry.rotation import exp_so3
-from georefine.lidargrammetry.camera import Camera, R_w_c_from_opk, opk_from_R_w_c, project_points
 
 CAM = Camera(4000, 3000, 3500.0, 3502.0, 2001.3, 1497.8, k1=-0.08, k2=0.03, k3=-0.004, p1=2e-4, p2=-3e-4)
 

@@ -6,12 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from georefine.geometry.camera import Camera, R_w_c_from_opk, project_points
 from georefine.io.colmap import (
-    block_from_reconstruction, mean_reprojection_error, poses_from_reconstruction, read_model, to_reconstruction,
+    block_from_reconstruction,
+    mean_reprojection_error,
+    poses_from_reconstruction,
+    read_model,
+    to_reconstruction,
     write_model,
 )
 from georefine.lidargrammetry.crosscheck import reprojection_errors, solve_both
-from georefine.lidargrammetry.camera import Camera, R_w_c_from_opk, project_points
 
 pycolmap = pytest.importorskip("pycolmap")
 

@@ -31,14 +31,14 @@ from georefine.errors import InputError
 from georefine.geometry import earth
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import exp_so3, log_so3
-from georefine.io.gnss import GnssSolution
+from georefine.io.gnss import GnssSolution, gnss_in_w
 from georefine.io.imu import ImuData
 from georefine.sim.flight import FlightConfig, simulate_flight
 from georefine.sim.gnss import GnssConfig, simulate_gnss
 from georefine.sim.imu import imu_grade, simulate_imu
 from georefine.trajectory import _ekf_kernels as kernels
 from georefine.trajectory import strapdown as sd
-from georefine.trajectory.ekf import FilterConfig, gnss_in_w, run_filter
+from georefine.trajectory.ekf import FilterConfig, run_filter
 from georefine.trajectory.sampled import Trajectory
 
 P_B_A = np.array([0.3, -0.2, -1.1])

@@ -10,14 +10,23 @@ from typer.testing import CliRunner
 
 from georefine.cli import app
 from georefine.errors import InputError
-from georefine.evaluation.plots import _envelope, plot_attitude_differences, plot_position_differences
+from georefine.evaluation.plots import (
+    _envelope,
+    plot_attitude_differences,
+    plot_position_differences,
+)
 from georefine.evaluation.trajectory import (
     compare_trajectories,
     consistency,
     wrap_angle,
 )
 from georefine.evaluation.trajectory_files import compare_sbet_files
-from georefine.geometry.earth import R_e_n, ecef_to_geodetic, geodetic_to_ecef, radii_of_curvature
+from georefine.geometry.earth import (
+    R_e_n,
+    ecef_to_geodetic,
+    geodetic_to_ecef,
+    radii_of_curvature,
+)
 from georefine.geometry.rotation import rot_x, rot_y
 from georefine.io.trajectory import SbetData, write_sbet
 

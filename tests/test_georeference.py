@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from georefine.io.trajectory import read_sbet, write_sbet
-from georefine.pipeline import run_georeference
 from georefine.sim.scenarios import simulate_project
+from georefine.workflows import run_georeference
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""Tests of georefine.io.gnss (RTKLIB .pos) and the shared helpers in io._common."""
+"""Tests of georefine.io.gnss (RTKLIB .pos) and the shared helpers in io.files."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 from pyproj import Transformer
 
 from georefine.errors import InputError
-from georefine.io._common import (
+from georefine.io.files import (
     atomic_output,
     calendar_from_gps_seconds,
     gps_seconds_from_calendar,

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from georefine.errors import InputError
+from georefine.geometry.camera import Camera, R_w_c_from_opk
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import photos
-from georefine.lidargrammetry.camera import Camera, R_w_c_from_opk
 
 CAMERAS = """cameras:
   rgb:

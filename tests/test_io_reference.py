@@ -6,7 +6,11 @@ import numpy as np
 import pytest
 
 from georefine.errors import InputError
-from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces, write_reference_surfaces
+from georefine.io.reference import (
+    ReferenceSurfaces,
+    read_reference_surfaces,
+    write_reference_surfaces,
+)
 
 HEADER = "surface_id,point_id,x,y,z\n"
 

@@ -6,9 +6,16 @@ import cv2
 import numpy as np
 import pytest
 
-from georefine.lidargrammetry.camera import Camera
+from georefine.geometry.camera import Camera
 from georefine.lidargrammetry.matching import (
-    Keypoints, PairMatches, XFeatMatcher, build_tracks, detect_sift, draw_matches, match_pair, verify_pair,
+    Keypoints,
+    PairMatches,
+    XFeatMatcher,
+    build_tracks,
+    detect_sift,
+    draw_matches,
+    match_pair,
+    verify_pair,
 )
 
 CAM = Camera(640, 480, 600.0, 600.0, 320.0, 240.0)

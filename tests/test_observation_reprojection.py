@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from georefine.adjustment.observations.reprojection import BEHIND_RESIDUAL, ReprojectionObservation
+from georefine.adjustment.observations.reprojection import (
+    BEHIND_RESIDUAL,
+    ReprojectionObservation,
+)
 from georefine.adjustment.testing import check_jacobians
-from georefine.lidargrammetry.camera import Camera, R_w_c_from_opk, project_points
+from georefine.geometry.camera import Camera, R_w_c_from_opk, project_points
 
 
 def _setup(seed=31):

@@ -4,7 +4,13 @@ import numpy as np
 import pytest
 
 from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
-from georefine.evaluation.strip_differences import cell_planes, crop, strip_differences, write_geotiff, write_png
+from georefine.evaluation.strip_differences import (
+    cell_planes,
+    crop,
+    strip_differences,
+    write_geotiff,
+    write_png,
+)
 
 
 def _tilted(rng, n, slope, offset, extent=20.0):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from georefine.lidargrammetry.camera import R_w_c_from_opk
+from georefine.geometry.camera import R_w_c_from_opk
 from georefine.lidargrammetry.reintersect import feather_weights, reintersect
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from georefine.errors import InputError
-from georefine.lidargrammetry.camera import Camera, R_w_c_from_opk, project_points
+from georefine.geometry.camera import Camera, R_w_c_from_opk, project_points
 from georefine.lidargrammetry.render import (
     Lidargram,
     estimate_point_spacing,

@@ -10,10 +10,10 @@ import pytest
 import yaml
 
 from georefine.config import load_project
+from georefine.geometry.camera import project_points
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import photos
 from georefine.io.gnss import read_pos
-from georefine.lidargrammetry.camera import project_points
 from georefine.sim.scenarios import simulate_project
 
 SMALL = [

@@ -8,7 +8,13 @@ from georefine.geometry import earth
 from georefine.geometry.frames import LocalFrame
 from georefine.sim.flight import FlightConfig, simulate_flight
 from georefine.sim.gnss import GnssConfig, _gauss_markov, gnss_epochs, simulate_gnss
-from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade, imu_grade, simulate_imu
+from georefine.sim.imu import (
+    DEFAULT_IMU_GRADE,
+    IMU_PRESETS,
+    ImuGrade,
+    imu_grade,
+    simulate_imu,
+)
 
 P_B_A = np.array([0.3, -0.2, -1.1])
 

@@ -20,8 +20,8 @@ import yaml
 from georefine.evaluation.trajectory import consistency
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.trajectory import read_sbet, read_trajectory_csv
-from georefine.pipeline import load_navigation, run_trajectory
 from georefine.sim.scenarios import simulate_project
+from georefine.workflows import load_navigation, run_trajectory
 
 FAST_SCAN = ["scanner.pulse_rate_hz=2000", "scanner.line_rate_hz=100"]  # the navigation data do not depend on the scanner
 

@@ -23,13 +23,28 @@ from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.trajectory import read_sbet
-from georefine.lidar.correspondences import inject_wrong_matches, match_features, read_objects
+from georefine.lidar.correspondences import (
+    inject_wrong_matches,
+    match_features,
+    read_objects,
+)
 from georefine.lidar.planes import read_features
-from georefine.pipeline import load_navigation, run_georeference, step_adjust_gnss_imu, step_initialise
-from georefine.pipeline.lidar import precompute_gnss_imu, read_strips, run_workflow, step_adjust_gil, step_features
-from georefine.pipeline.navigation import imu_rate_trajectory
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.sampled import Trajectory, trajectory_from_sbet
+from georefine.workflows import (
+    load_navigation,
+    run_georeference,
+    step_adjust_gnss_imu,
+    step_initialise,
+)
+from georefine.workflows.lidar import (
+    precompute_gnss_imu,
+    read_strips,
+    run_workflow,
+    step_adjust_gil,
+    step_features,
+)
+from georefine.workflows.navigation import imu_rate_trajectory
 
 SCAN = ["scanner.pulse_rate_hz=100000", "scanner.line_rate_hz=120"]  # the corridor's scanner
 

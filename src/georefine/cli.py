@@ -62,7 +62,13 @@ def _user_errors() -> Iterator[None]:
 @contextmanager
 def _progress() -> Iterator:
     """A rich progress bar; yields ``report(task, done, total)`` for the library to call."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+    from rich.progress import (
+        BarColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     with Progress(
         TextColumn("{task.description:<28}"),
@@ -119,7 +125,7 @@ def check(
 ) -> None:
     """Validate a project: project.yaml and every sensor file it names, and their time spans."""
     with _user_errors():
-        from georefine.io.project import inspect_project
+        from georefine.workflows.project import inspect_project
 
         with _progress() as report:
             summary = inspect_project(project, progress=report)
@@ -139,7 +145,7 @@ def trajectory(
     configuration.
     """
     with _user_errors():
-        from georefine.pipeline import run_trajectory
+        from georefine.workflows import run_trajectory
 
         with _progress() as report:
             result = run_trajectory(project, out, filter_only=filter_only, progress=report)
@@ -163,7 +169,7 @@ def run(
     """
     with _user_errors():
         from georefine.errors import InputError
-        from georefine.pipeline.lidar import run_workflow
+        from georefine.workflows.lidar import run_workflow
 
         ids = None
         if strips:
@@ -186,7 +192,7 @@ def georeference(
 ) -> None:
     """Georeference the project's strips with a trajectory (LAZ 1.4 in the output CRS)."""
     with _user_errors():
-        from georefine.pipeline import run_georeference
+        from georefine.workflows import run_georeference
 
         with _progress() as report:
             result = run_georeference(project, trajectory_file, out, gps_week=gps_week, progress=report)
@@ -216,7 +222,7 @@ def demo(
     out = out or Path("georefine-demo")
     seed = 42 if seed is None else seed
     with _user_errors():
-        from georefine.pipeline.demo import run_demo
+        from georefine.demo.corridor import run_demo
 
         with _progress() as report:
             result = run_demo(out, scenario=scenario, seed=seed, overrides=overrides or [], single_pass=single_pass,
@@ -241,7 +247,7 @@ def _block_demo(out: Path, seed: int, overrides: list[str], method: str) -> None
 
             raise InputError("unknown matching method for the demo", field="--method", expected="sift or xfeat",
                              found=method)
-        from georefine.pipeline.demo_block import run_block_demo
+        from georefine.demo.block import run_block_demo
 
         with _progress() as report:
             result = run_block_demo(out, seed=seed, overrides=overrides, method=method, progress=report)
@@ -272,8 +278,12 @@ def lidargrams(
     """Render lidargrams at the photos' approximate orientation: OUT/NAME.png and NAME.npz (ULPI raster)."""
     with _user_errors():
         from georefine.lidargrammetry.render import save_lidargram
-        from georefine.pipeline.lidargrammetry import load_photo_project, read_cloud, render_lidargrams
-        from georefine.pipeline.navigation import output_folder
+        from georefine.workflows.lidargrammetry import (
+            load_photo_project,
+            read_cloud,
+            render_lidargrams,
+        )
+        from georefine.workflows.project import output_folder
 
         pp = load_photo_project(project)
         out = output_folder(out, pp.root)
@@ -290,7 +300,9 @@ _METHOD_HELP = "Matcher: sift, xfeat (the deep extra), or lightglue (the deep ex
 
 
 def _matcher(method: str, features: str, extractor_weights: Optional[Path], lightglue_weights: Optional[Path]):
-    from georefine.pipeline.lidargrammetry import make_matcher  # refuses an unknown method (InputError)
+    from georefine.workflows.lidargrammetry import (
+        make_matcher,  # refuses an unknown method (InputError)
+    )
 
     return make_matcher(method, lightglue_features=features, extractor_weights=extractor_weights,
                         lightglue_weights=lightglue_weights)
@@ -314,7 +326,7 @@ def match(
     Writes OUT/lidargrams/, pairs.csv, matches.csv, tracks.csv, matches_<kind>.png, summary.json.
     """
     with _user_errors():
-        from georefine.pipeline.lidargrammetry import run_match
+        from georefine.workflows.lidargrammetry import run_match
 
         kinds = tuple(k.strip() for k in pairs.split(",") if k.strip())
         m = _matcher(method, features, extractor_weights, lightglue_weights)
@@ -350,7 +362,7 @@ def coadjust(
     """
     with _user_errors():
         from georefine.errors import InputError
-        from georefine.pipeline.lidargrammetry import run_coadjust
+        from georefine.workflows.lidargrammetry import run_coadjust
 
         try:
             sig_r = tuple(float(v) for v in sigma_rotation.split(","))
@@ -415,7 +427,10 @@ def evaluate_trajectory(
     Differences are estimate minus reference; angle differences are wrapped to (-180, 180] deg.
     """
     with _user_errors():
-        from georefine.evaluation.trajectory_files import compare_sbet_files, write_trajectory_evaluation
+        from georefine.evaluation.trajectory_files import (
+            compare_sbet_files,
+            write_trajectory_evaluation,
+        )
 
         comparison = compare_sbet_files(estimate, reference, gps_week=gps_week, time_window=span)
         files = (

@@ -16,7 +16,14 @@ from typing import Any, Literal
 
 import numpy as np
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from georefine.errors import ConfigError
 
@@ -436,7 +443,7 @@ def deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
 
 def write_yaml(path: str | Path, data: dict[str, Any] | BaseModel) -> None:
     """Write YAML atomically (temporary name, then rename)."""
-    from georefine.io._common import atomic_output
+    from georefine.io.files import atomic_output
 
     if isinstance(data, BaseModel):
         data = data.model_dump(mode="json")

@@ -22,7 +22,7 @@ from georefine.adjustment.observations.prior import EuclideanPrior
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
-from georefine.adjustment.solver import SolverOptions, SolveResult
+from georefine.adjustment.solver import SolveResult, SolverOptions
 from georefine.config import ImuErrorSpec, TrajectoryAdjustmentConfig
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame
@@ -207,7 +207,7 @@ def build_gnss_imu_problem(
     return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors)
 
 
-def _euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
+def euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
     """``E^-1`` with ``omega_nb_b = E(rph) d(rph)/dt``: maps a body rotation to Euler-angle changes."""
     r, p = rph[:, 0], rph[:, 1]
     sr, cr, sp, cp = np.sin(r), np.cos(r), np.sin(p), np.cos(p)
@@ -263,7 +263,7 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
     tk = grid.knot_times[knots]
     p_w, R_w_b = spline.pose(tk)
     rph = rph_from_R_n_b(np.swapaxes(built.data.frame.R_w_n_at(p_w), 1, 2) @ R_w_b)
-    Einv = _euler_rate_inverse(rph)
+    Einv = euler_rate_inverse(rph)
     cov_rph = Einv @ cov_R @ np.swapaxes(Einv, 1, 2)
     sigma_rph = np.sqrt(np.clip(np.diagonal(cov_rph, axis1=1, axis2=2), 0.0, None))
     sigma_p = np.sqrt(np.clip(np.diagonal(cov_p, axis1=1, axis2=2), 0.0, None))

@@ -28,18 +28,33 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
 
-from georefine.adjustment.linalg import Factorization, cholesky, marginal_covariance_blocks
-from georefine.adjustment.robust import RobustLoss
-from georefine.geometry.rotation import exp_so3
-
-if TYPE_CHECKING:
-    from georefine.adjustment.solver import IterationSummary, SolveResult, SolverOptions
+from georefine.adjustment.blocks import (
+    ColumnLayout,
+    JacobianBlock,
+    Linearization,
+    Manifold,
+    ObservationGroup,
+    ParameterBlock,
+    constant_mask,
+    retract,
+    tangent_dim,
+)
+from georefine.adjustment.linalg import (
+    Factorization,
+    cholesky,
+    marginal_covariance_blocks,
+)
+from georefine.adjustment.solver import (
+    IterationSummary,
+    SolveResult,
+    SolverOptions,
+    run_levenberg_marquardt,
+)
 
 __all__ = [
     "Manifold",
@@ -54,255 +69,6 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
-
-Manifold = Literal["euclidean", "so3"]
-_MANIFOLDS = ("euclidean", "so3")
-_ORTHONORMAL_TOL = 1e-6
-
-
-def tangent_dim(manifold: str, values: np.ndarray) -> int:
-    """Tangent dimension of one element: ``d`` (euclidean ``(n, d)``) or 3 (so3)."""
-    return 3 if manifold == "so3" else int(values.shape[1])
-
-
-def retract(manifold: str, values: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """Apply the retraction element-wise: ``x + delta`` or ``R @ Exp(delta)``.
-
-    Parameters
-    ----------
-    manifold
-        ``"euclidean"`` or ``"so3"``.
-    values
-        ``(k, d)`` or ``(k, 3, 3)`` elements.
-    delta
-        ``(k, d)`` or ``(k, 3)`` tangent increments.
-
-    Returns
-    -------
-    np.ndarray
-        New elements (a new array).
-    """
-    if manifold == "so3":
-        return values @ exp_so3(delta)
-    return values + delta
-
-
-@dataclass
-class ParameterBlock:
-    """A named stack of ``n`` parameters on one manifold.
-
-    Attributes
-    ----------
-    name
-        Unique block name (observation groups refer to it).
-    values
-        ``(n, d)`` (euclidean) or ``(n, 3, 3)`` rotation matrices (so3).
-    manifold
-        ``"euclidean"`` or ``"so3"``.
-    constant
-        ``(n,)`` bool: element held constant (no columns in the normal equations).
-    """
-
-    name: str
-    values: np.ndarray
-    manifold: Manifold = "euclidean"
-    constant: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        if self.manifold not in _MANIFOLDS:
-            raise ValueError(f"block {self.name!r}: manifold must be one of {_MANIFOLDS}, found {self.manifold!r}")
-        values = np.array(self.values, dtype=float, copy=True)
-        if self.manifold == "so3":
-            if values.ndim != 3 or values.shape[1:] != (3, 3):
-                raise ValueError(f"block {self.name!r}: so3 values must have shape (n, 3, 3), found {values.shape}")
-            err = np.abs(values @ np.swapaxes(values, 1, 2) - np.eye(3)).max(initial=0.0)
-            if err > _ORTHONORMAL_TOL or np.any(np.linalg.det(values) <= 0):
-                raise ValueError(f"block {self.name!r}: so3 values are not rotation matrices (|R R^T - I| = {err:.1e})")
-        elif values.ndim != 2:
-            raise ValueError(f"block {self.name!r}: euclidean values must have shape (n, d), found {values.shape}")
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"block {self.name!r}: values contain NaN or inf")
-        self.values = values
-        self.constant = _constant_mask(self.name, self.constant, values.shape[0])
-
-    @property
-    def size(self) -> int:
-        """Number of elements ``n``."""
-        return int(self.values.shape[0])
-
-    @property
-    def dim(self) -> int:
-        """Tangent dimension of one element."""
-        return tangent_dim(self.manifold, self.values)
-
-
-def _constant_mask(name: str, mask: np.ndarray | bool | None, n: int) -> np.ndarray:
-    if mask is None:
-        return np.zeros(n, dtype=bool)
-    mask = np.asarray(mask)
-    if mask.ndim == 0:
-        return np.full(n, bool(mask))
-    if mask.shape != (n,):
-        raise ValueError(f"block {name!r}: constant mask must be a bool or shape ({n},), found {mask.shape}")
-    return mask.astype(bool)
-
-
-@dataclass(frozen=True)
-class JacobianBlock:
-    """Jacobian of some residual rows with respect to some elements of one block.
-
-    Attributes
-    ----------
-    block
-        Parameter block name.
-    rows
-        ``(N, m)`` int: rows (into the group's residual vector) of the ``N`` entries.
-    elements
-        ``(N,)`` int: element index within the block.
-    values
-        ``(N, m, d)``: ``d r[rows[k]] / d delta[elements[k]]``, ``d`` the block's tangent dimension.
-    """
-
-    block: str
-    rows: np.ndarray
-    elements: np.ndarray
-    values: np.ndarray
-
-    def __post_init__(self) -> None:
-        rows, elements, values = np.asarray(self.rows), np.asarray(self.elements), np.asarray(self.values, dtype=float)
-        if rows.ndim != 2 or elements.ndim != 1 or values.ndim != 3:
-            raise ValueError(
-                f"JacobianBlock {self.block!r}: expected rows (N, m), elements (N,), values (N, m, d); found "
-                f"{rows.shape}, {elements.shape}, {values.shape}"
-            )
-        if values.shape[:2] != rows.shape or elements.shape[0] != rows.shape[0]:
-            raise ValueError(
-                f"JacobianBlock {self.block!r}: inconsistent shapes rows {rows.shape}, elements {elements.shape}, "
-                f"values {values.shape}"
-            )
-        object.__setattr__(self, "rows", rows)
-        object.__setattr__(self, "elements", elements)
-        object.__setattr__(self, "values", values)
-
-
-@dataclass(frozen=True)
-class Linearization:
-    """Residuals and (optionally) Jacobians of one observation group.
-
-    Attributes
-    ----------
-    residuals
-        ``(M,)`` whitened residuals ``r = Sigma^{-1/2} (model - measurement)``.
-    jacobians
-        :class:`JacobianBlock` list; empty when not requested.
-    observation
-        ``(M,)`` int >= 0: observation index of every row (rows of one observation share a
-        robust weight, e.g. the three rows of a GNSS epoch).
-    """
-
-    residuals: np.ndarray
-    jacobians: list[JacobianBlock] = field(default_factory=list)
-    observation: np.ndarray | None = None
-
-    def __post_init__(self) -> None:
-        r = np.asarray(self.residuals, dtype=float)
-        if r.ndim != 1:
-            raise ValueError(f"Linearization: residuals must be 1-D, found shape {r.shape}")
-        obs = np.arange(r.size) if self.observation is None else np.asarray(self.observation)
-        if obs.shape != r.shape:
-            raise ValueError(f"Linearization: observation must have shape {r.shape}, found {obs.shape}")
-        if obs.size and obs.min() < 0:
-            raise ValueError("Linearization: observation indices must be >= 0")
-        object.__setattr__(self, "residuals", r)
-        object.__setattr__(self, "observation", obs.astype(np.int64, copy=False))
-        object.__setattr__(self, "jacobians", list(self.jacobians))
-
-
-@runtime_checkable
-class ObservationGroup(Protocol):
-    """A set of observations evaluated together (vectorised).
-
-    Attributes
-    ----------
-    name
-        Unique group name (used in the statistics).
-    loss
-        Robust loss acting on each observation's squared whitened norm; ``None`` = plain LS.
-    """
-
-    name: str
-    loss: RobustLoss | None
-
-    def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
-        """Residuals and, if ``jacobians``, Jacobian blocks at ``values`` (block name -> array)."""
-        ...
-
-
-@dataclass
-class ColumnLayout:
-    """Columns of the free elements in the normal equations.
-
-    Blocks in insertion order, elements in index order, ``d`` consecutive columns per free
-    element.
-
-    Attributes
-    ----------
-    col_start
-        Block name -> ``(n,)`` int64: first column of each element, -1 for constant ones.
-    dims
-        Block name -> tangent dimension.
-    manifolds
-        Block name -> manifold.
-    free
-        Block name -> indices of the free elements.
-    n_cols
-        Number of unknowns.
-    """
-
-    col_start: dict[str, np.ndarray]
-    dims: dict[str, int]
-    manifolds: dict[str, str]
-    free: dict[str, np.ndarray]
-    n_cols: int
-
-    @classmethod
-    def build(cls, blocks: Mapping[str, ParameterBlock]) -> ColumnLayout:
-        """Layout of the current constant masks of ``blocks``."""
-        col_start, dims, manifolds, free, offset = {}, {}, {}, {}, 0
-        for name, block in blocks.items():
-            d = block.dim
-            idx = np.flatnonzero(~block.constant)
-            starts = np.full(block.size, -1, dtype=np.int64)
-            starts[idx] = offset + d * np.arange(idx.size)
-            offset += d * idx.size
-            col_start[name], dims[name], manifolds[name], free[name] = starts, d, block.manifold, idx
-        return cls(col_start, dims, manifolds, free, offset)
-
-    def apply_step(self, values: Mapping[str, np.ndarray], delta: np.ndarray) -> dict[str, np.ndarray]:
-        """Retract the free elements by the global tangent step ``delta`` ``(n_cols,)``.
-
-        Returns new read-only arrays for the changed blocks; unchanged blocks are shared.
-        """
-        new = dict(values)
-        for name, free in self.free.items():
-            if free.size == 0:
-                continue
-            step = delta[self.col_start[name][free][:, None] + np.arange(self.dims[name])]
-            arr = np.array(values[name], copy=True)
-            arr[free] = retract(self.manifolds[name], arr[free], step)
-            arr.setflags(write=False)
-            new[name] = arr
-        return new
-
-    def parameter_norm(self, values: Mapping[str, np.ndarray]) -> float:
-        """Norm of the free Euclidean values, counting every free rotation as 1."""
-        total = 0.0
-        for name, free in self.free.items():
-            if self.manifolds[name] == "so3":
-                total += float(free.size)
-            else:
-                total += float(np.sum(values[name][free] ** 2))
-        return float(np.sqrt(total))
 
 
 @dataclass
@@ -350,7 +116,7 @@ class Problem:
     def set_constant(self, name: str, mask_or_bool: np.ndarray | bool) -> None:
         """Hold a whole block (``True``/``False``) or chosen elements (``(n,)`` bool) constant."""
         block = self._block(name)
-        block.constant = _constant_mask(name, mask_or_bool, block.size)
+        block.constant = constant_mask(name, mask_or_bool, block.size)
 
     def set_values(self, name: str, values: np.ndarray) -> None:
         """Replace a block's current values (same shape), e.g. to restart from a new guess."""
@@ -420,7 +186,6 @@ class Problem:
         SolveResult
             Statistics; the block values are updated in place to the estimate.
         """
-        from georefine.adjustment.solver import SolverOptions, run_levenberg_marquardt
 
         options = SolverOptions() if options is None else options
         outcome = run_levenberg_marquardt(self._blocks, tuple(self._groups.values()), options, progress)

@@ -49,6 +49,12 @@ from typing import Literal
 import numpy as np
 import scipy.sparse as sp
 
+from georefine.adjustment.blocks import (
+    ColumnLayout,
+    Linearization,
+    ObservationGroup,
+    ParameterBlock,
+)
 from georefine.adjustment.linalg import (
     BlockTriplets,
     NotPositiveDefiniteError,
@@ -57,9 +63,13 @@ from georefine.adjustment.linalg import (
     available_backends,
     normal_equations,
 )
-from georefine.adjustment.problem import ColumnLayout, Linearization, ObservationGroup, ParameterBlock
 from georefine.adjustment.robust import irls_weights
-from georefine.adjustment.statistics import GroupStatistics, IterationSummary, SolveResult, Timings
+from georefine.adjustment.statistics import (
+    GroupStatistics,
+    IterationSummary,
+    SolveResult,
+    Timings,
+)
 
 __all__ = [
     "SolverOptions",

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from georefine.adjustment.problem import ObservationGroup, ParameterBlock, retract
+from georefine.adjustment.blocks import ObservationGroup, ParameterBlock, retract
 
 __all__ = ["JacobianCheck", "check_jacobians"]
 

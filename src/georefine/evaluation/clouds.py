@@ -35,9 +35,8 @@ from georefine.evaluation.strip_differences import (
     write_geotiff,
     write_png,
 )
-from georefine.io._common import atomic_output
+from georefine.io.files import atomic_output, write_json
 from georefine.io.reference import read_reference_surfaces
-from georefine.products import write_json
 
 __all__ = ["Layer", "point_files", "read_layers", "evaluate_reference_planes", "evaluate_strip_differences", "epsg_of"]
 

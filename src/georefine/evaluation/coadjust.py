@@ -83,7 +83,7 @@ def plot_cloud_errors(errors: CloudErrors, path: Path, *, title: str = "", max_p
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from georefine.io._common import atomic_path
+    from georefine.io.files import atomic_path
 
     rms0, rms1 = CloudErrors._rms(errors.before), CloudErrors._rms(errors.after)
     if len(errors.xy) > max_points:

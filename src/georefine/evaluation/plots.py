@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from georefine.io._common import PathLike, atomic_path, week_from_gps_seconds
+from georefine.io.files import PathLike, atomic_path, week_from_gps_seconds
 
 if TYPE_CHECKING:  # pragma: no cover
     from georefine.evaluation.trajectory import TrajectoryComparison

@@ -15,11 +15,10 @@ they were measured on, and how well overlapping strips agree on planar surfaces 
 from __future__ import annotations
 
 from dataclasses import dataclass
-
-import numpy as np
 from pathlib import Path
 
 import laspy
+import numpy as np
 from scipy.spatial import cKDTree
 
 from georefine.evaluation.strip_differences import strip_differences

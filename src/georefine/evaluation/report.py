@@ -17,14 +17,14 @@ Images are embedded as base64 PNG, so the single file is the whole report.
 
 from __future__ import annotations
 
-import base64
 import datetime as _dt
 import html
 import json
 from pathlib import Path
 
 from georefine import __version__
-from georefine.io._common import atomic_output
+from georefine.evaluation.page import CSS, image, table
+from georefine.io.files import atomic_output
 
 __all__ = ["PAPER_000", "write_report", "summary_rows"]
 
@@ -35,30 +35,6 @@ PAPER_000 = {
     "G/I/L single pass": {"roll_rmse_mdeg": 8.0, "pitch_rmse_mdeg": 2.0, "yaw_rmse_mdeg": 2.0},
     "reference_planes": {"G/I": {"avg_sd_m": 0.0101}, "G/I/L": {"avg_sd_m": 0.0033}},
 }
-
-_CSS = """
-body{font-family:system-ui,-apple-system,Segoe UI,Roboto,sans-serif;margin:2em auto;max-width:1200px;color:#222;padding:0 1em}
-h1{font-size:1.6em}h2{border-bottom:1px solid #ccc;padding-bottom:.2em;margin-top:1.6em}
-table{border-collapse:collapse;margin:.6em 0}th,td{border:1px solid #ccc;padding:.25em .6em;text-align:right}
-th{background:#f3f3f3}td:first-child,th:first-child{text-align:left}
-.maps{display:flex;gap:1em;flex-wrap:wrap}.maps figure{flex:1;min-width:420px;margin:0}
-img{max-width:100%}figcaption{font-size:.9em;color:#555}pre{background:#f7f7f7;padding:1em;overflow:auto;font-size:.85em}
-.note{color:#555;font-size:.9em}
-"""
-
-
-def _img(path: Path, alt: str) -> str:
-    if not path.is_file():
-        return f'<p class="note">({html.escape(alt)}: not available)</p>'
-    data = base64.b64encode(path.read_bytes()).decode()
-    return f'<img alt="{html.escape(alt)}" src="data:image/png;base64,{data}">'
-
-
-def _table(header: list[str], rows: list[list]) -> str:
-    h = "".join(f"<th>{html.escape(str(c))}</th>" for c in header)
-    body = "".join("<tr>" + "".join(f"<td>{html.escape(str(c))}</td>" for c in r) + "</tr>" for r in rows)
-    return f"<table><tr>{h}</tr>{body}</table>"
-
 
 def _f(x, scale=1.0, digits=1) -> str:
     return "–" if x is None else f"{x * scale:.{digits}f}"
@@ -108,16 +84,16 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
              f"trajectory reference: {html.escape(summary.get('reference', '–'))}.</p>"]
 
     parts.append("<h2>1. Summary beside paper 000</h2>")
-    parts.append(_table(["quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L"],
+    parts.append(table(["quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L"],
                         summary_rows(summary)))
     parts.append('<p class="note">Paper 000 compares with its full G/I/L solution (no truth); Georefine compares '
                  "with the reference named above. Reference planes: Mean and RMSE over all strip x channel "
                  "observations, AVG-SD the mean per-surface standard deviation (Table 1).</p>")
 
     parts.append("<h2>2. Workflow</h2>")
-    parts.append(_table(["step", "seconds"], [[k, f"{v:.1f}"] for k, v in metrics.get("timings_s", {}).items()]))
+    parts.append(table(["step", "seconds"], [[k, f"{v:.1f}"] for k, v in metrics.get("timings_s", {}).items()]))
     if metrics.get("outer_iterations"):
-        parts.append(_table(
+        parts.append(table(
             ["outer iteration", "features", "objects", "features used", "RMS change (mdeg)", "RMS change (mm)"],
             [[it["iteration"], f"{it['features']:,}", f"{it['objects']:,}", f"{it['features_used']:,}",
               f"{it['attitude_change_mdeg']:.2f}", f"{it['position_change_m'] * 1e3:.1f}"]
@@ -134,9 +110,9 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         a = t["all"]
         rows.append([label, "all", _f(a["roll_rmse_mdeg"], digits=2), _f(a["pitch_rmse_mdeg"], digits=2),
                      _f(a["yaw_rmse_mdeg"], digits=2), _f(a["3d_rmse_m"], 1e3)])
-    parts.append(_table(["solution", "during", "roll (mdeg)", "pitch (mdeg)", "yaw (mdeg)", "3-D position (mm)"], rows))
-    parts.append(_img(ev / "attitude_differences.png", "attitude differences"))
-    parts.append(_img(ev / "position_differences.png", "position differences"))
+    parts.append(table(["solution", "during", "roll (mdeg)", "pitch (mdeg)", "yaw (mdeg)", "3-D position (mm)"], rows))
+    parts.append(image(ev / "attitude_differences.png", "attitude differences"))
+    parts.append(image(ev / "position_differences.png", "position differences"))
 
     rp = summary.get("reference_planes", {})
     if rp:
@@ -145,13 +121,13 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         for label in ("G/I", "G/I/L"):
             for s in rp.get(label, {}).get("surfaces", []):
                 surf.setdefault(s["surface_id"], {})[label] = s
-        parts.append(_table(
+        parts.append(table(
             ["surface", "observations", "G/I mean (mm)", "G/I SD (mm)", "G/I/L mean (mm)", "G/I/L SD (mm)"],
             [[sid, v.get("G/I/L", v.get("G/I", {})).get("observations", "–"),
               _f(v.get("G/I", {}).get("mean_m"), 1e3), _f(v.get("G/I", {}).get("sd_m"), 1e3),
               _f(v.get("G/I/L", {}).get("mean_m"), 1e3), _f(v.get("G/I/L", {}).get("sd_m"), 1e3)]
              for sid, v in surf.items()]))
-        parts.append(_table(["", "Mean (mm)", "RMSE (mm)", "AVG-SD (mm)", "observations"],
+        parts.append(table(["", "Mean (mm)", "RMSE (mm)", "AVG-SD (mm)", "observations"],
                             [[label, _f(v.get("mean_m"), 1e3), _f(v.get("rmse_m"), 1e3), _f(v.get("avg_sd_m"), 1e3),
                               v.get("n_observations", "–")] for label, v in rp.items()]))
 
@@ -161,7 +137,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         figs = []
         for label, v in sd.items():
             if v.get("zoom_map"):
-                figs.append(f"<figure>{_img(ev / v['zoom_map'], label)}<figcaption>{html.escape(label)}: detail "
+                figs.append(f"<figure>{image(ev / v['zoom_map'], label)}<figcaption>{html.escape(label)}: detail "
                             "around the first reference site</figcaption></figure>")
         if figs:
             parts.append('<div class="maps">' + "".join(figs) + "</div>")
@@ -169,7 +145,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         for label, v in sd.items():
             cap = (f"{label}: median {_f(v.get('median_m'), 1e3)} mm, P95 {_f(v.get('p95_m'), 1e3)} mm "
                    f"over {v.get('cells', 0):,} planar 1 m cells")
-            figs.append(f"<figure>{_img(ev / v['map'], label)}<figcaption>{html.escape(cap)}</figcaption></figure>")
+            figs.append(f"<figure>{image(ev / v['map'], label)}<figcaption>{html.escape(cap)}</figcaption></figure>")
         parts.append('<div class="maps">' + "".join(figs) + "</div>")
 
     parts.append("<h2>6. Adjustment statistics and IMU errors</h2>")
@@ -178,7 +154,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         parts.append(f"<h3>{'G/I' if key == 'gi' else 'G/I/L'}: {html.escape(str(s.get('termination')))} after "
                      f"{s.get('iterations')} iterations, σ0² = {_f(s.get('variance_factor'), digits=3)}, "
                      f"{s.get('n_unknowns'):,} unknowns, redundancy {s.get('redundancy'):,}</h3>")
-        parts.append(_table(
+        parts.append(table(
             ["group", "observations", "rows", "RMS", "σ0² (approx.)", "cost share", "down-weighted"],
             [[g["name"], f"{g['n_observations']:,}", f"{g['n_residuals']:,}", _f(g["rms"], digits=3),
               _f(g["variance_factor"], digits=3), f"{100 * g['cost_share']:.1f} %", g["n_downweighted"]]
@@ -197,7 +173,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
                     first, last = v[0], v[-1]
                     rows.append([name.rsplit("_", 1)[0] + " (first knot → last)", unit] + [
                         f"{first[i]:.2f} → {last[i]:.2f}" for i in range(3)])
-            parts.append(_table(["IMU error", "unit", "x", "y", "z"], rows))
+            parts.append(table(["IMU error", "unit", "x", "y", "z"], rows))
         if a.get("boresight_deg"):
             b, sg = a["boresight_deg"], a.get("boresight_sigma_mdeg") or [float("nan")] * 3
             parts.append("<p>Boresight roll/pitch/yaw: " + ", ".join(
@@ -208,7 +184,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         parts.append("<h2>7. Configuration</h2><pre>" + html.escape(cfg.read_text()) + "</pre>")
 
     doc = (f"<!DOCTYPE html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>{html.escape(title)}</title>"
-           f"<style>{_CSS}</style></head><body>{''.join(parts)}</body></html>\n")
+           f"<style>{CSS}</style></head><body>{''.join(parts)}</body></html>\n")
     with atomic_output(path, "w") as fh:
         fh.write(doc)
     return path

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from georefine.io._common import atomic_path
+from georefine.io.files import atomic_path
 
 __all__ = ["CellPlanes", "cell_planes", "StripDifferenceMap", "strip_differences", "crop", "write_png", "write_geotiff"]
 

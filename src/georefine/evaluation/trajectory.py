@@ -58,7 +58,7 @@ import numpy as np
 from georefine.errors import InputError
 from georefine.geometry.earth import R_e_n, ecef_to_geodetic, geodetic_to_ecef
 from georefine.geometry.rotation import R_n_b_from_rph, exp_so3, log_so3, rph_from_R_n_b
-from georefine.io._common import SECONDS_PER_WEEK, week_from_gps_seconds
+from georefine.io.files import SECONDS_PER_WEEK, week_from_gps_seconds
 from georefine.io.trajectory import SbetData
 
 __all__ = [

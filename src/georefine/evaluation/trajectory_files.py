@@ -17,7 +17,12 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.evaluation.trajectory import TrajectoryComparison, compare_trajectories
-from georefine.io._common import SECONDS_PER_WEEK, PathLike, atomic_output, week_from_gps_seconds
+from georefine.io.files import (
+    SECONDS_PER_WEEK,
+    PathLike,
+    atomic_output,
+    week_from_gps_seconds,
+)
 from georefine.io.trajectory import SBET_RECORD_SIZE, read_sbet
 
 _log = logging.getLogger(__name__)
@@ -166,7 +171,10 @@ def write_trajectory_evaluation(
     InputError
         If ``out_dir`` is a protected input or an existing file, or cannot be created.
     """
-    from georefine.evaluation.plots import plot_attitude_differences, plot_position_differences
+    from georefine.evaluation.plots import (
+        plot_attitude_differences,
+        plot_position_differences,
+    )
 
     out = _output_folder(Path(out_dir), protect)
     if label is None:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from georefine.lidargrammetry.camera import Camera
+from georefine.geometry.camera import Camera
 
 __all__ = ["to_reconstruction", "write_model", "read_model", "poses_from_reconstruction", "ColmapBlock",
            "block_from_reconstruction", "colmap_bundle_adjustment", "mean_reprojection_error"]

@@ -43,7 +43,8 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.geometry import earth
-from georefine.io._common import (
+from georefine.geometry.frames import LocalFrame
+from georefine.io.files import (
     PathLike,
     atomic_output,
     calendar_from_gps_seconds,
@@ -57,7 +58,7 @@ from georefine.io._common import (
     rounded_time_units,
 )
 
-__all__ = ["GnssSolution", "read_pos", "write_pos", "enu_rotation"]
+__all__ = ["GnssSolution", "read_pos", "write_pos", "enu_rotation", "gnss_in_w"]
 
 _log = logging.getLogger(__name__)
 
@@ -470,3 +471,26 @@ def write_pos(
         fh.writelines(row_fmt % tuple(r) for r in table.tolist())
     _log.info("wrote %d GNSS epochs to %s", n, path)
     return Path(path)
+
+
+def gnss_in_w(frame: LocalFrame, t0_gps: float, solution: GnssSolution,
+              min_quality: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """GNSS antenna positions and covariances in ``w``.
+
+    Parameters
+    ----------
+    frame : LocalFrame
+    t0_gps : float
+        Dataset epoch (GPS seconds).
+    solution : GnssSolution
+    min_quality : int
+        Worst RTKLIB quality flag kept (1 fix, 2 float, ...).
+
+    Returns
+    -------
+    time : (G,) s rel. ``t0_gps``; p_w : (G, 3) m; cov_w : (G, 3, 3) m^2 (``R_e_w^T C_e R_e_w``).
+    """
+    keep = solution.quality <= min_quality
+    R_e_w = frame.R_e_w
+    cov_w = R_e_w.T @ solution.covariance_ecef[keep] @ R_e_w
+    return solution.time_gps[keep] - t0_gps, frame.from_ecef(solution.position_ecef[keep]), cov_w

@@ -50,7 +50,7 @@ from typing import Literal
 import numpy as np
 
 from georefine.errors import InputError
-from georefine.io._common import (
+from georefine.io.files import (
     SECONDS_PER_WEEK,
     PathLike,
     atomic_output,

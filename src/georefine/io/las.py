@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from georefine.errors import InputError
-from georefine.io._common import PathLike, check_output_path
+from georefine.io.files import PathLike, check_output_path
 
 __all__ = ["PointCloud", "ScanChunk", "LasInfo", "LasWriter", "read_las_info", "iter_las_chunks", "read_las",
            "write_las", "GPS_TIME_OFFSET_S"]

@@ -20,7 +20,7 @@ Markers::
 disabled (``0``), which is how Metashape tells them apart. The accuracy columns are optional
 when reading. In Metashape, choose the same CRS and the rotation angles omega, phi, kappa in
 the *Reference Settings*; the angles are Georefine's photogrammetric omega-phi-kappa
-(:mod:`georefine.lidargrammetry.camera`, the convention of ``eop.csv``).
+(:mod:`georefine.geometry.camera`, the convention of ``eop.csv``).
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from georefine.errors import InputError
-from georefine.io._common import PathLike, atomic_output, read_text_lines
+from georefine.io.files import PathLike, atomic_output, read_text_lines
 from georefine.io.photos import ControlPoints, ExteriorOrientation
 
 __all__ = ["CAMERA_COLUMNS", "MARKER_COLUMNS", "write_cameras", "write_markers", "read_cameras", "read_markers"]

@@ -21,7 +21,7 @@ Files (all optional parts of a project; names are configurable)
     standard deviations ``sx,sy,sz,s_omega_deg,s_phi_deg,s_kappa_deg`` (m, deg) and ``camera``
     (required when ``cameras.yaml`` has more than one camera). ``x,y,z``: projection centre in
     the output CRS (easting, northing, ellipsoidal height). The angles are the photogrammetric
-    omega-phi-kappa of :mod:`georefine.lidargrammetry.camera` relative to the CRS's *grid* axes
+    omega-phi-kappa of :mod:`georefine.geometry.camera` relative to the CRS's *grid* axes
     at the projection centre (grid east, grid north, up), as Metashape and PATB write them in a
     projected CRS: they differ from angles against true north by the meridian convergence,
     which :func:`poses_in_w` and :func:`eop_from_w` account for exactly.
@@ -46,10 +46,10 @@ import yaml
 
 from georefine.errors import InputError
 from georefine.geometry import earth
+from georefine.geometry.camera import Camera, R_w_c_from_opk, opk_from_R_w_c
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.geometry.rotation import rot_z
-from georefine.io._common import PathLike, atomic_output, read_text_lines
-from georefine.lidargrammetry.camera import Camera, R_w_c_from_opk, opk_from_R_w_c
+from georefine.io.files import PathLike, atomic_output, read_text_lines
 
 _log = logging.getLogger(__name__)
 

@@ -20,7 +20,13 @@ from pathlib import Path
 import numpy as np
 
 from georefine.errors import InputError
-from georefine.io._common import PathLike, atomic_output, data_lines, parse_float_rows, read_text_lines
+from georefine.io.files import (
+    PathLike,
+    atomic_output,
+    data_lines,
+    parse_float_rows,
+    read_text_lines,
+)
 
 __all__ = ["ReferenceSurfaces", "read_reference_surfaces", "write_reference_surfaces", "REFERENCE_COLUMNS"]
 

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from georefine.errors import InputError
-from georefine.io._common import (
+from georefine.io.files import (
     SECONDS_PER_WEEK,
     PathLike,
     atomic_output,

@@ -67,7 +67,13 @@ from scipy.spatial import cKDTree
 
 from georefine.config import MatchingConfig
 from georefine.errors import InputError
-from georefine.io._common import PathLike, atomic_output, data_lines, parse_float_rows, read_text_lines
+from georefine.io.files import (
+    PathLike,
+    atomic_output,
+    data_lines,
+    parse_float_rows,
+    read_text_lines,
+)
 from georefine.lidar.planes import PlanarFeatures
 
 __all__ = [

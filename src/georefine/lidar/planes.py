@@ -63,7 +63,7 @@ import numpy as np
 
 from georefine.config import PlaneExtractionConfig
 from georefine.errors import InputError
-from georefine.io._common import (
+from georefine.io.files import (
     PathLike,
     atomic_output,
     data_lines,

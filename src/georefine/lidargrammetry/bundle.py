@@ -36,11 +36,14 @@ import numpy as np
 
 from georefine.adjustment.linalg import NotPositiveDefiniteError
 from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
-from georefine.adjustment.observations.reprojection import DepthObservation, ReprojectionObservation
+from georefine.adjustment.observations.reprojection import (
+    DepthObservation,
+    ReprojectionObservation,
+)
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolverOptions
-from georefine.lidargrammetry.camera import Camera
+from georefine.geometry.camera import Camera
 
 log = logging.getLogger(__name__)
 

@@ -20,7 +20,11 @@ from georefine.adjustment.observations.reprojection import ReprojectionObservati
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.solver import SolverOptions
 from georefine.io.colmap import (
-    ColmapBlock, block_from_reconstruction, colmap_bundle_adjustment, mean_reprojection_error, to_reconstruction,
+    ColmapBlock,
+    block_from_reconstruction,
+    colmap_bundle_adjustment,
+    mean_reprojection_error,
+    to_reconstruction,
 )
 
 __all__ = ["SolverRun", "reprojection_errors", "solve_both"]

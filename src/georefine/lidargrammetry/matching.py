@@ -40,8 +40,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from georefine.io._common import PathLike, atomic_output
-from georefine.lidargrammetry.camera import Camera
+from georefine.geometry.camera import Camera
+from georefine.io.files import PathLike, atomic_output
 
 log = logging.getLogger(__name__)
 

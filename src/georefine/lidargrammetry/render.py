@@ -50,8 +50,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from georefine.errors import InputError
-from georefine.io._common import PathLike, atomic_output
-from georefine.lidargrammetry.camera import Camera
+from georefine.geometry.camera import Camera
+from georefine.io.files import PathLike, atomic_output
 
 __all__ = ["Lidargram", "estimate_point_spacing", "render_lidargram", "save_lidargram", "load_lidargram"]
 

@@ -29,9 +29,9 @@ import numpy as np
 from pydantic import Field
 
 from georefine.config import StrictModel
-from georefine.io._common import atomic_output
+from georefine.geometry.camera import FLIP, Camera, project_points
 from georefine.geometry.rotation import exp_so3, rot_z
-from georefine.lidargrammetry.camera import FLIP, Camera, project_points
+from georefine.io.files import atomic_output
 
 __all__ = ["CameraConfig", "PhotoBlockConfig", "PhotoBlock", "plan_block", "pixel_rays", "render_photo", "control_points",
            "write_photo_block"]

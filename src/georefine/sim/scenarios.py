@@ -37,9 +37,9 @@ from georefine.config import (
     ChannelConfig,
     CrsConfig,
     GnssFileConfig,
-    PhotosFileConfig,
     ImuErrorSpec,
     ImuFileConfig,
+    PhotosFileConfig,
     ProjectConfig,
     ReferenceConfig,
     ReferencePoint,
@@ -54,6 +54,7 @@ from georefine.config import (
 )
 from georefine.errors import ConfigError, InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.progress import Progress, no_progress
 from georefine.sim.camera import PhotoBlockConfig, write_photo_block
 from georefine.sim.flight import FlightConfig, TrueTrajectory, simulate_flight
 from georefine.sim.gnss import GnssConfig, simulate_gnss
@@ -62,12 +63,6 @@ from georefine.sim.scanner import ScannerConfig, scan
 from georefine.sim.scene import SceneConfig, build_scene
 
 log = logging.getLogger(__name__)
-
-Progress = Callable[[str, float, float], None]
-
-
-def _no_progress(name: str, done: float, total: float) -> None:
-    return None
 
 
 class JammingConfig(StrictModel):
@@ -225,7 +220,7 @@ def simulate_project(
     imu_grade: str | None = None,
     gnss_grade: str | None = None,
     write_imr: bool = False,
-    progress: Progress = _no_progress,
+    progress: Progress = no_progress,
     on_navigation: Callable[[Path], None] | None = None,
 ) -> SimulationResult:
     """Simulate scenario ``scenario`` and write a project folder at ``out`` (see module docstring).

@@ -53,14 +53,14 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from georefine.sim.scene_objects import (
     Material,
+    MeshBuilder,
     ReferenceSurface,
-    _Builder,
-    _buildings,
-    _power_line,
-    _reference_surfaces,
-    _vegetation,
+    add_buildings,
+    add_power_line,
+    add_reference_surfaces,
+    add_vegetation,
 )
-from georefine.sim.texture import _albedo_kernel
+from georefine.sim.texture import albedo_kernel
 
 log = logging.getLogger(__name__)
 
@@ -342,7 +342,7 @@ class Scene:
         if len(f) != len(p) or (len(f) and f.min() < 0):
             raise ValueError("albedo needs one valid face id (>= 0) per point")
         out = np.empty(len(p))
-        _albedo_kernel(p, np.ascontiguousarray(self._cache["normal"][f]),
+        albedo_kernel(p, np.ascontiguousarray(self._cache["normal"][f]),
                        np.ascontiguousarray(self.face_material[f]), self.texture_seed,
                        self.road_geometry, out)
         return out
@@ -392,7 +392,7 @@ def build_scene(cfg: SceneConfig, rng: np.random.Generator) -> Scene:
     V_t = np.column_stack([X.ravel(), Y.ravel(), Z.ravel()])
     cen = V_t[F_t].mean(axis=1)
     on_road = _road_distance(roads, cen[:, 0], cen[:, 1])[0] < hw
-    b = _Builder()
+    b = MeshBuilder()
     b.add(V_t, F_t, np.where(on_road, Material.ROAD, Material.TERRAIN))
 
     def height(x, y):
@@ -407,10 +407,10 @@ def build_scene(cfg: SceneConfig, rng: np.random.Generator) -> Scene:
             return False
         return all(np.hypot(x - ox, y - oy) > r + orr + 3 for ox, oy, orr in occupied)
 
-    refs = _reference_surfaces(cfg, rng, b, height, free, occupied)
-    pylons = _power_line(cfg, b, height) if cfg.power_line else np.zeros((0, 3))
-    n_b = _buildings(cfg, rng, b, height, free, occupied, set_x, set_y, cross_ang)
-    n_v = _vegetation(cfg, rng, b, height, lambda x, y: _road_distance(roads, x, y)[0],
+    refs = add_reference_surfaces(cfg, rng, b, height, free, occupied)
+    pylons = add_power_line(cfg, b, height) if cfg.power_line else np.zeros((0, 3))
+    n_b = add_buildings(cfg, rng, b, height, free, occupied, set_x, set_y, cross_ang)
+    n_v = add_vegetation(cfg, rng, b, height, lambda x, y: _road_distance(roads, x, y)[0],
                       occupied)
 
     V, F, M = b.build()

@@ -7,7 +7,7 @@ Builders that add the scene's objects to one triangle mesh in the mapping frame 
 * :class:`Material` of a face and :class:`ReferenceSurface`, the surveyed slabs (both
   re-exported by :mod:`georefine.sim.scene`, their public home);
 * small geometry helpers: face templates (hexahedra, buildings, sphere, cone), outward
-  orientation of faces, instancing, square-section bars, and ``_Builder``, which collects
+  orientation of faces, instancing, square-section bars, and ``MeshBuilder``, which collects
   vertices, faces and face materials;
 * the objects: reference-surface slabs, pylons and wires of the power line, gabled and
   flat-roofed buildings, vegetation (trees and shrubs).
@@ -126,7 +126,7 @@ def _bars(p0, p1, w0, w1):
     return np.concatenate([p0[:, None] + w0 * ring, p1[:, None] + w1 * ring], axis=1)
 
 
-class _Builder:
+class MeshBuilder:
     """Collects vertices, faces and face materials of the scene parts."""
 
     def __init__(self):
@@ -147,7 +147,7 @@ class _Builder:
 
 
 # ---------------------------------------------------------------------------- objects
-def _reference_surfaces(cfg, rng, b, height, free, occupied):
+def add_reference_surfaces(cfg, rng, b, height, free, occupied):
     """Horizontal square slabs at ``len(reference_surfaces_per_site)`` sites."""
     L, s = cfg.length_m, cfg.reference_size_m
     n_sites, refs, k = len(cfg.reference_surfaces_per_site), [], 0
@@ -199,7 +199,7 @@ def _pylon_y(cfg):
     return (cfg.length_m - n * cfg.pylon_spacing_m) / 2 + cfg.pylon_spacing_m * np.arange(n + 1)
 
 
-def _power_line(cfg, b, height):
+def add_power_line(cfg, b, height):
     """Pylons on the axis and five wires per span; returns the pylon foot points."""
     H, ys = cfg.pylon_height_m, _pylon_y(cfg)
     z0 = height(np.zeros_like(ys), ys)
@@ -248,7 +248,7 @@ def _power_line(cfg, b, height):
     return np.column_stack([np.zeros_like(ys), ys, z0])
 
 
-def _buildings(cfg, rng, b, height, free, occupied, set_x, set_y, cross_ang):
+def add_buildings(cfg, rng, b, height, free, occupied, set_x, set_y, cross_ang):
     """Gabled and flat-roofed buildings in settlements and scattered; returns the count."""
     specs = []  # centre x, y, yaw, length, width, eave, ridge (0 = flat)
     todo = [(sx, sy, ca, cfg.settlement_radius_m) for sx, sy, ca in zip(set_x, set_y, cross_ang)
@@ -302,7 +302,7 @@ def _buildings(cfg, rng, b, height, free, occupied, set_x, set_y, cross_ang):
     return len(S)
 
 
-def _vegetation(cfg, rng, b, height, road_distance, occupied):
+def add_vegetation(cfg, rng, b, height, road_distance, occupied):
     """Trees (ellipsoid or cone crowns on trunks) and shrubs; returns the count.
 
     ``road_distance(x, y)`` gives the distance [m] to the nearest road centreline.

@@ -68,7 +68,7 @@ def _road_coords(x, y, roads):
 
 
 @numba.njit(cache=True)
-def _albedo_kernel(p, n, mat, seed, roads, out):
+def albedo_kernel(p, n, mat, seed, roads, out):
     """Albedo of surface points, written to ``out`` (N,).
 
     ``p`` (N, 3) points in ``w`` [m], ``n`` (N, 3) unit normals and ``mat`` (N,) uint8

@@ -13,7 +13,7 @@ from typing import Callable, Iterable
 import numpy as np
 
 from georefine.geometry.frames import LocalFrame, OutputCRS
-from georefine.io._common import week_from_gps_seconds
+from georefine.io.files import week_from_gps_seconds
 from georefine.io.gnss import GnssSolution, write_pos
 from georefine.io.imu import ImuData, write_imr, write_imu_csv
 from georefine.io.las import LasWriter, PointCloud

@@ -119,7 +119,7 @@ def _gnss_model(p, v, R, omega_ib_b, w_ie, p_b_a, d, H):
 
 
 @nb.njit(cache=True)
-def _forward(t, w, f, wm, fm, k0, k1, ep_flag, g_k, g_dt, g_z, g_R, p_b_a, P0, qc, Gam, gate,
+def forward_pass(t, w, f, wm, fm, k0, k1, ep_flag, g_k, g_dt, g_z, g_R, p_b_a, P0, qc, Gam, gate,
              gate_reset, R_e_w, p_e_w, w_ie, P_n, V_n, R_n, ep_idx, ep_Pp, ep_Phi, ep_dx, ep_nom,
              g_status, g_nis):
     """Forward filter from sample ``k0`` (initial nominal state in ``P_n[k0]`` ...) to ``k1``."""
@@ -190,7 +190,7 @@ def _forward(t, w, f, wm, fm, k0, k1, ep_flag, g_k, g_dt, g_z, g_R, p_b_a, P0, q
 
 
 @nb.njit(cache=True)
-def _smooth(ep_t, ep_Pp, ep_Phi, ep_dx, qc, ds, sig):
+def rts_smooth(ep_t, ep_Pp, ep_Phi, ep_dx, qc, ds, sig):
     """RTS recursion on the error state (module docstring); writes ``ds`` and ``sig`` (E, 21)."""
     n = ep_t.shape[0]
     Ps = ep_Pp[n - 1].copy()
@@ -212,7 +212,7 @@ def _smooth(ep_t, ep_Pp, ep_Phi, ep_dx, qc, ds, sig):
 
 
 @nb.njit(cache=True)
-def _apply(t, ep_idx, ds, ep_dx, ep_nom, P_n, V_n, R_n, nom_out):
+def apply_smoothed(t, ep_idx, ds, ep_dx, ep_nom, P_n, V_n, R_n, nom_out):
     """Apply the smoothed corrections at every sample (interpolated between epochs), in place."""
     E = np.zeros((3, 3))
     n = ep_idx.shape[0]

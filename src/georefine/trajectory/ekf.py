@@ -92,6 +92,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from scipy.stats import chi2
@@ -100,13 +101,30 @@ from georefine.config import FilterConfig, ImuErrorSpec
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import skew
-from georefine.io.gnss import GnssSolution
-from georefine.io.imu import ImuData
 from georefine.trajectory import strapdown as sd
-from georefine.trajectory._ekf_kernels import _forward, _smooth, _apply
+from georefine.trajectory._ekf_kernels import apply_smoothed, forward_pass, rts_smooth
 from georefine.trajectory.sampled import Trajectory
 
-__all__ = ["FilterConfig", "FilterResult", "gnss_in_w", "run_filter"]
+__all__ = ["FilterConfig", "FilterResult", "ImuSamples", "run_filter"]
+
+
+class ImuSamples(Protocol):
+    """The raw IMU samples the filter reads (as :class:`georefine.io.imu.ImuData` holds them).
+
+    ``time_gps`` (N,) GPS seconds; ``kind`` ``"rates"`` (``gyro`` (N, 3) rad/s, ``acc`` (N, 3)
+    m/s^2, body FRD) or ``"increments"`` (read through ``increments()``: rad and m/s per
+    sample); ``rate_hz`` the nominal rate.
+    The trajectory layer reads no files (docs/ARCHITECTURE.md §1), so it names what it needs
+    instead of importing the reader's type.
+    """
+
+    time_gps: np.ndarray
+    gyro: np.ndarray
+    acc: np.ndarray
+    rate_hz: float
+    kind: str
+
+    def increments(self) -> tuple[np.ndarray, np.ndarray]: ...
 
 log = logging.getLogger(__name__)
 
@@ -189,29 +207,6 @@ class FilterResult:
     def to_sampled(self) -> Trajectory:
         """The trajectory as :class:`georefine.trajectory.sampled.Trajectory`."""
         return Trajectory(self.time, self.p_w_b, self.R_w_b, t0_gps=self.t0_gps, v_w_b=self.v_w_b)
-
-
-def gnss_in_w(frame: LocalFrame, t0_gps: float, solution: GnssSolution,
-              min_quality: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """GNSS antenna positions and covariances in ``w``.
-
-    Parameters
-    ----------
-    frame : LocalFrame
-    t0_gps : float
-        Dataset epoch (GPS seconds).
-    solution : GnssSolution
-    min_quality : int
-        Worst RTKLIB quality flag kept (1 fix, 2 float, ...).
-
-    Returns
-    -------
-    time : (G,) s rel. ``t0_gps``; p_w : (G, 3) m; cov_w : (G, 3, 3) m^2 (``R_e_w^T C_e R_e_w``).
-    """
-    keep = solution.quality <= min_quality
-    R_e_w = frame.R_e_w
-    cov_w = R_e_w.T @ solution.covariance_ecef[keep] @ R_e_w
-    return solution.time_gps[keep] - t0_gps, frame.from_ecef(solution.position_ecef[keep]), cov_w
 
 
 # ---------------------------------------------------------------------------- njit kernels
@@ -336,7 +331,7 @@ def _initial_covariance(u_b, f_level, cov_gnss, p_b_a, s_sensor, cfg):
 
 
 # ---------------------------------------------------------------------------- public API
-def run_filter(frame: LocalFrame, t0_gps: float, imu: ImuData, gnss_time: np.ndarray,
+def run_filter(frame: LocalFrame, t0_gps: float, imu: ImuSamples, gnss_time: np.ndarray,
                gnss_p_w: np.ndarray, gnss_cov_w: np.ndarray, p_b_a: np.ndarray,
                spec: ImuErrorSpec, cfg: FilterConfig | None = None) -> FilterResult:
     """Error-state EKF with in-motion alignment and RTS smoother (module docstring).
@@ -347,14 +342,14 @@ def run_filter(frame: LocalFrame, t0_gps: float, imu: ImuData, gnss_time: np.nda
         Mapping frame ``w``.
     t0_gps : float
         Dataset epoch (GPS seconds); ``imu.time_gps - t0_gps`` are the filter times.
-    imu : ImuData
+    imu : ImuSamples
         Raw IMU (rates or increments), body FRD.
     gnss_time : (G,) float64
         GNSS epochs, s relative to ``t0_gps``, strictly increasing.
     gnss_p_w : (G, 3)
         Antenna positions in ``w`` (m).
     gnss_cov_w : (G, 3, 3)
-        Their covariances in ``w`` (m^2), see :func:`gnss_in_w`.
+        Their covariances in ``w`` (m^2), see :func:`georefine.io.gnss.gnss_in_w`.
     p_b_a : (3,)
         Antenna lever arm in the body frame (m).
     spec : ImuErrorSpec
@@ -444,7 +439,7 @@ def run_filter(frame: LocalFrame, t0_gps: float, imu: ImuData, gnss_time: np.nda
     ep_dx, ep_nom = np.empty((n_ep, _NX)), np.empty((n_ep, 12))
     st = np.full(len(gt), _OUTSIDE, dtype=np.int8)
     nis = np.full(len(gt), np.nan)
-    e = _forward(t, np.ascontiguousarray(w), np.ascontiguousarray(f), np.ascontiguousarray(wm),
+    e = forward_pass(t, np.ascontiguousarray(w), np.ascontiguousarray(f), np.ascontiguousarray(wm),
                  np.ascontiguousarray(fm), k0, k1, ep_flag, g_k, g_dt, gp, gc, p_b_a, P0, qc, Gam,
                  float(gate), cfg.gnss_gate_reset_s, *sd._frame_arrays(frame), P_n, V_n, R_n,
                  ep_idx, ep_Pp, ep_Phi, ep_dx, ep_nom, st, nis)
@@ -454,10 +449,10 @@ def run_filter(frame: LocalFrame, t0_gps: float, imu: ImuData, gnss_time: np.nda
     # ---- smoother and corrections at every sample
     ep_t = t[ep_idx]
     ds, sig = np.empty((n_ep, _NX)), np.empty((n_ep, _NX))
-    _smooth(ep_t, ep_Pp, ep_Phi, ep_dx, qc, ds, sig)
+    rts_smooth(ep_t, ep_Pp, ep_Phi, ep_dx, qc, ds, sig)
     del ep_Pp, ep_Phi
     bias = np.empty((N, 6))
-    _apply(t, ep_idx, ds, ep_dx, ep_nom, P_n, V_n, R_n, bias)
+    apply_smoothed(t, ep_idx, ds, ep_dx, ep_nom, P_n, V_n, R_n, bias)
     scale = ep_nom[0, 6:] + ds[0, 15:]
     ts = t[span]
     sigma = np.empty((len(ts), 15))

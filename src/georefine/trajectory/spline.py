@@ -31,7 +31,14 @@ from typing import NamedTuple
 import numpy as np
 
 from georefine.errors import InputError
-from georefine.geometry.rotation import exp_so3, left_jacobian, log_so3, right_jacobian, right_jacobian_inv, skew
+from georefine.geometry.rotation import (
+    exp_so3,
+    left_jacobian,
+    log_so3,
+    right_jacobian,
+    right_jacobian_inv,
+    skew,
+)
 from georefine.trajectory.sampled import Trajectory
 
 _log = logging.getLogger(__name__)
@@ -277,7 +284,7 @@ class _Terms(NamedTuple):
     dphi2: np.ndarray | None  # (M, 3, 12): dphi2 / d[theta_k, omega_k, theta_k+1, omega_k+1]
 
 
-def _interval_terms(R0, R1, w0, w1, dt: float, jacobians: bool) -> _Terms:
+def interval_terms(R0, R1, w0, w1, dt: float, jacobians: bool) -> _Terms:
     """phi1..3 of intervals with end states (R0, w0), (R1, w1) and, if asked, dphi2/dx."""
     phi1 = w0 * (dt / 3.0)
     phi3 = w1 * (dt / 3.0)
@@ -310,7 +317,7 @@ def _interval_terms(R0, R1, w0, w1, dt: float, jacobians: bool) -> _Terms:
     return _Terms(phis, tuple(np.linalg.norm(p, axis=1) for p in phis), Ks, K2s, dphi2)
 
 
-def _evaluate(terms: _Terms, idx, R0, u, dt: float, rate: bool, jacobians: bool, k) -> OrientationEval:
+def evaluate_terms(terms: _Terms, idx, R0, u, dt: float, rate: bool, jacobians: bool, k) -> OrientationEval:
     """Per-time evaluation from per-interval ``terms`` indexed by ``idx`` (N,)."""
     beta = (1.0 - (1.0 - u) ** 3, u * u * (3.0 - 2.0 * u), u**3)
     dbeta = (3.0 * (1.0 - u) ** 2, 6.0 * u * (1.0 - u), 3.0 * u * u)
@@ -385,7 +392,7 @@ def eval_orientation(
       Exp(x) Exp(Jr(x) dx)).
     * ``phi1, phi3`` depend only on ``omega_k, omega_k+1`` (factor dt/3); ``phi2`` on all
       four states through ``D = Exp(-phi1) R_k^T R_k+1 Exp(-phi3)`` with
-      ``dphi2 = Jr^-1(phi2) dD`` (see ``_interval_terms`` for the four ``dD``; they use
+      ``dphi2 = Jr^-1(phi2) dD`` (see ``interval_terms`` for the four ``dD``; they use
       ``Ad_R = R``: ``Exp(x) D = D Exp(D^T x)``).
     * ``omega``: ``(A <- A Exp(e))`` changes ``A^T x`` by ``skew(A^T x) e``, so
       ``d(dt omega)/dphi1 = M23^T b1'``,
@@ -398,13 +405,13 @@ def eval_orientation(
     k, u = grid.locate(t)
     _check_knots(grid, R=R, W=W)
     if k.size >= grid.n_intervals:  # per-interval terms once, gathered per time
-        terms = _interval_terms(R[:-1], R[1:], W[:-1], W[1:], grid.dt, jacobians)
+        terms = interval_terms(R[:-1], R[1:], W[:-1], W[1:], grid.dt, jacobians)
         idx = k
     else:  # few times: compute the interval terms per time
-        terms = _interval_terms(R[k], R[k + 1], W[k], W[k + 1], grid.dt, jacobians)
+        terms = interval_terms(R[k], R[k + 1], W[k], W[k + 1], grid.dt, jacobians)
         idx = np.arange(k.size)
     if k.size <= _EVAL_CHUNK:
-        return _evaluate(terms, idx, R[k], u, grid.dt, rate, jacobians, k)
+        return evaluate_terms(terms, idx, R[k], u, grid.dt, rate, jacobians, k)
     # Blocks of a few thousand times keep the temporaries in cache: 2-3x faster than one pass.
     n = k.size
     R_out = np.empty((n, 3, 3))
@@ -414,7 +421,7 @@ def eval_orientation(
         jac = OrientationJacobians(k, np.empty((n, 3, 12)), np.empty((n, 3, 12)) if rate else None)
     for s in range(0, n, _EVAL_CHUNK):
         sl = slice(s, s + _EVAL_CHUNK)
-        part = _evaluate(terms, idx[sl], R[k[sl]], u[sl], grid.dt, rate, jacobians, k[sl])
+        part = evaluate_terms(terms, idx[sl], R[k[sl]], u[sl], grid.dt, rate, jacobians, k[sl])
         R_out[sl] = part.R_w_b
         if rate:
             omega[sl] = part.omega_wb_b

@@ -20,8 +20,8 @@ from georefine.trajectory.sampled import Trajectory
 from georefine.trajectory.spline import (
     KnotGrid,
     SplineTrajectory,
-    _evaluate,
-    _interval_terms,
+    evaluate_terms,
+    interval_terms,
     position_basis,
 )
 
@@ -189,14 +189,14 @@ def _fit_orientation(grid, k, u, R_s, omega_s, R, W, sigma_theta, sigma_omega, m
     """Gauss-Newton refinement of the knot attitudes and rates (see :func:`fit_spline`)."""
     dt = grid.dt
     for it in range(max_iterations):
-        terms = _interval_terms(R[:-1], R[1:], W[:-1], W[1:], dt, True)
+        terms = interval_terms(R[:-1], R[1:], W[:-1], W[1:], dt, True)
         blocks = np.zeros((grid.n_intervals, 12, 12))
         rhs = np.zeros((grid.n_intervals, 12, 1))
         cost = 0.0
         for s in range(0, k.size, _CHUNK):
             sl = slice(s, s + _CHUNK)
             ks = k[sl]
-            ev = _evaluate(terms, ks, R[ks], u[sl], dt, omega_s is not None, True, ks)
+            ev = evaluate_terms(terms, ks, R[ks], u[sl], dt, omega_s is not None, True, ks)
             r = log_so3(np.swapaxes(R_s[sl], 1, 2) @ ev.R_w_b)
             J = right_jacobian_inv(r) @ ev.jacobians.dR / sigma_theta
             r = r / sigma_theta

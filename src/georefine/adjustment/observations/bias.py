@@ -14,7 +14,7 @@ from typing import Mapping
 
 import numpy as np
 
-from georefine.adjustment.problem import JacobianBlock, Linearization
+from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.robust import RobustLoss
 
 

@@ -13,13 +13,13 @@ from typing import Mapping
 
 import numpy as np
 
+from georefine.adjustment.blocks import Linearization
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
     orientation_jacobians,
     position_jacobians,
     whitening,
 )
-from georefine.adjustment.problem import Linearization
 from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.rotation import skew
 from georefine.trajectory.spline import KnotGrid, eval_orientation, position_basis

@@ -25,12 +25,12 @@ from typing import Mapping
 
 import numpy as np
 
+from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
     orientation_jacobians,
 )
-from georefine.adjustment.problem import JacobianBlock, Linearization
 from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.earth import WGS84_A
 from georefine.geometry.frames import LocalFrame

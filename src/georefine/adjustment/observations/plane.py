@@ -54,12 +54,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
     orientation_jacobians,
     position_jacobians,
 )
-from georefine.adjustment.problem import JacobianBlock, Linearization
 from georefine.adjustment.robust import RobustLoss
 from georefine.trajectory.spline import KnotGrid, eval_orientation, position_basis
 

@@ -13,7 +13,7 @@ from typing import Mapping
 
 import numpy as np
 
-from georefine.adjustment.problem import JacobianBlock, Linearization
+from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.rotation import log_so3, right_jacobian_inv
 

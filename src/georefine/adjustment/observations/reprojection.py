@@ -2,7 +2,7 @@
 
 ``r = (project(camera_i, R_w_c[i]^T (X[k] - p_w_c[i])) - uv) / sigma_px`` for every observation
 of point ``k`` in image ``i``. A camera is any object with ``project(x_c, jacobian=True)``
-returning pixels and ``d uv / d x_c`` -- :class:`georefine.lidargrammetry.camera.Camera` in
+returning pixels and ``d uv / d x_c`` -- :class:`georefine.geometry.camera.Camera` in
 practice; the adjustment layer does not import the lidargrammetry layer above it. With
 ``x_c = R^T (X - p)``: ``d x_c / d delta = [x_c]_x`` for ``R <- R Exp(delta)``,
 ``d x_c / d p = -R^T``, ``d x_c / d X = R^T``.
@@ -21,7 +21,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from georefine.adjustment.problem import JacobianBlock, Linearization
+from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.rotation import skew
 

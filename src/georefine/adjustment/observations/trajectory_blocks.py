@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from georefine.adjustment.problem import JacobianBlock
+from georefine.adjustment.blocks import JacobianBlock
 from georefine.trajectory.spline import OrientationJacobians
 
 

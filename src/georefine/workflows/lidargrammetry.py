@@ -34,10 +34,11 @@ from georefine.adjustment.observations.reprojection import ReprojectionObservati
 from georefine.config import load_project
 from georefine.errors import InputError
 from georefine.evaluation.clouds import point_files
+from georefine.geometry.camera import Camera
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import metashape
 from georefine.io import photos as pio
-from georefine.io._common import atomic_output
+from georefine.io.files import atomic_output, write_json
 from georefine.io.las import LasWriter, PointCloud, iter_las_chunks
 from georefine.lidargrammetry.bundle import (
     CASES,
@@ -48,7 +49,6 @@ from georefine.lidargrammetry.bundle import (
     intersect_points,
     stations_per_point,
 )
-from georefine.lidargrammetry.camera import Camera
 from georefine.lidargrammetry.matching import (
     Keypoints,
     LightGlueMatcher,
@@ -63,9 +63,9 @@ from georefine.lidargrammetry.matching import (
 )
 from georefine.lidargrammetry.reintersect import feather_weights, reintersect
 from georefine.lidargrammetry.render import Lidargram, render_lidargram
-from georefine.pipeline.cache import StepCache, file_stamp
-from georefine.pipeline.navigation import Progress, _no_progress, output_folder
-from georefine.products import write_json
+from georefine.progress import Progress, no_progress
+from georefine.workflows.cache import StepCache, file_stamp
+from georefine.workflows.project import output_folder
 
 log = logging.getLogger(__name__)
 
@@ -141,7 +141,7 @@ def read_cloud(paths: list[Path], pp: PhotoProject) -> Cloud:
 
 def render_lidargrams(pp: PhotoProject, cloud: Cloud, *, scale: float = 0.5, per_strip: bool = True,
                       point_spacing_m: float | None = None, splat_scale: float = 2.0, min_coverage: float = 0.3,
-                      progress: Progress = _no_progress) -> list[tuple[Lidargram, int, int]]:
+                      progress: Progress = no_progress) -> list[tuple[Lidargram, int, int]]:
     """Lidargrams ``(lidargram, photo index, strip or -1)`` at the photos' approximate poses."""
     groups = [np.flatnonzero(cloud.strip == s) for s in range(len(cloud.files))] if per_strip else \
         [np.arange(len(cloud.xyz_w))]
@@ -217,7 +217,7 @@ def make_matcher(method: str = "sift", *, lightglue_features: str = "disk", extr
 def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.ndarray, is_lidargram: np.ndarray,
                 centres: np.ndarray, masks: list, *, method="sift", max_pair_distance_m: float = 150.0,
                 pair_kinds: tuple[str, ...] = ("photo-photo", "photo-lidargram"),
-                progress: Progress = _no_progress) -> BlockMatches:
+                progress: Progress = no_progress) -> BlockMatches:
     """Keypoints of every image, verified matches of overlapping pairs of the kinds asked, tracks.
 
     ``method``: ``"sift"``, ``"xfeat"`` or a matcher object (:func:`make_matcher`). Pairs whose
@@ -330,7 +330,7 @@ def _block_images(pp: PhotoProject, cloud: Cloud, scale: float, progress: Progre
 def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path, *, method: str = "sift",
               matcher=None, pair_kinds: tuple[str, ...] = ("photo-photo", "photo-lidargram"),
               lidargram_scale: float = 0.5, max_pair_distance_m: float = 150.0,
-              progress: Progress = _no_progress) -> dict:
+              progress: Progress = no_progress) -> dict:
     """Render the lidargrams, match the pairs of the kinds asked and write the matches.
 
     Writes into ``out``: ``lidargrams/`` (PNG and ULPI npz of each lidargram matched),
@@ -394,11 +394,11 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
                  lidargram_sigma_position_m: float = 1.0,
                  lidargram_sigma_rotation_deg: float | tuple[float, float, float] = (0.01, 0.01, 0.1),
                  cache_dir: str | Path | None = None, feather: bool = True,
-                 progress: Progress = _no_progress) -> tuple[BundleResult, dict]:
+                 progress: Progress = no_progress) -> tuple[BundleResult, dict]:
     """Steps 1-4 of the module docstring; returns the adjustment and the metrics written.
 
     ``matcher``: a matcher object (:func:`make_matcher`) instead of ``method``'s default one.
-    ``cache_dir``: a step cache (:class:`georefine.pipeline.cache.StepCache`) for the matches,
+    ``cache_dir``: a step cache (:class:`georefine.workflows.cache.StepCache`) for the matches,
     keyed by the photos, the point files, the matcher and the lidargram scale: cases 1 and 2
     of one cloud match once.
 

@@ -18,23 +18,25 @@ from __future__ import annotations
 
 import html
 import logging
-import multiprocessing
 import shutil
 import time as _time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 from georefine import __version__
-from georefine.evaluation.coadjust import PAPER_004_GRAZ, PAPER_004_LOOSDORF, cloud_errors, plot_cloud_errors
-from georefine.evaluation.report import _CSS, _img, _table
-from georefine.io._common import atomic_output
-from georefine.pipeline.demo import _init_worker, _queued, _Relay, _reusable
-from georefine.pipeline.lidar import run_workflow
-from georefine.pipeline.lidargrammetry import run_coadjust
-from georefine.pipeline.navigation import Progress, _no_progress
-from georefine.products import write_json
+from georefine.demo.lanes import Lanes, QueuedProgress, reusable_project
+from georefine.evaluation.coadjust import (
+    PAPER_004_GRAZ,
+    PAPER_004_LOOSDORF,
+    cloud_errors,
+    plot_cloud_errors,
+)
+from georefine.evaluation.page import CSS, image, table
+from georefine.io.files import atomic_output, write_json
+from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import simulate_project
+from georefine.workflows.lidar import run_workflow
+from georefine.workflows.lidargrammetry import run_coadjust
 
 log = logging.getLogger(__name__)
 
@@ -49,7 +51,7 @@ class BlockDemoResult:
     report: Path
     metrics: dict
 
-    def summary_table(self) -> list[list[str]]:
+    def summarytable(self) -> list[list[str]]:
         """Rows ``[case, points, RMSE X, Y, Z (m), RE (px), paper 004 Graz, paper 004 Loosdorf]``."""
         rows = []
         for case, m in sorted(self.metrics["cases"].items()):
@@ -66,15 +68,15 @@ class BlockDemoResult:
         return rows
 
 
-def _case3(project: Path, out: Path, cache: Path, method: str) -> dict:
+def _case3(project: Path, out: Path, cache: Path, method: str, progress: QueuedProgress) -> dict:
     """The second process: case 3 on the true cloud."""
     _, m = run_coadjust(project, [project / "truth"], out / "case3", 3, method=method, cache_dir=cache,
-                        progress=_queued("case 3: "))
+                        progress=progress)
     return m
 
 
 def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | None = None, method: str = "sift",
-                   progress: Progress = _no_progress) -> BlockDemoResult:
+                   progress: Progress = no_progress) -> BlockDemoResult:
     """Simulate, run, co-adjust (cases 1-3), evaluate and report into ``out``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -82,29 +84,26 @@ def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | Non
     project, cache = out / "project", out / ".cache"
     timings: dict[str, float] = {}
     start = _time.perf_counter()
-    ctx = multiprocessing.get_context("spawn")
-    events = ctx.Queue()
-    relay = _Relay(progress, events)
     cases: dict[int, dict] = {}
-    with ProcessPoolExecutor(max_workers=1, mp_context=ctx, initializer=_init_worker, initargs=(events,)) as pool:
+    with Lanes(progress) as lanes:
         t = _time.perf_counter()
-        if not _reusable(project, "block", seed, overrides):
+        if not reusable_project(project, "block", seed, overrides):
             if project.exists():
                 shutil.rmtree(project)
-            simulate_project("block", project, seed=seed, overrides=overrides, progress=relay)
+            simulate_project("block", project, seed=seed, overrides=overrides, progress=lanes)
             write_json(project / "truth" / "demo.json", {"scenario": "block", "seed": seed, "overrides": overrides})
         timings["simulate"] = _time.perf_counter() - t
-        third = pool.submit(_case3, project, out, cache, method)
+        third = lanes.submit(_case3, project, out, cache, method, lanes.queued("case 3: "))
         t = _time.perf_counter()
-        run_workflow(project, out / "run", lidar=False, cache_dir=cache, progress=relay)
+        run_workflow(project, out / "run", lidar=False, cache_dir=cache, progress=lanes)
         timings["run_gi"] = _time.perf_counter() - t
         for case in (1, 2):
             t = _time.perf_counter()
             _, cases[case] = run_coadjust(project, [out / "run" / "points"], out / f"case{case}", case, method=method,
-                                          cache_dir=cache, progress=relay)
+                                          cache_dir=cache, progress=lanes)
             timings[f"case{case}"] = _time.perf_counter() - t
         t = _time.perf_counter()
-        cases[3] = relay.result(third)
+        cases[3] = lanes.result(third)
         timings["wait_for_case3"] = _time.perf_counter() - t
     t = _time.perf_counter()
     clouds = {}
@@ -131,7 +130,7 @@ def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | Non
 
 def _write_report(result: BlockDemoResult) -> None:
     m, out = result.metrics, result.out
-    rows = result.summary_table()
+    rows = result.summarytable()
     cloud_rows = [[f"case {c}", f"{d['points']:,}", f"{d['rms_before_m']:.3f}", f"{d['rms_after_m']:.3f}",
                    f"{d['ratio']:.2f}", " / ".join(f"{v:.3f}" for v in d["rms_xyz_after_m"])]
                   for c, d in sorted(m["refined_cloud"].items())]
@@ -154,7 +153,7 @@ def _write_report(result: BlockDemoResult) -> None:
         "orients the photos on the LiDAR without control points (here on the true cloud, standing for a "
         f"cloud refined beforehand). Matcher: {html.escape(m['method'])}. Georefine {__version__}.</p>",
         "<h2>Control and check points (the paper's Tables 1-6)</h2>",
-        _table(["case", "points", "RMSE X [m]", "RMSE Y [m]", "RMSE Z [m]", "RE [px]",
+        table(["case", "points", "RMSE X [m]", "RMSE Y [m]", "RMSE Z [m]", "RE [px]",
                 "paper 004, Graz (5 cm GSD): X / Y / Z [m], RE [px]",
                 "paper 004, Loosdorf (8 cm GSD, one strip)"], rows),
         "<h3>Estimated precision against the actual errors</h3>",
@@ -162,26 +161,26 @@ def _write_report(result: BlockDemoResult) -> None:
         "covariance scaled by the variance factor) beside their actual error; the normalised RMS of "
         "error / sqrt(sigma² + survey sigma²) is about 1 when the sigmas are honest. Case 1 takes them from "
         "its photo-block adjustment; case 3 has none in the block.</p>",
-        _table(["", "adjustment", "check points", "estimated sigma X / Y / Z [m]", "RMSE X / Y / Z [m]",
+        table(["", "adjustment", "check points", "estimated sigma X / Y / Z [m]", "RMSE X / Y / Z [m]",
                 "normalised RMS"], prec_rows),
         "<h2>Refined point cloud against the truth</h2>",
         '<p class="note">Points inside the photo block (shown in a lidargram or interpolated within 5 m), '
         "compared record by record with the simulation's truth.</p>",
-        _table(["", "points", "jammed RMS [m]", "refined RMS [m]", "ratio", "refined RMS X / Y / Z [m]"], cloud_rows),
+        table(["", "points", "jammed RMS [m]", "refined RMS [m]", "ratio", "refined RMS X / Y / Z [m]"], cloud_rows),
         '<div class="maps">' + "".join(
-            f"<figure>{_img(out / f'case{c}' / 'cloud_errors.png', f'case {c} point errors')}"
+            f"<figure>{image(out / f'case{c}' / 'cloud_errors.png', f'case {c} point errors')}"
             f"<figcaption>Case {c}: 3-D error of each point, jammed and refined.</figcaption></figure>"
             for c in sorted(m["refined_cloud"])) + "</div>",
         "<h2>Matching</h2>",
-        _table(["", "lidargrams", "photo-lidargram pairs", "median verified matches", "tie points",
+        table(["", "lidargrams", "photo-lidargram pairs", "median verified matches", "tie points",
                 "tie RE photos [px]", "tie RE lidargrams [px]"], match_rows),
-        f"<figure>{_img(out / 'case1' / 'matches_lidargram_photo.png', 'matches')}"
+        f"<figure>{image(out / 'case1' / 'matches_lidargram_photo.png', 'matches')}"
         "<figcaption>Verified matches between a lidargram (left) and a photo (cf. the paper's Fig. 6).</figcaption>"
         "</figure>",
         "<h2>Timings</h2>",
-        _table(["stage", "s"], [[k, f"{v:.0f}"] for k, v in m["timings_s"].items()]),
+        table(["stage", "s"], [[k, f"{v:.0f}"] for k, v in m["timings_s"].items()]),
     ]
     doc = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>Georefine demo: block</title>"
-           f"<style>{_CSS}</style></head><body>{''.join(body)}</body></html>")
+           f"<style>{CSS}</style></head><body>{''.join(body)}</body></html>")
     with atomic_output(result.report) as fh:
         fh.write(doc)

@@ -20,19 +20,21 @@ import logging
 from pathlib import Path
 from typing import Callable
 
-
 from georefine.evaluation.clouds import (
     evaluate_reference_planes,
     evaluate_strip_differences,
     point_files,
     read_layers,
 )
-from georefine.evaluation.plots import plot_attitude_differences, plot_position_differences
+from georefine.evaluation.plots import (
+    plot_attitude_differences,
+    plot_position_differences,
+)
 from georefine.evaluation.trajectory import TrajectoryComparison
 from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.io.files import write_json
 from georefine.io.reference import read_reference_surfaces
-from georefine.pipeline.navigation import run_georeference
-from georefine.products import write_json
+from georefine.workflows.navigation import run_georeference
 
 log = logging.getLogger(__name__)
 

@@ -37,24 +37,27 @@ from georefine.config import ProjectConfig, boresight_matrix, load_project, writ
 from georefine.errors import InputError
 from georefine.geometry.frames import OutputCRS
 from georefine.geometry.rotation import log_so3, rph_from_R_n_b
+from georefine.io.files import write_json
 from georefine.io.las import iter_las_chunks
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
-from georefine.lidar.georeference import PoseInterpolator, georeference, georeference_strip
+from georefine.lidar.georeference import (
+    PoseInterpolator,
+    georeference,
+    georeference_strip,
+)
 from georefine.lidar.planes import PlanarFeatures, extract_features, write_features
-from georefine.pipeline.cache import StepCache, file_stamp
-from georefine.pipeline.navigation import (
+from georefine.progress import Progress, no_progress
+from georefine.trajectory.sampled import Trajectory
+from georefine.workflows.cache import StepCache, file_stamp
+from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
-    Progress,
-    _no_progress,
     load_navigation,
-    output_folder,
     step_adjust_gnss_imu,
     step_initialise,
     write_trajectory_products,
 )
-from georefine.products import write_json
-from georefine.trajectory.sampled import Trajectory
+from georefine.workflows.project import output_folder
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +110,7 @@ def read_strips(nav: NavigationData, strips: list[int] | None = None) -> list[St
 
 
 def step_features(
-    nav: NavigationData, trajectory: Trajectory, strips: list[StripPoints], progress: Progress = _no_progress
+    nav: NavigationData, trajectory: Trajectory, strips: list[StripPoints], progress: Progress = no_progress
 ) -> tuple[PlanarFeatures, dict]:
     """Steps 3-4a: georeference each view with ``trajectory`` and extract its planar features."""
     cfg = nav.config
@@ -166,7 +169,7 @@ def step_adjust_gil(
     previous: GnssImuResult,
     features: PlanarFeatures,
     objects: PlanarObjects,
-    progress: Progress = _no_progress,
+    progress: Progress = no_progress,
     covariance: bool = True,
 ) -> LidarAdjustment:
     """Step 5: the G/I problem started at ``previous`` plus the plane observations.
@@ -310,7 +313,7 @@ def _lidar_key(nav: NavigationData, strips: list[StripPoints], upstream: str, it
 
 
 def _gnss_imu(nav: NavigationData, cache: StepCache, timings: dict[str, float],
-              progress: Progress = _no_progress) -> tuple[GnssImuResult, str]:
+              progress: Progress = no_progress) -> tuple[GnssImuResult, str]:
     """Steps 1-2 (filter, G/I adjustment), or their cached result; and the cache key."""
     t = _time.perf_counter()
     key = _navigation_key(nav.config, nav.root)
@@ -363,11 +366,11 @@ def run_workflow(
     resume: bool = True,
     points: bool = True,
     cache_dir: str | Path | None = None,
-    progress: Progress = _no_progress,
+    progress: Progress = no_progress,
 ) -> WorkflowResult:
     """Steps 1-6 on a project folder (see the module docstring for the outputs).
 
-    Every step's result is cached in ``out/.cache`` (:mod:`georefine.pipeline.cache`); with
+    Every step's result is cached in ``out/.cache`` (:mod:`georefine.workflows.cache`); with
     ``resume`` a rerun loads what its inputs and configuration have not changed, e.g. after an
     interruption or when only the final georeferencing is repeated. ``metrics.json`` lists the
     resumed steps under ``resumed``. ``points=False`` skips the final point clouds (step 6), e.g.

@@ -18,12 +18,14 @@ Three small concerns live here because every format module needs them:
 from __future__ import annotations
 
 import contextlib
+import json
+import math
 import os
 import re
 import tempfile
 from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
-from typing import IO, Literal
+from typing import IO, Any, Literal
 
 import numpy as np
 
@@ -343,3 +345,24 @@ def raise_if_not_increasing(
             expected=f"time after {formatter(time[i])} ({record_kind} {int(numbers[i])})",
             found=formatter(time[i + 1]), record_kind=record_kind,
         )
+
+
+def _json_clean(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        return {str(k): _json_clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_json_clean(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _json_clean(obj.tolist())
+    if isinstance(obj, (np.floating, float)):
+        return None if not math.isfinite(float(obj)) else float(obj)
+    if isinstance(obj, np.integer):
+        return int(obj)
+    return obj
+
+
+def write_json(path: Path, data: dict) -> None:
+    """JSON with NaN/inf as null, written atomically."""
+    with atomic_output(path, "w") as fh:
+        json.dump(_json_clean(data), fh, indent=2)
+        fh.write("\n")

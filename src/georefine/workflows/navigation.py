@@ -13,7 +13,6 @@ import logging
 import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -26,28 +25,27 @@ from georefine.adjustment.gnss_imu import (
 from georefine.config import ProjectConfig, load_project, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.io.files import write_json
+from georefine.io.gnss import gnss_in_w
 from georefine.io.imu import ImuData, check_rate_gaps
-from georefine.io.project import check_navigation_spans, read_project_gnss, read_project_imu
-from georefine.products import body_kinematics, write_csv_product, write_json, write_sbet_product
-from georefine.trajectory.ekf import FilterResult, gnss_in_w, run_filter
+from georefine.progress import Progress, no_progress
+from georefine.trajectory.ekf import FilterResult, run_filter
 from georefine.trajectory.sampled import Trajectory
 from georefine.trajectory.spline import KnotGrid
 from georefine.trajectory.spline_fit import fit_spline
+from georefine.workflows.products import (
+    body_kinematics,
+    write_csv_product,
+    write_sbet_product,
+)
+from georefine.workflows.project import (
+    check_navigation_spans,
+    output_folder,
+    read_project_gnss,
+    read_project_imu,
+)
 
 log = logging.getLogger(__name__)
-Progress = Callable[[str, float, float], None]
-
-
-def _no_progress(name: str, done: float, total: float) -> None:
-    return None
-
-
-def output_folder(out: str | Path, project_root: Path) -> Path:
-    """``out`` as a Path, refusing the project folder or anything inside it (inputs stay untouched)."""
-    out = Path(out)
-    if out.resolve() == project_root.resolve() or project_root.resolve() in out.resolve().parents:
-        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
-    return out
 
 
 @dataclass(frozen=True)
@@ -135,7 +133,7 @@ def step_initialise(nav: NavigationData) -> FilterResult:
     )
 
 
-def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Progress = _no_progress) -> GnssImuResult:
+def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Progress = no_progress) -> GnssImuResult:
     """Step 2: fit the spline to the smoothed filter and adjust GNSS + IMU."""
     tcfg = nav.config.processing.trajectory
     t_first = max(float(filt.time[0]), float(nav.gnss.gnss_time[0]))
@@ -169,10 +167,10 @@ def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Prog
 
 def _filter_sigma_rph(nav: NavigationData, filt: FilterResult) -> np.ndarray:
     """Filter attitude sigma (body-frame tangent) mapped to roll/pitch/heading sigma."""
-    from georefine.adjustment.gnss_imu import _euler_rate_inverse
+    from georefine.adjustment.gnss_imu import euler_rate_inverse
 
     rph = nav.frame.rph_from_R_w_b(filt.p_w_b, filt.R_w_b)
-    Einv = _euler_rate_inverse(rph)
+    Einv = euler_rate_inverse(rph)
     cov = np.zeros((rph.shape[0], 3, 3))
     cov[:, np.arange(3), np.arange(3)] = filt.sigma[:, 6:9] ** 2
     return np.sqrt(np.diagonal(Einv @ cov @ np.swapaxes(Einv, 1, 2), axis1=1, axis2=2))
@@ -204,7 +202,7 @@ def run_trajectory(
     out: str | Path,
     *,
     filter_only: bool = False,
-    progress: Progress = _no_progress,
+    progress: Progress = no_progress,
 ) -> TrajectoryRunResult:
     """Steps 1-2 on a project folder; write the trajectory products into ``out``."""
     timings: dict[str, float] = {}
@@ -284,7 +282,7 @@ def run_georeference(
     out: str | Path,
     *,
     gps_week: int | None = None,
-    progress: Progress = _no_progress,
+    progress: Progress = no_progress,
 ) -> GeoreferenceRunResult:
     """Georeference every strip of a project with a trajectory SBET into ``out/*.laz``."""
     from georefine.config import boresight_matrix

@@ -6,7 +6,7 @@ trajectory. ``lidar``: steps 3-6 (preliminary georeferencing, planar features an
 GNSS/IMU/LiDAR adjustment with outer iterations, final georeferencing).
 """
 
-from georefine.pipeline.navigation import (
+from georefine.workflows.navigation import (
     GeoreferenceRunResult,
     NavigationData,
     TrajectoryRunResult,

@@ -8,16 +8,17 @@ position in the output CRS, the attitude in degrees and the posterior 1-sigma.
 
 from __future__ import annotations
 
-import json
-import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from georefine.geometry.frames import LocalFrame, OutputCRS
-from georefine.io._common import atomic_output
-from georefine.io.trajectory import SbetData, TrajectoryTable, write_sbet, write_trajectory_csv
+from georefine.io.trajectory import (
+    SbetData,
+    TrajectoryTable,
+    write_sbet,
+    write_trajectory_csv,
+)
 
 
 def sbet_from_states(
@@ -81,24 +82,3 @@ def write_csv_product(
     table = TrajectoryTable(t0_gps + time, xyz, rph, sigma_xyz_m=sig_xyz, sigma_rpy_rad=sigma_rph_rad,
                             crs=f"EPSG:{crs.epsg}")
     write_trajectory_csv(path, table)
-
-
-def _clean(obj: Any) -> Any:
-    if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
-    if isinstance(obj, (np.floating, float)):
-        return None if not math.isfinite(float(obj)) else float(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    return obj
-
-
-def write_json(path: Path, data: dict) -> None:
-    """JSON with NaN/inf as null, written atomically."""
-    with atomic_output(path, "w") as fh:
-        json.dump(_clean(data), fh, indent=2)
-        fh.write("\n")

@@ -201,3 +201,11 @@ def inspect_project(
         gnss_span_gps=g_span, imu_samples=int(imu.time_gps.size), imu_rate_hz=float(imu.rate_hz),
         imu_span_gps=i_span, imu_gaps=gaps, strips=tuple(strips), reference_surfaces=n_ref, warnings=tuple(warnings),
     )
+
+
+def output_folder(out: str | Path, project_root: Path) -> Path:
+    """``out`` as a Path, refusing the project folder or anything inside it (inputs stay untouched)."""
+    out = Path(out)
+    if out.resolve() == project_root.resolve() or project_root.resolve() in out.resolve().parents:
+        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    return out
