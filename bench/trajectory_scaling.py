@@ -1,11 +1,11 @@
 """Cost of the GNSS/IMU adjustment against flight duration (a script, not a test).
 
-DESIGN §4.6 requires the cost to grow linearly with the flight duration. For each target
+docs/ARCHITECTURE.md §4.6 requires the cost to grow linearly with the flight duration. For each target
 duration (default 5, 10 and 20 minutes) this simulates the ``corridor`` scenario with the
 corridor length chosen so that the flight lasts that long (two passes at the cruise speed
 plus the fixed take-off, manoeuvre and turn, ~287 s; the length is solved from the flight
 planner itself, the actual duration is read back from ``truth/scenario.yaml``), then runs
-the initialisation filter and the G/I adjustment (DESIGN §4.5 steps 1-2) in a fresh child
+the initialisation filter and the G/I adjustment (docs/ARCHITECTURE.md §4.5 steps 1-2) in a fresh child
 process per case, so that each case's peak resident memory is its own.
 
 Only the navigation data matter here: the scanner runs at 1 kHz, and the scene has a single

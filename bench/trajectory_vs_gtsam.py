@@ -2,7 +2,7 @@
 
 Simulates the ``corridor`` scenario (navigation data only: the scanner runs at 1 kHz so
 that the simulation takes seconds), runs Georefine's initialisation filter and G/I
-adjustment (DESIGN §4.5 steps 1-2), then solves the same GNSS/IMU problem as a batch gtsam
+adjustment (docs/ARCHITECTURE.md §4.5 steps 1-2), then solves the same GNSS/IMU problem as a batch gtsam
 factor graph and compares both with the true trajectory.
 
 gtsam graph (the peer, measured in the same run)

@@ -1,4 +1,4 @@
-"""Plane correspondences (DESIGN §4.3, paper 000 Eq. 5): Jacobians, model and an end-to-end boresight solve."""
+"""Plane correspondences (docs/ARCHITECTURE.md §4.3, paper 000 Eq. 5): Jacobians, model and an end-to-end boresight solve."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Continuous-time spline (DESIGN §4.2): interpolation, derivatives, Jacobians, fit."""
+"""Continuous-time spline (docs/ARCHITECTURE.md §4.2): interpolation, derivatives, Jacobians, fit."""
 
 import numpy as np
 import pytest

@@ -58,7 +58,7 @@ class GnssFileConfig(StrictModel):
 
 
 class ImuErrorSpec(StrictModel):
-    """IMU error specification in datasheet units (DESIGN §4.3 IMU model).
+    """IMU error specification in datasheet units (docs/ARCHITECTURE.md §4.3 IMU model).
 
     White noise: angle random walk (ARW) and velocity random walk (VRW). Biases: turn-on
     (constant per run, 1 sigma) plus an in-run random walk of density
@@ -191,7 +191,7 @@ class MatchingConfig(StrictModel):
 
 
 class LidarAdjustmentConfig(StrictModel):
-    """GNSS/IMU/LiDAR adjustment and its outer iterations (DESIGN §4.5 steps 3-6)."""
+    """GNSS/IMU/LiDAR adjustment and its outer iterations (docs/ARCHITECTURE.md §4.5 steps 3-6)."""
 
     outer_iterations: int = Field(3, ge=1, le=10, description="Re-georeference, re-extract, re-match, re-adjust.")
     convergence_attitude_mdeg: float = Field(
@@ -215,7 +215,7 @@ class LidarAdjustmentConfig(StrictModel):
 
 
 class TrajectoryAdjustmentConfig(StrictModel):
-    """GNSS/IMU(/LiDAR) adjustment of the spline trajectory (DESIGN §4.2-4.4, §4.6)."""
+    """GNSS/IMU(/LiDAR) adjustment of the spline trajectory (docs/ARCHITECTURE.md §4.2-4.4, §4.6)."""
 
     knot_interval_s: float = Field(0.1, gt=0.0, le=1.0, description="Spline knot spacing.")
     imu_window_s: float = Field(
@@ -274,7 +274,7 @@ class ProcessingConfig(StrictModel):
 
 
 class PhotosFileConfig(StrictModel):
-    """Aerial photos of the project (optional; DESIGN §3): files relative to the project folder."""
+    """Aerial photos of the project (optional; docs/ARCHITECTURE.md §3): files relative to the project folder."""
 
     folder: str = Field("photos", description="Folder of the image files named in eop.csv.")
     cameras: str = Field("photos/cameras.yaml", description="Interior orientation (georefine.io.photos).")

@@ -1,4 +1,4 @@
-"""The GNSS/IMU adjustment of a continuous-time trajectory (DESIGN §4.5 step 2).
+"""The GNSS/IMU adjustment of a continuous-time trajectory (docs/ARCHITECTURE.md §4.5 step 2).
 
 Parameters: the spline knots (positions, velocities, accelerations, attitudes, body rates),
 piecewise-linear accelerometer and gyro biases, and constant diagonal scale factors.

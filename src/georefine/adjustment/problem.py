@@ -1,4 +1,4 @@
-"""Parameter blocks, observation groups and the sparse least-squares problem (DESIGN §4.4).
+"""Parameter blocks, observation groups and the sparse least-squares problem (docs/ARCHITECTURE.md §4.4).
 
 A :class:`Problem` holds named *parameter blocks* -- stacks of ``n`` elements that live on a
 manifold -- and *observation groups* that evaluate all their residuals and Jacobians at once.
@@ -6,7 +6,7 @@ manifold -- and *observation groups* that evaluate all their residuals and Jacob
 Manifolds and retractions
     ``"euclidean"``: values ``(n, d)``, tangent dimension ``d``, ``x <- x + delta``.
     ``"so3"``: rotation matrices ``(n, 3, 3)``, tangent dimension 3, right perturbation in the
-    body frame ``R <- R @ Exp(delta)`` (the project convention, DESIGN §2).
+    body frame ``R <- R @ Exp(delta)`` (the project convention, docs/ARCHITECTURE.md §2).
 
 Observation groups (the contract every observation model implements)
     ``group.linearize(values, jacobians)`` receives a read-only mapping ``block name ->

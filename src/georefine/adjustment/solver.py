@@ -1,4 +1,4 @@
-"""Levenberg-Marquardt for sparse non-linear least squares on manifolds (DESIGN §4.4).
+"""Levenberg-Marquardt for sparse non-linear least squares on manifolds (docs/ARCHITECTURE.md §4.4).
 
 Minimises ``F(x) = 1/2 sum_groups sum_i rho_g(||r_i(x)||^2)`` over all non-constant elements
 of the parameter blocks, ``r_i`` the whitened residual rows of observation ``i`` and

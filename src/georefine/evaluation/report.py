@@ -1,4 +1,4 @@
-"""One self-contained HTML report per run (DESIGN §5): it opens from the file system.
+"""One self-contained HTML report per run (docs/ARCHITECTURE.md §5): it opens from the file system.
 
 The page shows, from the files a run and its evaluation wrote (``metrics.json``,
 ``gi/`` and ``gil/adjustment.json``, ``evaluation/summary.json`` and its plots,

@@ -1,4 +1,4 @@
-"""Trajectory differences: an estimated trajectory against a reference (DESIGN §5).
+"""Trajectory differences: an estimated trajectory against a reference (docs/ARCHITECTURE.md §5).
 
 This is the evaluation of paper 000, §3, Fig. 9 (differences in roll, pitch and yaw between
 trajectories over time; RMSE per angle in mdeg), in the style of *evo*: one library function
@@ -25,7 +25,7 @@ Attitude differences
     wrapped to (-pi, pi] so that headings of 359.99 deg and 0.01 deg differ by 0.02 deg.
     Euler differences mix axes at large roll/pitch and are meaningless near pitch +-90
     deg; the body-frame rotation vector ``d_rotvec = Log(R_ref^T R_est)`` (``R = R_e_b``,
-    so ``R_est = R_ref Exp(d_rotvec)``: the right, body-frame perturbation of DESIGN §2)
+    so ``R_est = R_ref Exp(d_rotvec)``: the right, body-frame perturbation of docs/ARCHITECTURE.md §2)
     is reported as well and has no singularity.
 Position differences
     ``d_ned = R_e_n(ref)^T (p_e_est - p_e_ref)``: the estimate minus the reference, in

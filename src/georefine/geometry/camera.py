@@ -1,11 +1,11 @@
-"""Frame camera: pinhole with Brown distortion, and photogrammetric omega-phi-kappa (DESIGN §4.8).
+"""Frame camera: pinhole with Brown distortion, and photogrammetric omega-phi-kappa (docs/ARCHITECTURE.md §4.8).
 
-**Camera frame** ``c`` (DESIGN §2): x right, y down, z along the optical axis. A camera pose is
+**Camera frame** ``c`` (docs/ARCHITECTURE.md §2): x right, y down, z along the optical axis. A camera pose is
 ``(R_w_c, p_w_c)``: ``x_c = R_w_c^T (X_w - p_w_c)``; ``p_w_c`` is the projection centre.
 
 **Pixel coordinates** ``(u, v)``: column to the right, row down, in pixels, with COLMAP's
 origin: ``(0, 0)`` is the top-left *corner* of the image, so the centre of the top-left pixel is
-``(0.5, 0.5)`` -- the convention of ``image_points.csv`` (DESIGN §3) and of the principal point
+``(0.5, 0.5)`` -- the convention of ``image_points.csv`` (docs/ARCHITECTURE.md §3) and of the principal point
 in ``cameras.yaml``. OpenCV puts that pixel centre at ``(0, 0)``: :meth:`Camera.opencv` gives
 the matrix and coefficients for cv2 with the half pixel taken off.
 

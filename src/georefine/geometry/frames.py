@@ -1,6 +1,6 @@
 """The mapping frame ``w`` (local tangent plane, ENU) and the output CRS.
 
-``w`` is ECEF rotated and shifted to east-north-up at a reference point (DESIGN §4.1):
+``w`` is ECEF rotated and shifted to east-north-up at a reference point (docs/ARCHITECTURE.md §4.1):
 ``p_e = p_e_w + R_e_w p_w``. It is fixed to the Earth, so the Earth rate and normal gravity
 are the only extra terms of the physics written in it:
 

@@ -52,7 +52,7 @@ def check_output_path(path: PathLike, protect: Iterable[PathLike] = ()) -> Path:
         Destination of a writer.
     protect
         Input files and input folders. The destination must not be one of the
-        files nor lie inside one of the folders (DESIGN §3: nothing ever writes
+        files nor lie inside one of the folders (docs/ARCHITECTURE.md §3: nothing ever writes
         into the input folder).
 
     Raises

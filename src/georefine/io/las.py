@@ -1,6 +1,6 @@
 """LAS 1.4 / LAZ point clouds: scanner-frame strips and georeferenced clouds.
 
-Conventions (DESIGN §3):
+Conventions (docs/ARCHITECTURE.md §3):
 
 * ``gps_time`` in the file is *adjusted standard GPS time* (GPS seconds − 1e9)
   and the LAS 1.4 global-encoding GPS-time-type bit must be set; in memory

@@ -1,4 +1,4 @@
-"""Photo inputs (DESIGN §3): cameras, exterior orientation, control points, image measurements.
+"""Photo inputs (docs/ARCHITECTURE.md §3): cameras, exterior orientation, control points, image measurements.
 
 Files (all optional parts of a project; names are configurable)
     ``cameras.yaml``::

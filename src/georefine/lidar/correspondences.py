@@ -1,6 +1,6 @@
 """Plane correspondences: planar features of different views grouped into planar objects.
 
-DESIGN §4.5 step 4, §4.3; paper 000, §2: features of one view (strip x scanner channel) are
+docs/ARCHITECTURE.md §4.5 step 4, §4.3; paper 000, §2: features of one view (strip x scanner channel) are
 matched to nearby features of *other* views and all corresponding features are aggregated
 into a planar object, the model of the physical surface. A nadir/forward/backward scanner
 sees every surface from three views within seconds in one pass, so the matches constrain
@@ -50,7 +50,7 @@ Fixed per object, in ``w``: ``c0`` the weighted mean of the member centres (weig
 ``k1 = normalize(h x n0)``, ``h = e_z`` (``e_x`` when ``|n0_z| >= 0.9``), ``k2 = n0 x k1``:
 ``[k1 k2 n0]`` is right-handed orthonormal, ``k1`` horizontal on facades. The adjustment
 estimates ``(d, alpha, beta)``: ``n = normalize(n0 + alpha k1 + beta k2)``, ``c = c0 + d n0``
-(DESIGN §4.3).
+(docs/ARCHITECTURE.md §4.3).
 """
 
 from __future__ import annotations
@@ -407,7 +407,7 @@ def match_features(
 ) -> PlanarObjects:
     """Match planar features of different views and group them into planar objects.
 
-    Implements rules 1-7 of the module docstring (DESIGN §4.5 step 4; paper 000, §2).
+    Implements rules 1-7 of the module docstring (docs/ARCHITECTURE.md §4.5 step 4; paper 000, §2).
 
     Parameters
     ----------
@@ -463,7 +463,7 @@ def initial_object_parameters(objects: PlanarObjects, features: PlanarFeatures) 
 def object_planes(objects: PlanarObjects, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Plane centre and unit normal (both (O,3), in ``w``) from parameters ``[d, alpha, beta]`` (O,3).
 
-    ``c = c0 + d n0``, ``n = normalize(n0 + alpha k1 + beta k2)`` (DESIGN §4.3).
+    ``c = c0 + d n0``, ``n = normalize(n0 + alpha k1 + beta k2)`` (docs/ARCHITECTURE.md §4.3).
     """
     p = np.asarray(params, np.float64).reshape(len(objects), 3)
     c = objects.c0 + p[:, :1] * objects.n0

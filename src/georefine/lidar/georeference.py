@@ -1,4 +1,4 @@
-"""Direct georeferencing of scanner-frame points (DESIGN §4.5 steps 3 and 6).
+"""Direct georeferencing of scanner-frame points (docs/ARCHITECTURE.md §4.5 steps 3 and 6).
 
 ``x_w = p_w_b(t) + R_w_b(t) (R_b_s x_s + p_b_s)``, vectorised over points. The trajectory is
 sampled at IMU rate and interpolated per point: linearly in position and by normalised linear

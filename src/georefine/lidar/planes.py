@@ -1,4 +1,4 @@
-"""Planar features of one view of the point cloud (DESIGN §4.3 "Plane correspondence", §4.5 step 4).
+"""Planar features of one view of the point cloud (docs/ARCHITECTURE.md §4.3 "Plane correspondence", §4.5 step 4).
 
 A *view* is one strip × one scanner channel (nadir, forward, backward); features of different
 views are matched later (:mod:`georefine.lidar.correspondences`) and become plane observations
@@ -31,7 +31,7 @@ Algorithm (per view, all points georeferenced in ``w`` with the current trajecto
    right-handed orthonormal basis. With ``p_w_s = p_w_b + R_w_b p_b_s`` and
    ``R_w_s = R_w_b R_b_s`` at ``t_f``: ``c_s = R_w_s^T (c_w - p_w_s)``, ``k_s = R_w_s^T k_w``.
 
-Feature uncertainty (weights of the plane observations, DESIGN §4.3)
+Feature uncertainty (weights of the plane observations, docs/ARCHITECTURE.md §4.3)
 
 The per-point scatter normal to the plane is ``sigma_r = max(sqrt(n/(n-3)) roughness,
 range_sigma_m)``: the roughness (RMS of the orthogonal residuals, corrected for the three

@@ -1,4 +1,4 @@
-"""Co-adjustment of photos and lidargrams (DESIGN §4.8, paper 004 §3.1).
+"""Co-adjustment of photos and lidargrams (docs/ARCHITECTURE.md §4.8, paper 004 §3.1).
 
 One bundle block on the shared engine (:mod:`georefine.adjustment`): parameter blocks
 ``image_rotation`` (so3) and ``image_position`` for every image -- photos first, then

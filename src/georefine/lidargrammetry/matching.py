@@ -1,4 +1,4 @@
-"""Matching photos and lidargrams: keypoints, verified pair matches, tracks (DESIGN §4.8).
+"""Matching photos and lidargrams: keypoints, verified pair matches, tracks (docs/ARCHITECTURE.md §4.8).
 
 Detectors
     ``sift`` (default): OpenCV's SIFT with RootSIFT descriptors (L1-normalised square roots,

@@ -1,11 +1,11 @@
-"""The refined point cloud from adjusted lidargram orientations (DESIGN §4.8, paper 004 Case 1/2).
+"""The refined point cloud from adjusted lidargram orientations (docs/ARCHITECTURE.md §4.8, paper 004 Case 1/2).
 
 A lidargram rendered from pose ``(R0, p0)`` shows point ``X`` along the ray
 ``x_c = R0^T (X - p0)``; after the co-adjustment its pose is ``(R1, p1)``. Through the ULPI
 raster each shown point knows its lidargrams:
 
 * shown in two or more lidargrams: the mean of its rigidly moved positions ``p1 + R1 x_c``
-  over those lidargrams. DESIGN §4.8 asks for the least-squares intersection of the rays; that
+  over those lidargrams. docs/ARCHITECTURE.md §4.8 asks for the least-squares intersection of the rays; that
   is ill-conditioned here (lidargrams at photo stations 64 m apart seen from 320 m meet at
   about 11 degrees, so 0.5 px of pose noise moves the intersection by decimetres along the
   rays), while each ray also carries the depth the scanner measured: averaging the

@@ -1,4 +1,4 @@
-"""Lidargrams: synthetic images of the point cloud that remember their points (DESIGN §4.8, paper 004).
+"""Lidargrams: synthetic images of the point cloud that remember their points (docs/ARCHITECTURE.md §4.8, paper 004).
 
 A *lidargram* is the LiDAR point cloud seen by a frame camera (:class:`~.camera.Camera`, full
 Brown distortion) from a chosen pose ``(R_w_c, p_w_c)``. Every pixel remembers which point it

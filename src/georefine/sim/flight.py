@@ -1,4 +1,4 @@
-"""The true helicopter trajectory of a corridor flight (DESIGN §6 "Flight").
+"""The true helicopter trajectory of a corridor flight (docs/ARCHITECTURE.md §6 "Flight").
 
 The flight follows paper 000 (Eisacktal power-line corridor): take-off from a pad after a
 static alignment period, an initialisation manoeuvre (figure-eight or S-turns with bank,
@@ -30,7 +30,7 @@ Then ``R_w_b(t) = R_w_n(lat(t), lon(t)) R_n_b(rph(t))`` and
 ``omega_wb_b = R_b_n omega_en_n + omega_nb_b`` with the exact transport rate of the NED
 frame along the path (``w`` is Earth-fixed, so ``omega_wn = omega_en``), and the IMU truth
 ``f_ib_b = R_w_b^T (a_w + 2 omega_ie_w x v_w - g_w(p_w))``,
-``omega_ib_b = omega_wb_b + R_w_b^T omega_ie_w`` (DESIGN §4.1, §4.3).
+``omega_ib_b = omega_wb_b + R_w_b^T omega_ie_w`` (docs/ARCHITECTURE.md §4.1, §4.3).
 
 Before take-off (``t <= static_duration_s``) the body is exactly at rest on the pad.
 """

@@ -6,7 +6,7 @@ Error model per epoch, in the local north-east-up frame of the true antenna posi
     d_k = phi d_k-1 + sqrt(1 - phi^2) s w_k,   phi = exp(-dt / tau),  d_0 ~ N(0, s^2)
 
 ``d`` is a first-order Gauss-Markov process per axis (the time-correlated part that the
-adjustment can model, DESIGN §4.3; structure after Pöppl et al. 2023a, "Modelling of GNSS
+adjustment can model, docs/ARCHITECTURE.md §4.3; structure after Pöppl et al. 2023a, "Modelling of GNSS
 positioning errors in a GNSS/INS/LiDAR-integrated georeferencing"). It runs through
 outages; epochs inside an outage are removed.
 

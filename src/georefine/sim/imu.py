@@ -1,6 +1,6 @@
-"""IMU error models from published datasheets and the IMU measurement simulator (DESIGN §6).
+"""IMU error models from published datasheets and the IMU measurement simulator (docs/ARCHITECTURE.md §6).
 
-Measurement model (the one the adjustment inverts, DESIGN §4.3), per sample time ``t_k``::
+Measurement model (the one the adjustment inverts, docs/ARCHITECTURE.md §4.3), per sample time ``t_k``::
 
     gyro_k = (I + S_g) omega_ib_b(t_k) + b_g(t_k) + n_g,k     n_g ~ N(0, (ARW sqrt(rate))^2)
     acc_k  = (I + S_f) f_ib_b(t_k)     + b_f(t_k) + n_f,k     n_f ~ N(0, (VRW sqrt(rate))^2)
@@ -19,7 +19,7 @@ Bias process
     driving noise has ``q = B sqrt(2 / tau)`` (e.g. Groves 2013, Ch. 4 and 14). Over spans
     shorter than ``tau`` the Gauss-Markov process *is* this random walk, which is also the
     model of the estimator (piecewise-linear biases with random-walk pseudo-observations,
-    DESIGN §4.3): ``q`` is exactly what the estimator's ``q`` should be set to.
+    docs/ARCHITECTURE.md §4.3): ``q`` is exactly what the estimator's ``q`` should be set to.
     ``tau`` is ``*_bias_correlation_time_s`` (datasheets do not state it; 1 h for
     FOG/RLG units, 1000 s for MEMS, where the Allan minimum typically lies at 100-1000 s).
 

@@ -4,7 +4,7 @@ A scenario is a :class:`ScenarioConfig`: every parameter of the scene, the fligh
 the GNSS and the scanner, with defaults per scenario name. The user overrides any of them
 with a YAML file (same nesting) and ``key.sub=value`` strings; unknown keys are errors.
 
-:func:`simulate_project` writes what a real helicopter LiDAR system delivers (DESIGN §3),
+:func:`simulate_project` writes what a real helicopter LiDAR system delivers (docs/ARCHITECTURE.md §3),
 plus the truth:
 
 ``project.yaml``, ``gnss/rover.pos``, ``imu/imu.csv`` (and ``imu/imu.imr`` on request),

@@ -3,7 +3,7 @@
 The scene is built directly in ``w`` (local east-north-up, metres). The corridor runs
 north-south along the ``w`` y-axis, centred on ``x = 0``, from ``y = 0`` to
 ``y = length_m``; the terrain extends ``end_margin_m`` beyond both ends so that the
-forward/backward views and the run-in find ground. Content (DESIGN.md §6):
+forward/backward views and the run-in find ground. Content (docs/ARCHITECTURE.md §6):
 
 * valley terrain: a regular grid (``grid_spacing_m``, two triangles per cell split along
   the south-west/north-east diagonal) of a valley floor with a gentle along-track slope,

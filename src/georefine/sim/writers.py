@@ -1,4 +1,4 @@
-"""Write simulated sensor data through the same file formats as real data (DESIGN §3).
+"""Write simulated sensor data through the same file formats as real data (docs/ARCHITECTURE.md §3).
 
 Each function converts one simulator product to its :mod:`georefine.io` container and writes
 it atomically. The formats are those of real systems, so the whole pipeline runs on the

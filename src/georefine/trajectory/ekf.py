@@ -1,13 +1,13 @@
 """Initialisation filter: error-state EKF on the strapdown mechanisation in ``w`` + RTS smoother.
 
-Workflow step 1 (DESIGN §4.5; paper 000 §2: "suitable starting values ... obtained by a simple
+Workflow step 1 (docs/ARCHITECTURE.md §4.5; paper 000 §2: "suitable starting values ... obtained by a simple
 GNSS/IMU Kalman filter"). The output initialises the spline of the adjustment.
 
 State and error state
     Nominal state ``(p_w_b, v_w_b, R_w_b, b_a, b_g, s_a, s_g)``, mechanised at every IMU sample
     with the RKMK4 step of :mod:`georefine.trajectory.strapdown` on the corrected IMU
     ``f = (f~ - b_a) / (1 + s_a)``, ``omega_ib_b = (omega~ - b_g) / (1 + s_g)`` (elementwise; the
-    sensor model of DESIGN §4.3 with diagonal scale factors). Error state, truth = nominal (+)
+    sensor model of docs/ARCHITECTURE.md §4.3 with diagonal scale factors). Error state, truth = nominal (+)
     error::
 
         x = [dp_w (3), dv_w (3), dtheta_b (3), db_a (3), db_g (3) | ds_a (3), ds_g (3)]
@@ -37,7 +37,7 @@ Covariance propagation
     interval ``T``: ``Q = (Phi Qc Phi^T + Qc) T / 2`` (trapezoid; ``Qc`` is diagonal and does not
     depend on the attitude because the densities are isotropic).
 
-GNSS update (DESIGN §4.3, paper 000 Eq. 3)
+GNSS update (docs/ARCHITECTURE.md §4.3, paper 000 Eq. 3)
     At the last IMU sample ``k`` with ``t_k <= t_g`` (``d = t_g - t_k < dt``)::
 
         z_w = p_w_b + d v_w_b + R_w_b (p_b_a + d omega_wb_b x p_b_a) + e,   e ~ N(0, Sigma_w)

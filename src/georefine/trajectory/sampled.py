@@ -1,6 +1,6 @@
 """A trajectory sampled at discrete times, with vectorised interpolation.
 
-This is the container every stage exchanges (DESIGN §2 names): body poses in the mapping
+This is the container every stage exchanges (docs/ARCHITECTURE.md §2 names): body poses in the mapping
 frame ``w`` at increasing times. Interpolation is linear in position and geodesic (SLERP) in
 attitude, which at IMU rate (>= 100 Hz) is accurate to micrometres for aircraft motion.
 """

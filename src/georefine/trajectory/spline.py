@@ -1,4 +1,4 @@
-"""Continuous-time trajectory on uniform knots (DESIGN §4.2).
+"""Continuous-time trajectory on uniform knots (docs/ARCHITECTURE.md §4.2).
 
 Position: a quintic Hermite spline in ``w`` with knot states ``p_k, v_k, a_k`` (C²).
 Orientation: the cumulative cubic quaternion Hermite spline of Kim, Kim & Shin (1995) with

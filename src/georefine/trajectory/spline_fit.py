@@ -1,4 +1,4 @@
-"""Least-squares fit of spline knots to a densely sampled trajectory (DESIGN §4.5 step 1).
+"""Least-squares fit of spline knots to a densely sampled trajectory (docs/ARCHITECTURE.md §4.5 step 1).
 
 The initialisation filter delivers poses (and velocities, body rates) at IMU rate; the
 adjustment needs knot states of the continuous-time trajectory of :mod:`.spline`. Position is
@@ -124,7 +124,7 @@ def fit_spline(
 ) -> SplineTrajectory:
     """Least-squares fit of the knot states to a densely sampled trajectory.
 
-    Meant for initialising the adjustment from the EKF/RTS output (DESIGN §4.5 step 1).
+    Meant for initialising the adjustment from the EKF/RTS output (docs/ARCHITECTURE.md §4.5 step 1).
 
     Parameters
     ----------

@@ -1,4 +1,4 @@
-"""Strapdown inertial mechanisation in the mapping frame ``w`` (DESIGN §4.1).
+"""Strapdown inertial mechanisation in the mapping frame ``w`` (docs/ARCHITECTURE.md §4.1).
 
 ``w`` is Earth-fixed, so the navigation equations are exact with the Earth rate and the
 normal gravity (which includes the centrifugal acceleration) as the only extra terms::

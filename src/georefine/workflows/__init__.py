@@ -1,4 +1,4 @@
-"""The georeferencing workflow of paper 000 (Fig. 1), one function per step (DESIGN §4.5).
+"""The georeferencing workflow of paper 000 (Fig. 1), one function per step (docs/ARCHITECTURE.md §4.5).
 
 ``navigation``: loading and validating GNSS/IMU, step 1 (initialisation filter) and step 2
 (GNSS/IMU adjustment) with their products, and direct georeferencing of strips with a given

@@ -1,4 +1,4 @@
-"""Evaluate a `georefine run` output the way paper 000 reports it (DESIGN §5).
+"""Evaluate a `georefine run` output the way paper 000 reports it (docs/ARCHITECTURE.md §5).
 
 :func:`evaluate_run` takes the project, the run folder of the full workflow and, optionally,
 the run folder of a single-pass run, and writes ``RUN/evaluation/``:

@@ -1,4 +1,4 @@
-"""Lidargrammetric co-matching and co-adjustment of a project (paper 004; DESIGN §4.8).
+"""Lidargrammetric co-matching and co-adjustment of a project (paper 004; docs/ARCHITECTURE.md §4.8).
 
 :func:`run_coadjust` takes a project with photos (``project.yaml`` section ``photos``) and a
 georeferenced point cloud (LAZ strips in the output CRS, e.g. ``georefine run`` output) and

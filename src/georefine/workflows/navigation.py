@@ -1,4 +1,4 @@
-"""The georeferencing workflow of paper 000 (Fig. 1), one function per step (DESIGN §4.5).
+"""The georeferencing workflow of paper 000 (Fig. 1), one function per step (docs/ARCHITECTURE.md §4.5).
 
 Implemented so far: loading and validating the navigation data, step 1 (initialisation
 filter and spline fit) and step 2 (GNSS/IMU adjustment), with their products:

@@ -1,6 +1,6 @@
 """Trajectory products: SBET at IMU rate, trajectory CSV in the output CRS, JSON statistics.
 
-The pipeline's trajectory product (DESIGN §4.5 step 6) is an SBET (WGS84, wander angle 0,
+The pipeline's trajectory product (docs/ARCHITECTURE.md §4.5 step 6) is an SBET (WGS84, wander angle 0,
 NED velocity, roll/pitch/true heading, body specific force and angular rate) at the IMU's
 sample times, so that any downstream tool can georeference with it; the CSV carries the
 position in the output CRS, the attitude in degrees and the posterior 1-sigma.

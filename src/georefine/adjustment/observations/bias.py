@@ -1,4 +1,4 @@
-"""Piecewise-linear sensor biases and their random-walk pseudo-observations (DESIGN §4.3).
+"""Piecewise-linear sensor biases and their random-walk pseudo-observations (docs/ARCHITECTURE.md §4.3).
 
 A bias ``b(t)`` (e.g. accelerometer or gyro, 3 axes) lives on its own uniform knots
 ``t_j = t_start + j dt_b``; between knots it is linear. Its in-run change is constrained by

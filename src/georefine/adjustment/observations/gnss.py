@@ -1,4 +1,4 @@
-"""GNSS antenna position observations (DESIGN §4.3, paper 000 Eq. 3).
+"""GNSS antenna position observations (docs/ARCHITECTURE.md §4.3, paper 000 Eq. 3).
 
 ``p~_w = p_w(t) + R_w_b(t) p_b_a + eps``, whitened with the ``.pos`` covariance rotated into
 ``w``: ``r = L (p_w(t) + R_w_b(t) p_b_a - p~_w)``. Right perturbation of ``R(t)`` gives

@@ -1,4 +1,4 @@
-"""IMU specific-force and angular-rate observations (DESIGN §4.3, §4.6; paper 000 Eq. 4).
+"""IMU specific-force and angular-rate observations (docs/ARCHITECTURE.md §4.3, §4.6; paper 000 Eq. 4).
 
 At time ``t`` the model of the accelerometer and gyro readings is
 

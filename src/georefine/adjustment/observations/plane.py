@@ -1,4 +1,4 @@
-"""Plane correspondences: planar LiDAR features observing planar objects (DESIGN §4.3).
+"""Plane correspondences: planar LiDAR features observing planar objects (docs/ARCHITECTURE.md §4.3).
 
 Paper 000 §2, Eq. 5; Pöppl et al. (2024). A planar *feature* is extracted from one view
 (strip x scanner channel) and stored in the scanner frame ``s`` at its mean time ``t_f``:
@@ -19,7 +19,7 @@ Each feature gives one observation of three whitened rows (normal distance and t
 ``r1 = n . (c~ - c) / sigma_d``,  ``r2 = n . k~1 / sigma_s``,  ``r3 = n . k~2 / sigma_s``.
 
 The paper's Eq. 5 writes the distance as ``(c - c~) . n~`` (along the feature normal) and
-divides the slopes by ``n . n~``. Here (DESIGN §4.3) all three rows use the object normal: every
+divides the slopes by ``n . n~``. Here (docs/ARCHITECTURE.md §4.3) all three rows use the object normal: every
 feature of an object refers to the same plane, the rows are linear in the georeferenced feature,
 the slopes differ from the paper's by the factor ``n . n~ = 1 - O(slope²)`` and the distances
 coincide where the slopes vanish (at a consistent solution); the sign is immaterial. The
@@ -27,7 +27,7 @@ standard deviations come from the feature's roughness, point count and extent (f
 extraction, ``lidar/planes.py``). A robust loss (Cauchy or Huber) on each observation's
 squared norm guards against wrong matches.
 
-Jacobians (right perturbations ``R <- R Exp(delta)``, DESIGN §2; ``a . (R x)`` has the
+Jacobians (right perturbations ``R <- R Exp(delta)``, docs/ARCHITECTURE.md §2; ``a . (R x)`` has the
 derivative ``-(R^T a)^T skew(x) = (x x R^T a)^T`` w.r.t. ``delta``):
 
 * trajectory: ``d r1 / d p_w_b = n^T / sigma_d`` times the position-basis weights of the six

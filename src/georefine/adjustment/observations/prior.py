@@ -1,4 +1,4 @@
-"""Prior (pseudo-)observations on parameter elements (DESIGN §4.3 "Priors").
+"""Prior (pseudo-)observations on parameter elements (docs/ARCHITECTURE.md §4.3 "Priors").
 
 ``EuclideanPrior``: ``r = L (x - x0)`` per element, ``L`` the whitening matrix of the prior
 covariance (diagonal sigma or full square-root information). ``RotationPrior``:

@@ -1,4 +1,4 @@
-"""Image observations (DESIGN §4.3, §4.8): reprojection of 3-D points into frame images.
+"""Image observations (docs/ARCHITECTURE.md §4.3, §4.8): reprojection of 3-D points into frame images.
 
 ``r = (project(camera_i, R_w_c[i]^T (X[k] - p_w_c[i])) - uv) / sigma_px`` for every observation
 of point ``k`` in image ``i``. A camera is any object with ``project(x_c, jacobian=True)``

@@ -1,6 +1,6 @@
 """Names of the parameter blocks of a spline trajectory and helpers shared by its observations.
 
-A continuous-time trajectory (DESIGN §4.2) enters the adjustment as five blocks over the knots
+A continuous-time trajectory (docs/ARCHITECTURE.md §4.2) enters the adjustment as five blocks over the knots
 of a :class:`~georefine.trajectory.spline.KnotGrid`: positions, velocities, accelerations
 (Euclidean, (K, 3) each), attitudes (SO(3), (K, 3, 3)) and body rates (Euclidean, (K, 3)).
 Observation groups receive a :class:`TrajectoryBlocks` so that several trajectories (or
