@@ -1,0 +1,9 @@
+"""LiDAR algorithms of the trajectory workflow (layer 6, docs/ARCHITECTURE.md §1).
+
+``georeference`` (direct georeferencing of scanner-frame points, §4.5 steps 3 and 6),
+``planes`` (planar features per view, step 4) and ``correspondences`` (matching features of
+different views into planar objects, step 4). It may import any lower layer (root,
+``geometry``, ``io``, ``config``, ``trajectory``, ``adjustment``) but not its sibling
+``lidargrammetry`` and nothing above (``evaluation``, ``workflows``, ``sim``, ``demo``,
+``cli``).
+"""

@@ -1,9 +1,13 @@
-"""The georeferencing workflow of paper 000 (Fig. 1), one function per step (docs/ARCHITECTURE.md §4.5).
+"""The workflows: project folders in, steps run and cached, products out (layer 8, docs/ARCHITECTURE.md §1).
 
-``navigation``: loading and validating GNSS/IMU, step 1 (initialisation filter) and step 2
-(GNSS/IMU adjustment) with their products, and direct georeferencing of strips with a given
-trajectory. ``lidar``: steps 3-6 (preliminary georeferencing, planar features and matching,
-GNSS/IMU/LiDAR adjustment with outer iterations, final georeferencing).
+``project`` (open and validate a project, ``georefine check``), ``navigation`` (loading GNSS
+and IMU, workflow steps 1-2 and direct georeferencing with a given trajectory), ``lidar``
+(steps 3-6 of paper 000 with the outer iterations, ``georefine run``), ``lidargrammetry``
+(paper 004, ``georefine lidargrams``, ``match``, ``coadjust``), ``products`` (trajectory
+files), ``evaluate`` (a run evaluated as paper 000 reports it) and ``cache`` (the step
+cache); see §4.5 and §4.8. Each step is a plain function returning a frozen result; the CLI
+calls one function per command. It may import every layer below it but not its sibling
+``sim`` (a workflow must run on real data alone) and nothing above (``demo``, ``cli``).
 """
 
 from georefine.workflows.navigation import (
