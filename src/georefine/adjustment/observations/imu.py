@@ -8,8 +8,8 @@ At time ``t`` the model of the accelerometer and gyro readings is
 with piecewise-linear biases on their own knots and constant diagonal scale factors.
 
 Down-sampling (Pöppl et al. 2025): consecutive samples are averaged over windows
-(``processing.trajectory.imu_window_s``, default 0.02 s) and compared with the model averaged over the same window by Gauss-Legendre
-quadrature, so the adjustment size follows the window rate, not the IMU rate. A window's
+(``processing.trajectory.imu_window_s``, default 0.02 s) and compared with the model averaged
+over the same window by Gauss-Legendre quadrature, so the adjustment size follows the window rate, not the IMU rate. A window's
 standard deviation follows from the noise density ``N`` (ARW/VRW): for ``n`` samples at rate
 ``f`` the mean has ``sigma = N sqrt(f / n)``. Windows never span a sampling gap.
 
