@@ -79,8 +79,10 @@ def test_overrides_parse_yaml_values_and_do_not_mutate():
     assert out["flight"] == {"speed_mps": 20, "passes": 1}
     assert out["gnss"]["outages_s"] == [[10, 40]]
     assert data == {"flight": {"speed_mps": 18.0}, "seed": 1}
-    with pytest.raises(ConfigError, match="key.sub=value"):
+    with pytest.raises(ConfigError, match=r"field 'overrides': override must look like key.sub=value"):
         apply_overrides(data, ["flight.speed_mps"])
+    with pytest.raises(ConfigError, match=r"field 'overrides': override has an empty key"):
+        apply_overrides(data, ["=1"])
     with pytest.raises(ConfigError, match="sub-key of a scalar"):
         apply_overrides(data, ["seed.x=1"])
 
@@ -89,3 +91,10 @@ def test_boresight_matrix_small_angles():
     R = boresight_matrix((0.0, 0.0, 90.0))
     np.testing.assert_allclose(R @ [1, 0, 0], [0, 1, 0], atol=1e-15)
     np.testing.assert_allclose(boresight_matrix((0, 0, 0)), np.eye(3))
+
+
+def test_unknown_imu_grade_names_the_parameter():
+    from georefine.sim.scenarios import resolve_scenario
+
+    with pytest.raises(ConfigError, match=r"field 'imu_grade': unknown IMU grade .*expected one of .*mems"):
+        resolve_scenario("corridor-tiny", imu_grade="consumer")

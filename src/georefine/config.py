@@ -409,11 +409,11 @@ def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any
     out = copy.deepcopy(data)
     for item in overrides:
         if "=" not in item:
-            raise ConfigError("override must look like key.sub=value", field="--set", found=repr(item))
+            raise ConfigError("override must look like key.sub=value", field="overrides", found=repr(item))
         key, _, raw = item.partition("=")
         parts = [p for p in key.strip().split(".") if p]
         if not parts:
-            raise ConfigError("override has an empty key", field="--set", found=repr(item))
+            raise ConfigError("override has an empty key", field="overrides", found=repr(item))
         try:
             value = yaml.safe_load(raw) if raw.strip() else None
         except yaml.YAMLError as exc:
