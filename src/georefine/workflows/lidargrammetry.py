@@ -37,6 +37,7 @@ from georefine.evaluation.clouds import point_files
 from georefine.geometry.camera import Camera
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import metashape
+from georefine.io.colmap import to_reconstruction, write_model
 from georefine.io import photos as pio
 from georefine.io.files import atomic_output, write_json
 from georefine.io.las import LasWriter, PointCloud, iter_las_chunks
@@ -495,20 +496,14 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
 
 
 def export_colmap(folder: Path, names, cameras, result: BundleResult, obs_image: np.ndarray, obs_point: np.ndarray,
-                  obs_uv: np.ndarray, station: np.ndarray | None = None) -> Path | None:
+                  obs_uv: np.ndarray, station: np.ndarray | None = None) -> Path:
     """The adjusted block as a COLMAP text model in the local frame ``w`` (:mod:`georefine.io.colmap`).
 
     Photos and lidargrams with their adjusted poses, the tie points and their inlier
     observations seen from two stations or more (``station``: of each image; without a base a
     track's depth is free in a tie-only adjustment); control points are left out (COLMAP has no
-    coordinate observations). Skipped with a log message when pycolmap is not installed.
+    coordinate observations). Returns ``folder``.
     """
-    try:
-        import pycolmap  # noqa: F401
-    except ImportError:
-        log.info("pycolmap is not installed: no COLMAP model written")
-        return None
-    from georefine.io.colmap import to_reconstruction, write_model
 
     inl = result.tie_inlier.copy() if result.tie_inlier is not None else np.ones(len(obs_image), bool)
     if station is not None and inl.any():  # tracks still seen from two stations
