@@ -51,7 +51,7 @@ class BlockDemoResult:
     report: Path
     metrics: dict
 
-    def summarytable(self) -> list[list[str]]:
+    def summary_table(self) -> list[list[str]]:
         """Rows ``[case, points, RMSE X, Y, Z (m), RE (px), paper 004 Graz, paper 004 Loosdorf]``."""
         rows = []
         for case, m in sorted(self.metrics["cases"].items()):
@@ -130,7 +130,7 @@ def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | Non
 
 def _write_report(result: BlockDemoResult) -> None:
     m, out = result.metrics, result.out
-    rows = result.summarytable()
+    rows = result.summary_table()
     cloud_rows = [[f"case {c}", f"{d['points']:,}", f"{d['rms_before_m']:.3f}", f"{d['rms_after_m']:.3f}",
                    f"{d['ratio']:.2f}", " / ".join(f"{v:.3f}" for v in d["rms_xyz_after_m"])]
                   for c, d in sorted(m["refined_cloud"].items())]
