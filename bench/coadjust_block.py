@@ -38,20 +38,18 @@ def main() -> None:
     for case in a.cases:
         pts = a.project / "truth" if case == 3 else a.points
         t = time.perf_counter()
-        _, m = run_coadjust(a.project, [pts], base / f"case{case}", case, method=a.method)
+        m = run_coadjust(a.project, [pts], base / f"case{case}", case, overrides={"matcher": a.method})
         wall = time.perf_counter() - t
-        for label in ("control_points", "check_points"):
-            st = m.get(label)
-            if st:
-                print(f"| {case} | {'GCPs' if label == 'control_points' else 'ChPs'} ({st['n']}) | {st['rmse_x_m']:.3f} "
-                      f"| {st['rmse_y_m']:.3f} | {st['rmse_z_m']:.3f} | {st['reprojection_px']:.2f} |")
-        pl = m["photo_lidargram_matches"]
-        note = (f"case {case}: {wall:.0f} s, {m['lidargrams']} lidargrams, median {pl['median']:.0f} verified matches "
-                f"per photo-lidargram pair, tie RE {m['tie_reprojection_px']}")
+        for label, st in (("GCPs", m.control_points), ("ChPs", m.check_points)):
+            if st is not None:
+                x, y, z = st.rmse_xyz_m
+                print(f"| {case} | {label} ({st.n}) | {x:.3f} | {y:.3f} | {z:.3f} | {st.reprojection_px:.2f} |")
+        pl = m.photo_lidargram_matches
+        note = (f"case {case}: {wall:.0f} s, {m.lidargrams} lidargrams, median {pl.median_verified:.0f} verified "
+                f"matches per photo-lidargram pair, tie RE {m.tie_reprojection.to_dict()}")
         if case in (1, 2):
-            e = cloud_errors(a.points, base / f"case{case}" / "points", a.project / "truth").to_dict()
-            note += (f", cloud RMS inside the block {e['rms_before_m']:.3f} -> {e['rms_after_m']:.3f} m "
-                     f"({e['ratio']:.2f}x)")
+            e = cloud_errors(a.points, base / f"case{case}" / "points", a.project / "truth").summary()
+            note += f", cloud RMS inside the block {e.rms_before_m:.3f} -> {e.rms_after_m:.3f} m ({e.ratio:.2f}x)"
         notes.append(note)
     print("\n".join(notes))
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -10,11 +11,18 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+import yaml
 
+from georefine.config import ProjectConfig, validate_model
+from georefine.demo.block import BlockDemoMetrics
+from georefine.errors import InputError
 from georefine.io import metashape, photos
+from georefine.io.files import write_json
 from georefine.io.colmap import block_from_reconstruction, read_model
 from georefine.lidargrammetry.crosscheck import solve_both
 from georefine.sim.scenarios import simulate_project
+from georefine.workflows.lidargrammetry import make_matcher, run_coadjust
+from georefine.workflows.lidargrammetry_results import CoadjustResult, MatchSummary
 
 # The default camera and GSD (8 cm) over a shorter town (3 photos per strip), a lighter scanner.
 SMALL = ["scene.length_m=260", "scanner.pulse_rate_hz=50000", "scanner.line_rate_hz=100"]
@@ -103,14 +111,57 @@ def test_case_1_refines_the_jammed_cloud(demo):
     assert ours.re_px <= 0.5
 
 
+def _same_json(path: Path, data: dict, tmp_path: Path) -> bool:
+    """``data`` written as the workflows write JSON is byte for byte the file ``path``."""
+    write_json(tmp_path / "again.json", data)
+    return (tmp_path / "again.json").read_text() == path.read_text()
+
+
+@pytest.mark.slow
+def test_results_read_back_from_their_files_write_the_same_files(demo, tmp_path):
+    out, m = demo
+    for case in (1, 2, 3):
+        path = out / f"case{case}" / "metrics.json"
+        r = CoadjustResult.from_dict(json.loads(path.read_text()))
+        assert r.case == case and r.bundle is None and _same_json(path, r.to_dict(), tmp_path), case
+        assert (r.reintersection is None) == (case == 3) and (r.photo_block_precision is None) == (case != 1)
+        assert r.photo_lidargram_matches.n_pairs == len(r.photo_lidargram_matches.per_pair) > 0
+        # the resolved configuration beside the results: the defaults, as project.yaml has no section
+        resolved = validate_model(ProjectConfig, yaml.safe_load((out / f"case{case}" / "config.resolved.yaml").read_text()))
+        assert resolved.processing.lidargrammetry.matcher == "sift"
+    metrics = BlockDemoMetrics.from_dict(m)
+    assert sorted(metrics.cases) == [1, 2, 3] and sorted(metrics.refined_cloud) == [1, 2]
+    assert metrics.cases[3].control_points is None and metrics.cases[1].photo_lidargram_matches.per_pair is None
+    assert _same_json(out / "metrics.json", metrics.to_dict(), tmp_path)
+
+
 @pytest.mark.slow
 def test_match_command_writes_matches_of_each_kind(demo, tmp_path):
     out, _ = demo
-    proc = subprocess.run([sys.executable, "-m", "georefine", "match", str(out / "project"), "--points",
-                           str(out / "run" / "points"), "--out", str(tmp_path / "m"), "--scale", "0.25",
-                           "--pairs", "photo-lidargram,lidargram-lidargram"], capture_output=True, text=True)
+    # A copy of the project whose project.yaml sets the lidargrammetry section; --scale overrides it.
+    project = tmp_path / "project"
+    shutil.copytree(out / "project" / "photos", project / "photos")
+    data = yaml.safe_load((out / "project" / "project.yaml").read_text())
+    data.setdefault("processing", {})["lidargrammetry"] = {
+        "lidargram_scale": 0.5, "pair_kinds": ["photo-lidargram", "lidargram-lidargram"], "min_coverage": 0.25}
+    (project / "project.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    proc = subprocess.run([sys.executable, "-m", "georefine", "match", str(project), "--points",
+                           str(out / "run" / "points"), "--out", str(tmp_path / "m"), "--scale", "0.25"],
+                          capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
+    resolved = yaml.safe_load((tmp_path / "m" / "config.resolved.yaml").read_text())["processing"]["lidargrammetry"]
+    assert resolved["lidargram_scale"] == 0.25  # the option over project.yaml
+    assert resolved["pair_kinds"] == ["photo-lidargram", "lidargram-lidargram"] and resolved["min_coverage"] == 0.25
+    assert resolved["sift_ratio"] == 0.9  # neither: the default
+    cam = photos.read_cameras(project / "photos" / "cameras.yaml")["camera"]
+    png = next((tmp_path / "m" / "lidargrams").glob("*.png"))
+    import cv2
+
+    assert cv2.imread(str(png), cv2.IMREAD_GRAYSCALE).shape[1] == cam.scaled(0.25).width_px
     summary = json.loads((tmp_path / "m" / "summary.json").read_text())
+    assert _same_json(tmp_path / "m" / "summary.json", MatchSummary.from_dict(summary).to_dict(), tmp_path)
+    assert MatchSummary.from_dict(summary).kind("lidargram-lidargram").pairs == summary["pair_kinds"][
+        "lidargram-lidargram"]["pairs"]
     assert set(summary["pair_kinds"]) == {"photo-lidargram", "lidargram-lidargram"}
     assert summary["pair_kinds"]["lidargram-lidargram"]["median_verified"] >= 15
     pairs = (tmp_path / "m" / "pairs.csv").read_text().splitlines()
@@ -124,7 +175,8 @@ def test_match_command_writes_matches_of_each_kind(demo, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "georefine", "match", str(out / "project"), "--points",
                           str(out / "run" / "points"), "--out", str(tmp_path / "m2"), "--pairs", "photo-sky"],
                          capture_output=True, text=True)
-    assert bad.returncode == 2 and "pair kind" in bad.stderr and not (tmp_path / "m2").exists()
+    assert bad.returncode == 2 and "processing.lidargrammetry.pair_kinds" in bad.stderr, bad.stderr
+    assert "photo-sky" in bad.stderr and not (tmp_path / "m2").exists()
 
 
 def test_coadjust_refuses_a_project_without_photos(tmp_path):
@@ -152,8 +204,45 @@ def test_lidargrams_command_writes_loadable_lidargrams(demo, tmp_path):
     assert (lg.ulpi >= 0).mean() > 0.3 and np.all(np.diff(lg.point_index) > 0)
 
 
+def _minimal_project(folder: Path) -> Path:
+    """A project.yaml only: settings are checked before any sensor or photo file is read."""
+    spec = dict.fromkeys(("gyro_arw_deg_per_sqrt_h", "gyro_bias_instability_deg_per_h", "gyro_turn_on_bias_deg_per_h",
+                          "gyro_scale_factor_ppm", "acc_vrw_m_per_s_per_sqrt_h", "acc_bias_instability_ug",
+                          "acc_turn_on_bias_ug", "acc_scale_factor_ppm"), 1.0)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "project.yaml").write_text(yaml.safe_dump({
+        "gnss": {"files": ["rover.pos"], "lever_arm_m": [0.0, 0.0, -1.0]},
+        "imu": {"file": "imu.csv", "errors": spec},
+        "scanner": {"files": ["strip.laz"], "lever_arm_m": [0.0, 0.0, 0.2]}}))
+    return folder
+
+
 def test_lightglue_without_weight_files_is_refused(tmp_path):
-    proc = subprocess.run([sys.executable, "-m", "georefine", "coadjust", str(tmp_path), "--points", str(tmp_path),
+    project = _minimal_project(tmp_path / "p")
+    proc = subprocess.run([sys.executable, "-m", "georefine", "coadjust", str(project), "--points", str(project),
                            "--out", str(tmp_path / "o"), "--case", "1", "--method", "lightglue"],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "weight files" in proc.stderr and not (tmp_path / "o").exists(), proc.stderr
+    assert "processing.lidargrammetry" in proc.stderr
+
+
+def test_coadjust_options_are_validated_as_configuration_fields(tmp_path):
+    project = _minimal_project(tmp_path / "p")
+    for option, value, field in [("--lidargram-sigma-rotation", "0.01,0.1", "lidargram_sigma_rotation_deg"),
+                                 ("--lidargram-sigma-rotation", "0.01,x,0.1", "lidargram_sigma_rotation_deg"),
+                                 ("--lidargram-sigma-position", "0", "lidargram_sigma_position_m"),
+                                 ("--method", "orb", "matcher")]:
+        proc = subprocess.run([sys.executable, "-m", "georefine", "coadjust", str(project), "--points", str(project),
+                               "--out", str(tmp_path / "o"), "--case", "1", option, value],
+                              capture_output=True, text=True)
+        assert proc.returncode == 2 and f"field 'processing.lidargrammetry.{field}" in proc.stderr, proc.stderr
+        assert not (tmp_path / "o").exists()
+
+
+def test_library_errors_name_parameters(tmp_path):
+    with pytest.raises(InputError, match=r"field 'case': unknown case"):
+        run_coadjust(tmp_path, [], tmp_path / "o", 4)
+    with pytest.raises(InputError, match=r"field 'method': unknown matching method"):
+        make_matcher("orb")
+    with pytest.raises(InputError, match=r"field 'extractor_weights, lightglue_weights'"):
+        make_matcher("lightglue", lightglue_weights=tmp_path / "lg.pth")

@@ -4,6 +4,7 @@ adjustment on it reaches the reprojection error of ours (the reference peer)."""
 from __future__ import annotations
 
 import numpy as np
+import pycolmap
 import pytest
 
 from georefine.geometry.camera import Camera, R_w_c_from_opk, project_points
@@ -16,8 +17,6 @@ from georefine.io.colmap import (
     write_model,
 )
 from georefine.lidargrammetry.crosscheck import reprojection_errors, solve_both
-
-pycolmap = pytest.importorskip("pycolmap")
 
 
 def _block(seed=51):
@@ -102,3 +101,23 @@ def test_colmap_bundle_adjustment_agrees_with_ours():
     assert ours.errors_px.mean() < 0.6 and ours.re_px < 0.6  # 0.5 px noise
     np.testing.assert_allclose(theirs.p_w_c, ours.p_w_c, atol=1e-4)
     assert reprojection_errors(b, R0, p0, X0).mean() > 4 * ours.errors_px.mean()  # both started well off
+
+
+def test_export_colmap_writes_the_inlier_observations_seen_from_two_stations(tmp_path):
+    from georefine.lidargrammetry.bundle import BundleResult
+    from georefine.workflows.lidargrammetry import export_colmap
+
+    cameras, R, p, X, *_, img, pt, uv = _block()
+    names = [f"img{i}.jpg" for i in range(len(cameras))]
+    inlier = np.ones(len(img), bool)
+    inlier[::7] = False  # outliers of the adjustment are left out
+    station = np.array([0, 1, 2, 0, 1, 2])  # a lidargram rendered at each photo: one station
+    result = BundleResult(1, R, p, X, None, None, {}, None, np.zeros((0, 3)), tie_inlier=inlier)
+    folder = export_colmap(tmp_path / "colmap", names, cameras, result, img, pt, uv, station)
+    assert folder == tmp_path / "colmap" and not (tmp_path / "colmap.partial").exists()
+    back = read_model(folder)
+    keep = inlier.copy()
+    n_st = np.array([len(np.unique(station[img[keep & (pt == k)]])) for k in range(len(X))])
+    keep &= n_st[pt] >= 2
+    assert back.num_points3D() == len(np.unique(pt[keep])) and back.num_images() == 6
+    assert sum(len(back.point3D(k).track.elements) for k in back.point3D_ids()) == int(keep.sum())

@@ -30,7 +30,7 @@ def minimal_project() -> dict:
     return {
         "name": "t",
         "gnss": {"files": ["gnss/rover.pos"], "lever_arm_m": [0.1, 0.2, -1.0]},
-        "imu": {"file": "imu/imu.csv", "errors": SPEC},
+        "imu": {"file": "imu/imu.csv", "errors": dict(SPEC)},  # a copy: tests change it
         "scanner": {"files": ["scans/strip_1.laz"], "lever_arm_m": [0.3, 0.0, 0.2]},
     }
 
@@ -79,8 +79,10 @@ def test_overrides_parse_yaml_values_and_do_not_mutate():
     assert out["flight"] == {"speed_mps": 20, "passes": 1}
     assert out["gnss"]["outages_s"] == [[10, 40]]
     assert data == {"flight": {"speed_mps": 18.0}, "seed": 1}
-    with pytest.raises(ConfigError, match="key.sub=value"):
+    with pytest.raises(ConfigError, match=r"field 'overrides': override must look like key.sub=value"):
         apply_overrides(data, ["flight.speed_mps"])
+    with pytest.raises(ConfigError, match=r"field 'overrides': override has an empty key"):
+        apply_overrides(data, ["=1"])
     with pytest.raises(ConfigError, match="sub-key of a scalar"):
         apply_overrides(data, ["seed.x=1"])
 
@@ -89,3 +91,95 @@ def test_boresight_matrix_small_angles():
     R = boresight_matrix((0.0, 0.0, 90.0))
     np.testing.assert_allclose(R @ [1, 0, 0], [0, 1, 0], atol=1e-15)
     np.testing.assert_allclose(boresight_matrix((0, 0, 0)), np.eye(3))
+
+
+def test_unknown_imu_grade_names_the_parameter():
+    from georefine.sim.scenarios import resolve_scenario
+
+    with pytest.raises(ConfigError, match=r"field 'imu_grade': unknown IMU grade .*expected one of .*mems"):
+        resolve_scenario("corridor-tiny", imu_grade="consumer")
+
+
+# ---------------------------------------------------------------------------- processing.lidargrammetry
+def test_lidargrammetry_defaults_are_the_values_the_block_demo_was_tuned_with():
+    from georefine.config import LidargrammetryConfig
+
+    st = LidargrammetryConfig()
+    assert (st.photo_sigma_position_m, st.photo_sigma_rotation_deg) == (0.1, 0.02)
+    assert (st.lidargram_sigma_position_m, st.lidargram_sigma_rotation_deg) == (1.0, (0.01, 0.01, 0.1))
+    assert (st.lidargram_scale, st.splat_scale, st.min_coverage, st.point_spacing_m) == (0.5, 2.0, 0.3, None)
+    assert st.per_strip and st.fill_holes and st.use_depth and st.feather
+    assert (st.matcher, st.sift_ratio, st.verification_threshold_px, st.min_verified_matches) == ("sift", 0.9, 2.0, 15)
+    assert (st.deep_max_features, st.max_pair_distance_m, st.lightglue_features) == (6000, 150.0, "disk")
+    assert st.pair_kinds == ("photo-photo", "photo-lidargram") and st.max_initial_reprojection_px == 15.0
+
+
+def test_lidargrammetry_defaults_equal_the_library_defaults_they_stand_for():
+    """Fields passed to library functions keep those functions' own defaults (one behaviour either way)."""
+    import inspect
+
+    from georefine.config import LidargrammetryConfig
+    from georefine.lidargrammetry.bundle import coadjust
+    from georefine.lidargrammetry.matching import detect_sift
+    from georefine.lidargrammetry.reintersect import reintersect
+
+    st = LidargrammetryConfig()
+
+    def default(fn, name):
+        return inspect.signature(fn).parameters[name].default
+
+    for field, fn, name in [("tie_sigma_px", coadjust, "tie_sigma_px"), ("depth_sigma_m", coadjust, "depth_sigma_m"),
+                            ("measurement_sigma_px", coadjust, "measurement_sigma_px"),
+                            ("tie_loss", coadjust, "tie_loss"), ("tie_loss_scale", coadjust, "tie_loss_scale"),
+                            ("sift_max_features", detect_sift, "max_features"),
+                            ("sift_contrast_threshold", detect_sift, "contrast_threshold"),
+                            ("interpolation_neighbours", reintersect, "k"),
+                            ("interpolation_max_distance_m", reintersect, "max_distance_m")]:
+        assert getattr(st, field) == default(fn, name), field
+
+
+def _project_with(tmp_path, section: dict):
+    data = minimal_project()
+    data["processing"] = {"lidargrammetry": section}
+    (tmp_path / "project.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    return tmp_path
+
+
+def test_bad_lidargrammetry_value_in_project_yaml_names_field_and_line(tmp_path):
+    _project_with(tmp_path, {"lidargram_scale": 0.25, "lidargram_sigma_rotation_deg": [0.01, 0.1]})
+    with pytest.raises(ConfigError) as err:
+        load_project(tmp_path)
+    text = str(err.value)
+    line = next(i for i, l in enumerate((tmp_path / "project.yaml").read_text().splitlines(), 1)
+                if "lidargram_sigma_rotation_deg" in l)
+    assert "processing.lidargrammetry.lidargram_sigma_rotation_deg" in text and f"line {line}" in text
+    assert "one or three sigmas" in text
+    _project_with(tmp_path, {"lidargram_sigma_position_m": 0})
+    with pytest.raises(ConfigError, match=r"lidargram_sigma_position_m.*greater than 0"):
+        load_project(tmp_path)
+    _project_with(tmp_path, {"matcher": "lightglue"})
+    with pytest.raises(ConfigError, match=r"field 'processing.lidargrammetry'.*weight files"):
+        load_project(tmp_path)
+
+
+def test_one_rotation_sigma_stands_for_three():
+    from georefine.config import LidargrammetryConfig
+
+    assert LidargrammetryConfig(lidargram_sigma_rotation_deg=0.05).lidargram_sigma_rotation_deg == (0.05,) * 3
+    assert LidargrammetryConfig(lidargram_sigma_rotation_deg=[0.05]).lidargram_sigma_rotation_deg == (0.05,) * 3
+    with pytest.raises(ValueError, match="positive"):
+        LidargrammetryConfig(lidargram_sigma_rotation_deg=[0.01, 0.01, -0.1])
+
+
+def test_overrides_beat_project_yaml_which_beats_the_defaults(tmp_path):
+    from georefine.workflows.lidargrammetry import lidargrammetry_settings
+
+    cfg = load_project(_project_with(tmp_path, {"lidargram_scale": 0.25, "sift_ratio": 0.8}))
+    st = lidargrammetry_settings(cfg, {"lidargram_scale": 0.3, "lidargram_sigma_rotation_deg": ["0.02"]})
+    assert (st.lidargram_scale, st.sift_ratio, st.lidargram_sigma_rotation_deg) == (0.3, 0.8, (0.02,) * 3)
+    assert st.verification_threshold_px == 2.0  # neither given: the default
+    assert lidargrammetry_settings(cfg).lidargram_scale == 0.25 and cfg.processing.lidargrammetry.lidargram_scale == 0.25
+    with pytest.raises(ConfigError, match=r"field 'processing.lidargrammetry.pair_kinds.0'.*photo-sky"):
+        lidargrammetry_settings(cfg, {"pair_kinds": ["photo-sky"]})
+    with pytest.raises(ConfigError, match=r"field 'processing.lidargrammetry.scale': unknown key"):
+        lidargrammetry_settings(cfg, {"scale": 0.3})

@@ -260,11 +260,19 @@ def _block_demo(out: Path, seed: int, overrides: list[str], method: str) -> None
     for row in result.summary_table():
         table.add_row(*row)
     stdout.print(table)
-    for case, d in sorted(result.metrics["refined_cloud"].items()):
-        stdout.print(f"case {case}: refined cloud RMS {d['rms_before_m']:.3f} -> {d['rms_after_m']:.3f} m "
-                     f"({d['ratio']:.2f}x the jammed cloud's error) over {d['points']:,} points inside the block")
-    stdout.print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in result.metrics["timings_s"].items()))
+    for case, d in sorted(result.metrics.refined_cloud.items()):
+        stdout.print(f"case {case}: refined cloud RMS {d.rms_before_m:.3f} -> {d.rms_after_m:.3f} m "
+                     f"({d.ratio:.2f}x the jammed cloud's error) over {d.points:,} points inside the block")
+    stdout.print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in result.metrics.timings_s.items()))
     stdout.print(f"report: {result.report.resolve()}")
+
+
+_FROM_CONFIG = "Default: processing.lidargrammetry in project.yaml, else"
+
+
+def _given(**options) -> dict:
+    """The options given on the command line (not None) as ``processing.lidargrammetry`` overrides."""
+    return {k: v for k, v in options.items() if v is not None}
 
 
 @app.command()
@@ -272,40 +280,34 @@ def lidargrams(
     project: Path = typer.Argument(..., help="Project folder with a photos section in project.yaml."),
     points: list[Path] = typer.Option(..., "--points", "-p", help="Georeferenced LAZ strips or their folder (output CRS)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
-    scale: float = typer.Option(0.5, "--scale", help="Lidargram resolution relative to the photos."),
+    scale: Optional[float] = typer.Option(
+        None, "--scale", help=f"Lidargram resolution relative to the photos. {_FROM_CONFIG} 0.5."),
     merged: bool = typer.Option(False, "--merged", help="One lidargram per photo of all strips together."),
 ) -> None:
-    """Render lidargrams at the photos' approximate orientation: OUT/NAME.png and NAME.npz (ULPI raster)."""
+    """Render lidargrams at the photos' approximate orientation: OUT/NAME.png and NAME.npz (ULPI raster).
+
+    Also writes the resolved configuration (config.resolved.yaml).
+    """
     with _user_errors():
-        from georefine.lidargrammetry.render import save_lidargram
-        from georefine.workflows.lidargrammetry import (
-            load_photo_project,
-            read_cloud,
-            render_lidargrams,
-        )
-        from georefine.workflows.project import output_folder
+        from georefine.workflows.lidargrammetry import run_lidargrams
 
-        pp = load_photo_project(project)
-        out = output_folder(out, pp.root)
-        out.mkdir(parents=True, exist_ok=True)
-        cloud = read_cloud(points, pp)
         with _progress() as report:
-            lgs = render_lidargrams(pp, cloud, scale=scale, per_strip=not merged, progress=report)
-        for lg, i, s in lgs:  # named as in georefine match and coadjust: LG_<strip>_<photo>
-            save_lidargram(lg, out, f"LG_{cloud.files[s].stem if s >= 0 else 'all'}_{Path(pp.eop.images[i]).stem}")
-    stdout.print(f"{len(lgs)} lidargrams written to {out}")
+            names = run_lidargrams(project, points, out, progress=report,
+                                   overrides=_given(lidargram_scale=scale, per_strip=False if merged else None))
+    stdout.print(f"{len(names)} lidargrams written to {out}")
 
 
-_METHOD_HELP = "Matcher: sift, xfeat (the deep extra), or lightglue (the deep extra and local weight files)."
+_METHOD_HELP = ("Matcher: sift, xfeat (the deep extra), or lightglue (the deep extra and local weight files). "
+                f"{_FROM_CONFIG} sift.")
 
 
-def _matcher(method: str, features: str, extractor_weights: Optional[Path], lightglue_weights: Optional[Path]):
-    from georefine.workflows.lidargrammetry import (
-        make_matcher,  # refuses an unknown method (InputError)
-    )
-
-    return make_matcher(method, lightglue_features=features, extractor_weights=extractor_weights,
-                        lightglue_weights=lightglue_weights)
+def _matcher(method: Optional[str], features: Optional[str], extractor_weights: Optional[Path],
+             lightglue_weights: Optional[Path]) -> dict:
+    """The matcher options given, as overrides; weight files made absolute (project.yaml's are relative
+    to the project folder, the command line's to the working directory)."""
+    return _given(matcher=method, lightglue_features=features,
+                  extractor_weights=None if extractor_weights is None else str(extractor_weights.resolve()),
+                  lightglue_weights=None if lightglue_weights is None else str(lightglue_weights.resolve()))
 
 
 @app.command()
@@ -313,30 +315,34 @@ def match(
     project: Path = typer.Argument(..., help="Project folder with a photos section in project.yaml."),
     points: list[Path] = typer.Option(..., "--points", "-p", help="Georeferenced LAZ strips or their folder (output CRS)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
-    method: str = typer.Option("sift", "--method", help=_METHOD_HELP),
-    pairs: str = typer.Option("photo-photo,photo-lidargram", "--pairs",
-                              help="Pair kinds, comma-separated: photo-photo, photo-lidargram, lidargram-lidargram."),
-    scale: float = typer.Option(0.5, "--scale", help="Lidargram resolution relative to the photos."),
-    features: str = typer.Option("disk", "--lightglue-features", help="LightGlue's features: disk or aliked."),
+    method: Optional[str] = typer.Option(None, "--method", help=_METHOD_HELP),
+    pairs: Optional[str] = typer.Option(
+        None, "--pairs", help="Pair kinds, comma-separated: photo-photo, photo-lidargram, lidargram-lidargram. "
+        f"{_FROM_CONFIG} photo-photo,photo-lidargram."),
+    scale: Optional[float] = typer.Option(
+        None, "--scale", help=f"Lidargram resolution relative to the photos. {_FROM_CONFIG} 0.5."),
+    features: Optional[str] = typer.Option(None, "--lightglue-features", help="LightGlue's features: disk or aliked."),
     extractor_weights: Optional[Path] = typer.Option(None, "--extractor-weights", help="DISK/ALIKED weights (.pth)."),
     lightglue_weights: Optional[Path] = typer.Option(None, "--lightglue-weights", help="LightGlue weights (.pth)."),
 ) -> None:
     """Render lidargrams and match photos and lidargrams (verified matches, tracks, pictures).
 
-    Writes OUT/lidargrams/, pairs.csv, matches.csv, tracks.csv, matches_<kind>.png, summary.json.
+    Writes OUT/lidargrams/, pairs.csv, matches.csv, tracks.csv, matches_<kind>.png, summary.json
+    and the resolved configuration (config.resolved.yaml). Options given override
+    processing.lidargrammetry of project.yaml.
     """
     with _user_errors():
         from georefine.workflows.lidargrammetry import run_match
 
-        kinds = tuple(k.strip() for k in pairs.split(",") if k.strip())
-        m = _matcher(method, features, extractor_weights, lightglue_weights)
+        kinds = None if pairs is None else [k.strip() for k in pairs.split(",") if k.strip()]
+        overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
+                     **_given(pair_kinds=kinds, lidargram_scale=scale)}
         with _progress() as report:
-            summary = run_match(project, points, out, method=method, matcher=m, pair_kinds=kinds,
-                                lidargram_scale=scale, progress=report)
-    stdout.print(f"{summary['photos']} photos, {summary['lidargrams']} lidargrams, {summary['tracks']} tracks")
-    for k, v in summary["pair_kinds"].items():
-        stdout.print(f"  {k}: {v['pairs']} pairs ({v['pairs_with_matches']} with matches), "
-                     f"median {v['median_verified']:.0f} verified matches")
+            summary = run_match(project, points, out, overrides=overrides, progress=report)
+    stdout.print(f"{summary.photos} photos, {summary.lidargrams} lidargrams, {summary.tracks} tracks")
+    for k in summary.pair_kinds:
+        stdout.print(f"  {k.kind}: {k.pairs} pairs ({k.pairs_with_matches} with matches), "
+                     f"median {k.median_verified:.0f} verified matches")
     stdout.print(f"  results in {out}")
 
 
@@ -346,49 +352,42 @@ def coadjust(
     points: list[Path] = typer.Option(..., "--points", "-p", help="Georeferenced LAZ strips or their folder (output CRS)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
     case: int = typer.Option(..., "--case", help="1: refine LiDAR, 2: photos and LiDAR, 3: refine photos (paper 004)."),
-    method: str = typer.Option("sift", "--method", help=_METHOD_HELP),
-    features: str = typer.Option("disk", "--lightglue-features", help="LightGlue's features: disk or aliked."),
+    method: Optional[str] = typer.Option(None, "--method", help=_METHOD_HELP),
+    features: Optional[str] = typer.Option(None, "--lightglue-features", help="LightGlue's features: disk or aliked."),
     extractor_weights: Optional[Path] = typer.Option(None, "--extractor-weights", help="DISK/ALIKED weights (.pth)."),
     lightglue_weights: Optional[Path] = typer.Option(None, "--lightglue-weights", help="LightGlue weights (.pth)."),
     no_depth: bool = typer.Option(False, "--no-depth", help="Image-only lidargram observations (the paper's formulation)."),
-    sigma_position: float = typer.Option(1.0, "--lidargram-sigma-position", help="A-priori sigma of lidargram positions [m]."),
-    sigma_rotation: str = typer.Option("0.01,0.01,0.1", "--lidargram-sigma-rotation",
-                                       help="A-priori sigma of lidargram rotations about the camera x,y,z axes [deg]."),
+    sigma_position: Optional[float] = typer.Option(
+        None, "--lidargram-sigma-position", help=f"A-priori sigma of lidargram positions [m]. {_FROM_CONFIG} 1.0."),
+    sigma_rotation: Optional[str] = typer.Option(
+        None, "--lidargram-sigma-rotation",
+        help=f"A-priori sigma of lidargram rotations about the camera x,y,z axes [deg], one or three "
+        f"comma-separated. {_FROM_CONFIG} 0.01,0.01,0.1."),
 ) -> None:
     """Co-match photos and lidargrams and co-adjust them (paper 004, cases 1-3).
 
     Writes eop_photos.csv and eop_lidargrams.csv (output CRS), points/*.laz (cases 1 and 2: the
-    refined cloud, same point order as the input), matches_lidargram_photo.png and metrics.json.
+    refined cloud, same point order as the input), matches_lidargram_photo.png, metrics.json and
+    the resolved configuration (config.resolved.yaml). Options given override
+    processing.lidargrammetry of project.yaml.
     """
     with _user_errors():
-        from georefine.errors import InputError
         from georefine.workflows.lidargrammetry import run_coadjust
 
-        try:
-            sig_r = tuple(float(v) for v in sigma_rotation.split(","))
-        except ValueError:
-            sig_r = ()
-        if len(sig_r) not in (1, 3) or min(sig_r) <= 0:
-            raise InputError("bad lidargram rotation sigma", field="--lidargram-sigma-rotation",
-                             expected="one or three positive numbers in degrees, comma-separated", found=sigma_rotation)
-        if sigma_position <= 0:
-            raise InputError("bad lidargram position sigma", field="--lidargram-sigma-position",
-                             expected="a positive number of metres", found=str(sigma_position))
+        sig_r = None if sigma_rotation is None else [v.strip() for v in sigma_rotation.split(",")]
+        overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
+                     **_given(use_depth=False if no_depth else None, lidargram_sigma_position_m=sigma_position,
+                              lidargram_sigma_rotation_deg=sig_r)}
         with _progress() as report:
-            _, m = run_coadjust(project, points, out, case, method=method,
-                                matcher=_matcher(method, features, extractor_weights, lightglue_weights),
-                                use_depth=not no_depth,
-                                lidargram_sigma_position_m=sigma_position,
-                                lidargram_sigma_rotation_deg=sig_r if len(sig_r) == 3 else sig_r[0], progress=report)
-    stdout.print(f"case {case}: {m['description']}")
-    for label in ("control_points", "check_points"):
-        st = m.get(label)
-        if st:
-            stdout.print(f"  {label.replace('_', ' ')} ({st['n']}): RMSE X {st['rmse_x_m']:.3f} Y {st['rmse_y_m']:.3f} "
-                         f"Z {st['rmse_z_m']:.3f} m, RE {st['reprojection_px']:.2f} px")
-    pl = m["photo_lidargram_matches"]
-    stdout.print(f"  {m['photos']} photos, {m['lidargrams']} lidargrams, {pl['pairs']} photo-lidargram pairs "
-                 f"(median {pl['median']:.0f} verified matches), {m['tracks']} tie points")
+            m = run_coadjust(project, points, out, case, overrides=overrides, progress=report)
+    stdout.print(f"case {case}: {m.description}")
+    for label, st in (("control points", m.control_points), ("check points", m.check_points)):
+        if st is not None:
+            x, y, z = st.rmse_xyz_m
+            stdout.print(f"  {label} ({st.n}): RMSE X {x:.3f} Y {y:.3f} Z {z:.3f} m, RE {st.reprojection_px:.2f} px")
+    pl = m.photo_lidargram_matches
+    stdout.print(f"  {m.photos} photos, {m.lidargrams} lidargrams, {pl.n_pairs} photo-lidargram pairs "
+                 f"(median {pl.median_verified:.0f} verified matches), {m.tracks} tie points")
     stdout.print(f"  results in {out}")
 
 

@@ -17,7 +17,7 @@ import numpy as np
 
 from georefine.errors import InputError
 
-__all__ = ["CloudErrors", "cloud_errors", "plot_cloud_errors", "PAPER_004_GRAZ", "PAPER_004_LOOSDORF"]
+__all__ = ["CloudErrors", "CloudErrorSummary", "cloud_errors", "plot_cloud_errors", "PAPER_004_GRAZ", "PAPER_004_LOOSDORF"]
 
 #: Paper 004, Graz block (5 cm GSD), Tables 1-3: RMSE X/Y/Z (m) and reprojection error (px).
 PAPER_004_GRAZ = {
@@ -34,6 +34,37 @@ PAPER_004_LOOSDORF = {
 }
 
 
+def _float(value) -> float:
+    return float("nan") if value is None else float(value)  # NaN is written to JSON as null
+
+
+@dataclass(frozen=True)
+class CloudErrorSummary:
+    """RMS and largest 3-D error (m) of the points inside the block, jammed and refined; ``ratio``: refined / jammed RMS."""
+
+    points: int
+    rms_before_m: float
+    rms_after_m: float
+    ratio: float
+    rms_xyz_before_m: tuple[float, float, float]
+    rms_xyz_after_m: tuple[float, float, float]
+    max_before_m: float
+    max_after_m: float
+
+    def to_dict(self) -> dict:
+        return {"points": self.points, "rms_before_m": self.rms_before_m, "rms_after_m": self.rms_after_m,
+                "ratio": self.ratio, "rms_xyz_before_m": list(self.rms_xyz_before_m),
+                "rms_xyz_after_m": list(self.rms_xyz_after_m), "max_before_m": self.max_before_m,
+                "max_after_m": self.max_after_m}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CloudErrorSummary:
+        return cls(int(d["points"]), _float(d["rms_before_m"]), _float(d["rms_after_m"]), _float(d["ratio"]),
+                   tuple(_float(v) for v in d["rms_xyz_before_m"]),  # type: ignore[arg-type]
+                   tuple(_float(v) for v in d["rms_xyz_after_m"]),  # type: ignore[arg-type]
+                   _float(d["max_before_m"]), _float(d["max_after_m"]))
+
+
 @dataclass(frozen=True)
 class CloudErrors:
     """Point-by-point errors against the truth of the points inside the block."""
@@ -46,14 +77,14 @@ class CloudErrors:
     def _rms(e: np.ndarray) -> float:
         return float(np.sqrt(np.mean(np.sum(e**2, axis=1)))) if len(e) else float("nan")
 
-    def to_dict(self) -> dict:
+    def summary(self) -> CloudErrorSummary:
         b, a = self._rms(self.before), self._rms(self.after)
-        return {"points": int(len(self.before)), "rms_before_m": b, "rms_after_m": a,
-                "ratio": a / b if b > 0 else float("nan"),
-                "rms_xyz_before_m": np.sqrt(np.mean(self.before**2, axis=0)).tolist(),
-                "rms_xyz_after_m": np.sqrt(np.mean(self.after**2, axis=0)).tolist(),
-                "max_before_m": float(np.linalg.norm(self.before, axis=1).max()) if len(self.before) else float("nan"),
-                "max_after_m": float(np.linalg.norm(self.after, axis=1).max()) if len(self.after) else float("nan")}
+        return CloudErrorSummary(
+            int(len(self.before)), b, a, a / b if b > 0 else float("nan"),
+            tuple(np.sqrt(np.mean(self.before**2, axis=0)).tolist()),  # type: ignore[arg-type]
+            tuple(np.sqrt(np.mean(self.after**2, axis=0)).tolist()),  # type: ignore[arg-type]
+            float(np.linalg.norm(self.before, axis=1).max()) if len(self.before) else float("nan"),
+            float(np.linalg.norm(self.after, axis=1).max()) if len(self.after) else float("nan"))
 
 
 def cloud_errors(jammed: Path, refined: Path, truth: Path, *, every: int = 1) -> CloudErrors:

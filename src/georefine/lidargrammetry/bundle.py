@@ -102,6 +102,13 @@ class PointStats:
         return {"n": self.n, "rmse_x_m": float(self.rmse_xyz_m[0]), "rmse_y_m": float(self.rmse_xyz_m[1]),
                 "rmse_z_m": float(self.rmse_xyz_m[2]), "reprojection_px": self.reprojection_px}
 
+    @classmethod
+    def from_dict(cls, d: dict) -> PointStats:
+        """From :meth:`to_dict` or its JSON (where NaN is ``null``)."""
+        re_px = d["reprojection_px"]
+        return cls(int(d["n"]), np.array([d["rmse_x_m"], d["rmse_y_m"], d["rmse_z_m"]], dtype=float),
+                   float("nan") if re_px is None else float(re_px))
+
 
 @dataclass(frozen=True)
 class BundleResult:

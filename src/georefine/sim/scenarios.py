@@ -168,7 +168,7 @@ def resolve_scenario(
         data = deep_merge(data, read_yaml(config_file))
     if imu_grade is not None:
         if imu_grade not in IMU_PRESETS:
-            raise ConfigError("unknown IMU grade", field="--imu-grade", expected="one of " + ", ".join(IMU_PRESETS), found=repr(imu_grade))
+            raise ConfigError("unknown IMU grade", field="imu_grade", expected="one of " + ", ".join(IMU_PRESETS), found=repr(imu_grade))
         data["imu"] = IMU_PRESETS[imu_grade].model_dump()
     if gnss_grade is not None:
         data = deep_merge(data, {"gnss": {"grade": gnss_grade}})

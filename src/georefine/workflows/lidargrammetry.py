@@ -8,15 +8,19 @@ georeferenced point cloud (LAZ strips in the output CRS, e.g. ``georefine run`` 
    function, two strips' errors are not) -- at ``lidargram_scale`` of the photo resolution
    (the paper's point spacing is 2.5-3 GSD);
 2. matches photo-photo and photo-lidargram pairs whose footprints overlap (SIFT by default,
-   XFeat with ``method="xfeat"``), builds tracks and keeps those seen from two or more stations
-   (a photo and the lidargram rendered at its pose are one station: no base between them);
+   XFeat or LightGlue with ``matcher``), builds tracks and keeps those seen from two or more
+   stations (a photo and the lidargram rendered at its pose are one station: no base between them);
 3. adjusts the block as case 1, 2 or 3 (:mod:`georefine.lidargrammetry.bundle`), with the
    depth a lidargram shows at each tie keypoint as an observation (``use_depth``; off: the
    paper's image-only formulation);
 4. writes the adjusted orientation of photos and lidargrams (``eop_photos.csv``,
    ``eop_lidargrams.csv``, output CRS), for cases 1 and 2 the refined point cloud
    (``points/``, same files and point order as the input, :mod:`.reintersect`), a match picture
-   of one photo-lidargram pair (cf. paper Fig. 6) and ``metrics.json``.
+   of one photo-lidargram pair (cf. paper Fig. 6), ``metrics.json`` and ``config.resolved.yaml``.
+
+Every setting is a field of ``processing.lidargrammetry`` (:class:`georefine.config.LidargrammetryConfig`);
+``overrides`` (field name to value, e.g. from the command line) take precedence over
+``project.yaml``. The results are typed (:mod:`georefine.workflows.lidargrammetry_results`).
 """
 
 from __future__ import annotations
@@ -24,22 +28,22 @@ from __future__ import annotations
 import logging
 import shutil
 import time as _time
-from dataclasses import dataclass, replace
+from collections.abc import Mapping
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from georefine.adjustment.observations.reprojection import ReprojectionObservation
-from georefine.config import load_project
+from georefine.config import PAIR_KINDS, LidargrammetryConfig, load_project, write_yaml
 from georefine.errors import InputError
-from georefine.evaluation.clouds import point_files
 from georefine.geometry.camera import Camera
-from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import metashape
 from georefine.io import photos as pio
+from georefine.io.colmap import to_reconstruction, write_model
 from georefine.io.files import atomic_output, write_json
-from georefine.io.las import LasWriter, PointCloud, iter_las_chunks
 from georefine.lidargrammetry.bundle import (
     CASES,
     BlockImages,
@@ -62,124 +66,42 @@ from georefine.lidargrammetry.matching import (
     verify_pair,
 )
 from georefine.lidargrammetry.reintersect import feather_weights, reintersect
-from georefine.lidargrammetry.render import Lidargram, render_lidargram
 from georefine.progress import Progress, no_progress
 from georefine.workflows.cache import StepCache, file_stamp
+from georefine.workflows.lidargrammetry_results import (
+    CoadjustResult,
+    ColmapModel,
+    MatchSummary,
+    PairCount,
+    PairKindStats,
+    PhotoLidargramMatches,
+    Precision,
+    ReintersectionCounts,
+    TieReprojection,
+)
+from georefine.workflows.photo_block import (
+    SECTION,
+    Cloud,
+    PhotoProject,
+    lidargrammetry_settings,
+    load_photo_project,
+    read_cloud,
+    render_lidargrams,
+    write_cloud,
+)
 from georefine.workflows.project import output_folder
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PhotoProject", "Cloud", "PAIR_KINDS", "load_photo_project", "read_cloud", "render_lidargrams",
-           "make_matcher", "match_block", "run_match", "run_coadjust", "export_colmap"]
-
-
-@dataclass(frozen=True)
-class PhotoProject:
-    """The photo block of a project, checked, with approximate poses in a local frame ``w``."""
-
-    root: Path
-    frame: LocalFrame
-    crs: OutputCRS
-    cameras: dict[str, Camera]
-    eop: pio.ExteriorOrientation
-    gcps: pio.ControlPoints
-    image_points: pio.ImagePoints
-    folder: Path
-    R_w_c: np.ndarray
-    p_w_c: np.ndarray
-
-    def camera(self, i: int) -> Camera:
-        return self.cameras[self.eop.cameras[i]]
-
-
-@dataclass(frozen=True)
-class Cloud:
-    """A georeferenced point cloud in ``w``, strip by strip (files kept for writing back)."""
-
-    files: tuple[Path, ...]
-    xyz_w: np.ndarray
-    intensity: np.ndarray
-    strip: np.ndarray  # (N,) index into files
-
-
-def load_photo_project(project_dir: str | Path) -> PhotoProject:
-    """Read and check the photo files of a project (:func:`georefine.io.photos.check_photo_block`)."""
-    root = Path(project_dir)
-    cfg = load_project(root)
-    ph = cfg.photos
-    if ph is None:
-        raise InputError("the project has no photos", path=root / "project.yaml", field="photos",
-                         expected="a photos section (folder, cameras, eop, gcp, image_points)")
-    cameras = pio.read_cameras(root / ph.cameras)
-    eop = pio.read_eop(root / ph.eop, cameras)
-    gcps = pio.read_gcps(root / ph.gcp) if ph.gcp else None
-    pts = pio.read_image_points(root / ph.image_points) if ph.image_points else None
-    block = pio.PhotoBlock(cameras, eop, gcps, pts, root / ph.folder)
-    pio.check_photo_block(block, eop_path=root / ph.eop, gcp_path=root / (ph.gcp or "gcp.csv"),
-                          image_points_path=root / (ph.image_points or "image_points.csv"))
-    crs = OutputCRS(cfg.crs.output_epsg)
-    lat, lon, _ = crs.to_geodetic(eop.xyz.mean(axis=0))
-    h0 = float(np.median(gcps.xyz[:, 2])) if gcps is not None and len(gcps) else 0.0
-    frame = LocalFrame(float(lat), float(lon), h0)
-    R, p = pio.poses_in_w(eop, frame, crs)
-    empty = pio.ImagePoints((), (), np.zeros((0, 2)), np.zeros(0, np.int64))
-    gc = gcps if gcps is not None else pio.ControlPoints((), np.zeros((0, 3)), np.zeros((0, 3)), ())
-    return PhotoProject(root, frame, crs, cameras, eop, gc, pts or empty, root / ph.folder, R, p)
-
-
-def read_cloud(paths: list[Path], pp: PhotoProject) -> Cloud:
-    """Georeferenced LAZ/LAS strips (output CRS) into ``w``."""
-    files = point_files([Path(p) for p in paths])
-    xyz, inten, strip = [], [], []
-    for k, f in enumerate(files):
-        for c in iter_las_chunks(f, 5_000_000):
-            xyz.append(pp.crs.to_w(pp.frame, c.xyz))
-            inten.append(np.asarray(c.intensity, dtype=float))
-            strip.append(np.full(len(c.xyz), k, dtype=np.int32))
-    return Cloud(tuple(files), np.concatenate(xyz), np.concatenate(inten), np.concatenate(strip))
-
-
-def render_lidargrams(pp: PhotoProject, cloud: Cloud, *, scale: float = 0.5, per_strip: bool = True,
-                      point_spacing_m: float | None = None, splat_scale: float = 2.0, min_coverage: float = 0.3,
-                      progress: Progress = no_progress) -> list[tuple[Lidargram, int, int]]:
-    """Lidargrams ``(lidargram, photo index, strip or -1)`` at the photos' approximate poses."""
-    groups = [np.flatnonzero(cloud.strip == s) for s in range(len(cloud.files))] if per_strip else \
-        [np.arange(len(cloud.xyz_w))]
-    if point_spacing_m is None:  # from the density of the cloud: mean spacing of its strips together
-        lo, hi = cloud.xyz_w[:, :2].min(axis=0), cloud.xyz_w[:, :2].max(axis=0)
-        point_spacing_m = float(np.sqrt(np.prod(hi - lo) / len(cloud.xyz_w)))
-    out = []
-    total = len(groups) * len(pp.eop)
-    for g, sel in enumerate(groups):
-        for i in range(len(pp.eop)):
-            progress("lidargrams", g * len(pp.eop) + i, total)
-            lg = render_lidargram(cloud.xyz_w[sel], cloud.intensity[sel], pp.camera(i).scaled(scale), pp.R_w_c[i],
-                                  pp.p_w_c[i], point_spacing_m=point_spacing_m, splat_scale=splat_scale,
-                                  fill_holes=True)
-            if np.mean(lg.ulpi >= 0) < min_coverage:
-                continue
-            lg = replace(lg, ulpi=np.where(lg.ulpi >= 0, sel[np.maximum(lg.ulpi, 0)], -1),
-                         point_index=sel[lg.point_index])
-            out.append((lg, i, g if per_strip else -1))
-    progress("lidargrams", total, total)
-    return out
-
+__all__ = ["PhotoProject", "Cloud", "PAIR_KINDS", "SECTION", "load_photo_project", "lidargrammetry_settings",
+           "read_cloud", "render_lidargrams", "make_matcher", "match_block", "run_lidargrams", "run_match",
+           "run_coadjust", "export_colmap"]
 
 @dataclass(frozen=True)
 class BlockMatches:
     keypoints: list[Keypoints]
     pairs: list[PairMatches]
     tracks: Tracks
-
-
-PAIR_KINDS = ("photo-photo", "photo-lidargram", "lidargram-lidargram")
-
-
-def _check_pair_kinds(pair_kinds) -> None:
-    bad = set(pair_kinds) - set(PAIR_KINDS)
-    if bad or not pair_kinds:
-        raise InputError("unknown pair kind", field="pairs", expected=", ".join(PAIR_KINDS),
-                         found=", ".join(sorted(bad)) or "nothing")
 
 
 def _pair_kind(is_lidargram: np.ndarray, a: int, b: int) -> str:
@@ -201,37 +123,58 @@ def _draw_best(pairs: list[PairMatches], is_lidargram: np.ndarray, images: list,
 
 def make_matcher(method: str = "sift", *, lightglue_features: str = "disk", extractor_weights: Path | None = None,
                  lightglue_weights: Path | None = None, max_features: int = 6000):
-    """``None`` for SIFT (OpenCV), else a matcher object with ``detect`` and ``match``."""
+    """``None`` for SIFT (OpenCV), else a matcher object with ``detect`` and ``match``.
+
+    Raises
+    ------
+    InputError
+        An unknown ``method``, or ``"lightglue"`` without both weight files (names the parameters).
+    """
     if method == "sift":
         return None
     if method == "xfeat":
         return XFeatMatcher(max_features=max_features)
     if method == "lightglue":
         if extractor_weights is None or lightglue_weights is None:
-            raise InputError("LightGlue needs local weight files", field="--extractor-weights/--lightglue-weights",
+            raise InputError("LightGlue needs local weight files", field="extractor_weights, lightglue_weights",
                              expected="the extractor's and LightGlue's .pth files (nothing is downloaded)")
         return LightGlueMatcher(lightglue_features, extractor_weights, lightglue_weights, max_features=max_features)
-    raise InputError("unknown matching method", field="--method", expected="sift, xfeat or lightglue", found=method)
+    raise InputError("unknown matching method", field="method", expected="sift, xfeat or lightglue", found=method)
+
+
+def _settings_matcher(st: LidargrammetryConfig, root: Path):
+    """The matcher the settings name; weight files relative to the project folder ``root``."""
+    def weights(name: str | None) -> Path | None:
+        return None if name is None else root / name
+
+    return make_matcher(st.matcher, lightglue_features=st.lightglue_features,
+                        extractor_weights=weights(st.extractor_weights),
+                        lightglue_weights=weights(st.lightglue_weights), max_features=st.deep_max_features)
 
 
 def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.ndarray, is_lidargram: np.ndarray,
-                centres: np.ndarray, masks: list, *, method="sift", max_pair_distance_m: float = 150.0,
-                pair_kinds: tuple[str, ...] = ("photo-photo", "photo-lidargram"),
+                centres: np.ndarray, masks: list, settings: LidargrammetryConfig | None = None, *, matcher=None,
                 progress: Progress = no_progress) -> BlockMatches:
     """Keypoints of every image, verified matches of overlapping pairs of the kinds asked, tracks.
 
-    ``method``: ``"sift"``, ``"xfeat"`` or a matcher object (:func:`make_matcher`). Pairs whose
-    approximate centres are closer than ``max_pair_distance_m``; lidargram-lidargram pairs are
-    left out by default (two lidargrams of one station have no base, two of one strip repeat the
-    same trajectory error).
+    ``settings``: the matching fields of :class:`~georefine.config.LidargrammetryConfig`
+    (defaults if None): pairs of ``pair_kinds`` whose approximate ``centres`` are closer than
+    ``max_pair_distance_m``, matched by ``matcher`` and verified. ``matcher``: a matcher object
+    (:func:`make_matcher`) instead of the one ``settings.matcher`` names; ``None`` with
+    ``settings.matcher == "sift"`` is SIFT.
     """
-    _check_pair_kinds(pair_kinds)
-    clahe = cv2.createCLAHE(clipLimit=2.0, tileGridSize=(8, 8))
+    st = settings or LidargrammetryConfig()
+    pair_kinds = st.pair_kinds
+    clahe = cv2.createCLAHE(clipLimit=st.clahe_clip_limit, tileGridSize=(st.clahe_tiles, st.clahe_tiles))
     enhanced = [clahe.apply(im) for im in images]
-    matcher = make_matcher(method) if isinstance(method, str) else method
+    if matcher is None and st.matcher != "sift":
+        matcher = make_matcher(st.matcher, lightglue_features=st.lightglue_features,
+                               extractor_weights=st.extractor_weights, lightglue_weights=st.lightglue_weights,
+                               max_features=st.deep_max_features)
     n = len(images)
     if matcher is None:
-        kps = [detect_sift(im, mask=m) for im, m in zip(enhanced, masks)]
+        kps = [detect_sift(im, mask=m, max_features=st.sift_max_features,
+                           contrast_threshold=st.sift_contrast_threshold) for im, m in zip(enhanced, masks)]
     else:
         kps = []
         for k, im in enumerate(enhanced):
@@ -239,16 +182,19 @@ def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.nda
             kps.append(matcher.detect(im))
         progress("keypoints", n, n)
     pairs = [(a, b) for a in range(n) for b in range(a + 1, n)
-             if _pair_kind(is_lidargram, a, b) in pair_kinds and np.linalg.norm(centres[a] - centres[b]) < max_pair_distance_m]
+             if _pair_kind(is_lidargram, a, b) in pair_kinds
+             and np.linalg.norm(centres[a] - centres[b]) < st.max_pair_distance_m]
     out = []
     for k, (a, b) in enumerate(pairs):
         progress("matching", k, len(pairs))
         if matcher is None:
-            m = match_pair(kps[a], kps[b], cameras[a], cameras[b], a, b, ratio=0.9, threshold_px=2.0)
+            m = match_pair(kps[a], kps[b], cameras[a], cameras[b], a, b, ratio=st.sift_ratio,
+                           threshold_px=st.verification_threshold_px, min_matches=st.min_verified_matches)
         else:
             ia, ib = matcher.match(kps[a], kps[b], images[a].shape[::-1], images[b].shape[::-1])
-            ok = verify_pair(kps[a].uv[ia], kps[b].uv[ib], cameras[a], cameras[b], threshold_px=2.0)
-            ok = ok if ok.sum() >= 15 else np.zeros_like(ok)
+            ok = verify_pair(kps[a].uv[ia], kps[b].uv[ib], cameras[a], cameras[b],
+                             threshold_px=st.verification_threshold_px)
+            ok = ok if ok.sum() >= st.min_verified_matches else np.zeros_like(ok)
             m = PairMatches(a, b, ia[ok], ib[ok], len(ia))
         out.append(m)
     progress("matching", len(pairs), len(pairs))
@@ -256,7 +202,7 @@ def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.nda
 
 
 def _ties(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: Cloud, n_photos: int,
-          max_initial_px: float = 15.0):
+          max_initial_px: float):
     """Tie observations, initial points (ULPI points, else photo intersections), lidargram depths."""
     tr = matches.tracks
     ntr = tr.n_tracks
@@ -302,17 +248,27 @@ class _Block:
     names: tuple
 
 
-def _open(project_dir, out, points) -> tuple[PhotoProject, Path, Cloud]:
-    """The photo project, the output folder (outside the project; created once the inputs read) and the cloud."""
-    pp = load_photo_project(project_dir)
+def _open(project_dir, out, points, overrides: Mapping[str, Any] | None, matcher=None, *, matching: bool = True
+          ) -> tuple[LidargrammetryConfig, Any, PhotoProject, Path, Cloud]:
+    """Settings and matcher (the given one, else the settings'; checked before anything is read or
+    written), the photo project, the output folder (outside the project; created once the inputs
+    are read, with the resolved configuration) and the cloud."""
+    root = Path(project_dir)
+    cfg = load_project(root)
+    st = lidargrammetry_settings(cfg, overrides)
+    if matcher is None and matching:
+        matcher = _settings_matcher(st, root)
+    pp = load_photo_project(root, cfg)
     out = output_folder(out, pp.root)
     cloud = read_cloud([Path(p) for p in points], pp)
     out.mkdir(parents=True, exist_ok=True)
-    return pp, out, cloud
+    resolved = cfg.model_copy(update={"processing": cfg.processing.model_copy(update={"lidargrammetry": st})})
+    write_yaml(out / "config.resolved.yaml", resolved)
+    return st, matcher, pp, out, cloud
 
 
-def _block_images(pp: PhotoProject, cloud: Cloud, scale: float, progress: Progress) -> _Block:
-    lgs = render_lidargrams(pp, cloud, scale=scale, progress=progress)
+def _block_images(pp: PhotoProject, cloud: Cloud, st: LidargrammetryConfig, progress: Progress) -> _Block:
+    lgs = render_lidargrams(pp, cloud, st, progress=progress)
     n = len(pp.eop)
     photos = [cv2.imread(str(pp.folder / name), cv2.IMREAD_GRAYSCALE) for name in pp.eop.images]
     for name, img in zip(pp.eop.images, photos):
@@ -327,34 +283,62 @@ def _block_images(pp: PhotoProject, cloud: Cloud, scale: float, progress: Progre
                   names)
 
 
-def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path, *, method: str = "sift",
-              matcher=None, pair_kinds: tuple[str, ...] = ("photo-photo", "photo-lidargram"),
-              lidargram_scale: float = 0.5, max_pair_distance_m: float = 150.0,
-              progress: Progress = no_progress) -> dict:
+def _method(st: LidargrammetryConfig, matcher) -> str:
+    """The matcher as the results name it: ``sift``, else the matcher object's description."""
+    return st.matcher if matcher is None else repr(matcher)
+
+
+def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str | Path, *,
+                   overrides: Mapping[str, Any] | None = None, progress: Progress = no_progress) -> list[str]:
+    """Render the lidargrams (:func:`render_lidargrams`) and write each as ``out/NAME.png`` and ``NAME.npz``.
+
+    Names as ``run_match`` and ``run_coadjust`` give them: ``LG_<strip>_<photo>`` (``LG_all_<photo>``
+    with ``per_strip`` off); ``config.resolved.yaml`` beside them. Returns the names written.
+    """
+    from georefine.lidargrammetry.render import save_lidargram
+
+    st, _, pp, out, cloud = _open(project_dir, out, points, overrides, matching=False)
+    names = []
+    for lg, i, s in render_lidargrams(pp, cloud, st, progress=progress):
+        names.append(f"LG_{cloud.files[s].stem if s >= 0 else 'all'}_{Path(pp.eop.images[i]).stem}")
+        save_lidargram(lg, out, names[-1])
+    return names
+
+
+def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path, *,
+              overrides: Mapping[str, Any] | None = None, matcher=None,
+              progress: Progress = no_progress) -> MatchSummary:
     """Render the lidargrams, match the pairs of the kinds asked and write the matches.
+
+    ``overrides``: fields of ``processing.lidargrammetry`` to set over ``project.yaml``
+    (e.g. ``{"pair_kinds": ["photo-lidargram"], "lidargram_scale": 0.25}``); ``matcher``: a
+    matcher object (:func:`make_matcher`) instead of the one the settings name.
 
     Writes into ``out``: ``lidargrams/`` (PNG and ULPI npz of each lidargram matched),
     ``pairs.csv`` (``image_a,image_b,kind,putative,verified`` for every pair tried),
     ``matches.csv`` (``image_a,image_b,u_a,v_a,u_b,v_b``: the verified matches, pixels with the
     top-left pixel centre at (0.5, 0.5)), ``tracks.csv`` (``track,image,u,v``), a match picture
-    per pair kind (``matches_<kind>.png``, the pair with most matches) and ``summary.json``
-    (pairs and verified matches per kind). Returns the summary.
+    per pair kind (``matches_<kind>.png``, the pair with most matches), ``summary.json``
+    (:class:`MatchSummary`) and ``config.resolved.yaml``. Returns the summary.
+
+    Raises
+    ------
+    ConfigError
+        A bad setting (in ``project.yaml`` or ``overrides``), before anything is written.
     """
     from georefine.lidargrammetry.render import save_lidargram
 
-    _check_pair_kinds(pair_kinds)  # before anything is written
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    pp, out, cloud = _open(project_dir, out, points)
-    blk = _block_images(pp, cloud, lidargram_scale, progress)
+    st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher)
+    blk = _block_images(pp, cloud, st, progress)
     (out / "lidargrams").mkdir(exist_ok=True)
     for (lg, _, _), name in zip(blk.lgs, blk.names[blk.n_photos:]):
         save_lidargram(lg, out / "lidargrams", Path(name).stem)
     timings["lidargrams"] = _time.perf_counter() - t
     t = _time.perf_counter()
-    m = match_block(blk.images, blk.cameras, blk.station, blk.is_lidargram, blk.p0[:, :2], blk.masks,
-                    method=method if matcher is None else matcher, max_pair_distance_m=max_pair_distance_m,
-                    pair_kinds=pair_kinds, progress=progress)
+    m = match_block(blk.images, blk.cameras, blk.station, blk.is_lidargram, blk.p0[:, :2], blk.masks, st,
+                    matcher=matcher, progress=progress)
     timings["matching"] = _time.perf_counter() - t
     names, lg = blk.names, blk.is_lidargram
 
@@ -376,69 +360,69 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
         fh.write("track,image,u,v\n")
         for k in range(len(tr)):
             fh.write(f"{tr.track[k]},{names[tr.image[k]]},{tr.uv[k, 0]:.3f},{tr.uv[k, 1]:.3f}\n")
-    summary: dict = {"method": method if matcher is None else repr(matcher), "photos": blk.n_photos,
-                     "lidargrams": len(blk.lgs), "tracks": tr.n_tracks, "pair_kinds": {}, "timings_s": timings}
-    for k in pair_kinds:
+    per_kind = []
+    for k in st.pair_kinds:
         ps = [p for p in m.pairs if kind(p) == k]
-        counts = np.array([len(p) for p in ps])
-        summary["pair_kinds"][k] = {"pairs": len(ps), "pairs_with_matches": int(np.count_nonzero(counts)),
-                                    "median_verified": float(np.median(counts)) if ps else 0.0,
-                                    "mean_verified": float(np.mean(counts)) if ps else 0.0}
+        per_kind.append(PairKindStats.of_counts(k, [len(p) for p in ps]))
         _draw_best(ps, lg, blk.images, m.keypoints, out / f"matches_{k.replace('-', '_')}.png")
-    write_json(out / "summary.json", summary)
+    summary = MatchSummary(_method(st, matcher), blk.n_photos, len(blk.lgs), tr.n_tracks, tuple(per_kind), timings)
+    write_json(out / "summary.json", summary.to_dict())
     return summary
 
 
 def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | Path, case: int, *,
-                 method: str = "sift", matcher=None, use_depth: bool = True, lidargram_scale: float = 0.5,
-                 lidargram_sigma_position_m: float = 1.0,
-                 lidargram_sigma_rotation_deg: float | tuple[float, float, float] = (0.01, 0.01, 0.1),
-                 cache_dir: str | Path | None = None, feather: bool = True,
-                 progress: Progress = no_progress) -> tuple[BundleResult, dict]:
-    """Steps 1-4 of the module docstring; returns the adjustment and the metrics written.
+                 overrides: Mapping[str, Any] | None = None, matcher=None, cache_dir: str | Path | None = None,
+                 progress: Progress = no_progress) -> CoadjustResult:
+    """Steps 1-4 of the module docstring for case ``case`` (1, 2 or 3); returns the metrics written.
 
-    ``matcher``: a matcher object (:func:`make_matcher`) instead of ``method``'s default one.
+    ``overrides``: fields of ``processing.lidargrammetry`` to set over ``project.yaml``;
+    ``matcher``: a matcher object (:func:`make_matcher`) instead of the one the settings name.
     ``cache_dir``: a step cache (:class:`georefine.workflows.cache.StepCache`) for the matches,
-    keyed by the photos, the point files, the matcher and the lidargram scale: cases 1 and 2
-    of one cloud match once.
+    keyed by the photos, the point files, the matcher and the settings the matches depend on:
+    cases 1 and 2 of one cloud match once.
 
     A lidargram's a-priori pose is the one it was rendered from, with the accuracy of the
-    LiDAR trajectory: ``lidargram_sigma_position_m`` and ``lidargram_sigma_rotation_deg`` (one
-    value, or three about the camera axes x, y, z). The default (0.01, 0.01, 0.1) deg is that of
-    an INS without GNSS for minutes: gravity keeps roll and pitch, heading drifts. On the
-    jammed ``block`` the rigid corrections fitted to the truth turn by 0.03-0.12 deg about the
-    vertical and by at most 0.025 deg about the horizontal axes; a 0.01 deg prior on all three
-    held the heading back (refined cloud 0.41x the jammed cloud's error, 0.32x with this one).
+    LiDAR trajectory: ``lidargram_sigma_position_m`` and ``lidargram_sigma_rotation_deg``
+    (about the camera axes x, y, z; :class:`~georefine.config.LidargrammetryConfig` says why
+    the default heading sigma is ten times the others).
+
+    Raises
+    ------
+    InputError
+        An unknown ``case``; bad photo files.
+    ConfigError
+        A bad setting (in ``project.yaml`` or ``overrides``), before anything is written.
     """
     if case not in CASES:
-        raise InputError("unknown case", field="--case", expected="1, 2 or 3", found=str(case))
+        raise InputError("unknown case", field="case", expected="1, 2 or 3", found=str(case))
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    pp, out, cloud = _open(project_dir, out, points)
+    st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher)
     timings["read"] = _time.perf_counter() - t
     t = _time.perf_counter()
-    blk = _block_images(pp, cloud, lidargram_scale, progress)
+    blk = _block_images(pp, cloud, st, progress)
     timings["lidargrams"] = _time.perf_counter() - t
     lgs, n, cameras, station, is_lg, R0, p0, images = (blk.lgs, blk.n_photos, blk.cameras, blk.station,
                                                        blk.is_lidargram, blk.R0, blk.p0, blk.images)
     t = _time.perf_counter()
     cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
     key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
-                        [file_stamp(f) for f in cloud.files], method if matcher is None else repr(matcher),
-                        lidargram_scale, len(lgs))
+                        [file_stamp(f) for f in cloud.files], _method(st, matcher),
+                        st.model_dump(mode="json", include=_MATCH_FIELDS), len(lgs))
     matches = cache.load("matches", key) if cache is not None else None
     if matches is None:
-        matches = match_block(images, cameras, station, is_lg, p0[:, :2], blk.masks,
-                              method=method if matcher is None else matcher, progress=progress)
+        matches = match_block(images, cameras, station, is_lg, p0[:, :2], blk.masks, st, matcher=matcher,
+                              progress=progress)
         if cache is not None:
             cache.store("matches", key, matches)
     timings["matching"] = _time.perf_counter() - t
-    keep, xyz0, depth = _ties(lgs, R0, p0, cameras, station, matches, cloud, n)
+    keep, xyz0, depth = _ties(lgs, R0, p0, cameras, station, matches, cloud, n, st.max_initial_reprojection_px)
     tr = matches.tracks
-    sig_p = np.r_[pp.eop.sigma_xyz if pp.eop.sigma_xyz is not None else np.full((n, 3), 0.1),
-                  np.full((len(lgs), 3), lidargram_sigma_position_m)]
-    sig_r = np.radians(np.r_[pp.eop.sigma_opk_deg if pp.eop.sigma_opk_deg is not None else np.full((n, 3), 0.02),
-                             np.broadcast_to(np.asarray(lidargram_sigma_rotation_deg, dtype=float), (len(lgs), 3))])
+    sig_p = np.r_[pp.eop.sigma_xyz if pp.eop.sigma_xyz is not None else np.full((n, 3), st.photo_sigma_position_m),
+                  np.full((len(lgs), 3), st.lidargram_sigma_position_m)]
+    sig_r = np.radians(np.r_[pp.eop.sigma_opk_deg if pp.eop.sigma_opk_deg is not None
+                             else np.full((n, 3), st.photo_sigma_rotation_deg),
+                             np.broadcast_to(np.asarray(st.lidargram_sigma_rotation_deg, dtype=float), (len(lgs), 3))])
     names = blk.names
     block = BlockImages(names, tuple(cameras), is_lg, R0, p0, sig_p, sig_r, station)
     idx = pp.eop.index()
@@ -449,7 +433,9 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
                           np.array([gi[x] for x in ip.ids], dtype=np.int64), ip.uv)
     t = _time.perf_counter()
     result = coadjust(block, tr.image[keep], tr.track[keep], tr.uv[keep], xyz0, control, case,
-                      tie_depth_m=depth[keep] if use_depth else None)
+                      tie_depth_m=depth[keep] if st.use_depth else None, tie_sigma_px=st.tie_sigma_px,
+                      depth_sigma_m=st.depth_sigma_m, measurement_sigma_px=st.measurement_sigma_px,
+                      tie_loss=st.tie_loss, tie_loss_scale=st.tie_loss_scale)
     timings["coadjustment"] = _time.perf_counter() - t
     # Products.
     eop_ph = pio.eop_from_w(pp.eop.images, result.R_w_c[:n], result.p_w_c[:n], pp.frame, pp.crs, pp.eop.cameras)
@@ -463,52 +449,53 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     if len(pp.gcps):
         metashape.write_markers(out / "metashape_markers.csv", pp.gcps, crs_name=f"EPSG:{pp.crs.epsg}")
     photo_lg = [m for m in matches.pairs if is_lg[m.a] != is_lg[m.b]]
-    pair_counts = [(names[m.a], names[m.b], len(m)) for m in photo_lg]
+    pair_counts = [PairCount(names[m.a], names[m.b], len(m)) for m in photo_lg]
     _draw_best(photo_lg, is_lg, images, matches.keypoints, out / "matches_lidargram_photo.png")
     t = _time.perf_counter()
     export_colmap(out / "colmap", names, cameras, result, tr.image[keep], tr.track[keep], tr.uv[keep], station)
     timings["colmap_export"] = _time.perf_counter() - t
-    metrics = {"case": case, "description": CASES[case], "method": method if matcher is None else repr(matcher),
-               "use_depth": use_depth,
-               "photos": n, "lidargrams": len(lgs), "tracks": int(np.unique(tr.track[keep]).size),
-               "tie_observations": int(keep.sum()),
-               "photo_lidargram_matches": {"pairs": len(pair_counts),
-                                           "median": float(np.median([c for *_, c in pair_counts])) if pair_counts else 0.0,
-                                           "per_pair": [{"a": a, "b": b, "verified": c} for a, b, c in pair_counts]},
-               **result.to_dict(),
-               "colmap_model": {"folder": "colmap", "frame": "local east-north-up",
-                                "origin_lat_deg": float(np.degrees(pp.frame.lat0_rad)),
-                                "origin_lon_deg": float(np.degrees(pp.frame.lon0_rad)),
-                                "origin_h_m": pp.frame.h0_m}}
+    counts = None
     if case in (1, 2):
         t = _time.perf_counter()
         w = [feather_weights(lg.point_uv, lg.camera.width_px, lg.camera.height_px) for lg, _, _ in lgs] \
-            if feather else None
+            if st.feather else None
         ref = reintersect(cloud.xyz_w, cloud.strip, [lg.point_index for lg, _, _ in lgs], R0[n:], p0[n:],
-                          result.R_w_c[n:], result.p_w_c[n:], weights=w)
-        _write_cloud(cloud, pp, ref.xyz_w, ref.n_lidargrams, out / "points")
-        metrics["reintersection"] = ref.summary()
+                          result.R_w_c[n:], result.p_w_c[n:], weights=w, k=st.interpolation_neighbours,
+                          max_distance_m=st.interpolation_max_distance_m)
+        write_cloud(cloud, pp, ref.xyz_w, ref.n_lidargrams, out / "points")
+        counts = ReintersectionCounts.from_dict(ref.summary())
         timings["reintersection"] = _time.perf_counter() - t
-    metrics["timings_s"] = timings
-    write_json(out / "metrics.json", metrics)
-    return result, metrics
+    ex = result.extra
+    pbp = ex.get("photo_block_precision")
+    metrics = CoadjustResult(
+        case, _method(st, matcher), st.use_depth, n, len(lgs), int(np.unique(tr.track[keep]).size), int(keep.sum()),
+        PhotoLidargramMatches.of_pairs(pair_counts), result.control, result.check,
+        TieReprojection(result.tie_reprojection_px["photos"], result.tie_reprojection_px["lidargrams"]),
+        result.solve.to_dict(), Precision.from_dict(ex["precision"]), ex["tie_inlier_fraction"],
+        ColmapModel("colmap", "local east-north-up", float(np.degrees(pp.frame.lat0_rad)),
+                    float(np.degrees(pp.frame.lon0_rad)), pp.frame.h0_m),
+        ex.get("photo_block_adjustment"), None if pbp is None else Precision.from_dict(pbp), counts, timings,
+        bundle=result)
+    write_json(out / "metrics.json", metrics.to_dict())
+    return metrics
+
+
+_MATCH_FIELDS = {"lidargram_scale", "per_strip", "point_spacing_m", "splat_scale", "fill_holes", "min_coverage",
+                 "matcher", "pair_kinds", "max_pair_distance_m", "clahe_clip_limit", "clahe_tiles",
+                 "sift_max_features", "sift_contrast_threshold", "sift_ratio", "deep_max_features",
+                 "lightglue_features", "verification_threshold_px", "min_verified_matches"}
+"""The settings the matches depend on (the step cache's key)."""
 
 
 def export_colmap(folder: Path, names, cameras, result: BundleResult, obs_image: np.ndarray, obs_point: np.ndarray,
-                  obs_uv: np.ndarray, station: np.ndarray | None = None) -> Path | None:
+                  obs_uv: np.ndarray, station: np.ndarray | None = None) -> Path:
     """The adjusted block as a COLMAP text model in the local frame ``w`` (:mod:`georefine.io.colmap`).
 
     Photos and lidargrams with their adjusted poses, the tie points and their inlier
     observations seen from two stations or more (``station``: of each image; without a base a
     track's depth is free in a tie-only adjustment); control points are left out (COLMAP has no
-    coordinate observations). Skipped with a log message when pycolmap is not installed.
+    coordinate observations). Returns ``folder``.
     """
-    try:
-        import pycolmap  # noqa: F401
-    except ImportError:
-        log.info("pycolmap is not installed: no COLMAP model written")
-        return None
-    from georefine.io.colmap import to_reconstruction, write_model
 
     inl = result.tie_inlier.copy() if result.tie_inlier is not None else np.ones(len(obs_image), bool)
     if station is not None and inl.any():  # tracks still seen from two stations
@@ -523,24 +510,3 @@ def export_colmap(folder: Path, names, cameras, result: BundleResult, obs_image:
         shutil.rmtree(folder)
     tmp.rename(folder)
     return folder
-
-
-def _write_cloud(cloud: Cloud, pp: PhotoProject, xyz_w: np.ndarray, n_lidargrams: np.ndarray, folder: Path) -> None:
-    """The refined strips, same files and point order as the input (output CRS).
-
-    Extra dimension ``lidargrams``: how many lidargrams showed the point (0: interpolated from
-    its neighbours, -1: outside every lidargram, unchanged).
-    """
-    folder.mkdir(parents=True, exist_ok=True)
-    for k, f in enumerate(cloud.files):
-        sel = np.flatnonzero(cloud.strip == k)
-        xyz = pp.crs.from_w(pp.frame, xyz_w[sel])
-        done = 0
-        count = n_lidargrams[sel].astype(np.float64)
-        with LasWriter(folder / (f.stem + ".laz"), scale=0.001, crs=pp.crs.crs, protect=[pp.root, f],
-                       extra_dims=["lidargrams"]) as w:
-            for c in iter_las_chunks(f, 5_000_000, extra_dims=()):
-                m = len(c.xyz)
-                w.write(PointCloud(c.time_gps, xyz[done:done + m], c.intensity, c.scanner_channel, c.point_source_id,
-                                   c.return_number, c.number_of_returns, {"lidargrams": count[done:done + m]}))
-                done += m

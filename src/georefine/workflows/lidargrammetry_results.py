@@ -1,0 +1,310 @@
+"""Results of ``georefine match`` and ``georefine coadjust`` (docs/ARCHITECTURE.md §4.8).
+
+:class:`MatchSummary` is what :func:`georefine.workflows.lidargrammetry.run_match` writes as
+``summary.json``, :class:`CoadjustResult` what
+:func:`georefine.workflows.lidargrammetry.run_coadjust` writes as ``metrics.json``. Each
+``to_dict`` gives that file's JSON (keys in the file's order) and ``from_dict`` reads it back,
+so a result and its file are one thing. Values the JSON writer turns into ``null`` (NaN) read
+back as NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from georefine.lidargrammetry.bundle import CASES, BundleResult, PointStats
+
+__all__ = ["PairKindStats", "MatchSummary", "PairCount", "PhotoLidargramMatches", "TieReprojection",
+           "ImagePrecision", "CheckPointPrecision", "Precision", "ColmapModel", "ReintersectionCounts",
+           "CoadjustResult"]
+
+
+def _float(value: Any) -> float:
+    """A JSON number, ``null`` (NaN written by :func:`georefine.io.files.write_json`) as NaN."""
+    return float("nan") if value is None else float(value)
+
+
+def _stats(d: dict | None) -> PointStats | None:
+    return None if d is None else PointStats.from_dict(d)
+
+
+def _stats_dict(s: PointStats | None) -> dict | None:
+    return None if s is None else s.to_dict()
+
+
+# ---------------------------------------------------------------------------- match
+@dataclass(frozen=True)
+class PairKindStats:
+    """Pairs of one kind (``photo-photo``, ``photo-lidargram``, ``lidargram-lidargram``) and their verified matches."""
+
+    kind: str
+    pairs: int
+    pairs_with_matches: int
+    median_verified: float
+    mean_verified: float
+
+    @classmethod
+    def of_counts(cls, kind: str, verified: list[int]) -> PairKindStats:
+        """From the verified matches of every pair of the kind tried (0 for a pair without)."""
+        counts = np.asarray(verified, dtype=float)
+        return cls(kind, len(counts), int(np.count_nonzero(counts)),
+                   float(np.median(counts)) if len(counts) else 0.0, float(np.mean(counts)) if len(counts) else 0.0)
+
+    def to_dict(self) -> dict:
+        return {"pairs": self.pairs, "pairs_with_matches": self.pairs_with_matches,
+                "median_verified": self.median_verified, "mean_verified": self.mean_verified}
+
+    @classmethod
+    def from_dict(cls, kind: str, d: dict) -> PairKindStats:
+        return cls(kind, int(d["pairs"]), int(d["pairs_with_matches"]), _float(d["median_verified"]),
+                   _float(d["mean_verified"]))
+
+
+@dataclass(frozen=True)
+class MatchSummary:
+    """``summary.json`` of ``georefine match``: images, tracks and pairs per kind (in the order asked)."""
+
+    method: str
+    photos: int
+    lidargrams: int
+    tracks: int
+    pair_kinds: tuple[PairKindStats, ...]
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def kind(self, name: str) -> PairKindStats:
+        """The record of pair kind ``name``; ``KeyError`` if it was not matched."""
+        for k in self.pair_kinds:
+            if k.kind == name:
+                return k
+        raise KeyError(name)
+
+    def to_dict(self) -> dict:
+        return {"method": self.method, "photos": self.photos, "lidargrams": self.lidargrams, "tracks": self.tracks,
+                "pair_kinds": {k.kind: k.to_dict() for k in self.pair_kinds}, "timings_s": dict(self.timings_s)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> MatchSummary:
+        return cls(str(d["method"]), int(d["photos"]), int(d["lidargrams"]), int(d["tracks"]),
+                   tuple(PairKindStats.from_dict(k, v) for k, v in d["pair_kinds"].items()),
+                   {k: _float(v) for k, v in d["timings_s"].items()})
+
+
+# ---------------------------------------------------------------------------- coadjust
+@dataclass(frozen=True)
+class PairCount:
+    """Verified matches of one photo-lidargram pair (image names)."""
+
+    a: str
+    b: str
+    verified: int
+
+
+@dataclass(frozen=True)
+class PhotoLidargramMatches:
+    """Photo-lidargram pairs tried and the median of their verified matches (``per_pair``: each pair, if kept)."""
+
+    n_pairs: int
+    median_verified: float
+    per_pair: tuple[PairCount, ...] | None = None
+
+    @classmethod
+    def of_pairs(cls, per_pair: list[PairCount]) -> PhotoLidargramMatches:
+        median = float(np.median([p.verified for p in per_pair])) if per_pair else 0.0
+        return cls(len(per_pair), median, tuple(per_pair))
+
+    def without_pairs(self) -> PhotoLidargramMatches:
+        """The counts only (the demo's metrics)."""
+        return PhotoLidargramMatches(self.n_pairs, self.median_verified, None)
+
+    def to_dict(self) -> dict:
+        d: dict = {"pairs": self.n_pairs, "median": self.median_verified}
+        if self.per_pair is not None:
+            d["per_pair"] = [{"a": p.a, "b": p.b, "verified": p.verified} for p in self.per_pair]
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> PhotoLidargramMatches:
+        per = d.get("per_pair")
+        return cls(int(d["pairs"]), _float(d["median"]),
+                   None if per is None else tuple(PairCount(str(p["a"]), str(p["b"]), int(p["verified"])) for p in per))
+
+
+@dataclass(frozen=True)
+class TieReprojection:
+    """RMS reprojection error (px) of the inlier tie observations in photos and in lidargrams."""
+
+    photos_px: float
+    lidargrams_px: float
+
+    def to_dict(self) -> dict:
+        return {"photos": self.photos_px, "lidargrams": self.lidargrams_px}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> TieReprojection:
+        return cls(_float(d["photos"]), _float(d["lidargrams"]))
+
+
+@dataclass(frozen=True)
+class ImagePrecision:
+    """Posterior precision of the free images of one kind: medians over the images."""
+
+    images: int
+    sigma_position_m_median: tuple[float, float, float]
+    sigma_rotation_deg_median: tuple[float, float, float]
+
+    def to_dict(self) -> dict:
+        return {"images": self.images, "sigma_position_m_median": list(self.sigma_position_m_median),
+                "sigma_rotation_deg_median": list(self.sigma_rotation_deg_median)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ImagePrecision:
+        return cls(int(d["images"]), tuple(_float(v) for v in d["sigma_position_m_median"]),  # type: ignore[arg-type]
+                   tuple(_float(v) for v in d["sigma_rotation_deg_median"]))  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class CheckPointPrecision:
+    """Check points' posterior sigma beside their actual error; ``normalised_rms`` about 1 when honest."""
+
+    n: int
+    sigma_xyz_m_rms: tuple[float, float, float]
+    error_xyz_m_rms: tuple[float, float, float]
+    normalised_rms: float
+
+    def to_dict(self) -> dict:
+        return {"n": self.n, "sigma_xyz_m_rms": list(self.sigma_xyz_m_rms),
+                "error_xyz_m_rms": list(self.error_xyz_m_rms), "normalised_rms": self.normalised_rms}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CheckPointPrecision:
+        return cls(int(d["n"]), tuple(_float(v) for v in d["sigma_xyz_m_rms"]),  # type: ignore[arg-type]
+                   tuple(_float(v) for v in d["error_xyz_m_rms"]), _float(d["normalised_rms"]))  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
+class Precision:
+    """Estimated precision of one adjustment (:mod:`georefine.lidargrammetry.bundle`); parts it could not give are None."""
+
+    photos: ImagePrecision | None = None
+    lidargrams: ImagePrecision | None = None
+    check_points: CheckPointPrecision | None = None
+
+    def to_dict(self) -> dict:
+        return {k: v.to_dict() for k, v in (("photos", self.photos), ("lidargrams", self.lidargrams),
+                                             ("check_points", self.check_points)) if v is not None}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> Precision:
+        return cls(*(None if d.get(k) is None else ImagePrecision.from_dict(d[k]) for k in ("photos", "lidargrams")),
+                   None if d.get("check_points") is None else CheckPointPrecision.from_dict(d["check_points"]))
+
+
+@dataclass(frozen=True)
+class ColmapModel:
+    """Where the COLMAP model is and the local frame it is in."""
+
+    folder: str
+    frame: str
+    origin_lat_deg: float
+    origin_lon_deg: float
+    origin_h_m: float
+
+    def to_dict(self) -> dict:
+        return {"folder": self.folder, "frame": self.frame, "origin_lat_deg": self.origin_lat_deg,
+                "origin_lon_deg": self.origin_lon_deg, "origin_h_m": self.origin_h_m}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ColmapModel:
+        return cls(str(d["folder"]), str(d["frame"]), _float(d["origin_lat_deg"]), _float(d["origin_lon_deg"]),
+                   _float(d["origin_h_m"]))
+
+
+@dataclass(frozen=True)
+class ReintersectionCounts:
+    """Points of the refined cloud by how they moved (:mod:`georefine.lidargrammetry.reintersect`)."""
+
+    points: int
+    multi_ray: int
+    single_ray: int
+    interpolated: int
+    unchanged: int
+
+    def to_dict(self) -> dict:
+        return {"points": self.points, "multi_ray": self.multi_ray, "single_ray": self.single_ray,
+                "interpolated": self.interpolated, "unchanged": self.unchanged}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> ReintersectionCounts:
+        return cls(*(int(d[k]) for k in ("points", "multi_ray", "single_ray", "interpolated", "unchanged")))
+
+
+@dataclass(frozen=True)
+class CoadjustResult:
+    """``metrics.json`` of ``georefine coadjust`` (one case), and the adjustment behind it.
+
+    ``adjustment`` and ``photo_block_adjustment`` are the solver's reports as it writes them
+    (:mod:`georefine.adjustment.solver`); the photo block's are there for case 1 only, the
+    re-intersection for cases 1 and 2. ``bundle``: the adjusted poses and points (``None``
+    when read back from a file).
+    """
+
+    case: int
+    method: str
+    use_depth: bool
+    photos: int
+    lidargrams: int
+    tracks: int
+    tie_observations: int
+    photo_lidargram_matches: PhotoLidargramMatches
+    control_points: PointStats | None
+    check_points: PointStats | None
+    tie_reprojection: TieReprojection
+    adjustment: dict
+    precision: Precision
+    tie_inlier_fraction: float
+    colmap_model: ColmapModel
+    photo_block_adjustment: dict | None = None
+    photo_block_precision: Precision | None = None
+    reintersection: ReintersectionCounts | None = None
+    timings_s: dict[str, float] = field(default_factory=dict)
+    bundle: BundleResult | None = field(default=None, compare=False, repr=False)
+
+    @property
+    def description(self) -> str:
+        return CASES[self.case]
+
+    def to_dict(self) -> dict:
+        d: dict = {"case": self.case, "description": self.description, "method": self.method,
+                   "use_depth": self.use_depth, "photos": self.photos, "lidargrams": self.lidargrams,
+                   "tracks": self.tracks, "tie_observations": self.tie_observations,
+                   "photo_lidargram_matches": self.photo_lidargram_matches.to_dict(),
+                   "control_points": _stats_dict(self.control_points), "check_points": _stats_dict(self.check_points),
+                   "tie_reprojection_px": self.tie_reprojection.to_dict(), "adjustment": self.adjustment}
+        if self.photo_block_adjustment is not None:
+            d["photo_block_adjustment"] = self.photo_block_adjustment
+        if self.photo_block_precision is not None:
+            d["photo_block_precision"] = self.photo_block_precision.to_dict()
+        d["precision"] = self.precision.to_dict()
+        d["tie_inlier_fraction"] = self.tie_inlier_fraction
+        d["colmap_model"] = self.colmap_model.to_dict()
+        if self.reintersection is not None:
+            d["reintersection"] = self.reintersection.to_dict()
+        d["timings_s"] = dict(self.timings_s)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> CoadjustResult:
+        pbp = d.get("photo_block_precision")
+        ri = d.get("reintersection")
+        return cls(int(d["case"]), str(d["method"]), bool(d["use_depth"]), int(d["photos"]), int(d["lidargrams"]),
+                   int(d["tracks"]), int(d["tie_observations"]),
+                   PhotoLidargramMatches.from_dict(d["photo_lidargram_matches"]), _stats(d["control_points"]),
+                   _stats(d["check_points"]), TieReprojection.from_dict(d["tie_reprojection_px"]), d["adjustment"],
+                   Precision.from_dict(d["precision"]), _float(d["tie_inlier_fraction"]),
+                   ColmapModel.from_dict(d["colmap_model"]), d.get("photo_block_adjustment"),
+                   None if pbp is None else Precision.from_dict(pbp),
+                   None if ri is None else ReintersectionCounts.from_dict(ri),
+                   {k: _float(v) for k, v in d["timings_s"].items()})
