@@ -177,9 +177,15 @@ def run(
                 ids = [int(x) for x in strips.split(",") if x.strip()]
             except ValueError:
                 raise InputError("strip ids must be integers", field="--strips", found=repr(strips)) from None
-        with _progress() as report:
-            result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh, points=not no_points,
-                                  progress=report)
+        try:
+            with _progress() as report:
+                result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh,
+                                      points=not no_points, progress=report)
+        except InputError as exc:
+            if exc.field != "strips":
+                raise
+            # The library names its parameter; the user gave it as --strips.
+            raise InputError(exc.message, field="--strips", expected=exc.expected, found=exc.found) from None
     stdout.print(result.summary())
 
 

@@ -134,7 +134,7 @@ def run_demo(
     evaluation = evaluate_run(project, out / "run", single_dir, clouds=clouds, progress=lanes)
     timings["evaluate"] = _time.perf_counter() - t
     metrics = {"scenario": scenario, "seed": seed, "overrides": overrides, "evaluation": evaluation,
-               "run": full.metrics, "timings_s": timings}
+               "run": full.metrics.to_dict(), "timings_s": timings}
     t = _time.perf_counter()
     report = write_report(out / "run", out / "report.html", title=f"Georefine demo: {scenario}, seed {seed}")
     timings["report"] = _time.perf_counter() - t
