@@ -21,6 +21,7 @@ import yaml
 
 from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
+from georefine.evaluation.summary import RunEvaluation
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.io.trajectory import read_sbet
@@ -148,7 +149,14 @@ def test_demo_single_pass_and_report(project, tmp_path):
     assert "yaw RMSE" in proc.stdout and "report:" in proc.stdout and "AVG-SD" in proc.stdout
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["timings_s"]["simulate"] < 1.0  # reused
-    assert WorkflowMetrics.from_dict(metrics["run"]) == WorkflowMetrics.read(out / "run" / "metrics.json")
+    # metrics.json is the typed demo record, its evaluation that of summary.json (NaN aside: none here).
+    from georefine.demo.corridor import DemoMetrics
+
+    demo = DemoMetrics.from_dict(metrics)
+    assert demo.to_dict() == metrics
+    summary = json.loads((out / "run" / "evaluation" / "summary.json").read_text())
+    assert RunEvaluation.from_dict(summary).to_dict() == summary == metrics["evaluation"]
+    assert demo.run == WorkflowMetrics.read(out / "run" / "metrics.json")
     for rel in ("report.html", "metrics.json", "run/evaluation/attitude_differences.png",
                 "run/evaluation/gi/strip_differences.png", "run/evaluation/gil/strip_differences.tif",
                 "run/evaluation/gil/strip_differences_zoom.png",
@@ -172,7 +180,10 @@ def test_demo_single_pass_and_report(project, tmp_path):
     assert sd["G/I/L"]["p95_m"] < sd["G/I"]["p95_m"]
     # The report shows the figures of metrics.json.
     page = _html.unescape((out / "report.html").read_text())
-    for row in summary_rows(ev):
+    rows = summary_rows(demo.evaluation)
+    single_all = traj["G/I/L single pass (strip 1)"]["all"]
+    assert rows[2][4] == f"{single_all['yaw_rmse_mdeg']:.1f} (G/I {gi1['yaw_rmse_mdeg']:.1f})"  # beside G/I, strip 1
+    for row in rows:
         assert "".join(f"<td>{c}</td>" for c in row) in page, row
     assert f"{rp['G/I/L']['avg_sd_m'] * 1e3:.1f}" in page and page.count("data:image/png;base64,") >= 4
 
