@@ -263,6 +263,7 @@ class Posterior:
 
 @contextmanager
 def _untimed(name: str) -> Iterator[None]:
+    """A ``timed`` that records nothing: a recomputation inside another step's time."""
     yield
 
 
