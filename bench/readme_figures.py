@@ -12,12 +12,12 @@ Fig. 7) and prints the summary table as Markdown for the README.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 from PIL import Image
 
 from georefine.evaluation.report import summary_rows
+from georefine.evaluation.summary import RunEvaluation
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -26,8 +26,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("demo", type=Path, help="Output folder of `georefine demo`.")
     a = ap.parse_args()
-    ev = json.loads((a.demo / "run" / "evaluation" / "summary.json").read_text())
-    maps = [a.demo / "run" / "evaluation" / ev["strip_differences"][k]["zoom_map"] for k in ("G/I", "G/I/L")]
+    ev = RunEvaluation.read(a.demo / "run" / "evaluation" / "summary.json")
+    maps = [a.demo / "run" / "evaluation" / ev.strip_differences[k].zoom_map for k in ("G/I", "G/I/L")]
     images = [Image.open(p).convert("RGB") for p in maps]
     pair = Image.new("RGB", (sum(i.width for i in images), max(i.height for i in images)), "white")
     x = 0

@@ -21,7 +21,9 @@ import yaml
 
 from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
+from georefine.evaluation.summary import RunEvaluation
 from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.io.run_metrics import WorkflowMetrics
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import (
     inject_wrong_matches,
@@ -86,6 +88,12 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
         assert (out / rel).is_file(), rel
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["strips"] == [1, 2] and 1 <= len(metrics["outer_iterations"]) <= 3
+    # The typed record reads the file back to exactly what was written.
+    typed = WorkflowMetrics.from_dict(metrics)
+    assert typed.to_dict() == metrics
+    assert typed.outer_iterations[-1].features == metrics["outer_iterations"][-1]["features"]
+    assert [p.file for p in typed.points] == ["strip_1.laz", "strip_2.laz"]
+    assert typed.strip_time_gps[1][0] < typed.strip_time_gps[1][1] <= typed.strip_time_gps[2][0]
     assert all(p["outside_trajectory"] == 0 for p in metrics["points"])
     # The feature tables hold the features that entered the adjustment; objects refer to their rows.
     last = metrics["outer_iterations"][-1]
@@ -141,6 +149,14 @@ def test_demo_single_pass_and_report(project, tmp_path):
     assert "yaw RMSE" in proc.stdout and "report:" in proc.stdout and "AVG-SD" in proc.stdout
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["timings_s"]["simulate"] < 1.0  # reused
+    # metrics.json is the typed demo record, its evaluation that of summary.json (NaN aside: none here).
+    from georefine.demo.corridor import DemoMetrics
+
+    demo = DemoMetrics.from_dict(metrics)
+    assert demo.to_dict() == metrics
+    summary = json.loads((out / "run" / "evaluation" / "summary.json").read_text())
+    assert RunEvaluation.from_dict(summary).to_dict() == summary == metrics["evaluation"]
+    assert demo.run == WorkflowMetrics.read(out / "run" / "metrics.json")
     for rel in ("report.html", "metrics.json", "run/evaluation/attitude_differences.png",
                 "run/evaluation/gi/strip_differences.png", "run/evaluation/gil/strip_differences.tif",
                 "run/evaluation/gil/strip_differences_zoom.png",
@@ -164,7 +180,10 @@ def test_demo_single_pass_and_report(project, tmp_path):
     assert sd["G/I/L"]["p95_m"] < sd["G/I"]["p95_m"]
     # The report shows the figures of metrics.json.
     page = _html.unescape((out / "report.html").read_text())
-    for row in summary_rows(ev):
+    rows = summary_rows(demo.evaluation)
+    single_all = traj["G/I/L single pass (strip 1)"]["all"]
+    assert rows[2][4] == f"{single_all['yaw_rmse_mdeg']:.1f} (G/I {gi1['yaw_rmse_mdeg']:.1f})"  # beside G/I, strip 1
+    for row in rows:
         assert "".join(f"<td>{c}</td>" for c in row) in page, row
     assert f"{rp['G/I/L']['avg_sd_m'] * 1e3:.1f}" in page and page.count("data:image/png;base64,") >= 4
 
@@ -221,23 +240,31 @@ def test_rerun_resumes_unchanged_steps_and_recomputes_changed_ones(sparse_projec
 
     out = tmp_path / "out"
     first = run_workflow(sparse_project, out, lidar=False)
-    assert first.metrics["resumed"] == []
+    assert first.metrics.resumed == ()
+    # metrics.json is the result's typed record, and reads back to it.
+    written = json.loads((out / "metrics.json").read_text())
+    assert written == first.metrics.to_dict() and WorkflowMetrics.from_dict(written) == first.metrics
+    assert first.metrics.strips == (1, 2) and first.metrics.outer_iterations == ()
+    assert [(p.strip, p.file) for p in first.metrics.points] == [(1, "strip_1.laz"), (2, "strip_2.laz")]
+    assert list(first.metrics.timings_s) == ["read", "filter", "gi_adjustment", "final_georeferencing"]
     sbet = (out / "gi" / "trajectory.sbet").read_bytes()
-    assert run_workflow(sparse_project, out, lidar=False).metrics["resumed"] == ["gi", "points"]
+    again = run_workflow(sparse_project, out, lidar=False).metrics
+    assert again.resumed == ("gi", "points") and again.points == first.metrics.points
+    assert list(again.timings_s) == ["read", "gi_adjustment", "final_georeferencing"]  # no filter: resumed
     assert (out / "gi" / "trajectory.sbet").read_bytes() == sbet
     (out / "points" / "strip_2.laz").unlink()  # a lost product is written again
-    assert run_workflow(sparse_project, out, lidar=False).metrics["resumed"] == ["gi"]
+    assert run_workflow(sparse_project, out, lidar=False).metrics.resumed == ("gi",)
     assert (out / "points" / "strip_2.laz").is_file()
-    assert run_workflow(sparse_project, out, lidar=False, resume=False).metrics["resumed"] == []
+    assert run_workflow(sparse_project, out, lidar=False, resume=False).metrics.resumed == ()
     # A changed input invalidates its step and everything after it (file size and mtime).
     copy = tmp_path / "p"
     shutil.copytree(sparse_project, copy)
     out2 = tmp_path / "out2"
-    assert run_workflow(copy, out2, lidar=False).metrics["resumed"] == []
+    assert run_workflow(copy, out2, lidar=False).metrics.resumed == ()
     imu = copy / "imu" / "imu.csv"
     st = imu.stat()
     os.utime(imu, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000_000))
-    assert run_workflow(copy, out2, lidar=False).metrics["resumed"] == []
+    assert run_workflow(copy, out2, lidar=False).metrics.resumed == ()
 
 
 def test_navigation_steps_run_while_the_scans_are_simulated(tmp_path):
@@ -255,7 +282,7 @@ def test_navigation_steps_run_while_the_scans_are_simulated(tmp_path):
     assert seen[0] is True and set(seen[1]) == {"filter", "gi_adjustment"}
     # The temporary folder was renamed; names relative to the project keep the cache valid.
     run = run_workflow(project, tmp_path / "run", lidar=False, points=False, cache_dir=tmp_path / "cache")
-    assert run.metrics["resumed"] == ["gi"]
+    assert run.metrics.resumed == ("gi",)
 
 
 def test_points_outside_the_trajectory_are_counted_not_extrapolated(project):
@@ -266,10 +293,11 @@ def test_points_outside_the_trajectory_are_counted_not_extrapolated(project):
     t_cut = float(np.median(strips[0].time))
     keep = truth.time <= t_cut
     short = Trajectory(truth.time[keep], truth.p_w_b[keep], truth.R_w_b[keep])
-    features, stats = step_features(nav, short, strips)
+    features, counts = step_features(nav, short, strips)
     t = strips[0].time
     n_outside = int(np.count_nonzero((t < short.time[0]) | (t > short.time[-1])))
-    assert stats["points_outside_trajectory"] == n_outside > 0.4 * t.size
+    assert counts.points_outside_trajectory == n_outside > 0.4 * t.size
+    assert sum(counts.views.values()) == len(features)
     assert features.time.max() <= short.time[-1]
 
 
@@ -296,3 +324,12 @@ def test_views_without_features_are_reported(sparse_project, tmp_path, caplog):
     proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(sparse_project), "--out", str(tmp_path / "o")],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "no planar features" in proc.stderr
+
+
+def test_an_unknown_strip_id_names_the_parameter_and_the_cli_its_option(sparse_project, tmp_path):
+    with pytest.raises(InputError, match="no strip with this id") as err:
+        read_strips(load_navigation(sparse_project), [1, 99])
+    assert err.value.field == "strips" and err.value.found == "99"
+    proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(sparse_project), "--out", str(tmp_path / "o"),
+                           "--strips", "99", "--no-lidar"], capture_output=True, text=True)
+    assert proc.returncode == 2 and "--strips" in proc.stderr and "99" in proc.stderr, proc.stderr

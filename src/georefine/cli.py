@@ -177,9 +177,15 @@ def run(
                 ids = [int(x) for x in strips.split(",") if x.strip()]
             except ValueError:
                 raise InputError("strip ids must be integers", field="--strips", found=repr(strips)) from None
-        with _progress() as report:
-            result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh, points=not no_points,
-                                  progress=report)
+        try:
+            with _progress() as report:
+                result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh,
+                                      points=not no_points, progress=report)
+        except InputError as exc:
+            if exc.field != "strips":
+                raise
+            # The library names its parameter; the user gave it as --strips.
+            raise InputError(exc.message, field="--strips", expected=exc.expected, found=exc.found) from None
     stdout.print(result.summary())
 
 
@@ -229,14 +235,14 @@ def demo(
                               progress=report)
     from rich.table import Table
 
-    ev = result.metrics["evaluation"]
-    table = Table(title=f"Georefine demo ({scenario}, seed {seed}) against {ev.get('reference')}, beside paper 000")
+    m = result.metrics
+    table = Table(title=f"Georefine demo ({scenario}, seed {seed}) against {m.evaluation.reference}, beside paper 000")
     for column in ("quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L"):
         table.add_column(column, justify="left" if column == "quantity" else "right")
     for row in result.summary_table():
         table.add_row(*row)
     stdout.print(table)
-    stdout.print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in result.metrics["timings_s"].items()))
+    stdout.print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in m.timings_s.items()))
     stdout.print(f"report: {result.report.resolve()}")
 
 
@@ -468,20 +474,22 @@ def evaluate_reference_planes_cmd(
     """
     with _user_errors():
         from georefine.evaluation.clouds import evaluate_reference_planes, point_files
+        from georefine.evaluation.summary import ReferencePlaneFigures
 
-        obs, summary = evaluate_reference_planes(point_files(points), reference, out, inset_m=inset,
-                                                 max_distance_m=max_distance)
+        _, summary = evaluate_reference_planes(point_files(points), reference, out, inset_m=inset,
+                                               max_distance_m=max_distance)
+        figures = ReferencePlaneFigures.from_summary(summary)
     from rich.table import Table
 
-    table = Table(title=f"reference planes: {summary.n_observations} observations")
+    table = Table(title=f"reference planes: {figures.n_observations} observations")
     for column in ("surface", "observations", "mean (mm)", "SD (mm)", "RMSE (mm)"):
         table.add_column(column, justify="left" if column == "surface" else "right")
-    for row in summary.per_surface:
-        table.add_row(row["surface_id"], str(row["observations"]), f"{row['mean_m'] * 1e3:.1f}",
-                      f"{row['sd_m'] * 1e3:.1f}", f"{row['rmse_m'] * 1e3:.1f}")
+    for s in figures.surfaces:
+        table.add_row(s.surface_id, str(s.observations), f"{s.mean_m * 1e3:.1f}", f"{s.sd_m * 1e3:.1f}",
+                      f"{s.rmse_m * 1e3:.1f}")
     stdout.print(table)
-    stdout.print(f"Mean {summary.mean_m * 1e3:.1f} mm, RMSE {summary.rmse_m * 1e3:.1f} mm, "
-                 f"AVG-SD {summary.avg_sd_m * 1e3:.1f} mm")
+    stdout.print(f"Mean {figures.mean_m * 1e3:.1f} mm, RMSE {figures.rmse_m * 1e3:.1f} mm, "
+                 f"AVG-SD {figures.avg_sd_m * 1e3:.1f} mm")
     if out is not None:
         stdout.print(f"wrote {out / 'reference_planes.json'} and {out / 'reference_planes.csv'}")
 

@@ -21,14 +21,17 @@ import logging
 import shutil
 import time as _time
 from concurrent.futures import Future
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import yaml
 
 from georefine.demo.lanes import Lanes, QueuedProgress, reusable_project
 from georefine.evaluation.report import summary_rows, write_report
+from georefine.evaluation.summary import CloudEvaluation, RunEvaluation
 from georefine.io.files import write_json
+from georefine.io.run_metrics import WorkflowMetrics
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows.evaluate import evaluate_cloud, evaluate_run
@@ -36,22 +39,57 @@ from georefine.workflows.lidar import precompute_gnss_imu, run_workflow
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DemoResult", "run_demo"]
+__all__ = ["DemoMetrics", "DemoResult", "run_demo"]
+
+
+@dataclass(frozen=True)
+class DemoMetrics:
+    """What ``OUT/metrics.json`` of the corridor demo holds.
+
+    Attributes
+    ----------
+    scenario, seed, overrides
+        What was simulated.
+    evaluation
+        The evaluation of the run (``OUT/run/evaluation/summary.json``).
+    run
+        The full run's metrics (``OUT/run/metrics.json``).
+    timings_s
+        Wall time (s) of the demo's stages, in the order they ended; ``total`` last.
+    """
+
+    scenario: str
+    seed: int
+    overrides: tuple[str, ...]
+    evaluation: RunEvaluation
+    run: WorkflowMetrics
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The JSON object of ``OUT/metrics.json``."""
+        return {"scenario": self.scenario, "seed": self.seed, "overrides": list(self.overrides),
+                "evaluation": self.evaluation.to_dict(), "run": self.run.to_dict(), "timings_s": dict(self.timings_s)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> DemoMetrics:
+        return cls(str(d["scenario"]), int(d["seed"]), tuple(str(o) for o in d["overrides"]),
+                   RunEvaluation.from_dict(d["evaluation"]), WorkflowMetrics.from_dict(d["run"]),
+                   {str(k): float(v) for k, v in d["timings_s"].items()})
 
 
 @dataclass(frozen=True)
 class DemoResult:
     out: Path
     report: Path
-    metrics: dict
+    metrics: DemoMetrics
 
     def summary_table(self) -> list[list[str]]:
         """Rows ``[quantity, paper 000, G/I, G/I/L, single-pass G/I/L]``."""
-        return summary_rows(self.metrics["evaluation"])
+        return summary_rows(self.metrics.evaluation)
 
 
 def _second_lane(project: Path, out: Path, cache: Path, first_strip: int,
-                 progress: QueuedProgress) -> tuple[dict, dict]:
+                 progress: QueuedProgress) -> tuple[dict[str, float], CloudEvaluation]:
     """The demo's second process: the single-pass run, then the G/I point cloud and its evaluation.
 
     Both need only the G/I adjustment (in the shared step cache), not the full run; the G/I
@@ -133,11 +171,10 @@ def run_demo(
     single_dir = out / "run-single-pass" if single_pass else None
     evaluation = evaluate_run(project, out / "run", single_dir, clouds=clouds, progress=lanes)
     timings["evaluate"] = _time.perf_counter() - t
-    metrics = {"scenario": scenario, "seed": seed, "overrides": overrides, "evaluation": evaluation,
-               "run": full.metrics, "timings_s": timings}
     t = _time.perf_counter()
     report = write_report(out / "run", out / "report.html", title=f"Georefine demo: {scenario}, seed {seed}")
     timings["report"] = _time.perf_counter() - t
     timings["total"] = _time.perf_counter() - start
-    write_json(out / "metrics.json", metrics)
+    metrics = DemoMetrics(scenario, seed, tuple(overrides), evaluation, full.metrics, timings)
+    write_json(out / "metrics.json", metrics.to_dict())
     return DemoResult(out, report, metrics)

@@ -24,7 +24,9 @@ from pathlib import Path
 
 from georefine import __version__
 from georefine.evaluation.page import CSS, image, table
+from georefine.evaluation.summary import ANGLES, RunEvaluation, SurfaceFigures
 from georefine.io.files import atomic_output
+from georefine.io.run_metrics import WorkflowMetrics
 
 __all__ = ["PAPER_000", "write_report", "summary_rows"]
 
@@ -36,52 +38,65 @@ PAPER_000 = {
     "reference_planes": {"G/I": {"avg_sd_m": 0.0101}, "G/I/L": {"avg_sd_m": 0.0033}},
 }
 
+
 def _f(x, scale=1.0, digits=1) -> str:
     return "–" if x is None else f"{x * scale:.{digits}f}"
 
 
-def summary_rows(summary: dict) -> list[list[str]]:
+def summary_rows(summary: RunEvaluation | None) -> list[list[str]]:
     """Rows ``[quantity, paper 000, G/I, G/I/L, single-pass G/I/L]`` of the headline table."""
-    traj = summary.get("trajectory", {})
-    single = next((v for k, v in traj.items() if k.startswith("G/I/L single")), None)
+    traj = summary.trajectory if summary is not None else {}
+    gi, gil = traj.get("G/I"), traj.get("G/I/L")
+    single = summary.single_pass if summary is not None else None
     rows = []
-    for a in ("roll", "pitch", "yaw"):
+    for a in ANGLES:
         key = f"{a}_rmse_mdeg"
         paper = f"{PAPER_000['G/I'][key]:.0f} / – / {PAPER_000['G/I/L single pass'][key]:.0f}"
         cell = "–"
         if single:  # beside G/I during the same strip(s)
-            gi_strips = traj.get("G/I", {}).get("strips", {})
-            same = [gi_strips[s][key] for s in single["strips"] if s in gi_strips]
-            cell = _f(single["all"][key]) + (f" (G/I {_f(max(same))})" if same else "")
-        rows.append([f"{a} RMSE (mdeg)", paper, _f(traj.get("G/I", {}).get("all", {}).get(key)),
-                     _f(traj.get("G/I/L", {}).get("all", {}).get(key)), cell])
-    rp = summary.get("reference_planes", {})
+            same = [gi.strips[s].rmse_mdeg(a) for s in single.strips if gi is not None and s in gi.strips]
+            cell = _f(single.overall.rmse_mdeg(a)) + (f" (G/I {_f(max(same))})" if same else "")
+        rows.append([f"{a} RMSE (mdeg)", paper, _f(gi.overall.rmse_mdeg(a) if gi else None),
+                     _f(gil.overall.rmse_mdeg(a) if gil else None), cell])
+    rp = summary.reference_planes if summary is not None else {}
     if rp:
         for k, name in (("mean_m", "Mean"), ("rmse_m", "RMSE"), ("avg_sd_m", "AVG-SD")):
             paper = {"avg_sd_m": "10.1 / 3.3 / –", "mean_m": "< 4 / < 4 / –", "rmse_m": "< 22 / < 22 / –"}[k]
-            rows.append([f"reference planes {name} (mm)", paper, _f(rp.get("G/I", {}).get(k), 1e3),
-                         _f(rp.get("G/I/L", {}).get(k), 1e3), "–"])
-    sd = summary.get("strip_differences", {})
+            rows.append([f"reference planes {name} (mm)", paper, _f(_attr(rp.get("G/I"), k), 1e3),
+                         _f(_attr(rp.get("G/I/L"), k), 1e3), "–"])
+    sd = summary.strip_differences if summary is not None else {}
     if sd:
         for k, name in (("median_m", "median"), ("p95_m", "P95")):
             rows.append([f"strip differences {name} (mm)", "≤ 50 on planar surfaces (Fig. 7)",
-                         _f(sd.get("G/I", {}).get(k), 1e3), _f(sd.get("G/I/L", {}).get(k), 1e3), "–"])
+                         _f(_attr(sd.get("G/I"), k), 1e3), _f(_attr(sd.get("G/I/L"), k), 1e3), "–"])
     return rows
 
 
+def _attr(obj, name: str):
+    """``obj.name``, or ``None`` when there is no ``obj`` (a cloud that was not evaluated)."""
+    return None if obj is None else getattr(obj, name)
+
+
 def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Georefine report") -> Path:
-    """Write ``run_dir/report.html`` (or ``path``) from the run's files; returns the path."""
+    """Write ``run_dir/report.html`` (or ``path``) from the run's files; returns the path.
+
+    ``metrics.json`` and ``evaluation/summary.json`` are read into their types
+    (:class:`~georefine.io.run_metrics.WorkflowMetrics`,
+    :class:`~georefine.evaluation.summary.RunEvaluation`); a run without an evaluation gets a
+    report without its figures.
+    """
     run_dir = Path(run_dir)
     path = Path(path) if path is not None else run_dir / "report.html"
     ev = run_dir / "evaluation"
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    summary = json.loads((ev / "summary.json").read_text()) if (ev / "summary.json").is_file() else {}
+    metrics = WorkflowMetrics.read(run_dir / "metrics.json")
+    summary = RunEvaluation.read(ev / "summary.json") if (ev / "summary.json").is_file() else None
     adj = {k: json.loads((run_dir / k / "adjustment.json").read_text())
            for k in ("gi", "gil") if (run_dir / k / "adjustment.json").is_file()}
+    reference = summary.reference if summary is not None else "–"
     parts = [f"<h1>{html.escape(title)}</h1>",
              f'<p class="note">Georefine {html.escape(__version__)}, {_dt.datetime.now().isoformat(timespec="seconds")}; '
-             f"run folder {html.escape(str(run_dir.resolve()))}; strips {metrics.get('strips')}; "
-             f"trajectory reference: {html.escape(summary.get('reference', '–'))}.</p>"]
+             f"run folder {html.escape(str(run_dir.resolve()))}; strips {list(metrics.strips)}; "
+             f"trajectory reference: {html.escape(reference)}.</p>"]
 
     parts.append("<h2>1. Summary beside paper 000</h2>")
     parts.append(table(["quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L"],
@@ -91,61 +106,58 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
                  "observations, AVG-SD the mean per-surface standard deviation (Table 1).</p>")
 
     parts.append("<h2>2. Workflow</h2>")
-    parts.append(table(["step", "seconds"], [[k, f"{v:.1f}"] for k, v in metrics.get("timings_s", {}).items()]))
-    if metrics.get("outer_iterations"):
+    parts.append(table(["step", "seconds"], [[k, f"{v:.1f}"] for k, v in metrics.timings_s.items()]))
+    if metrics.outer_iterations:
         parts.append(table(
             ["outer iteration", "features", "objects", "features used", "RMS change (mdeg)", "RMS change (mm)"],
-            [[it["iteration"], f"{it['features']:,}", f"{it['objects']:,}", f"{it['features_used']:,}",
-              f"{it['attitude_change_mdeg']:.2f}", f"{it['position_change_m'] * 1e3:.1f}"]
-             for it in metrics["outer_iterations"]]))
-    if metrics.get("resumed"):
-        parts.append(f'<p class="note">Resumed from the cache: {html.escape(", ".join(metrics["resumed"]))}.</p>')
+            [[it.iteration, f"{it.features:,}", f"{it.objects:,}", f"{it.features_used:,}",
+              f"{it.attitude_change_mdeg:.2f}", f"{it.position_change_m * 1e3:.1f}"]
+             for it in metrics.outer_iterations]))
+    if metrics.resumed:
+        parts.append(f'<p class="note">Resumed from the cache: {html.escape(", ".join(metrics.resumed))}.</p>')
 
     parts.append("<h2>3. Trajectory differences</h2>")
     rows = []
-    for label, t in summary.get("trajectory", {}).items():
-        for sid, s in t["strips"].items():
-            rows.append([label, f"strip {sid}", _f(s["roll_rmse_mdeg"], digits=2), _f(s["pitch_rmse_mdeg"], digits=2),
-                         _f(s["yaw_rmse_mdeg"], digits=2), _f(s["3d_rmse_m"], 1e3)])
-        a = t["all"]
-        rows.append([label, "all", _f(a["roll_rmse_mdeg"], digits=2), _f(a["pitch_rmse_mdeg"], digits=2),
-                     _f(a["yaw_rmse_mdeg"], digits=2), _f(a["3d_rmse_m"], 1e3)])
+    for label, t in (summary.trajectory if summary is not None else {}).items():
+        for sid, s in [*((f"strip {k}", v) for k, v in t.strips.items()), ("all", t.overall)]:
+            rows.append([label, sid, *(_f(s.rmse_mdeg(a), digits=2) for a in ANGLES), _f(s.position_3d_rmse_m, 1e3)])
     parts.append(table(["solution", "during", "roll (mdeg)", "pitch (mdeg)", "yaw (mdeg)", "3-D position (mm)"], rows))
     parts.append(image(ev / "attitude_differences.png", "attitude differences"))
     parts.append(image(ev / "position_differences.png", "position differences"))
 
-    rp = summary.get("reference_planes", {})
+    rp = summary.reference_planes if summary is not None else {}
     if rp:
         parts.append("<h2>4. Reference planes (Table 1)</h2>")
-        surf = {}
+        surf: dict[str, dict[str, SurfaceFigures]] = {}
         for label in ("G/I", "G/I/L"):
-            for s in rp.get(label, {}).get("surfaces", []):
-                surf.setdefault(s["surface_id"], {})[label] = s
+            for s in (rp[label].surfaces if label in rp else ()):
+                surf.setdefault(s.surface_id, {})[label] = s
+        rows = []
+        for sid, v in surf.items():
+            g, gl = v.get("G/I"), v.get("G/I/L")
+            rows.append([sid, (gl or g).observations, _f(_attr(g, "mean_m"), 1e3), _f(_attr(g, "sd_m"), 1e3),
+                         _f(_attr(gl, "mean_m"), 1e3), _f(_attr(gl, "sd_m"), 1e3)])
         parts.append(table(
-            ["surface", "observations", "G/I mean (mm)", "G/I SD (mm)", "G/I/L mean (mm)", "G/I/L SD (mm)"],
-            [[sid, v.get("G/I/L", v.get("G/I", {})).get("observations", "–"),
-              _f(v.get("G/I", {}).get("mean_m"), 1e3), _f(v.get("G/I", {}).get("sd_m"), 1e3),
-              _f(v.get("G/I/L", {}).get("mean_m"), 1e3), _f(v.get("G/I/L", {}).get("sd_m"), 1e3)]
-             for sid, v in surf.items()]))
+            ["surface", "observations", "G/I mean (mm)", "G/I SD (mm)", "G/I/L mean (mm)", "G/I/L SD (mm)"], rows))
         parts.append(table(["", "Mean (mm)", "RMSE (mm)", "AVG-SD (mm)", "observations"],
-                            [[label, _f(v.get("mean_m"), 1e3), _f(v.get("rmse_m"), 1e3), _f(v.get("avg_sd_m"), 1e3),
-                              v.get("n_observations", "–")] for label, v in rp.items()]))
+                            [[label, _f(v.mean_m, 1e3), _f(v.rmse_m, 1e3), _f(v.avg_sd_m, 1e3), v.n_observations]
+                             for label, v in rp.items()]))
 
-    sd = summary.get("strip_differences", {})
+    sd = summary.strip_differences if summary is not None else {}
     if sd:
         parts.append("<h2>5. Strip differences (Fig. 7)</h2>")
         figs = []
         for label, v in sd.items():
-            if v.get("zoom_map"):
-                figs.append(f"<figure>{image(ev / v['zoom_map'], label)}<figcaption>{html.escape(label)}: detail "
+            if v.zoom_map:
+                figs.append(f"<figure>{image(ev / v.zoom_map, label)}<figcaption>{html.escape(label)}: detail "
                             "around the first reference site</figcaption></figure>")
         if figs:
             parts.append('<div class="maps">' + "".join(figs) + "</div>")
         figs = []
         for label, v in sd.items():
-            cap = (f"{label}: median {_f(v.get('median_m'), 1e3)} mm, P95 {_f(v.get('p95_m'), 1e3)} mm "
-                   f"over {v.get('cells', 0):,} planar 1 m cells")
-            figs.append(f"<figure>{image(ev / v['map'], label)}<figcaption>{html.escape(cap)}</figcaption></figure>")
+            cap = (f"{label}: median {_f(v.median_m, 1e3)} mm, P95 {_f(v.p95_m, 1e3)} mm "
+                   f"over {v.cells:,} planar 1 m cells")
+            figs.append(f"<figure>{image(ev / v.map, label)}<figcaption>{html.escape(cap)}</figcaption></figure>")
         parts.append('<div class="maps">' + "".join(figs) + "</div>")
 
     parts.append("<h2>6. Adjustment statistics and IMU errors</h2>")

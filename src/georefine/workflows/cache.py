@@ -13,6 +13,9 @@ the old entry or the new one.
 The cache holds Python objects (pickle) of this version of Georefine only: it is a private
 working store of the output folder, not an exchange format (the products beside it are). Like
 any pickle, load it only from output folders you wrote yourself.
+
+A workflow runs each cached step through :meth:`StepRunner.cached`: the one place that loads
+or computes and stores, times the step and records whether it was resumed.
 """
 
 from __future__ import annotations
@@ -22,14 +25,19 @@ import json
 import logging
 import os
 import pickle
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, TypeVar
 
 from georefine import __version__
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StepCache", "file_stamp"]
+__all__ = ["StepCache", "StepRunner", "file_stamp"]
+
+T = TypeVar("T")
 
 
 def file_stamp(path: Path, root: Path | None = None) -> list:
@@ -114,3 +122,84 @@ class StepCache:
         if latest_only and before is not None and before != path:
             before.unlink(missing_ok=True)
         self._written[name] = path
+
+
+class StepRunner:
+    """Runs the steps of a workflow through a :class:`StepCache` and times them.
+
+    ``timings_s`` holds each timed step's wall time in the order run. A step's time excludes
+    the steps timed inside it (as a profiler's *self* time), so that nested steps -- the
+    filter inside the GNSS/IMU step -- are counted once and the timings add up.
+    """
+
+    def __init__(self, cache: StepCache) -> None:
+        self.cache = cache
+        self.timings_s: dict[str, float] = {}
+        self._inner: list[float] = []  # per open timed block: time of the timed blocks inside it
+
+    @property
+    def resumed(self) -> tuple[str, ...]:
+        """The steps loaded from the cache so far, in the order loaded."""
+        return tuple(self.cache.hits)
+
+    @contextmanager
+    def timed(self, name: str) -> Iterator[None]:
+        """Record the wall time of the block under ``name`` (less that of timed blocks inside it)."""
+        start = time.perf_counter()
+        self._inner.append(0.0)
+        try:
+            yield
+        finally:
+            inner = self._inner.pop()
+            elapsed = time.perf_counter() - start
+            self.timings_s[name] = elapsed - inner
+            if self._inner:
+                self._inner[-1] += elapsed
+
+    def cached(
+        self,
+        name: str,
+        key: str,
+        compute: Callable[[], T],
+        *,
+        timing: str | None = None,
+        valid: Callable[[Any], bool] | None = None,
+        encode: Callable[[T], Any] | None = None,
+        decode: Callable[[Any], T] | None = None,
+        store: bool = True,
+    ) -> T:
+        """The result of step ``name``: loaded from the cache under ``key``, else computed (and stored).
+
+        Parameters
+        ----------
+        name, key
+            The cache entry (:meth:`StepCache.load`); a load counts as resumed.
+        compute
+            Computes the result when the cache has none.
+        timing
+            Name under which the step's time (load, or compute and store) is recorded; ``None``:
+            not timed here (``compute`` may time its parts itself).
+        valid
+            Rejects a stored value (e.g. when the files it describes are gone).
+        encode, decode
+            What is stored is ``encode(result)`` and a loaded value is ``decode(stored)``: the
+            cache keeps a plain form, the workflow gets the result with what only a computation
+            has (the problem to reuse, the features in memory).
+        store
+            ``False``: a computed result is not stored (a recovery of an entry that is
+            stored elsewhere).
+        """
+        if timing is not None:
+            with self.timed(timing):
+                return self.cached(name, key, compute, valid=valid, encode=encode, decode=decode, store=store)
+        stored = self.cache.load(name, key, valid=valid)
+        if stored is not None:
+            return stored if decode is None else decode(stored)
+        value = compute()
+        if store:
+            self.cache.store(name, key, value if encode is None else encode(value))
+        return value
+
+    def keep(self, name: str, key: str, value: Any) -> None:
+        """Store a side result of a step that a later step may need (only the latest entry of ``name``)."""
+        self.cache.store(name, key, value, latest_only=True)

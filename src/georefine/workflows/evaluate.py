@@ -10,12 +10,12 @@ the run folder of a single-pass run, and writes ``RUN/evaluation/``:
 * the G/I point cloud (``RUN/gi/points``; the run itself writes the G/I/L one), and for both:
   reference planes (Table 1, when the project has ``reference`` surfaces) and the strip-difference
   map (Fig. 7) in ``evaluation/gi/`` and ``evaluation/gil/``;
-* ``summary.json``: every figure above, which the report and ``metrics.json`` take over.
+* ``summary.json``: every figure above (:class:`~georefine.evaluation.summary.RunEvaluation`), which
+  the report and the demo's ``metrics.json`` take over.
 """
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Callable
@@ -30,26 +30,34 @@ from georefine.evaluation.plots import (
     plot_attitude_differences,
     plot_position_differences,
 )
+from georefine.evaluation.summary import (
+    ANGLES,
+    CloudEvaluation,
+    EvaluationPlots,
+    ReferencePlaneFigures,
+    RunEvaluation,
+    SolutionFigures,
+    StripDifferenceFigures,
+    TrajectoryFigures,
+)
 from georefine.evaluation.trajectory import TrajectoryComparison
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.files import write_json
 from georefine.io.reference import read_reference_surfaces
+from georefine.io.run_metrics import WorkflowMetrics
 from georefine.workflows.navigation import run_georeference
 
 log = logging.getLogger(__name__)
 
 __all__ = ["evaluate_run", "evaluate_cloud", "ANGLES", "CLOUDS"]
 
-ANGLES = ("roll", "pitch", "yaw")
 CLOUDS = {"G/I": "gi", "G/I/L": "gil"}
 """The point clouds a run is evaluated on and their folders under ``RUN/evaluation``."""
 
 
-_KEYS = ("roll_rmse_mdeg", "pitch_rmse_mdeg", "yaw_rmse_mdeg", "3d_rmse_m")
-
-
-def _windows(metrics: dict, inset_s: float = 1.0) -> dict[str, tuple[float, float]]:
-    return {sid: (t0 + inset_s, t1 - inset_s) for sid, (t0, t1) in metrics.get("strip_time_gps", {}).items()}
+def _windows(metrics: WorkflowMetrics, inset_s: float = 1.0) -> dict[int, tuple[float, float]]:
+    """Per strip id, the strip's time span (GPS s) shortened by ``inset_s`` at both ends."""
+    return {sid: (t0 + inset_s, t1 - inset_s) for sid, (t0, t1) in metrics.strip_time_gps.items()}
 
 
 def evaluate_run(
@@ -57,9 +65,9 @@ def evaluate_run(
     run_dir: Path,
     single_dir: Path | None = None,
     *,
-    clouds: dict[str, dict] | None = None,
+    clouds: dict[str, CloudEvaluation] | None = None,
     progress: Callable[[str, float, float], None] | None = None,
-) -> dict:
+) -> RunEvaluation:
     """Evaluate ``run_dir`` (and ``single_dir``); write ``run_dir/evaluation`` and return the summary.
 
     ``clouds`` holds :func:`evaluate_cloud` results computed elsewhere (``georefine demo``
@@ -70,11 +78,11 @@ def evaluate_run(
     report = progress or (lambda *a: None)
     out = run_dir / "evaluation"
     out.mkdir(parents=True, exist_ok=True)
-    metrics = json.loads((run_dir / "metrics.json").read_text())
+    metrics = WorkflowMetrics.read(run_dir / "metrics.json")
     truth = project / "truth" / "trajectory.sbet"
     has_truth = truth.is_file()
     reference = truth if has_truth else run_dir / "gil" / "trajectory.sbet"
-    summary: dict = {"reference": "truth" if has_truth else "full G/I/L", "trajectory": {}}
+    reference_name = "truth" if has_truth else "full G/I/L"
 
     # Trajectory differences during the strips (per strip and over all of them).
     report("trajectory differences", 0, 1)
@@ -82,10 +90,11 @@ def evaluate_run(
     if not has_truth:
         cases = cases[:1]
     if single_dir is not None:
-        sm = json.loads((Path(single_dir) / "metrics.json").read_text())
-        label = "G/I/L single pass (strip " + ", ".join(map(str, sm["strips"])) + ")"
+        sm = WorkflowMetrics.read(Path(single_dir) / "metrics.json")
+        label = f"{RunEvaluation.SINGLE_PASS} (strip " + ", ".join(map(str, sm.strips)) + ")"
         cases.append((label, Path(single_dir) / "gil" / "trajectory.sbet", sm))
-    plots: dict[str, TrajectoryComparison] = {}
+    trajectory: dict[str, SolutionFigures] = {}
+    compared: dict[str, TrajectoryComparison] = {}
     for label, sbet, m in cases:
         if not sbet.is_file():
             continue
@@ -94,29 +103,32 @@ def evaluate_run(
         comp = compare_sbet_files(sbet, reference, time_window=span)  # one comparison, cut per strip
         # During the strips only (the turn between passes has no LiDAR data): gaps elsewhere.
         strips = comp.within(list(wins.values()))
-        summary["trajectory"][label] = {
-            "strips": {sid: {k: comp.within([w]).stats[k] for k in _KEYS} for sid, w in wins.items()},
-            "all": {k: strips.stats[k] for k in _KEYS},
-        }
-        plots[f"{label} - {summary['reference']}"] = strips
-    if plots:
-        summary["plots"] = {
-            "attitude": str(plot_attitude_differences(plots, out / "attitude_differences.png",
-                                                      "roll, pitch, yaw differences (cf. paper 000, Fig. 9)").name),
-            "position": str(plot_position_differences(plots, out / "position_differences.png",
-                                                      "position differences").name),
-        }
+        trajectory[label] = SolutionFigures(
+            {sid: TrajectoryFigures.from_stats(comp.within([w]).stats) for sid, w in wins.items()},
+            TrajectoryFigures.from_stats(strips.stats),
+        )
+        compared[f"{label} - {reference_name}"] = strips
+    plots = None
+    if compared:
+        plots = EvaluationPlots(
+            attitude=plot_attitude_differences(compared, out / "attitude_differences.png",
+                                               "roll, pitch, yaw differences (cf. paper 000, Fig. 9)").name,
+            position=plot_position_differences(compared, out / "position_differences.png",
+                                               "position differences").name,
+        )
     report("trajectory differences", 1, 1)
 
     # Point clouds: G/I (georeferenced here) and G/I/L (written by the run).
     clouds = dict(clouds or {})
-    summary["reference_planes"], summary["strip_differences"] = {}, {}
+    reference_planes: dict[str, ReferencePlaneFigures] = {}
+    strip_differences: dict[str, StripDifferenceFigures] = {}
     for label in CLOUDS:
         result = clouds.get(label) or evaluate_cloud(project, run_dir, label, progress=report)
-        for part in ("reference_planes", "strip_differences"):
-            if part in result:
-                summary[part][label] = result[part]
-    write_json(out / "summary.json", summary)
+        if result.reference_planes is not None:
+            reference_planes[label] = result.reference_planes
+        strip_differences[label] = result.strip_differences
+    summary = RunEvaluation(reference_name, trajectory, plots, reference_planes, strip_differences)
+    write_json(out / "summary.json", summary.to_dict())
     return summary
 
 
@@ -128,21 +140,20 @@ def evaluate_cloud(
     trajectory: Path | None = None,
     strips: list[int] | None = None,
     progress: Callable[[str, float, float], None] | None = None,
-) -> dict:
+) -> CloudEvaluation:
     """Reference planes and the strip-difference map of one point cloud of a run.
 
     ``label`` is ``"G/I"`` (georeferenced here into ``RUN/gi/points`` with ``trajectory``,
     by default ``RUN/gi/trajectory.sbet``, unless the points there are newer than it) or ``"G/I/L"`` (``RUN/points``,
     written by the run); ``strips`` (default: those of ``RUN/metrics.json``, else all) selects
-    the strip files. Writes ``RUN/evaluation/gi`` or ``.../gil`` and returns
-    ``{"reference_planes": ..., "strip_differences": ...}`` (the first only when the project has
-    reference surfaces).
+    the strip files. Writes ``RUN/evaluation/gi`` or ``.../gil``; the reference planes are
+    evaluated only when the project has reference surfaces.
     """
     project, run_dir = Path(project), Path(run_dir)
     report = progress or (lambda *a: None)
     sub = CLOUDS[label]
     if strips is None and (run_dir / "metrics.json").is_file():
-        strips = json.loads((run_dir / "metrics.json").read_text())["strips"]
+        strips = list(WorkflowMetrics.read(run_dir / "metrics.json").strips)
     out = run_dir / "evaluation" / sub
     out.mkdir(parents=True, exist_ok=True)
     if label == "G/I":
@@ -160,18 +171,16 @@ def evaluate_cloud(
         zoom = (c[0] - 125.0, c[0] + 125.0, c[1] - 125.0, c[1] + 125.0)
     files = [f for f in point_files([folder])
              if strips is None or f.stem in {f"strip_{s}" for s in strips} or not f.stem.startswith("strip_")]
-    result: dict = {}
     report(f"point cloud evaluation {label}", 0, 2)
     layers = read_layers(files)
+    planes = None
     if ref_csv.is_file():
         _, rp = evaluate_reference_planes(files, ref_csv, out, layers=layers)
-        result["reference_planes"] = {k: v for k, v in rp.to_dict().items() if k != "surfaces"}
-        result["reference_planes"]["surfaces"] = rp.per_surface
+        planes = ReferencePlaneFigures.from_summary(rp)
     report(f"point cloud evaluation {label}", 1, 2)
     sd = evaluate_strip_differences(files, out, title=f"strip differences, {label}", layers=layers, zoom=zoom)
     del layers
-    result["strip_differences"] = {**sd.summary(), "map": f"{sub}/strip_differences.png"}
-    if zoom is not None:
-        result["strip_differences"]["zoom_map"] = f"{sub}/strip_differences_zoom.png"
+    differences = StripDifferenceFigures.from_map(
+        sd, f"{sub}/strip_differences.png", None if zoom is None else f"{sub}/strip_differences_zoom.png")
     report(f"point cloud evaluation {label}", 2, 2)
-    return result
+    return CloudEvaluation(differences, planes)

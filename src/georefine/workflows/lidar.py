@@ -9,15 +9,22 @@
    less than the configured thresholds.
 6. Final georeferencing into the output CRS.
 
-:func:`run_workflow` writes ``gi/`` and ``gil/`` (trajectory products), ``points/*.laz``,
-``features/`` (features and objects as CSV), ``metrics.json`` and the resolved configuration.
+Steps 3-4 are in :mod:`georefine.workflows.strips`, step 5 and the run are here.
+:func:`run_workflow` runs the workflow as explicit stages -- read inputs, G/I, G/I products,
+outer iterations, posterior, G/I/L products, final point clouds, metrics -- each cached stage
+through one helper (:class:`~georefine.workflows.cache.StepRunner`). It writes ``gi/`` and
+``gil/`` (trajectory products), ``points/*.laz``, ``features/`` (features and objects as CSV),
+``metrics.json`` (:class:`~georefine.io.run_metrics.WorkflowMetrics`) and the resolved
+configuration.
 """
 
 from __future__ import annotations
 
 import logging
-import time as _time
-from dataclasses import dataclass, field, replace
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -38,17 +45,12 @@ from georefine.errors import InputError
 from georefine.geometry.frames import OutputCRS
 from georefine.geometry.rotation import log_so3, rph_from_R_n_b
 from georefine.io.files import write_json
-from georefine.io.las import iter_las_chunks
+from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
-from georefine.lidar.georeference import (
-    PoseInterpolator,
-    georeference,
-    georeference_strip,
-)
-from georefine.lidar.planes import PlanarFeatures, extract_features, write_features
+from georefine.lidar.georeference import georeference_strip
+from georefine.lidar.planes import PlanarFeatures, write_features
 from georefine.progress import Progress, no_progress
-from georefine.trajectory.sampled import Trajectory
-from georefine.workflows.cache import StepCache, file_stamp
+from georefine.workflows.cache import StepCache, StepRunner, file_stamp
 from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
@@ -58,87 +60,14 @@ from georefine.workflows.navigation import (
     write_trajectory_products,
 )
 from georefine.workflows.project import output_folder
+from georefine.workflows.strips import FeatureCounts, StripPoints, read_strips, step_features
 
 log = logging.getLogger(__name__)
 
-
-@dataclass(frozen=True)
-class StripPoints:
-    """One strip in memory: scanner-frame points, times relative to the epoch, channels."""
-
-    path: Path
-    strip_id: int
-    time: np.ndarray
-    xyz_s: np.ndarray
-    channel: np.ndarray
-
-
-def read_strips(nav: NavigationData, strips: list[int] | None = None) -> list[StripPoints]:
-    """Read the project's strips (optionally only those with the given ``point_source_id``).
-
-    Raises
-    ------
-    InputError
-        A strip without points, without configured ``scanner_channel`` values, or a requested
-        strip id that no file holds.
-    """
-    cfg = nav.config
-    channels = {c.id for c in cfg.scanner.channels}
-    out = []
-    for rel in cfg.scanner.files:
-        path = nav.root / rel
-        parts = list(iter_las_chunks(path, 5_000_000))
-        if not parts or sum(len(p) for p in parts) == 0:
-            raise InputError("strip has no points", path=path)
-        sid = int(parts[0].point_source_id[0])
-        if strips is not None and sid not in strips:
-            continue
-        t = np.concatenate([p.time_gps for p in parts]) - nav.t0_gps
-        ch = np.concatenate([p.scanner_channel for p in parts])
-        if not np.any(np.isin(ch, list(channels))):
-            raise InputError(
-                "no point has a configured scanner_channel", path=path, field="scanner_channel",
-                expected="one of " + ", ".join(map(str, sorted(channels))), found=", ".join(map(str, np.unique(ch)[:5])),
-            )
-        out.append(StripPoints(path, sid, t, np.concatenate([p.xyz for p in parts]), ch))
-    if strips is not None:
-        missing = set(strips) - {s.strip_id for s in out}
-        if missing:
-            raise InputError("no strip with this id", field="--strips", expected="ids of the project's strips",
-                             found=", ".join(map(str, sorted(missing))))
-    return out
-
-
-def step_features(
-    nav: NavigationData, trajectory: Trajectory, strips: list[StripPoints], progress: Progress = no_progress
-) -> tuple[PlanarFeatures, dict]:
-    """Steps 3-4a: georeference each view with ``trajectory`` and extract its planar features."""
-    cfg = nav.config
-    p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
-    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
-    interp = PoseInterpolator(trajectory)
-    parts, stats = [], {"points_outside_trajectory": 0, "views": {}}
-    for k, strip in enumerate(strips):
-        inside = interp.inside(strip.time)
-        stats["points_outside_trajectory"] += int(np.count_nonzero(~inside))
-        t, xs, ch = strip.time[inside], strip.xyz_s[inside], strip.channel[inside]
-        x_w = georeference(t, xs, interp, p_b_s, R_b_s)
-        for c in cfg.scanner.channels:
-            m = ch == c.id
-            if not np.any(m):
-                log.warning("%s: no points of channel %d (%s)", strip.path.name, c.id, c.name)
-                continue
-            f = extract_features(x_w[m], t[m], strip.strip_id, c.id, interp, p_b_s, R_b_s, cfg.processing.planes)
-            stats["views"][f"strip{strip.strip_id}_{c.name}"] = len(f)
-            if len(f) == 0:
-                log.warning("%s: channel %d (%s) gave no planar features", strip.path.name, c.id, c.name)
-            parts.append(f)
-        progress("planar features", k + 1, len(strips))
-    features = PlanarFeatures.concatenate(parts) if parts else PlanarFeatures.empty()
-    if len(features) == 0:
-        raise InputError("no planar features in any view", field="processing.planes",
-                         expected="planar surfaces (roofs, roads, facades) in the scans")
-    return features, stats
+__all__ = [  # steps 3-4 live in georefine.workflows.strips; named here as the workflow's steps
+    "FeatureCounts", "LidarAdjustment", "StripPoints", "WorkflowResult", "add_posterior", "precompute_gnss_imu",
+    "read_strips", "run_workflow", "step_adjust_gil", "step_features", "trajectory_change",
+]
 
 
 @dataclass(frozen=True)
@@ -247,52 +176,116 @@ def trajectory_change(a, b, *, statistic: str = "rms") -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class WorkflowResult:
-    """What :func:`run_workflow` computed and wrote."""
+    """What :func:`run_workflow` computed and wrote (``metrics``: what ``metrics.json`` holds)."""
 
     out: Path
     gi: GnssImuResult
     gil: LidarAdjustment | None
-    metrics: dict = field(default_factory=dict)
+    metrics: WorkflowMetrics
 
     def summary(self) -> str:
         m = self.metrics
         lines = [f"Results written to {self.out}"]
-        for it in m.get("outer_iterations", []):
+        for it in m.outer_iterations:
             lines.append(
-                f"  iteration {it['iteration']}: {it['features']:,} features, {it['objects']:,} objects, "
-                f"{it['features_used']:,} used; RMS change {it['attitude_change_mdeg']:.2f} mdeg, "
-                f"{it['position_change_m'] * 1e3:.1f} mm"
+                f"  iteration {it.iteration}: {it.features:,} features, {it.objects:,} objects, "
+                f"{it.features_used:,} used; RMS change {it.attitude_change_mdeg:.2f} mdeg, "
+                f"{it.position_change_m * 1e3:.1f} mm"
             )
         if self.gil is not None and self.gil.boresight_deg is not None:
             b = self.gil.boresight_deg
             lines.append(f"  boresight roll/pitch/yaw: {b[0]:.4f} {b[1]:.4f} {b[2]:.4f} deg")
-        if m.get("resumed"):
-            lines.append("  resumed from the cache: " + ", ".join(m["resumed"]))
-        lines.append("  timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in m.get("timings_s", {}).items()))
+        if m.resumed:
+            lines.append("  resumed from the cache: " + ", ".join(m.resumed))
+        lines.append("  timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in m.timings_s.items()))
         return "\n".join(lines)
 
 
-def _outer_iteration(nav, current, strip_points, it, timings, progress, adjust=True):
+# --- The stages of run_workflow -------------------------------------------------------------
+#
+# read inputs -> G/I (steps 1-2) -> G/I products -> outer iterations (steps 3-5) -> posterior
+# -> G/I/L products -> final point clouds (step 6) -> metrics. Every stage that is cached runs
+# through StepRunner.cached with a key that chains the key of the stage before it.
+
+
+@dataclass(frozen=True)
+class WorkflowInputs:
+    """The read inputs of a run: navigation data, strips, output folder and CRS."""
+
+    nav: NavigationData
+    strips: list[StripPoints]
+    out: Path
+    crs: OutputCRS
+
+
+@dataclass(frozen=True)
+class IterationOutcome:
+    """One outer iteration: the adjustment (no posterior) and its record.
+
+    ``features`` and ``objects`` are there only when the iteration was computed, not loaded
+    (the cache keeps them apart: only the last iteration's are needed, by the posterior).
+    """
+
+    gil: LidarAdjustment
+    record: OuterIteration
+    features: PlanarFeatures | None = None
+    objects: PlanarObjects | None = None
+
+    def cached_form(self) -> tuple[LidarAdjustment, dict]:
+        """What the cache stores: the adjustment without its problem, the record as a plain dict."""
+        return replace(self.gil, built=None), self.record.to_dict()
+
+    @classmethod
+    def from_cached(cls, stored: tuple[LidarAdjustment, dict]) -> IterationOutcome:
+        gil, record = stored
+        return cls(gil, OuterIteration.from_dict(record))
+
+
+@dataclass(frozen=True)
+class OuterIterations:
+    """The outer iterations until convergence: the last one, where it started, its cache key."""
+
+    last: IterationOutcome
+    start: GnssImuResult
+    key: str
+    records: tuple[OuterIteration, ...]
+
+
+@dataclass(frozen=True)
+class Posterior:
+    """The G/I/L adjustment with posterior sigma, the last iteration's features and objects, its key."""
+
+    gil: LidarAdjustment
+    features: PlanarFeatures
+    objects: PlanarObjects
+    key: str
+
+
+@contextmanager
+def _untimed(name: str) -> Iterator[None]:
+    """A ``timed`` that records nothing: a recomputation inside another step's time."""
+    yield
+
+
+def _features_and_objects(nav, current: GnssImuResult, strip_points, it: int, timed, progress):
+    """Steps 3-4 from ``current``: planar features per view and their matching into objects."""
+    with timed(f"features_{it}"):
+        traj = imu_rate_trajectory(nav, current.spline)
+        features, counts = step_features(nav, traj, strip_points, progress)
+    with timed(f"matching_{it}"):
+        objects = match_features(features, nav.config.processing.matching)
+    return features, objects, counts
+
+
+def _outer_iteration(nav, current: GnssImuResult, strip_points, it: int, timed, progress) -> IterationOutcome:
     """Steps 3-5 once from ``current``: features, objects, G/I/L adjustment (no posterior) and record."""
-    t = _time.perf_counter()
-    traj = imu_rate_trajectory(nav, current.spline)
-    features, fstats = step_features(nav, traj, strip_points, progress)
-    timings[f"features_{it}"] = _time.perf_counter() - t
-    t = _time.perf_counter()
-    objects = match_features(features, nav.config.processing.matching)
-    timings[f"matching_{it}"] = _time.perf_counter() - t
-    if not adjust:
-        return features, objects, None, None
-    t = _time.perf_counter()
-    gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
-    timings[f"gil_adjustment_{it}"] = _time.perf_counter() - t
+    features, objects, counts = _features_and_objects(nav, current, strip_points, it, timed, progress)
+    with timed(f"gil_adjustment_{it}"):
+        gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
     d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
-    record = {
-        "iteration": it, "features": len(features), "objects": len(objects),
-        "features_used": gil.features_used, "objects_used": gil.objects_used,
-        "attitude_change_mdeg": d_att, "position_change_m": d_pos, **fstats,
-    }
-    return features, objects, gil, record
+    record = OuterIteration(it, len(features), len(objects), gil.features_used, gil.objects_used, d_att, d_pos,
+                            counts.points_outside_trajectory, counts.views)
+    return IterationOutcome(gil, record, features, objects)
 
 
 def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
@@ -305,6 +298,7 @@ def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
 
 
 def _lidar_key(nav: NavigationData, strips: list[StripPoints], upstream: str, iteration: int) -> str:
+    """Key of outer iteration ``iteration``: the strips, the LiDAR configuration and the key before it."""
     cfg = nav.config
     return StepCache.key(
         "gil", iteration, upstream, [file_stamp(s.path, nav.root) for s in strips], cfg.scanner.model_dump(),
@@ -312,21 +306,157 @@ def _lidar_key(nav: NavigationData, strips: list[StripPoints], upstream: str, it
     )
 
 
-def _gnss_imu(nav: NavigationData, cache: StepCache, timings: dict[str, float],
-              progress: Progress = no_progress) -> tuple[GnssImuResult, str]:
+def _points_key(nav: NavigationData, strips: list[StripPoints], upstream: str) -> str:
+    """Key of step 6: the trajectory's key, the CRS, the scanner and the strips."""
+    return StepCache.key("points", upstream, nav.config.crs.model_dump(), nav.config.scanner.model_dump(),
+                         [file_stamp(s.path) for s in strips])
+
+
+def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Path,
+                      strips: list[int] | None) -> WorkflowInputs:
+    """Read and check the navigation data and the strips; create the output folders."""
+    with steps.timed("read"):
+        nav = load_navigation(project_dir)
+        out = output_folder(out, nav.root)
+        strip_points = read_strips(nav, strips)
+    for sub in ("gi", "gil", "points", "features"):
+        (out / sub).mkdir(parents=True, exist_ok=True)
+    return WorkflowInputs(nav, strip_points, out, OutputCRS(nav.config.crs.output_epsg))
+
+
+def stage_gnss_imu(steps: StepRunner, nav: NavigationData, progress: Progress = no_progress) -> tuple[GnssImuResult, str]:
     """Steps 1-2 (filter, G/I adjustment), or their cached result; and the cache key."""
-    t = _time.perf_counter()
-    key = _navigation_key(nav.config, nav.root)
-    gi = cache.load("gi", key)
-    if gi is None:
+
+    def compute() -> GnssImuResult:
         progress("initialisation filter", 0, 1)
-        filt = step_initialise(nav)
-        timings["filter"] = _time.perf_counter() - t
-        t = _time.perf_counter()
-        gi = step_adjust_gnss_imu(nav, filt, progress)
-        cache.store("gi", key, gi)
-    timings["gi_adjustment"] = _time.perf_counter() - t
-    return gi, key
+        with steps.timed("filter"):
+            filt = step_initialise(nav)
+        return step_adjust_gnss_imu(nav, filt, progress)
+
+    key = _navigation_key(nav.config, nav.root)
+    return steps.cached("gi", key, compute, timing="gi_adjustment"), key
+
+
+def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, key: str,
+                           progress: Progress = no_progress) -> OuterIterations:
+    """Steps 3-5 repeated from ``gi`` until the trajectory changes less than the thresholds.
+
+    Each iteration is cached under a key that chains the one before it; a computed
+    iteration's features and objects are kept too (the last only), for the posterior.
+    """
+    nav, lcfg = inputs.nav, inputs.nav.config.processing.lidar
+    current, records = gi, []
+    for it in range(1, lcfg.outer_iterations + 1):
+        key = _lidar_key(nav, inputs.strips, key, it)
+        start = current
+        outcome = steps.cached(
+            f"gil_{it}", key, partial(_outer_iteration, nav, start, inputs.strips, it, steps.timed, progress),
+            encode=IterationOutcome.cached_form, decode=IterationOutcome.from_cached,
+        )
+        if outcome.features is not None:
+            steps.keep("gil_features", key, (outcome.features, outcome.objects))
+        records.append(outcome.record)
+        current = outcome.gil.result
+        if (outcome.record.attitude_change_mdeg < lcfg.convergence_attitude_mdeg
+                and outcome.record.position_change_m < lcfg.convergence_position_m):
+            break
+    return OuterIterations(outcome, start, key, tuple(records))
+
+
+def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterIterations,
+                    progress: Progress = no_progress) -> Posterior:
+    """The posterior sigma of the last outer iteration (cached), and that iteration's features and objects.
+
+    When the last iteration came from the cache, its features come from the cache too, or are
+    recomputed from the trajectory it started at (deterministic); and its problem is solved
+    once more (from the same start, a short solve) for the covariance.
+    """
+    nav, it = inputs.nav, outer.records[-1].iteration
+    with steps.timed("gil_covariance"):
+        features, objects = outer.last.features, outer.last.objects
+        if features is None:
+            features, objects, _ = steps.cached(
+                "gil_features", outer.key,
+                lambda: _features_and_objects(nav, outer.start, inputs.strips, it, _untimed, progress),
+                decode=lambda fo: (*fo, None), store=False,
+            )
+
+        def compute() -> LidarAdjustment:
+            gil = outer.last.gil
+            if gil.built is None:  # the last iteration came from the cache: one more (short) solve
+                gil = step_adjust_gil(nav, outer.start, features, objects, progress, covariance=False)
+            return replace(add_posterior(gil), built=None)
+
+        key = StepCache.key("gil_posterior", outer.key)
+        gil = steps.cached("gil_posterior", key, compute)
+    return Posterior(gil, features, objects, key)
+
+
+def _adjustment_report(nav: NavigationData, adj: GnssImuResult, boresight: LidarAdjustment | None = None) -> dict:
+    """``adjustment.json``: statistics, IMU errors and timings of an adjustment (and the boresight)."""
+    report = {"adjustment": adj.solve.to_dict(), "imu_errors": adj.imu_errors.to_dict(), "t0_gps": nav.t0_gps,
+              "timings_s": adj.timings_s}
+    if boresight is not None and boresight.boresight_deg is not None:
+        report["boresight_deg"] = boresight.boresight_deg.tolist()
+        report["boresight_sigma_mdeg"] = boresight.boresight_sigma_mdeg.tolist()
+    return report
+
+
+def stage_gi_products(inputs: WorkflowInputs, gi: GnssImuResult) -> None:
+    """``gi/``: trajectory products and ``adjustment.json`` of the G/I adjustment."""
+    write_trajectory_products(inputs.out / "gi", inputs.nav, gi, inputs.crs)
+    write_json(inputs.out / "gi" / "adjustment.json", _adjustment_report(inputs.nav, gi))
+
+
+def stage_gil_products(inputs: WorkflowInputs, posterior: Posterior) -> None:
+    """``features/`` (the matched features and objects) and ``gil/`` (trajectory products, ``adjustment.json``)."""
+    _write_matched_features(inputs.out / "features", posterior.features, posterior.objects)
+    write_trajectory_products(inputs.out / "gil", inputs.nav, posterior.gil.result, inputs.crs)
+    write_json(inputs.out / "gil" / "adjustment.json", _adjustment_report(inputs.nav, posterior.gil.result, posterior.gil))
+
+
+def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult, gil: LidarAdjustment | None,
+                 key: str, progress: Progress = no_progress) -> tuple[PointsWritten, ...]:
+    """Step 6: the strips in the output CRS (cached: skipped while the files are those it wrote)."""
+    nav, folder = inputs.nav, inputs.out / "points"
+    p_b_s = np.asarray(nav.config.scanner.lever_arm_m, dtype=float)
+    R_b_s = boresight_matrix(nav.config.scanner.boresight_deg)
+    if gil is not None and gil.boresight_deg is not None:
+        R_b_s = boresight_matrix(tuple(gil.boresight_deg))
+
+    def written(records: list[dict]) -> bool:  # the LAZ files are still those this step wrote
+        return all(
+            (folder / r["file"]).is_file() and file_stamp(folder / r["file"])[1:] == r["stamp"] for r in records
+        )
+
+    def compute() -> list[dict]:  # stored with each file's stamp, for ``written``
+        traj = imu_rate_trajectory(nav, final.spline)
+        records = []
+        for s in inputs.strips:
+            path = folder / (s.path.stem + ".laz")
+            r = georeference_strip(s.path, path, traj, p_b_s, R_b_s, nav.frame, inputs.crs, progress=progress,
+                                   protect=(nav.root,))
+            records.append({"strip": s.strip_id, "file": path.name, "points": r.points_written,
+                            "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]})
+        return records
+
+    records = steps.cached("points", _points_key(nav, inputs.strips, key), compute, valid=written)
+    return tuple(PointsWritten.from_dict(r) for r in records)
+
+
+def stage_metrics(steps: StepRunner, inputs: WorkflowInputs, outer: tuple[OuterIteration, ...],
+                  points: tuple[PointsWritten, ...]) -> WorkflowMetrics:
+    """``metrics.json`` and ``config.resolved.yaml``: what was run, resumed and how long it took."""
+    nav = inputs.nav
+    metrics = WorkflowMetrics(
+        t0_gps=nav.t0_gps, strips=tuple(s.strip_id for s in inputs.strips),
+        strip_time_gps={s.strip_id: (float(s.time.min() + nav.t0_gps), float(s.time.max() + nav.t0_gps))
+                        for s in inputs.strips},
+        outer_iterations=outer, points=points, resumed=steps.resumed, timings_s=dict(steps.timings_s),
+    )
+    write_json(inputs.out / "metrics.json", metrics.to_dict())
+    write_yaml(inputs.out / "config.resolved.yaml", nav.config)
+    return metrics
 
 
 def precompute_gnss_imu(project_dir: str | Path, cache_dir: str | Path) -> dict[str, float]:
@@ -337,11 +467,10 @@ def precompute_gnss_imu(project_dir: str | Path, cache_dir: str | Path) -> dict[
     :func:`run_workflow` with the same ``cache_dir`` then resumes them. Nothing is read or
     computed when the cache already holds them.
     """
-    timings: dict[str, float] = {}
-    root, cache = Path(project_dir), StepCache(Path(cache_dir))
-    if not cache.exists("gi", _navigation_key(load_project(root), root)):
-        _gnss_imu(load_navigation(root), cache, timings)
-    return timings
+    root, steps = Path(project_dir), StepRunner(StepCache(Path(cache_dir)))
+    if not steps.cache.exists("gi", _navigation_key(load_project(root), root)):
+        stage_gnss_imu(steps, load_navigation(root))
+    return steps.timings_s
 
 
 def _write_matched_features(folder: Path, features: PlanarFeatures, objects: PlanarObjects) -> None:
@@ -376,118 +505,24 @@ def run_workflow(
     resumed steps under ``resumed``. ``points=False`` skips the final point clouds (step 6), e.g.
     when only the trajectory is wanted. ``cache_dir`` puts the cache elsewhere, e.g. one folder shared
     by a full and a single-pass run (they share the GNSS/IMU adjustment).
+
+    Raises
+    ------
+    InputError
+        Bad navigation data or strips (``strips``: an id no strip has), or no planar features.
     """
-    timings: dict[str, float] = {}
-    t = _time.perf_counter()
-    nav = load_navigation(project_dir)
-    out = output_folder(out, nav.root)
-    strip_points = read_strips(nav, strips)
-    timings["read"] = _time.perf_counter() - t
-    crs = OutputCRS(nav.config.crs.output_epsg)
-    for sub in ("gi", "gil", "points", "features"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    cache = StepCache(Path(cache_dir) if cache_dir is not None else out / ".cache", enabled=resume)
-
-    gi, key = _gnss_imu(nav, cache, timings, progress)
-    write_trajectory_products(out / "gi", nav, gi, crs)
-    write_json(out / "gi" / "adjustment.json", {"adjustment": gi.solve.to_dict(), "imu_errors": gi.imu_errors.to_dict(),
-                                                 "t0_gps": nav.t0_gps, "timings_s": gi.timings_s})
-    metrics: dict = {
-        "t0_gps": nav.t0_gps, "strips": [s.strip_id for s in strip_points],
-        "strip_time_gps": {str(s.strip_id): [float(s.time.min() + nav.t0_gps), float(s.time.max() + nav.t0_gps)]
-                           for s in strip_points},
-        "outer_iterations": [],
-    }
-
-    final = gi
-    gil = None
+    # The cache touches no file before the first step stores; the output folder is checked on reading.
+    steps = StepRunner(StepCache(Path(cache_dir) if cache_dir is not None else Path(out) / ".cache", enabled=resume))
+    inputs = stage_read_inputs(steps, project_dir, out, strips)
+    gi, key = stage_gnss_imu(steps, inputs.nav, progress)
+    stage_gi_products(inputs, gi)
+    final, gil, records = gi, None, ()
     if lidar:
-        lcfg = nav.config.processing.lidar
-        current = gi
-        features = objects = None
-        for it in range(1, lcfg.outer_iterations + 1):
-            key = _lidar_key(nav, strip_points, key, it)
-            hit = cache.load(f"gil_{it}", key)
-            previous = current
-            if hit is not None:
-                gil, record = hit
-                features = objects = None
-            else:
-                features, objects, gil, record = _outer_iteration(nav, current, strip_points, it, timings, progress)
-                cache.store(f"gil_{it}", key, (replace(gil, built=None), record))
-                cache.store("gil_features", key, (features, objects), latest_only=True)
-            metrics["outer_iterations"].append(record)
-            current = gil.result
-            if record["attitude_change_mdeg"] < lcfg.convergence_attitude_mdeg and (
-                record["position_change_m"] < lcfg.convergence_position_m
-            ):
-                break
-        t = _time.perf_counter()
-        if features is None:
-            fo = cache.load("gil_features", key)
-            if fo is None:  # recompute from the trajectory the last iteration started at (deterministic)
-                features, objects, *_ = _outer_iteration(nav, previous, strip_points, it, {}, progress, adjust=False)
-            else:
-                features, objects = fo
-        posterior_key = StepCache.key("gil_posterior", key)
-        posterior = cache.load("gil_posterior", posterior_key)
-        if posterior is None:
-            if gil.built is None:  # the last iteration came from the cache: one more (short) solve
-                gil = step_adjust_gil(nav, previous, features, objects, progress, covariance=False)
-            gil = add_posterior(gil)
-            posterior = replace(gil, built=None)
-            cache.store("gil_posterior", posterior_key, posterior)
-        key = posterior_key
-        gil = posterior
-        current = gil.result
-        timings["gil_covariance"] = _time.perf_counter() - t
-        _write_matched_features(out / "features", features, objects)
-        final = current
-        write_trajectory_products(out / "gil", nav, final, crs)
-        gil_report = {"adjustment": final.solve.to_dict(), "imu_errors": final.imu_errors.to_dict(), "t0_gps": nav.t0_gps,
-                      "timings_s": final.timings_s}
-        if gil.boresight_deg is not None:
-            gil_report["boresight_deg"] = gil.boresight_deg.tolist()
-            gil_report["boresight_sigma_mdeg"] = gil.boresight_sigma_mdeg.tolist()
-        write_json(out / "gil" / "adjustment.json", gil_report)
-
-    t = _time.perf_counter()
-    georef = _final_points(nav, out, final, gil, key, strip_points, crs, cache, progress) if points else []
-    timings["final_georeferencing"] = _time.perf_counter() - t
-    metrics["points"] = [{k: v for k, v in r.items() if k != "stamp"} for r in georef]
-    metrics["resumed"] = list(cache.hits)
-    metrics["timings_s"] = timings
-    write_json(out / "metrics.json", metrics)
-    write_yaml(out / "config.resolved.yaml", nav.config)
-    return WorkflowResult(out, gi, gil, metrics)
-
-
-def _final_points(nav, out, final, gil, key, strip_points, crs, cache, progress) -> list[dict]:
-    """Step 6: the strips in the output CRS (cached: skipped while the files are those it wrote)."""
-    traj = imu_rate_trajectory(nav, final.spline)  # cheap; the LAZ writing below is what is cached
-    p_b_s = np.asarray(nav.config.scanner.lever_arm_m, dtype=float)
-    R_b_s = boresight_matrix(nav.config.scanner.boresight_deg)
-    if gil is not None and gil.boresight_deg is not None:
-        R_b_s = boresight_matrix(tuple(gil.boresight_deg))
-    key = StepCache.key("points", key, nav.config.crs.model_dump(), nav.config.scanner.model_dump(),
-                        [file_stamp(s.path) for s in strip_points])
-
-    def written(records: list[dict]) -> bool:  # the LAZ files are still those this step wrote
-        return all(
-            (out / "points" / r["file"]).is_file() and file_stamp(out / "points" / r["file"])[1:] == r["stamp"]
-            for r in records
-        )
-
-    done = cache.load("points", key, valid=written)
-    if done is not None:
-        georef = done
-    else:
-        georef = []
-        for s in strip_points:
-            path = out / "points" / (s.path.stem + ".laz")
-            r = georeference_strip(s.path, path, traj, p_b_s, R_b_s, nav.frame, crs, progress=progress,
-                                   protect=(nav.root,))
-            georef.append({"strip": s.strip_id, "file": path.name, "points": r.points_written,
-                           "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]})
-        cache.store("points", key, georef)
-    return georef
+        outer = stage_outer_iterations(steps, inputs, gi, key, progress)
+        posterior = stage_posterior(steps, inputs, outer, progress)
+        stage_gil_products(inputs, posterior)
+        final, gil, key, records = posterior.gil.result, posterior.gil, posterior.key, outer.records
+    with steps.timed("final_georeferencing"):
+        written = stage_points(steps, inputs, final, gil, key, progress) if points else ()
+    metrics = stage_metrics(steps, inputs, records, written)
+    return WorkflowResult(inputs.out, gi, gil, metrics)

@@ -1,0 +1,135 @@
+"""The run's typed records and the report built from them (no simulation: records made up here).
+
+The records of a real run are checked in tests/test_workflow_gil.py (``metrics.json`` of a
+run, the demo's ``metrics.json`` and ``summary.json``); here every branch of the JSON form
+(NaN as ``null``, optional parts) and the page the report renders from the records.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+
+import numpy as np
+import pytest
+
+from georefine.evaluation.report import summary_rows, write_report
+from georefine.evaluation.summary import (
+    EvaluationPlots,
+    ReferencePlaneFigures,
+    RunEvaluation,
+    SolutionFigures,
+    StripDifferenceFigures,
+    SurfaceFigures,
+    TrajectoryFigures,
+)
+from georefine.io.files import write_json
+from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
+
+
+def _figures(rng) -> TrajectoryFigures:
+    return TrajectoryFigures(*(float(v) for v in rng.uniform(1.0, 30.0, 3)), float(rng.uniform(0.01, 0.1)))
+
+
+def _records(seed: int) -> tuple[WorkflowMetrics, RunEvaluation]:
+    rng = np.random.default_rng(seed)
+    metrics = WorkflowMetrics(
+        t0_gps=1.4e9, strips=(1, 2), strip_time_gps={1: (1.4e9 + 10.0, 1.4e9 + 40.5), 2: (1.4e9 + 60.0, 1.4e9 + 91.25)},
+        outer_iterations=tuple(
+            OuterIteration(i, int(rng.integers(10_000, 20_000)), int(rng.integers(500, 900)), int(rng.integers(900, 5000)),
+                           int(rng.integers(100, 500)), float(rng.uniform(0, 20)), float(rng.uniform(0, 0.01)), 0,
+                           {"strip1_nadir": 7, "strip2_nadir": 9})
+            for i in (1, 2)),
+        points=(PointsWritten(1, "strip_1.laz", 1234, 0), PointsWritten(2, "strip_2.laz", 5678, 3)),
+        resumed=("gi",), timings_s={"read": 0.5, "gi_adjustment": 2.25, "final_georeferencing": 1.0},
+    )
+    sol = {label: SolutionFigures({1: _figures(rng), 2: _figures(rng)}, _figures(rng)) for label in ("G/I", "G/I/L")}
+    sol["G/I/L single pass (strip 1)"] = SolutionFigures({1: _figures(rng)}, _figures(rng))
+    planes = {
+        label: ReferencePlaneFigures(
+            float(rng.normal(0, 0.003)), float(rng.uniform(0.005, 0.02)), float(rng.uniform(0.002, 0.01)), 12,
+            (SurfaceFigures("roof_a", 6, float(rng.normal(0, 0.003)), float(rng.uniform(0.001, 0.01)), 0.004),
+             SurfaceFigures("road_b", 1, 0.002, math.nan, 0.002)))  # seen once: no SD
+        for label in ("G/I", "G/I/L")
+    }
+    diffs = {"G/I": StripDifferenceFigures(4000, 0.03, 0.08, 0.035, "gi/strip_differences.png",
+                                           "gi/strip_differences_zoom.png"),
+             "G/I/L": StripDifferenceFigures(0, math.nan, math.nan, math.nan, "gil/strip_differences.png")}
+    evaluation = RunEvaluation("truth", sol, EvaluationPlots("attitude_differences.png", "position_differences.png"),
+                               planes, diffs)
+    return metrics, evaluation
+
+
+def _written(tmp_path, record) -> dict:
+    """``record.to_dict()`` through the library's JSON writer and back (NaN -> null)."""
+    path = tmp_path / "record.json"
+    write_json(path, record.to_dict())
+    return json.loads(path.read_text())
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_records_read_back_to_what_was_written(tmp_path, seed):
+    metrics, evaluation = _records(seed)
+    d = _written(tmp_path, metrics)
+    assert WorkflowMetrics.from_dict(d) == metrics and WorkflowMetrics.from_dict(d).to_dict() == d
+    assert list(d) == ["t0_gps", "strips", "strip_time_gps", "outer_iterations", "points", "resumed", "timings_s"]
+    assert d["strip_time_gps"] == {"1": [1.4e9 + 10.0, 1.4e9 + 40.5], "2": [1.4e9 + 60.0, 1.4e9 + 91.25]}
+    e = _written(tmp_path, evaluation)
+    back = RunEvaluation.from_dict(e)
+    assert back.to_dict() == e
+    assert list(e) == ["reference", "trajectory", "plots", "reference_planes", "strip_differences"]
+    assert e["trajectory"]["G/I"]["all"]["3d_rmse_m"] == evaluation.trajectory["G/I"].overall.position_3d_rmse_m
+    # Undefined figures are null in the file and None when read; the optional zoom map is left out.
+    assert e["reference_planes"]["G/I"]["surfaces"][1]["sd_m"] is None and back.reference_planes["G/I"].surfaces[1].sd_m is None
+    assert "zoom_map" not in e["strip_differences"]["G/I/L"] and back.strip_differences["G/I/L"].median_m is None
+    assert back.single_pass == evaluation.trajectory["G/I/L single pass (strip 1)"]
+    assert back.trajectory["G/I"].strips[2] == evaluation.trajectory["G/I"].strips[2]
+
+
+def test_an_evaluation_without_plots_or_clouds_reads_back():
+    e = RunEvaluation("full G/I/L", {}).to_dict()
+    assert e == {"reference": "full G/I/L", "trajectory": {}, "reference_planes": {}, "strip_differences": {}}
+    assert RunEvaluation.from_dict(e).plots is None and RunEvaluation.from_dict(e).single_pass is None
+
+
+def test_summary_rows_take_the_typed_figures():
+    _, evaluation = _records(2)
+    rows = summary_rows(evaluation)
+    gi, gil = evaluation.trajectory["G/I"], evaluation.trajectory["G/I/L"]
+    single = evaluation.single_pass
+    assert rows[0][0] == "roll RMSE (mdeg)" and rows[2][0] == "yaw RMSE (mdeg)"
+    assert rows[2][2:] == [f"{gi.overall.yaw_rmse_mdeg:.1f}", f"{gil.overall.yaw_rmse_mdeg:.1f}",
+                           f"{single.overall.yaw_rmse_mdeg:.1f} (G/I {gi.strips[1].yaw_rmse_mdeg:.1f})"]
+    avg_sd = next(r for r in rows if r[0] == "reference planes AVG-SD (mm)")
+    assert avg_sd[2:4] == [f"{evaluation.reference_planes[k].avg_sd_m * 1e3:.1f}" for k in ("G/I", "G/I/L")]
+    p95 = next(r for r in rows if r[0] == "strip differences P95 (mm)")
+    assert p95[2] == "80.0"
+    # Without an evaluation: the paper's column only.
+    assert [r[2:] for r in summary_rows(None)] == [["–", "–", "–"]] * 3
+
+
+def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
+    metrics, evaluation = _records(3)
+    run = tmp_path / "run"
+    (run / "evaluation").mkdir(parents=True)
+    write_json(run / "metrics.json", metrics.to_dict())
+    write_json(run / "evaluation" / "summary.json", evaluation.to_dict())
+    page = html.unescape(write_report(run).read_text())
+    for row in summary_rows(RunEvaluation.read(run / "evaluation" / "summary.json")):
+        assert "".join(f"<td>{c}</td>" for c in row) in page, row
+    last = metrics.outer_iterations[-1]
+    assert (f"<td>{last.iteration}</td><td>{last.features:,}</td><td>{last.objects:,}</td>"
+            f"<td>{last.features_used:,}</td><td>{last.attitude_change_mdeg:.2f}</td>") in page
+    assert "Resumed from the cache: gi." in page and "<td>gi_adjustment</td><td>2.2</td>" in page
+    assert "strips [1, 2]" in page and "trajectory reference: truth" in page
+    s = evaluation.trajectory["G/I/L"].strips[2]
+    assert f"<td>G/I/L</td><td>strip 2</td><td>{s.roll_rmse_mdeg:.2f}</td>" in page
+    g = evaluation.reference_planes["G/I"].surfaces[0]
+    assert f"<td>roof_a</td><td>6</td><td>{g.mean_m * 1e3:.1f}</td><td>{g.sd_m * 1e3:.1f}</td>" in page
+    assert "<td>road_b</td><td>1</td><td>2.0</td><td>–</td>" in page  # no SD of a surface seen once
+    assert "G/I/L: median – mm, P95 – mm over 0 planar 1 m cells" in page
+    # A run without an evaluation still gets its report.
+    (run / "evaluation" / "summary.json").unlink()
+    page = html.unescape(write_report(run).read_text())
+    assert "trajectory reference: –" in page and "4. Reference planes" not in page
