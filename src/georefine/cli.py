@@ -157,7 +157,8 @@ def run(
     project: Path = typer.Argument(..., help="Project folder with project.yaml."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
     strips: Optional[str] = typer.Option(None, "--strips", help="Comma-separated strip ids (point_source_id) to use."),
-    no_lidar: bool = typer.Option(False, "--no-lidar", help="Stop after the GNSS/IMU adjustment (steps 1-3, 6)."),
+    no_lidar: bool = typer.Option(
+        False, "--no-lidar", help="No LiDAR adjustment: steps 1, 2 and 6 (the G/I trajectory and its point clouds)."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every step instead of resuming from OUT/.cache."),
     no_points: bool = typer.Option(False, "--no-points", help="Skip the final point clouds (step 6)."),
 ) -> None:

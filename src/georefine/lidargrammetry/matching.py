@@ -23,7 +23,7 @@ Tracks
     are (image, keypoint) (:func:`scipy.sparse.csgraph.connected_components`). A component
     that holds two different keypoints of one image is inconsistent and dropped whole.
 
-Pixel coordinates follow :mod:`.camera` (top-left pixel centre at (0.5, 0.5)); OpenCV's keypoints
+Pixel coordinates follow :mod:`georefine.geometry.camera` (top-left pixel centre at (0.5, 0.5)); OpenCV's keypoints
 (centre at 0) are shifted on the way in.
 """
 

@@ -3,7 +3,7 @@
 A *lidargram* is the LiDAR point cloud seen by a frame camera (:class:`~.camera.Camera`, full
 Brown distortion) from a chosen pose ``(R_w_c, p_w_c)``. Every pixel remembers which point it
 shows: the **ULPI** raster (unique LiDAR point identifier) holds the index of that point into the
-input arrays, ``-1`` where the pixel is empty. Pixel convention as :mod:`.camera`: ``(0, 0)`` is
+input arrays, ``-1`` where the pixel is empty. Pixel convention as :mod:`georefine.geometry.camera`: ``(0, 0)`` is
 the top-left *corner*, pixel ``(col, row)`` covers ``[col, col + 1) x [row, row + 1)``.
 
 Rendering (:func:`render_lidargram`)
