@@ -15,12 +15,13 @@ import scipy.optimize
 import scipy.sparse as sp
 
 from georefine.adjustment import linalg
+from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.linalg import (
     NotPositiveDefiniteError,
     cholesky,
     marginal_covariance_blocks,
 )
-from georefine.adjustment.problem import JacobianBlock, Linearization, Problem
+from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import CauchyLoss, HuberLoss, TrivialLoss, make_loss
 from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.testing import check_jacobians

@@ -36,7 +36,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-import yaml
+from truth_helpers import pass_rmse
 
 from georefine.evaluation.trajectory_files import compare_sbet_files
 
@@ -66,16 +66,6 @@ def example(tmp_path_factory) -> Path:
     return cwd
 
 
-def _pass_rmse(sbet: Path, project: Path, strip: int) -> np.ndarray:
-    """Roll, pitch, yaw RMSE (mdeg) of ``sbet`` against the truth during a pass (1 s inset)."""
-    truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
-    p = next(p for p in truth["passes"] if p["strip_id"] == strip)
-    t0 = truth["t0_gps"]
-    cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet",
-                             time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
-    return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
-
-
 def _check_pass(gi: np.ndarray, gil: np.ndarray, what: str) -> None:
     assert np.all(gil[:2] <= 2.0) and gil[2] <= 5.0, (what, gi, gil)
     assert np.all(gil[:2] <= 1.1 * gi[:2]), (what, gi, gil)
@@ -103,8 +93,8 @@ def test_readme_example_runs_and_improves_the_attitude(example):
     assert all(s["outside_trajectory"] == 0 for s in metrics["points"])
 
     for strip in (1, 2):
-        _check_pass(_pass_rmse(r / "gi" / "trajectory.sbet", tiny, strip),
-                    _pass_rmse(r / "gil" / "trajectory.sbet", tiny, strip), f"pass {strip}")
+        _check_pass(pass_rmse(r / "gi" / "trajectory.sbet", tiny, strip),
+                    pass_rmse(r / "gil" / "trajectory.sbet", tiny, strip), f"pass {strip}")
 
     # The README's evaluation: the whole flight, against G/I over the same span.
     ev = json.loads((r / "eval" / "trajectory_comparison.json").read_text())
@@ -124,5 +114,5 @@ def test_readme_single_pass_run(example):
     assert metrics["strips"] == [1]
     assert [p.name for p in (r1 / "points").glob("*.laz")] == ["strip_1.laz"]
     assert _point_count(r1 / "points" / "strip_1.laz") == _point_count(tiny / "scans" / "strip_1.laz")
-    _check_pass(_pass_rmse(r1 / "gi" / "trajectory.sbet", tiny, 1),
-                _pass_rmse(r1 / "gil" / "trajectory.sbet", tiny, 1), "single pass")
+    _check_pass(pass_rmse(r1 / "gi" / "trajectory.sbet", tiny, 1),
+                pass_rmse(r1 / "gil" / "trajectory.sbet", tiny, 1), "single pass")

@@ -18,11 +18,11 @@ import laspy
 import numpy as np
 import pytest
 import yaml
+from truth_helpers import pass_rmse
 
 from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.summary import RunEvaluation
-from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import (
@@ -66,16 +66,6 @@ def sparse_project(tmp_path_factory) -> Path:
     return out
 
 
-def _pass_rmse(sbet: Path, project: Path, strip: int) -> np.ndarray:
-    """Roll, pitch, yaw RMSE (mdeg) of ``sbet`` against the truth during a pass (1 s inset)."""
-    truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
-    p = next(p for p in truth["passes"] if p["strip_id"] == strip)
-    t0 = truth["t0_gps"]
-    cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet",
-                             time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
-    return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
-
-
 @pytest.mark.slow
 def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
     out = tmp_path / "run"
@@ -103,8 +93,8 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
     assert len(objects) == last["objects"]
     assert np.all(objects.feature_object >= 0) and np.array_equal(np.bincount(objects.feature_object), objects.n_features)
     for strip in (1, 2):
-        gi = _pass_rmse(out / "gi" / "trajectory.sbet", project, strip)
-        gil = _pass_rmse(out / "gil" / "trajectory.sbet", project, strip)
+        gi = pass_rmse(out / "gi" / "trajectory.sbet", project, strip)
+        gil = pass_rmse(out / "gil" / "trajectory.sbet", project, strip)
         assert gil[2] <= 0.3 * gi[2], (strip, gi, gil)
         assert np.all(gil[:2] <= 1.1 * gi[:2]), (strip, gi, gil)
     # The point cloud: closer to the true surface, and the strips agree better.

@@ -34,15 +34,10 @@ import numpy as np
 import scipy.sparse as sp
 
 from georefine.adjustment.blocks import (
-    ColumnLayout,
-    JacobianBlock,
-    Linearization,
     Manifold,
     ObservationGroup,
     ParameterBlock,
     constant_mask,
-    retract,
-    tangent_dim,
 )
 from georefine.adjustment.linalg import (
     Factorization,
@@ -56,17 +51,7 @@ from georefine.adjustment.solver import (
     run_levenberg_marquardt,
 )
 
-__all__ = [
-    "Manifold",
-    "ParameterBlock",
-    "JacobianBlock",
-    "Linearization",
-    "ObservationGroup",
-    "Problem",
-    "ColumnLayout",
-    "tangent_dim",
-    "retract",
-]
+__all__ = ["Problem"]
 
 logger = logging.getLogger(__name__)
 
