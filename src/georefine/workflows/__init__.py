@@ -2,9 +2,10 @@
 
 ``project`` (open and validate a project, ``georefine check``), ``navigation`` (loading GNSS
 and IMU, workflow steps 1-2 and direct georeferencing with a given trajectory), ``lidar``
-(steps 3-6 of paper 000 with the outer iterations, ``georefine run``), ``lidargrammetry``
-(paper 004, ``georefine lidargrams``, ``match``, ``coadjust``), ``products`` (trajectory
-files), ``evaluate`` (a run evaluated as paper 000 reports it) and ``cache`` (the step
+(steps 3-6 of paper 000 with the outer iterations, ``georefine run``; the strips and their
+planar features in ``strips``), ``lidargrammetry`` (paper 004, ``georefine lidargrams``,
+``match``, ``coadjust``; the photo block and the cloud in ``photo_block``, the typed results
+in ``lidargrammetry_results``), ``products`` (trajectory files), ``evaluate`` (a run evaluated as paper 000 reports it) and ``cache`` (the step
 cache); see §4.5 and §4.8. Each step is a plain function returning a frozen result; the CLI
 calls one function per command. It may import every layer below it but not its sibling
 ``sim`` (a workflow must run on real data alone) and nothing above (``demo``, ``cli``).
