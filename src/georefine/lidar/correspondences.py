@@ -67,13 +67,7 @@ from scipy.spatial import cKDTree
 
 from georefine.config import MatchingConfig
 from georefine.errors import InputError
-from georefine.io.files import (
-    PathLike,
-    atomic_output,
-    data_lines,
-    parse_float_rows,
-    read_text_lines,
-)
+from georefine.io.files import PathLike, atomic_output, data_lines, parse_float_rows, read_text_lines
 from georefine.lidar.planes import PlanarFeatures
 
 __all__ = [

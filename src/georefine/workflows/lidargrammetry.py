@@ -267,6 +267,13 @@ def _open(project_dir, out, points, overrides: Mapping[str, Any] | None, matcher
     return st, matcher, pp, out, cloud
 
 
+def _lidargram_name(cloud: Cloud, strip: int, photo: str) -> str:
+    """``LG_<strip file stem>_<photo>`` of the lidargram rendered at ``photo`` from strip ``strip``
+    (``LG_all_<photo>`` for one of all strips, ``strip`` -1): the one naming rule of the block's
+    image list and of the lidargram files."""
+    return f"LG_{cloud.files[strip].stem if strip >= 0 else 'all'}_{photo}"
+
+
 def _block_images(pp: PhotoProject, cloud: Cloud, st: LidargrammetryConfig, progress: Progress) -> _Block:
     lgs = render_lidargrams(pp, cloud, st, progress=progress)
     n = len(pp.eop)
@@ -275,8 +282,7 @@ def _block_images(pp: PhotoProject, cloud: Cloud, st: LidargrammetryConfig, prog
         if img is None:
             raise InputError("image does not open", path=pp.folder / name, expected="an image file OpenCV reads")
     station = np.array(list(range(n)) + [i for _, i, _ in lgs], dtype=np.int64)
-    names = tuple(pp.eop.images) + tuple(f"LG_{Path(cloud.files[s]).stem if s >= 0 else 'all'}_{pp.eop.images[i]}"
-                                         for _, i, s in lgs)
+    names = tuple(pp.eop.images) + tuple(_lidargram_name(cloud, s, pp.eop.images[i]) for _, i, s in lgs)
     return _Block(lgs, n, [pp.camera(i) for i in range(n)] + [lg.camera for lg, _, _ in lgs], station,
                   np.r_[np.zeros(n, bool), np.ones(len(lgs), bool)], pp.R_w_c[station], pp.p_w_c[station],
                   photos + [lg.image for lg, _, _ in lgs], [None] * n + [np.isfinite(lg.depth) for lg, _, _ in lgs],
@@ -300,7 +306,7 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
     st, _, pp, out, cloud = _open(project_dir, out, points, overrides, matching=False)
     names = []
     for lg, i, s in render_lidargrams(pp, cloud, st, progress=progress):
-        names.append(f"LG_{cloud.files[s].stem if s >= 0 else 'all'}_{Path(pp.eop.images[i]).stem}")
+        names.append(_lidargram_name(cloud, s, Path(pp.eop.images[i]).stem))
         save_lidargram(lg, out, names[-1])
     return names
 
