@@ -26,6 +26,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 
 LAYERS: list[tuple[str, ...]] = [
     ("georefine", "georefine.errors", "georefine.progress"),  # conventions and version, errors, progress
+    ("georefine.tasks",),  # where per-tile work runs (sync, threads, processes, a Dask cluster)
     ("georefine.geometry",),
     ("georefine.io",),
     ("georefine.config",),

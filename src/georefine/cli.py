@@ -49,6 +49,14 @@ def main(
     )
 
 
+_SCHEDULER_HELP = ("Where the per-tile work runs: sync, threads, processes (a local Dask cluster, one worker per "
+                   "core; the default) or the address of a running dask scheduler, e.g. tcp://127.0.0.1:8786.")
+
+
+def _scheduler_option():
+    return typer.Option("processes", "--scheduler", help=_SCHEDULER_HELP)
+
+
 @contextmanager
 def _user_errors() -> Iterator[None]:
     """Turn library errors into one message and exit code 2."""
@@ -161,6 +169,7 @@ def run(
         False, "--no-lidar", help="No LiDAR adjustment: steps 1, 2 and 6 (the G/I trajectory and its point clouds)."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every step instead of resuming from OUT/.cache."),
     no_points: bool = typer.Option(False, "--no-points", help="Skip the final point clouds (step 6)."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Run the whole workflow: filter, G/I adjustment, planar features, G/I/L adjustment, point clouds.
 
@@ -181,7 +190,7 @@ def run(
         try:
             with _progress() as report:
                 result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh,
-                                      points=not no_points, progress=report)
+                                      points=not no_points, progress=report, scheduler=scheduler)
         except InputError as exc:
             if exc.field != "strips":
                 raise
@@ -196,13 +205,15 @@ def georeference(
     trajectory_file: Path = typer.Option(..., "--trajectory", help="Trajectory SBET (IMU, WGS84)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the LAZ strips."),
     gps_week: Optional[int] = typer.Option(None, "--gps-week", help="GPS week of an SBET in seconds of week."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Georeference the project's strips with a trajectory (LAZ 1.4 in the output CRS)."""
     with _user_errors():
         from georefine.workflows import run_georeference
 
         with _progress() as report:
-            result = run_georeference(project, trajectory_file, out, gps_week=gps_week, progress=report)
+            result = run_georeference(project, trajectory_file, out, gps_week=gps_week, progress=report,
+                                      scheduler=scheduler)
     stdout.print(result.summary())
 
 

@@ -160,7 +160,8 @@ class PlaneExtractionConfig(StrictModel):
     max_roughness_m: float = Field(0.02, gt=0, description="sqrt of the smallest PCA eigenvalue")
     max_linearity: float = Field(0.8, gt=0, le=1, description="(l1 - l2)/l1; rejects wires, edges")
     min_extent_m: float = Field(0.5, ge=0, description="2 sqrt(l2): smaller in-plane extent")
-    max_time_span_s: float = Field(2.0, gt=0, description="last minus first point time of a patch")
+    max_time_span_s: float = Field(
+        0.5, gt=0, description="last minus first point time of a patch; time tiles overlap by twice this")
     range_sigma_m: float = Field(0.005, gt=0, description="ranging noise, floor of the point scatter")
     min_sigma_d_m: float = Field(0.001, ge=0, description="floor of the normal-distance sigma")
     min_sigma_slope_mdeg: float = Field(30.0, ge=0, description="floor of the slope sigma")
@@ -379,9 +380,21 @@ class LidargrammetryConfig(StrictModel):
         return self
 
 
+class ScaleConfig(StrictModel):
+    """Bounded memory of the per-point stages (docs/ARCHITECTURE.md §1, "Scale").
+
+    Strips are cut into time tiles sized so that the tiles in work at once -- one per task slot
+    of the scheduler -- fit ``memory_budget_gb`` together, whatever the number of points.
+    """
+
+    memory_budget_gb: float = Field(2.0, gt=0, description="memory of the point tiles in work at once (all tasks)")
+    min_tile_points: int = Field(500_000, ge=10_000, description="smallest time tile (records), whatever the budget")
+
+
 class ProcessingConfig(StrictModel):
     """Processing options (all optional; defaults documented in each model)."""
 
+    scale: ScaleConfig = Field(default_factory=ScaleConfig)
     filter: FilterConfig = Field(default_factory=FilterConfig)
     trajectory: TrajectoryAdjustmentConfig = Field(default_factory=TrajectoryAdjustmentConfig)
     planes: PlaneExtractionConfig = Field(default_factory=PlaneExtractionConfig)

@@ -54,6 +54,12 @@ class InputError(GeorefineError, ValueError):
         self.record_kind = record_kind
         super().__init__(self._format())
 
+    def __reduce__(self):
+        """Pickle with every field (a task's error crosses process boundaries intact)."""
+        kw = dict(path=self.path, line=self.line, field=self.field, expected=self.expected, found=self.found,
+                  record_kind=self.record_kind)
+        return _rebuild, (type(self), self.message, kw)
+
     def _format(self) -> str:
         where = []
         if self.path is not None:
@@ -69,6 +75,10 @@ class InputError(GeorefineError, ValueError):
         elif self.found is not None:
             text += f" (found {self.found})"
         return text
+
+
+def _rebuild(cls, message, kw):
+    return cls(message, **kw)
 
 
 class ConfigError(InputError):

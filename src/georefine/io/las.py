@@ -32,8 +32,8 @@ import numpy as np
 from georefine.errors import InputError
 from georefine.io.files import PathLike, check_output_path
 
-__all__ = ["PointCloud", "ScanChunk", "LasInfo", "LasWriter", "read_las_info", "iter_las_chunks", "read_las",
-           "write_las", "GPS_TIME_OFFSET_S"]
+__all__ = ["PointCloud", "ScanChunk", "LasInfo", "LasWriter", "TimeIndex", "read_las_info", "iter_las_chunks",
+           "read_las", "read_las_range", "time_index", "write_las", "GPS_TIME_OFFSET_S"]
 
 _log = logging.getLogger(__name__)
 
@@ -259,6 +259,120 @@ def iter_las_chunks(
         if done != total:
             raise InputError("truncated point data", path=path, expected=f"{total} points (header)",
                              found=f"{done} points")
+
+
+@dataclass(frozen=True)
+class TimeIndex:
+    """Point times of a LAS/LAZ file sampled every ``step`` records, and whether they are ordered.
+
+    ``index`` holds record numbers (0, step, 2 step, ..., and the last record), ``time_gps`` their
+    GPS times. ``ordered`` is true when *every* record's time is at least its predecessor's
+    (checked on all records, not only the samples); ``first_unordered`` is then -1, else the
+    0-based number of the first record earlier than the one before it. ``channel_counts``: records
+    per ``scanner_channel`` value 0-3 (read with the times, at no extra cost).
+    """
+
+    path: Path
+    point_count: int
+    index: np.ndarray
+    time_gps: np.ndarray
+    ordered: bool
+    first_unordered: int
+    channel_counts: tuple[int, int, int, int] = (0, 0, 0, 0)
+
+    def first_at_or_after(self, t_gps: float) -> int:
+        """A record number at or before the first record with time >= ``t_gps`` (ordered files)."""
+        k = int(np.searchsorted(self.time_gps, t_gps, side="left")) - 1
+        return 0 if k < 0 else int(self.index[k])
+
+    def last_before(self, t_gps: float) -> int:
+        """A record number (exclusive end) at or after the last record with time < ``t_gps``."""
+        k = int(np.searchsorted(self.time_gps, t_gps, side="left"))
+        return self.point_count if k >= self.index.size else int(self.index[k]) + 1
+
+
+def time_index(path: PathLike, step: int = 4096, chunk_size: int = 4_000_000) -> TimeIndex:
+    """Sample the point times of ``path`` every ``step`` records, in one streaming pass.
+
+    Only the GPS-time layer of a LAZ file is decompressed (LAS 1.4 layered compression, about
+    1.5x faster than a full read), with lazrs' multi-threaded decoder where available.
+
+    Raises
+    ------
+    InputError
+        As :func:`iter_las_chunks`; also a file without points.
+    """
+    import laspy
+
+    path = Path(path)
+    info = read_las_info(path)
+    if info.point_count == 0:
+        raise InputError("strip has no points", path=path)
+    sel = laspy.DecompressionSelection.base() | laspy.DecompressionSelection.GPS_TIME
+    backend = laspy.LazBackend.LazrsParallel if laspy.LazBackend.LazrsParallel.is_available() else None
+    idx, times = [], []
+    channels = np.zeros(4, dtype=np.int64)
+    done, last, first_bad = 0, -np.inf, -1
+    try:
+        with laspy.open(path, decompression_selection=sel, laz_backend=backend) as reader:
+            for rec in reader.chunk_iterator(chunk_size):
+                g = np.asarray(rec.gps_time, dtype=np.float64)
+                if g.size == 0:
+                    break
+                if first_bad < 0:
+                    bad = np.flatnonzero(np.diff(np.r_[last, g]) < 0)
+                    if bad.size:
+                        first_bad = done + int(bad[0])
+                k = np.arange(-done % step, g.size, step)
+                idx.append(done + k)
+                times.append(g[k])
+                channels += np.bincount(np.asarray(rec.scanner_channel, dtype=np.int64), minlength=4)[:4]
+                last = g[-1]
+                done += g.size
+    except InputError:
+        raise
+    except Exception as exc:
+        raise InputError(f"corrupt or truncated point data: {exc}", path=path, record_kind="record",
+                         line=done + 1, expected=f"{info.point_count} points") from exc
+    if done != info.point_count:
+        raise InputError("truncated point data", path=path, expected=f"{info.point_count} points (header)",
+                         found=f"{done} points")
+    index, t = np.concatenate(idx), np.concatenate(times)
+    if index[-1] != done - 1:
+        index, t = np.append(index, done - 1), np.append(t, last)
+    return TimeIndex(path, done, index, t + GPS_TIME_OFFSET_S, first_bad < 0, first_bad,
+                     tuple(int(c) for c in channels))
+
+
+def read_las_range(path: PathLike, start: int, stop: int, extra_dims: Sequence[str] | None = ()) -> PointCloud:
+    """Records ``start`` to ``stop`` (exclusive, 0-based) of a LAS/LAZ file.
+
+    LAZ seeks through the chunk table, so a range costs about its own points, not the records
+    before it. ``extra_dims``: extra dimensions to read (default none; ``None`` reads all).
+    """
+    path = Path(path)
+    with _open_reader(path) as reader:
+        h = reader.header
+        _validate_header(path, h)
+        total = int(h.point_count)
+        if not 0 <= start <= stop <= total:
+            raise ValueError(f"record range {start}..{stop} outside 0..{total} of {path}")
+        available = tuple(h.point_format.extra_dimension_names)
+        names = available if extra_dims is None else tuple(extra_dims)
+        for name in names:
+            if name not in available:
+                raise InputError("extra dimension missing", path=path, field=name,
+                                 expected="present", found=f"extra dimensions {list(available)}")
+        try:
+            reader.seek(start)
+            rec = reader.read_points(stop - start)
+        except Exception as exc:
+            raise InputError(f"corrupt or truncated point data: {exc}", path=path, record_kind="record",
+                             line=start + 1, expected=f"records {start + 1}..{stop}") from exc
+        if len(rec) != stop - start:
+            raise InputError("truncated point data", path=path, record_kind="record", line=start + len(rec) + 1,
+                             expected=f"records {start + 1}..{stop}", found=f"{len(rec)} records")
+        return _chunk_from_record(rec, names)
 
 
 def read_las(path: PathLike, extra_dims: Sequence[str] | None = None) -> PointCloud:

@@ -8,21 +8,18 @@ blend, quaternion to matrix, lever arm and boresight) is one numba loop, :func:`
 numpy needs a dozen (N, 3, 3) temporaries for it and ran at 3 M points/s; no library offers
 this fused, and the loop runs several times faster (``bench/lidar_throughput.py``).
 
-Strips are streamed in chunks (files larger than memory); points whose time lies outside the
-trajectory are counted, reported and left out, never extrapolated.
+Whole strips are georeferenced tile by tile (:func:`georefine.lidar.tiles.georeference_strip`);
+points whose time lies outside the trajectory are counted, reported and left out, never
+extrapolated.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
-from pathlib import Path
-from typing import Callable
 
 import numba
 import numpy as np
 
-from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.geometry.rotation import matrix_from_quat, quat_from_matrix
 from georefine.trajectory.sampled import Trajectory
 
@@ -123,63 +120,3 @@ def georeference(
         return trajectory.transform(t, x_b)
     p_w_b, R_w_b = trajectory.interpolate(time)
     return p_w_b + np.einsum("nij,nj->ni", R_w_b, x_b)
-
-
-@dataclass(frozen=True)
-class StripGeoreferenceResult:
-    """One georeferenced strip: points written and points left out (outside the trajectory)."""
-
-    source: Path
-    output: Path
-    points_written: int
-    points_outside: int
-
-
-def georeference_strip(
-    scan_path: str | Path,
-    out_path: str | Path,
-    trajectory: Trajectory,
-    p_b_s: np.ndarray,
-    R_b_s: np.ndarray,
-    frame: LocalFrame,
-    crs: OutputCRS,
-    *,
-    chunk_size: int = 2_000_000,
-    scale_m: float = 0.001,
-    progress: Callable[[str, float, float], None] | None = None,
-    protect: tuple = (),
-) -> StripGeoreferenceResult:
-    """Georeference a scanner-frame LAS/LAZ strip into an output-CRS LAZ (LAS 1.4, PF 6).
-
-    Keeps gps_time, intensity, ``scanner_channel``, ``point_source_id`` and return numbers; the
-    CRS is written as WKT; heights are ellipsoidal. Points outside the trajectory's time span
-    are left out and counted (a warning is logged).
-    """
-    from georefine.io.las import LasWriter, PointCloud, iter_las_chunks, read_las_info
-
-    scan_path, out_path = Path(scan_path), Path(out_path)
-    total = read_las_info(scan_path).point_count
-    interp = PoseInterpolator(trajectory)
-    t0 = trajectory.t0_gps
-    written = outside = done = 0
-    with LasWriter(out_path, scale=scale_m, crs=crs.crs, protect=protect) as out:
-        for chunk in iter_las_chunks(scan_path, chunk_size):
-            t = chunk.time_gps - t0
-            keep = interp.inside(t)
-            outside += int(np.count_nonzero(~keep))
-            if np.any(keep):
-                x_w = georeference(t[keep], chunk.xyz[keep], interp, p_b_s, R_b_s)
-                out.write(
-                    PointCloud(
-                        chunk.time_gps[keep], crs.from_w(frame, x_w), chunk.intensity[keep],
-                        chunk.scanner_channel[keep], chunk.point_source_id[keep],
-                        chunk.return_number[keep], chunk.number_of_returns[keep],
-                    )
-                )
-                written += int(np.count_nonzero(keep))
-            done += len(chunk)
-            if progress is not None:
-                progress(f"georeference {scan_path.name}", done, total)
-    if outside:
-        log.warning("%s: %d points outside the trajectory span were left out", scan_path, outside)
-    return StripGeoreferenceResult(scan_path, out_path, written, outside)

@@ -330,6 +330,8 @@ def extract_features(
     p_b_s: np.ndarray,
     R_b_s: np.ndarray,
     cfg: PlaneExtractionConfig | None = None,
+    *,
+    own_time: tuple[float, float] = (-np.inf, np.inf),
 ) -> PlanarFeatures:
     """Extract planar features of one view (strip × channel); algorithm in the module docstring.
 
@@ -350,13 +352,17 @@ def extract_features(
         Boresight, ``s`` to ``b``.
     cfg : PlaneExtractionConfig, optional
         Defaults if omitted.
+    own_time : (t0, t1)
+        Keep only the features whose seed point's time is in ``[t0, t1)``: a time tile of a
+        strip, given with the points up to ``2 max_time_span_s`` beyond both ends, yields
+        exactly the features the whole view would give there (see :func:`extract_features_chunked`).
 
     Returns
     -------
     PlanarFeatures
         In the order of their seed voxels (x, then y, then z of the seed grid).
     """
-    return _extract(points_w, time, strip, channel, pose_fn, p_b_s, R_b_s, cfg, -np.inf, np.inf)
+    return _extract(points_w, time, strip, channel, pose_fn, p_b_s, R_b_s, cfg, *own_time)
 
 
 def _extract(points_w, time, strip, channel, pose_fn, p_b_s, R_b_s, cfg, own_t0, own_t1):

@@ -47,9 +47,11 @@ from georefine.geometry.rotation import log_so3, rph_from_R_n_b
 from georefine.io.files import write_json
 from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
-from georefine.lidar.georeference import georeference_strip
+from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import PlanarFeatures, write_features
+from georefine.lidar.tiles import georeference_strip
 from georefine.progress import Progress, no_progress
+from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
 from georefine.workflows.navigation import (
     NavigationData,
@@ -60,12 +62,12 @@ from georefine.workflows.navigation import (
     write_trajectory_products,
 )
 from georefine.workflows.project import output_folder
-from georefine.workflows.strips import FeatureCounts, StripPoints, read_strips, step_features
+from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
 
 log = logging.getLogger(__name__)
 
 __all__ = [  # steps 3-4 live in georefine.workflows.strips; named here as the workflow's steps
-    "FeatureCounts", "LidarAdjustment", "StripPoints", "WorkflowResult", "add_posterior", "precompute_gnss_imu",
+    "FeatureCounts", "LidarAdjustment", "StripFile", "WorkflowResult", "add_posterior", "precompute_gnss_imu",
     "read_strips", "run_workflow", "step_adjust_gil", "step_features", "trajectory_change",
 ]
 
@@ -210,12 +212,13 @@ class WorkflowResult:
 
 @dataclass(frozen=True)
 class WorkflowInputs:
-    """The read inputs of a run: navigation data, strips, output folder and CRS."""
+    """The read inputs of a run: navigation data, strips (indexed), output folder, CRS and task runner."""
 
     nav: NavigationData
-    strips: list[StripPoints]
+    strips: list[StripFile]
     out: Path
     crs: OutputCRS
+    runner: TaskRunner
 
 
 @dataclass(frozen=True)
@@ -267,19 +270,19 @@ def _untimed(name: str) -> Iterator[None]:
     yield
 
 
-def _features_and_objects(nav, current: GnssImuResult, strip_points, it: int, timed, progress):
+def _features_and_objects(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner):
     """Steps 3-4 from ``current``: planar features per view and their matching into objects."""
     with timed(f"features_{it}"):
         traj = imu_rate_trajectory(nav, current.spline)
-        features, counts = step_features(nav, traj, strip_points, progress)
+        features, counts = step_features(nav, traj, strip_files, progress, runner)
     with timed(f"matching_{it}"):
         objects = match_features(features, nav.config.processing.matching)
     return features, objects, counts
 
 
-def _outer_iteration(nav, current: GnssImuResult, strip_points, it: int, timed, progress) -> IterationOutcome:
+def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner) -> IterationOutcome:
     """Steps 3-5 once from ``current``: features, objects, G/I/L adjustment (no posterior) and record."""
-    features, objects, counts = _features_and_objects(nav, current, strip_points, it, timed, progress)
+    features, objects, counts = _features_and_objects(nav, current, strip_files, it, timed, progress, runner)
     with timed(f"gil_adjustment_{it}"):
         gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
     d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
@@ -297,7 +300,7 @@ def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
     )
 
 
-def _lidar_key(nav: NavigationData, strips: list[StripPoints], upstream: str, iteration: int) -> str:
+def _lidar_key(nav: NavigationData, strips: list[StripFile], upstream: str, iteration: int) -> str:
     """Key of outer iteration ``iteration``: the strips, the LiDAR configuration and the key before it."""
     cfg = nav.config
     return StepCache.key(
@@ -306,22 +309,22 @@ def _lidar_key(nav: NavigationData, strips: list[StripPoints], upstream: str, it
     )
 
 
-def _points_key(nav: NavigationData, strips: list[StripPoints], upstream: str) -> str:
+def _points_key(nav: NavigationData, strips: list[StripFile], upstream: str) -> str:
     """Key of step 6: the trajectory's key, the CRS, the scanner and the strips."""
     return StepCache.key("points", upstream, nav.config.crs.model_dump(), nav.config.scanner.model_dump(),
                          [file_stamp(s.path) for s in strips])
 
 
 def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Path,
-                      strips: list[int] | None) -> WorkflowInputs:
-    """Read and check the navigation data and the strips; create the output folders."""
+                      strips: list[int] | None, runner: TaskRunner) -> WorkflowInputs:
+    """Read and check the navigation data, index the strips (time tiles); create the output folders."""
     with steps.timed("read"):
         nav = load_navigation(project_dir)
         out = output_folder(out, nav.root)
-        strip_points = read_strips(nav, strips)
+        strip_files = read_strips(nav, strips, slots=runner.workers)
     for sub in ("gi", "gil", "points", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    return WorkflowInputs(nav, strip_points, out, OutputCRS(nav.config.crs.output_epsg))
+    return WorkflowInputs(nav, strip_files, out, OutputCRS(nav.config.crs.output_epsg), runner)
 
 
 def stage_gnss_imu(steps: StepRunner, nav: NavigationData, progress: Progress = no_progress) -> tuple[GnssImuResult, str]:
@@ -350,7 +353,8 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
         key = _lidar_key(nav, inputs.strips, key, it)
         start = current
         outcome = steps.cached(
-            f"gil_{it}", key, partial(_outer_iteration, nav, start, inputs.strips, it, steps.timed, progress),
+            f"gil_{it}", key, partial(_outer_iteration, nav, start, inputs.strips, it, steps.timed, progress,
+                                      inputs.runner),
             encode=IterationOutcome.cached_form, decode=IterationOutcome.from_cached,
         )
         if outcome.features is not None:
@@ -377,7 +381,7 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
         if features is None:
             features, objects, _ = steps.cached(
                 "gil_features", outer.key,
-                lambda: _features_and_objects(nav, outer.start, inputs.strips, it, _untimed, progress),
+                lambda: _features_and_objects(nav, outer.start, inputs.strips, it, _untimed, progress, inputs.runner),
                 decode=lambda fo: (*fo, None), store=False,
             )
 
@@ -430,12 +434,13 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
         )
 
     def compute() -> list[dict]:  # stored with each file's stamp, for ``written``
-        traj = imu_rate_trajectory(nav, final.spline)
+        runner = inputs.runner
+        poses = runner.share(PoseInterpolator(imu_rate_trajectory(nav, final.spline)))
         records = []
         for s in inputs.strips:
             path = folder / (s.path.stem + ".laz")
-            r = georeference_strip(s.path, path, traj, p_b_s, R_b_s, nav.frame, inputs.crs, progress=progress,
-                                   protect=(nav.root,))
+            r = georeference_strip(s.plan, path, poses, nav.t0_gps, p_b_s, R_b_s, nav.frame, inputs.crs,
+                                   runner=runner, progress=progress, protect=(nav.root,))
             records.append({"strip": s.strip_id, "file": path.name, "points": r.points_written,
                             "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]})
         return records
@@ -450,7 +455,7 @@ def stage_metrics(steps: StepRunner, inputs: WorkflowInputs, outer: tuple[OuterI
     nav = inputs.nav
     metrics = WorkflowMetrics(
         t0_gps=nav.t0_gps, strips=tuple(s.strip_id for s in inputs.strips),
-        strip_time_gps={s.strip_id: (float(s.time.min() + nav.t0_gps), float(s.time.max() + nav.t0_gps))
+        strip_time_gps={s.strip_id: (float(s.t_first + nav.t0_gps), float(s.t_last + nav.t0_gps))
                         for s in inputs.strips},
         outer_iterations=outer, points=points, resumed=steps.resumed, timings_s=dict(steps.timings_s),
     )
@@ -496,6 +501,7 @@ def run_workflow(
     points: bool = True,
     cache_dir: str | Path | None = None,
     progress: Progress = no_progress,
+    scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
 ) -> WorkflowResult:
     """Steps 1-6 on a project folder (see the module docstring for the outputs).
 
@@ -504,7 +510,9 @@ def run_workflow(
     interruption or when only the final georeferencing is repeated. ``metrics.json`` lists the
     resumed steps under ``resumed``. ``points=False`` skips the final point clouds (step 6), e.g.
     when only the trajectory is wanted. ``cache_dir`` puts the cache elsewhere, e.g. one folder shared
-    by a full and a single-pass run (they share the GNSS/IMU adjustment).
+    by a full and a single-pass run (they share the GNSS/IMU adjustment). ``scheduler`` runs
+    the per-tile work (:mod:`georefine.tasks`: a name, an address or a running
+    :class:`~georefine.tasks.TaskRunner`); the results do not depend on it.
 
     Raises
     ------
@@ -513,7 +521,16 @@ def run_workflow(
     """
     # The cache touches no file before the first step stores; the output folder is checked on reading.
     steps = StepRunner(StepCache(Path(cache_dir) if cache_dir is not None else Path(out) / ".cache", enabled=resume))
-    inputs = stage_read_inputs(steps, project_dir, out, strips)
+    if isinstance(scheduler, TaskRunner):
+        return _run_stages(steps, project_dir, out, strips, lidar, points, progress, scheduler)
+    with TaskRunner(scheduler) as runner:
+        return _run_stages(steps, project_dir, out, strips, lidar, points, progress, runner)
+
+
+def _run_stages(steps: StepRunner, project_dir, out, strips, lidar: bool, points: bool, progress: Progress,
+                runner: TaskRunner) -> WorkflowResult:
+    """The stages of :func:`run_workflow`, with the runner of the per-tile work."""
+    inputs = stage_read_inputs(steps, project_dir, out, strips, runner)
     gi, key = stage_gnss_imu(steps, inputs.nav, progress)
     stage_gi_products(inputs, gi)
     final, gil, records = gi, None, ()

@@ -29,6 +29,7 @@ from georefine.io.files import write_json
 from georefine.io.gnss import gnss_in_w
 from georefine.io.imu import ImuData, check_rate_gaps
 from georefine.progress import Progress, no_progress
+from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.trajectory.ekf import FilterResult, run_filter
 from georefine.trajectory.sampled import Trajectory
 from georefine.trajectory.spline import KnotGrid
@@ -283,12 +284,18 @@ def run_georeference(
     *,
     gps_week: int | None = None,
     progress: Progress = no_progress,
+    scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
 ) -> GeoreferenceRunResult:
-    """Georeference every strip of a project with a trajectory SBET into ``out/*.laz``."""
+    """Georeference every strip of a project with a trajectory SBET into ``out/*.laz``.
+
+    The strips are cut into time tiles (:mod:`georefine.lidar.tiles`) that run on ``scheduler``
+    (:mod:`georefine.tasks`); memory holds a few tiles whatever the number of points.
+    """
     from georefine.config import boresight_matrix
-    from georefine.io.las import gps_week_of_strip
+    from georefine.io.las import gps_week_of_strip, time_index
     from georefine.io.trajectory import read_sbet
-    from georefine.lidar.georeference import georeference_strip
+    from georefine.lidar.georeference import PoseInterpolator
+    from georefine.lidar.tiles import georeference_strip, plan_strip, tile_points
     from georefine.trajectory.sampled import trajectory_from_sbet
 
     root = Path(project_dir)
@@ -303,13 +310,20 @@ def run_georeference(
     crs = OutputCRS(cfg.crs.output_epsg)
     out.mkdir(parents=True, exist_ok=True)
     results = []
-    for rel in cfg.scanner.files:
-        src = root / rel
-        dst = out / (Path(rel).stem + ".laz")
-        results.append(
-            georeference_strip(
-                src, dst, traj, np.asarray(cfg.scanner.lever_arm_m), boresight_matrix(cfg.scanner.boresight_deg),
-                frame, crs, progress=progress, protect=(root,),
-            )
-        )
+    own = TaskRunner(scheduler) if not isinstance(scheduler, TaskRunner) else None
+    runner = own or scheduler
+    try:
+        poses = runner.share(PoseInterpolator(traj))
+        size = tile_points(cfg.processing.scale, runner.workers)
+        for rel in cfg.scanner.files:
+            src = root / rel
+            plan = plan_strip(src, 0, t0, size, 0.0, index=time_index(src))
+            results.append(georeference_strip(
+                plan, out / (Path(rel).stem + ".laz"), poses, t0, np.asarray(cfg.scanner.lever_arm_m),
+                boresight_matrix(cfg.scanner.boresight_deg), frame, crs, runner=runner, progress=progress,
+                protect=(root,),
+            ))
+    finally:
+        if own is not None:
+            own.close()
     return GeoreferenceRunResult(out, tuple(results))

@@ -1,9 +1,16 @@
-"""The project's strips in memory and their planar features: workflow steps 3-4 of paper 000.
+"""The project's strips as time tiles, and their planar features: workflow steps 3-4 of paper 000.
 
 3. Preliminary georeferencing of every strip with the current trajectory (IMU rate, per-point
    interpolation).
 4. Planar features per view (strip x scanner channel); :mod:`georefine.workflows.lidar`
    matches them across views and adjusts.
+
+No strip is held in memory: :func:`read_strips` indexes each file's point times and cuts it
+into time tiles (:mod:`georefine.lidar.tiles`), and :func:`step_features` runs one task per
+tile on the run's :class:`~georefine.tasks.TaskRunner`, each reading its tile with margins,
+georeferencing it and extracting the features it owns. Memory is bounded by
+``processing.scale.memory_budget_gb`` whatever the number of points; the features are those of
+the whole views, in an order that depends on neither the tiles nor the scheduler.
 """
 
 from __future__ import annotations
@@ -16,31 +23,50 @@ import numpy as np
 
 from georefine.config import boresight_matrix
 from georefine.errors import InputError
-from georefine.io.las import iter_las_chunks
-from georefine.lidar.georeference import PoseInterpolator, georeference
-from georefine.lidar.planes import PlanarFeatures, extract_features
+from georefine.io.las import read_las_info, read_las_range, time_index
+from georefine.lidar.georeference import PoseInterpolator
+from georefine.lidar.planes import PlanarFeatures
+from georefine.lidar.tiles import StripPlan, Tile, plan_strip, tile_features, tile_points
 from georefine.progress import Progress, no_progress
+from georefine.tasks import TaskRunner
 from georefine.trajectory.sampled import Trajectory
 from georefine.workflows.navigation import NavigationData
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FeatureCounts", "StripPoints", "read_strips", "step_features"]
+__all__ = ["FeatureCounts", "StripFile", "read_strips", "step_features", "sort_features"]
 
 
 @dataclass(frozen=True)
-class StripPoints:
-    """One strip in memory: scanner-frame points, times relative to the epoch, channels."""
+class StripFile:
+    """One strip of the project: its file, id, time span (s from the epoch) and time tiles."""
 
     path: Path
     strip_id: int
-    time: np.ndarray
-    xyz_s: np.ndarray
-    channel: np.ndarray
+    plan: StripPlan
+
+    @property
+    def t_first(self) -> float:
+        return self.plan.t_first
+
+    @property
+    def t_last(self) -> float:
+        return self.plan.t_last
+
+    @property
+    def tiles(self) -> tuple[Tile, ...]:
+        return self.plan.tiles
+
+    @property
+    def point_count(self) -> int:
+        return self.plan.point_count
 
 
-def read_strips(nav: NavigationData, strips: list[int] | None = None) -> list[StripPoints]:
-    """Read the project's strips (optionally only those with the given ``point_source_id``).
+def read_strips(nav: NavigationData, strips: list[int] | None = None, *, slots: int = 1) -> list[StripFile]:
+    """Index the project's strips (optionally only those with the given ``point_source_id``).
+
+    One light pass per file (point times and channels only) checks it and cuts it into time
+    tiles sized for ``slots`` tasks at once within ``processing.scale.memory_budget_gb``.
 
     Raises
     ------
@@ -50,23 +76,25 @@ def read_strips(nav: NavigationData, strips: list[int] | None = None) -> list[St
     """
     cfg = nav.config
     channels = {c.id for c in cfg.scanner.channels}
+    margin_s = 2.0 * cfg.processing.planes.max_time_span_s
     out = []
     for rel in cfg.scanner.files:
         path = nav.root / rel
-        parts = list(iter_las_chunks(path, 5_000_000))
-        if not parts or sum(len(p) for p in parts) == 0:
+        if read_las_info(path).point_count == 0:
             raise InputError("strip has no points", path=path)
-        sid = int(parts[0].point_source_id[0])
+        sid = int(read_las_range(path, 0, 1).point_source_id[0])
         if strips is not None and sid not in strips:
             continue
-        t = np.concatenate([p.time_gps for p in parts]) - nav.t0_gps
-        ch = np.concatenate([p.scanner_channel for p in parts])
-        if not np.any(np.isin(ch, list(channels))):
+        ti = time_index(path)
+        present = [c for c, n in enumerate(ti.channel_counts) if n]
+        if not channels & set(present):
             raise InputError(
                 "no point has a configured scanner_channel", path=path, field="scanner_channel",
-                expected="one of " + ", ".join(map(str, sorted(channels))), found=", ".join(map(str, np.unique(ch)[:5])),
+                expected="one of " + ", ".join(map(str, sorted(channels))), found=", ".join(map(str, present[:5])),
             )
-        out.append(StripPoints(path, sid, t, np.concatenate([p.xyz for p in parts]), ch))
+        rate = ti.point_count / max(float(ti.time_gps[-1] - ti.time_gps[0]), 1e-3)
+        size = tile_points(cfg.processing.scale, slots, int(rate * margin_s))
+        out.append(StripFile(path, sid, plan_strip(path, sid, nav.t0_gps, size, margin_s, index=ti)))
     if strips is not None:
         missing = set(strips) - {s.strip_id for s in out}
         if missing:
@@ -83,32 +111,45 @@ class FeatureCounts:
     views: dict[str, int]
 
 
+def sort_features(features: PlanarFeatures) -> PlanarFeatures:
+    """Features by strip, channel and time (stable): one order whatever the tiles."""
+    order = np.lexsort((features.time, features.channel, features.strip))
+    return features.select(order)
+
+
 def step_features(
-    nav: NavigationData, trajectory: Trajectory, strips: list[StripPoints], progress: Progress = no_progress
+    nav: NavigationData, trajectory: Trajectory, strips: list[StripFile], progress: Progress = no_progress,
+    runner: TaskRunner | None = None,
 ) -> tuple[PlanarFeatures, FeatureCounts]:
-    """Steps 3-4a: georeference each view with ``trajectory`` and extract its planar features."""
+    """Steps 3-4a: georeference each tile of each strip with ``trajectory`` and extract its planar features."""
     cfg = nav.config
+    runner = runner or TaskRunner("sync")
     p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
     R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
-    interp = PoseInterpolator(trajectory)
-    parts, outside, views = [], 0, {}
-    for k, strip in enumerate(strips):
-        inside = interp.inside(strip.time)
-        outside += int(np.count_nonzero(~inside))
-        t, xs, ch = strip.time[inside], strip.xyz_s[inside], strip.channel[inside]
-        x_w = georeference(t, xs, interp, p_b_s, R_b_s)
+    poses = runner.share(PoseInterpolator(trajectory))
+    channels = tuple(c.id for c in cfg.scanner.channels)
+    tasks = [(tile, poses, nav.t0_gps, p_b_s, R_b_s, channels, cfg.processing.planes)
+             for s in strips for tile in s.tiles]
+    parts, outside = [], 0
+    per_view: dict[tuple[int, int], int] = {}
+    seen: dict[int, set[int]] = {s.strip_id: set() for s in strips}
+    for (tile, *_), r in zip(tasks, runner.map(tile_features, tasks, label="planar features", progress=progress)):
+        parts.append(r.features)
+        outside += r.points_outside
+        seen[tile.strip_id].update(r.channels_seen)
+        for c, n in r.views.items():
+            per_view[(tile.strip_id, c)] = per_view.get((tile.strip_id, c), 0) + n
+    views = {}
+    for s in strips:
         for c in cfg.scanner.channels:
-            m = ch == c.id
-            if not np.any(m):
-                log.warning("%s: no points of channel %d (%s)", strip.path.name, c.id, c.name)
+            if c.id not in seen[s.strip_id]:
+                log.warning("%s: no points of channel %d (%s)", s.path.name, c.id, c.name)
                 continue
-            f = extract_features(x_w[m], t[m], strip.strip_id, c.id, interp, p_b_s, R_b_s, cfg.processing.planes)
-            views[f"strip{strip.strip_id}_{c.name}"] = len(f)
-            if len(f) == 0:
-                log.warning("%s: channel %d (%s) gave no planar features", strip.path.name, c.id, c.name)
-            parts.append(f)
-        progress("planar features", k + 1, len(strips))
-    features = PlanarFeatures.concatenate(parts) if parts else PlanarFeatures.empty()
+            n = per_view.get((s.strip_id, c.id), 0)
+            views[f"strip{s.strip_id}_{c.name}"] = n
+            if n == 0:
+                log.warning("%s: channel %d (%s) gave no planar features", s.path.name, c.id, c.name)
+    features = sort_features(PlanarFeatures.concatenate(parts)) if parts else PlanarFeatures.empty()
     if len(features) == 0:
         raise InputError("no planar features in any view", field="processing.planes",
                          expected="planar surfaces (roofs, roads, facades) in the scans")

@@ -1,0 +1,198 @@
+"""Time tiles and the task runner: streamed per-point work gives what the whole strip gives.
+
+A synthetic strip is swept along x over a ground plane with roofs (identity trajectory, so
+scanner and mapping frames coincide): its time index, record ranges, tile plan, planar
+features per tile and georeferenced output are checked against the whole strip, on the
+``sync`` scheduler and on a two-process ``dask.distributed.LocalCluster``.
+"""
+
+from __future__ import annotations
+
+import math
+import pickle
+
+import laspy
+import numpy as np
+import pytest
+
+from georefine.config import PlaneExtractionConfig, ScaleConfig
+from georefine.errors import InputError
+from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.io.las import LasWriter, PointCloud, read_las, read_las_range, time_index
+from georefine.lidar.georeference import PoseInterpolator
+from georefine.lidar.planes import extract_features
+from georefine.lidar.tiles import georeference_strip, plan_strip, tile_features, tile_points
+from georefine.tasks import TaskRunner, check_scheduler
+from georefine.trajectory.sampled import Trajectory
+from georefine.workflows.strips import sort_features
+
+T0 = 1.4e9  # GPS seconds of the epoch
+RATE = 40_000  # points per second
+SPEED = 40.0  # m/s along x
+DURATION = 12.0
+
+
+def _scene(rng, n):
+    """Times, points and channels of a sweep over ground (z=0) and three tilted roofs."""
+    t = np.sort(rng.uniform(0.0, DURATION, n))
+    x = SPEED * t + rng.normal(0.0, 0.3, n)
+    y = rng.uniform(-30.0, 30.0, n)
+    z = np.zeros(n)
+    for cx in (80.0, 230.0, 390.0):  # 12 m x 16 m roofs, 30 % slope, 6 m above the ground
+        m = (np.abs(x - cx) < 6.0) & (np.abs(y) < 8.0)
+        z[m] = 6.0 + 0.3 * (x[m] - cx)
+    z += rng.normal(0.0, 0.003, n)
+    ch = (np.floor(t * 120.0).astype(int) % 3).astype(np.uint8)
+    return t, np.column_stack([x, y, z]), ch
+
+
+@pytest.fixture(scope="module")
+def strip(tmp_path_factory):
+    rng = np.random.default_rng(3)
+    t, xyz, ch = _scene(rng, int(RATE * DURATION))
+    path = tmp_path_factory.mktemp("tiles") / "strip_5.laz"
+    n = t.size
+    ones = np.ones(n, np.uint8)
+    with LasWriter(path, scale=1e-4) as w:
+        for a in range(0, n, 100_000):
+            s = slice(a, a + 100_000)
+            w.write(PointCloud(t[s] + T0, xyz[s], np.full(xyz[s].shape[0], 100), ch[s],
+                               np.full(xyz[s].shape[0], 5), ones[s], ones[s]))
+    return path
+
+
+@pytest.fixture(scope="module")
+def poses():
+    time = np.arange(-1.0, DURATION + 1.0, 0.01)
+    R = np.broadcast_to(np.eye(3), (time.size, 3, 3)).copy()
+    return PoseInterpolator(Trajectory(time, np.zeros((time.size, 3)), R, T0))
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    with TaskRunner("processes", workers=2) as runner:
+        yield runner
+
+
+def test_time_index_samples_every_step_and_checks_the_order(strip, tmp_path):
+    full = read_las(strip)
+    ti = time_index(strip, step=1000)
+    assert ti.point_count == len(full) and ti.ordered and ti.first_unordered == -1
+    assert ti.index[0] == 0 and ti.index[-1] == len(full) - 1 and np.all(np.diff(ti.index[:-1]) == 1000)
+    assert np.array_equal(ti.time_gps, full.time_gps[ti.index])
+    assert sum(ti.channel_counts) == len(full) and ti.channel_counts[3] == 0
+    # A record out of time order is found, wherever it is (not only at the samples).
+    t = full.time_gps.copy()
+    t[12_345], t[12_346] = t[12_346], t[12_345] - 1e-3
+    bad = tmp_path / "unordered.laz"
+    with LasWriter(bad, scale=1e-4) as w:
+        w.write(PointCloud(t, full.xyz, full.intensity, full.scanner_channel, full.point_source_id,
+                           full.return_number, full.number_of_returns))
+    tb = time_index(bad, step=1000)
+    assert not tb.ordered and tb.first_unordered == 12_346
+    # Such a strip is one tile (it cannot be cut by time), with a warning.
+    plan = plan_strip(bad, 5, T0, 50_000, 0.5, index=tb)
+    assert not plan.ordered and len(plan.tiles) == 1 and plan.tiles[0].own_t0 == -math.inf
+
+
+def test_read_range_is_the_slice_of_the_whole_file(strip):
+    full = read_las(strip)
+    for a, b in ((0, 1), (49_999, 50_001), (123_457, 300_000), (len(full) - 7, len(full))):
+        r = read_las_range(strip, a, b)
+        assert np.array_equal(r.time_gps, full.time_gps[a:b]) and np.array_equal(r.xyz, full.xyz[a:b])
+    with pytest.raises(ValueError):
+        read_las_range(strip, 10, len(full) + 1)
+
+
+def test_plan_owns_every_record_once_and_reads_the_margins(strip):
+    full = read_las(strip)
+    t = full.time_gps - T0
+    plan = plan_strip(strip, 5, T0, 60_000, 1.0, index=time_index(strip, step=4096))
+    assert len(plan.tiles) > 4 and plan.ordered
+    assert plan.tiles[0].start == 0 and plan.tiles[-1].stop == len(full)
+    for a, b in zip(plan.tiles[:-1], plan.tiles[1:]):
+        assert a.stop == b.start and a.own_t1 == b.own_t0
+    for tile in plan.tiles:
+        own = (t >= tile.own_t0) & (t < tile.own_t1)
+        assert np.all(np.flatnonzero(own) >= tile.start) or tile.number == 0
+        # the records a feature task reads hold every point within the margin of its own times
+        need = np.flatnonzero((t >= tile.own_t0 - 1.0) & (t < tile.own_t1 + 1.0))
+        assert tile.read_start <= need.min() and need.max() < tile.read_stop
+
+
+def test_tile_size_follows_the_memory_budget():
+    small, large = ScaleConfig(memory_budget_gb=0.5), ScaleConfig(memory_budget_gb=4.0)
+    assert tile_points(large, 2) == pytest.approx(8 * tile_points(small, 2), rel=0.01)
+    assert tile_points(large, 4) < tile_points(large, 1)
+    assert tile_points(ScaleConfig(memory_budget_gb=0.01), 8, margin_points=10**6) == ScaleConfig().min_tile_points
+
+
+@pytest.mark.parametrize("tile_size", [30_000, 100_000])
+def test_tile_features_are_those_of_the_whole_view(strip, poses, tile_size):
+    cfg = PlaneExtractionConfig()
+    full = read_las(strip)
+    t = full.time_gps - T0
+    whole = []
+    for c in (0, 1, 2):
+        m = full.scanner_channel == c
+        whole.append(extract_features(full.xyz[m], t[m], 5, c, poses, np.zeros(3), np.eye(3), cfg))
+    from georefine.lidar.planes import PlanarFeatures
+
+    whole = sort_features(PlanarFeatures.concatenate(whole))
+    plan = plan_strip(strip, 5, T0, tile_size, 2 * cfg.max_time_span_s, index=time_index(strip))
+    assert len(plan.tiles) >= 4
+    parts = [tile_features(tile, poses, T0, np.zeros(3), np.eye(3), (0, 1, 2), cfg) for tile in plan.tiles]
+    tiled = sort_features(PlanarFeatures.concatenate([p.features for p in parts]))
+    assert len(whole) > 300 and len(tiled) == len(whole)
+    np.testing.assert_array_equal(tiled.n_points, whole.n_points)
+    np.testing.assert_array_equal(tiled.channel, whole.channel)
+    for name in ("time", "centre_w", "normal_w", "sigma_d_m"):  # the same sums in another order: 1e-15
+        np.testing.assert_allclose(getattr(tiled, name), getattr(whole, name), rtol=1e-12, atol=1e-12, err_msg=name)
+    assert sum(p.points_outside for p in parts) == 0
+
+
+def test_a_cluster_gives_the_same_features_and_points_as_this_process(strip, poses, cluster, tmp_path):
+    cfg = PlaneExtractionConfig()
+    plan = plan_strip(strip, 5, T0, 50_000, 2 * cfg.max_time_span_s, index=time_index(strip))
+    args = [(tile, poses, T0, np.zeros(3), np.eye(3), (0, 1, 2), cfg) for tile in plan.tiles]
+    local = list(TaskRunner("sync").map(tile_features, args))
+    shared = cluster.share(poses)
+    remote = list(cluster.map(tile_features, [(a[0], shared, *a[2:]) for a in args], window=3))
+    assert [len(r.features) for r in remote] == [len(r.features) for r in local]
+    for a, b in zip(local, remote):
+        np.testing.assert_array_equal(a.features.centre_s, b.features.centre_s)
+    # Step 6 on the cluster writes the same LAZ records as in this process, in the input's order.
+    frame, crs = LocalFrame(math.radians(48.0), math.radians(11.0), 500.0), OutputCRS(25832)
+    a = georeference_strip(plan, tmp_path / "a.laz", poses, T0, np.zeros(3), np.eye(3), frame, crs)
+    b = georeference_strip(plan, tmp_path / "b.laz", shared, T0, np.zeros(3), np.eye(3), frame, crs, runner=cluster)
+    assert a.points_written == b.points_written == time_index(strip).point_count
+    la, lb = laspy.read(a.output), laspy.read(b.output)
+    for dim in ("X", "Y", "Z", "gps_time", "scanner_channel"):
+        assert np.array_equal(la[dim], lb[dim]), dim
+    assert np.all(np.diff(la.gps_time) >= 0)
+
+
+def test_task_errors_reach_the_caller_intact(cluster, tmp_path):
+    missing = tmp_path / "nowhere.laz"
+    with pytest.raises(InputError) as err:
+        list(cluster.map(time_index, [(missing,)]))
+    assert err.value.path == missing and "file not found" in str(err.value)
+    e = InputError("bad", path="/x", line=4, field="f", expected="1", found="2")
+    assert str(pickle.loads(pickle.dumps(e))) == str(e)
+
+
+def test_scheduler_names_and_addresses():
+    assert check_scheduler("threads") == "threads" and check_scheduler("tcp://127.0.0.1:8786").startswith("tcp")
+    with pytest.raises(InputError, match="unknown scheduler"):
+        check_scheduler("gpu")
+    with pytest.raises(InputError, match="cannot reach the Dask scheduler"):
+        TaskRunner("tcp://127.0.0.1:9", timeout="1s").start()
+
+
+def test_map_keeps_the_order_and_reports_progress():
+    calls = []
+    with TaskRunner("threads", workers=2) as runner:
+        out = list(runner.map(pow, [(k, 2) for k in range(20)], window=3, label="squares",
+                              progress=lambda *a: calls.append(a)))
+    assert out == [k * k for k in range(20)]
+    assert calls[-1] == ("squares", 20, 20.0) and len(calls) == 20
