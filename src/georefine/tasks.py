@@ -40,7 +40,7 @@ __all__ = ["SCHEDULERS", "DEFAULT_SCHEDULER", "TaskRunner", "check_scheduler", "
 SCHEDULERS = ("sync", "threads", "processes")
 """The named schedulers; any other value must be the address of a ``dask.distributed`` scheduler."""
 
-DEFAULT_SCHEDULER = "processes"
+DEFAULT_SCHEDULER = "threads"
 """The fastest scheduler on a 2-core machine for the per-point stages (BENCHMARKS.md, "Scale")."""
 
 
