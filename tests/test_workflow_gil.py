@@ -6,6 +6,7 @@ wrong matches, point-cloud accuracy, and bad input. The full runs are marked slo
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import os
@@ -23,6 +24,7 @@ from truth_helpers import pass_rmse
 from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.summary import RunEvaluation
+from georefine.io.las import read_las
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import (
@@ -32,6 +34,7 @@ from georefine.lidar.correspondences import (
 )
 from georefine.lidar.planes import read_features
 from georefine.sim.scenarios import simulate_project
+from georefine.tasks import TaskRunner
 from georefine.trajectory.sampled import Trajectory, trajectory_from_sbet
 from georefine.workflows import (
     load_navigation,
@@ -279,12 +282,18 @@ def test_points_outside_the_trajectory_are_counted_not_extrapolated(project):
     nav = load_navigation(project)
     sb = read_sbet(project / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
     truth = trajectory_from_sbet(sb, nav.frame, nav.t0_gps)
+    # Small time tiles (a 50 MB budget): the strip is streamed in several tiles.
+    cfg = nav.config
+    scale = cfg.processing.scale.model_copy(update={"memory_budget_gb": 0.05, "min_tile_points": 200_000})
+    nav = dataclasses.replace(nav, config=cfg.model_copy(
+        update={"processing": cfg.processing.model_copy(update={"scale": scale})}))
     strips = read_strips(nav, [1])
-    t_cut = float(np.median(strips[0].time))
+    assert len(strips[0].tiles) >= 4
+    t = read_las(strips[0].path).time_gps - nav.t0_gps
+    t_cut = float(np.median(t))
     keep = truth.time <= t_cut
     short = Trajectory(truth.time[keep], truth.p_w_b[keep], truth.R_w_b[keep])
     features, counts = step_features(nav, short, strips)
-    t = strips[0].time
     n_outside = int(np.count_nonzero((t < short.time[0]) | (t > short.time[-1])))
     assert counts.points_outside_trajectory == n_outside > 0.4 * t.size
     assert sum(counts.views.values()) == len(features)
@@ -323,3 +332,30 @@ def test_an_unknown_strip_id_names_the_parameter_and_the_cli_its_option(sparse_p
     proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(sparse_project), "--out", str(tmp_path / "o"),
                            "--strips", "99", "--no-lidar"], capture_output=True, text=True)
     assert proc.returncode == 2 and "--strips" in proc.stderr and "99" in proc.stderr, proc.stderr
+
+
+@pytest.mark.slow
+def test_a_local_cluster_writes_the_same_trajectory_and_points_as_one_process(project, tmp_path):
+    """The whole run on a two-process LocalCluster against the in-process (sync) run, one outer iteration."""
+    one = tmp_path / "p"
+    shutil.copytree(project, one)
+    cfg = yaml.safe_load((one / "project.yaml").read_text())
+    cfg["processing"] = {"lidar": {"outer_iterations": 1}}
+    (one / "project.yaml").write_text(yaml.safe_dump(cfg))
+    a = run_workflow(one, tmp_path / "sync", scheduler="sync", cache_dir=tmp_path / "cache_a")
+    (tmp_path / "cache_b").mkdir()
+    for f in (tmp_path / "cache_a").glob("gi-*.pkl"):  # the same G/I, so that only steps 3-6 are compared
+        shutil.copy(f, tmp_path / "cache_b" / f.name)
+    with TaskRunner("processes", workers=2) as cluster:
+        b = run_workflow(one, tmp_path / "cluster", scheduler=cluster, cache_dir=tmp_path / "cache_b")
+    assert b.metrics.resumed == ("gi",) and a.metrics.outer_iterations == b.metrics.outer_iterations
+    sa = read_sbet(a.out / "gil" / "trajectory.sbet", gps_week=2000)
+    sb = read_sbet(b.out / "gil" / "trajectory.sbet", gps_week=2000)
+    for k in ("roll_rad", "pitch_rad", "heading_rad"):
+        assert np.degrees(np.abs(getattr(sa, k) - getattr(sb, k))).max() <= 1e-6, k
+    assert np.abs(sa.h_m - sb.h_m).max() <= 1e-6 and np.abs(sa.lat_rad - sb.lat_rad).max() * 6.4e6 <= 1e-6
+    for f in ("strip_1.laz", "strip_2.laz"):
+        pa, pb = laspy.read(a.out / "points" / f), laspy.read(b.out / "points" / f)
+        assert len(pa.points) == len(pb.points) > 0
+        for dim in ("X", "Y", "Z", "gps_time"):
+            assert np.array_equal(pa[dim], pb[dim]), (f, dim)

@@ -100,7 +100,7 @@ def _progress() -> Iterator:
 
 @app.command()
 def simulate(
-    scenario: str = typer.Argument(..., help="Scenario name: corridor, corridor-tiny or block."),
+    scenario: str = typer.Argument(..., help="Scenario name: corridor, corridor-tiny, corridor-paper (1.8 MHz) or block."),
     out: Path = typer.Option(..., "--out", "-o", help="Project folder to create (must not exist or be empty)."),
     seed: int = typer.Option(42, "--seed", help="Random seed; the same seed gives the same files."),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="Override a parameter: key.sub=value (repeatable)."),
