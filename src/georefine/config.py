@@ -387,7 +387,7 @@ class ScaleConfig(StrictModel):
     of the scheduler -- fit ``memory_budget_gb`` together, whatever the number of points.
     """
 
-    memory_budget_gb: float = Field(2.0, gt=0, description="memory of the point tiles in work at once (all tasks)")
+    memory_budget_gb: float = Field(3.0, gt=0, description="memory of the point tiles in work at once (all tasks)")
     min_tile_points: int = Field(500_000, ge=10_000, description="smallest time tile (records), whatever the budget")
 
 
