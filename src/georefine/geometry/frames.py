@@ -51,11 +51,12 @@ class LocalFrame:
 
     def to_ecef(self, p_w: np.ndarray) -> np.ndarray:
         """``p_e = p_e_w + R_e_w p_w`` for ``(..., 3)`` positions (m)."""
-        return np.asarray(p_w, dtype=float) @ self.R_e_w.T + self.p_e_w
+        # einsum, not BLAS: an (N, 3) x (3, 3) product through BLAS is slow and fights task threads
+        return np.einsum("ij,...j->...i", self.R_e_w, np.asarray(p_w, dtype=float)) + self.p_e_w
 
     def from_ecef(self, p_e: np.ndarray) -> np.ndarray:
         """``p_w = R_e_w^T (p_e - p_e_w)``."""
-        return (np.asarray(p_e, dtype=float) - self.p_e_w) @ self.R_e_w
+        return np.einsum("ji,...j->...i", self.R_e_w, np.asarray(p_e, dtype=float) - self.p_e_w)
 
     def to_geodetic(self, p_w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Latitude, longitude (rad) and ellipsoidal height (m) of ``w`` positions."""

@@ -112,7 +112,10 @@ def georeference(
     (N, 3) float64
         Points in ``w`` (m).
     """
-    x_b = np.asarray(xyz_s, dtype=float) @ np.asarray(R_b_s, dtype=float).T + np.asarray(p_b_s, dtype=float)
+    # einsum, not ``xyz_s @ R_b_s.T``: BLAS on an (N, 3) x (3, 3) product ran at 2 M points/s
+    # here (its threads fight the tile tasks' threads); numpy's own loop runs at 17 M points/s.
+    x_b = np.einsum("ij,nj->ni", np.asarray(R_b_s, dtype=float), np.asarray(xyz_s, dtype=float))
+    x_b += np.asarray(p_b_s, dtype=float)
     if isinstance(trajectory, PoseInterpolator):
         t = np.asarray(time, dtype=float)
         if not np.all(trajectory.inside(t)):
