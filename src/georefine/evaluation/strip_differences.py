@@ -9,35 +9,17 @@ where at least two are. Because each layer's plane is evaluated at the same poin
 centre), slopes do not bias the difference, and a cell's value is the largest disagreement
 between any two views or passes there.
 
-Streaming (memory in cells, not points). A cell's plane needs only sums over its points, so the
-points are read chunk by chunk, each chunk becomes per-cell *moment sums*
-(:class:`CellMoments`, :func:`cell_moments`), the sums are merged as chunks arrive
-(:meth:`CellMoments.merge`) and the planes come from the merged sums
-(:meth:`CellMoments.planes`). A cell keeps, per layer, ten sums equivalent to
-``n, Σdx, Σdy, Σdz, Σdx², Σdxdy, Σdy², Σdxdz, Σdydz, Σdz²`` (``dx, dy`` from the cell centre),
-arranged so that nothing cancels:
-
-    n, Σdx, Σdy;  Σu², Σuv, Σv²;  Σr, Σu·r, Σv·r, Σr²
-
-with ``u, v`` the offsets from the centroid of the cell's points (co-moments, merged with the
-parallel-variance formula) and ``r`` the height above a per-cell *reference plane*. The fit
-``r = p0 + s·(u, v)`` gives the slopes ``s`` from the 2x2 co-moments, the height at the cell
-centre and the residual sum of squares ``Σr² - (Σr)²/n - s·(Σu·r, Σv·r)``. That last
-difference cancels: its rounding error is about ``1e-16 Σr²``, and the square root of the RMS
-magnifies it -- about ``1e-8 |dz|`` on a perfect plane. A fixed reference (a height from the
-file header, or a horizontal plane through the cell's first point or mean) keeps ``dz`` to the
-cell's own relief, which on a 45° roof is still ±0.5 m in a 1 m cell, i.e. ~1e-8 m of
-spurious roughness. The reference is therefore the cell's own plane: a chunk, which has its
-points in memory, fits it in two passes (mean height, then the least-squares plane about it,
-minimum-norm where the points lie on one line or are fewer than three) and sums the
-residuals about it, so ``Σr²`` *is* that chunk's residual sum of squares and ``Σr, Σu·r,
-Σv·r`` are ~0. Merging moves each part onto one reference by the exact change
-``r' = r - (q0 + q1 dx + q2 dy)``, whose extra terms ``n q̄² + q·M·q`` are sums of
-non-negative terms, and adds the sums -- first onto the reference of the part that spans the
-cell best, which yields the merged plane, then onto the merged plane itself, which becomes the
-cell's reference. The streaming planes thus equal the in-memory two-pass fit to rounding
-(~1e-11 m in height and roughness, perfect planes included) whatever the chunks, their order
-or the scheduler.
+Streaming. The planes come from per-cell moment sums that merge chunk by chunk
+(:mod:`georefine.evaluation.cell_moments`), and the map needs of a layer's planes only the
+highest and lowest height per cell and how many layers are planar there (:class:`CellSpread`),
+so :class:`StripDifferenceStream` takes the points as a stream of chunks and keeps only the
+cells still *open*: once a layer x cell has had no points for ``close_after`` records (a strip
+read in time order has passed it) or its layer is declared complete (the end of the strip's
+file), its plane is folded into the spread and its sums are dropped. Memory is then the
+cells of the last few chunks plus the map, whatever the number of points. Closing is checked,
+not assumed: points that arrive for a closed layer x cell raise :class:`Reopened` (the caller
+then reads again without closing, in memory that grows with the cells of all layers). Closing
+changes nothing in the results but the order of floating-point sums.
 
 Outputs: the raster (NaN where undefined), its summary (median, P95 over the defined cells), a
 PNG map (0-0.1 m, green to red, colour bar, easting/northing axes) and a GeoTIFF (float32,
@@ -47,247 +29,32 @@ written with tifffile.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from georefine.evaluation.cell_moments import (
+    CellMoments,
+    CellPlanes,
+    cell_moments,
+    cell_planes,
+)
 from georefine.io.files import atomic_path
 
 __all__ = [
-    "CellMoments", "cell_moments", "CellPlanes", "cell_planes", "StripDifferenceMap", "strip_difference_map",
-    "strip_differences", "crop", "write_png", "write_geotiff",
+    "CellMoments", "cell_moments", "CellPlanes", "cell_planes", "CellSpread", "Reopened", "StripDifferenceStream",
+    "StripDifferenceMap", "strip_difference_map", "strip_differences", "crop", "write_png", "write_geotiff",
 ]
 
-MOMENTS = ("n", "dx", "dy", "uu", "uv", "vv", "r", "ur", "vr", "rr")
-"""The sums of :class:`CellMoments` in column order (module docstring)."""
-
-_SPANS = 0.05
-"""A part of a cell *spans* it when its points' standard deviation is at least this fraction of
-the cell size in every horizontal direction; merging prefers the reference planes of such parts."""
+_MERGE_ROWS = 500_000
+"""Rows held aside before they are merged into a total (sums of a layer, the spread)."""
 
 
-@dataclass(frozen=True)
-class CellPlanes:
-    """Least-squares planes of point layers on a raster: ``z = height + slope . (x - centre)``."""
-
-    cell_ij: np.ndarray  # (C, 2) int64 cell indices (floor(x / size), floor(y / size))
-    height_m: np.ndarray  # (C,) plane height at the cell centre
-    roughness_m: np.ndarray  # (C,) RMS residual of the plane
-    n_points: np.ndarray  # (C,) int64
-    layer: np.ndarray | None = None  # (C,) int64 layer of each plane (None: one layer)
-
-
-def _cell_index(ij: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(cells (C, 2), inverse (N,), counts (C,))`` of integer cell indices, without a 2-D sort.
-
-    A dense index over the bounding box with ``bincount`` when the box has at most 4 cells per
-    point (a strip), else a 1-D ``unique`` of the linear index (a diagonal corridor). The cells
-    come sorted by ``(i, j)``.
-    """
-    if ij.shape[0] == 0:
-        return np.zeros((0, 2), dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
-    lo = ij.min(axis=0)
-    size = ij.max(axis=0) - lo + 1
-    lin = (ij[:, 0] - lo[0]) * size[1] + (ij[:, 1] - lo[1])
-    if size[0] * size[1] <= 4 * ij.shape[0] + 1024:
-        counts_all = np.bincount(lin, minlength=int(size[0] * size[1]))
-        used = np.flatnonzero(counts_all)
-        remap = np.zeros(counts_all.size, dtype=np.int64)
-        remap[used] = np.arange(used.size)
-        inv, counts, ulin = remap[lin], counts_all[used], used
-    else:
-        ulin, inv, counts = np.unique(lin, return_inverse=True, return_counts=True)
-    cells = np.column_stack([ulin // size[1] + lo[0], ulin % size[1] + lo[1]])
-    return cells, inv.reshape(-1), counts
-
-
-_RANK_TOL = 1e-12
-"""Co-moments whose smaller eigenvalue is at most this fraction of the larger one are of points
-on one line (exactly, up to rounding): that direction has no spread."""
-
-
-def _eig2(uu, uv, vv) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """``(c, s, lam1, lam2)``: eigen-decomposition of the 2x2 co-moments ``[[uu, uv], [uv, vv]]``
-    (vectorised): ``lam1 >= lam2`` along ``(c, s)`` and ``(-s, c)``; a ``lam2`` at rounding level
-    (:data:`_RANK_TOL`) is 0."""
-    theta = 0.5 * np.arctan2(2.0 * uv, uu - vv)
-    c, s = np.cos(theta), np.sin(theta)
-    lam1 = np.maximum(uu * c * c + 2.0 * uv * c * s + vv * s * s, 0.0)
-    lam2 = uu * s * s - 2.0 * uv * c * s + vv * c * c
-    lam2 = np.where(lam2 > _RANK_TOL * lam1, lam2, 0.0)
-    return c, s, lam1, lam2
-
-
-def _min_norm_slopes(uu, uv, vv, gu, gv) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Minimum-norm solutions ``s`` of ``[[uu, uv], [uv, vv]] s = (gu, gv)`` (vectorised 2x2
-    pseudo-inverse: a direction with no spread gets no slope), and the smaller eigenvalue."""
-    c, s, lam1, lam2 = _eig2(uu, uv, vv)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        w1 = np.where(lam1 > 0.0, (c * gu + s * gv) / lam1, 0.0)
-        w2 = np.where(lam2 > 0.0, (-s * gu + c * gv) / lam2, 0.0)
-    return w1 * c - w2 * s, w1 * s + w2 * c, lam2
-
-
-@dataclass(frozen=True)
-class CellMoments:
-    """Per-cell moment sums of point layers about per-cell reference planes (module docstring).
-
-    One row per layer x cell of a chunk; :meth:`merge` adds the rows of the same layer x cell and
-    sorts them by ``(layer, i, j)``. Memory: 16 numbers per layer x cell, whatever the points.
-    """
-
-    cell_size_m: float
-    layer: np.ndarray  # (C,) int64 layer (the caller's code, e.g. strip * 256 + channel)
-    cell_ij: np.ndarray  # (C, 2) int64 cell indices (floor(x / size), floor(y / size))
-    reference: np.ndarray  # (C, 3) reference plane: height at the cell centre, dz/dx, dz/dy
-    spans: np.ndarray  # (C,) bool: the reference was fitted to points that span the cell
-    sums: np.ndarray  # (C, 10) float64: the sums named by MOMENTS
-
-    def __len__(self) -> int:
-        return int(self.layer.shape[0])
-
-    @classmethod
-    def empty(cls, cell_size_m: float) -> CellMoments:
-        return cls(float(cell_size_m), np.zeros(0, np.int64), np.zeros((0, 2), np.int64), np.zeros((0, 3)),
-                   np.zeros(0, bool), np.zeros((0, len(MOMENTS))))
-
-    @classmethod
-    def concatenate(cls, parts: Sequence[CellMoments | None], cell_size_m: float | None = None) -> CellMoments:
-        """The rows of ``parts`` one after the other (not merged)."""
-        parts = [p for p in parts if p is not None]
-        size = float(cell_size_m) if cell_size_m is not None else parts[0].cell_size_m if parts else None
-        if size is None:
-            raise ValueError("no moments to concatenate and no cell size")
-        if any(p.cell_size_m != size for p in parts):
-            raise ValueError(f"moments of cell sizes {sorted({p.cell_size_m for p in parts})}, expected {size}")
-        if not parts:
-            return cls.empty(size)
-        if len(parts) == 1:
-            return parts[0]
-        return cls(size, *(np.concatenate([getattr(p, f) for p in parts])
-                           for f in ("layer", "cell_ij", "reference", "spans", "sums")))
-
-    @classmethod
-    def merge(cls, parts: Sequence[CellMoments | None], cell_size_m: float | None = None) -> CellMoments:
-        """One row per layer x cell, sorted by ``(layer, i, j)``: the sums of all ``parts``.
-
-        Vectorised: the rows are sorted (``lexsort``) into groups of one layer x cell and moved
-        onto one reference plane and the group's centroid (:func:`_onto`), then added with
-        ``np.add.reduceat``. Twice: first onto the reference of the group's first row (parts that
-        span the cell first, then the most points), which gives the group's plane, then -- from
-        the rows as they came -- onto that plane, which becomes the group's reference. Every
-        part's points lie close to the group's plane, so no term of the second pass is large.
-        """
-        m = cls.concatenate(parts, cell_size_m)
-        if len(m) == 0:
-            return m
-        order = np.lexsort((-m.sums[:, 0], ~m.spans, m.cell_ij[:, 1], m.cell_ij[:, 0], m.layer))
-        layer, ij, ref, spans, sums = m.layer[order], m.cell_ij[order], m.reference[order], m.spans[order], m.sums[order]
-        new = np.ones(len(layer), dtype=bool)
-        new[1:] = (layer[1:] != layer[:-1]) | (ij[1:, 0] != ij[:-1, 0]) | (ij[1:, 1] != ij[:-1, 1])
-        starts = np.flatnonzero(new)
-        if starts.size == len(layer):  # one row per layer x cell already
-            return cls(m.cell_size_m, layer, ij, ref, spans, sums)
-        # Only the groups of several rows change (few: the cells that chunks share).
-        size = np.diff(np.append(starts, len(layer)))
-        several = size > 1
-        rows = np.repeat(several, size)
-        s, r = sums[rows], ref[rows]
-        first = np.flatnonzero(new[rows])  # the first rows of those groups, among their rows
-        group = np.repeat(np.arange(first.size), size[several])
-        total = np.add.reduceat(s[:, :3], first, axis=0)
-        centroid = total[:, 1:3] / total[:, :1]  # the groups' centroids (dx, dy)
-        merged = np.add.reduceat(_onto(s, r, r[first][group], centroid[group]), first, axis=0)
-        n, _, _, uu, uv, vv, sr, ur, vr, _ = merged.T
-        s1, s2, lam2 = _min_norm_slopes(uu, uv, vv, ur, vr)
-        plane = r[first] + np.column_stack([sr / n - s1 * centroid[:, 0] - s2 * centroid[:, 1], s1, s2])
-        out_ref, out_spans, out_sums = ref[starts], spans[starts], sums[starts]
-        out_ref[several] = plane
-        out_sums[several] = np.add.reduceat(_onto(s, r, plane[group], centroid[group]), first, axis=0)
-        out_spans[several] = (n >= 3) & (lam2 >= n * (_SPANS * m.cell_size_m) ** 2)
-        return cls(m.cell_size_m, layer[starts], ij[starts], out_ref, out_spans, out_sums)
-
-    def planes(self, min_points: int = 6) -> CellPlanes:
-        """The least-squares plane of every layer x cell with ``min_points`` that span the cell.
-
-        Rows must be merged (one per layer x cell: :meth:`merge`, or one chunk's :func:`cell_moments`).
-        """
-        n, sx, sy, uu, uv, vv, sr, ur, vr, rr = self.sums.T
-        det = uu * vv - uv * uv  # det of the 3x3 normal matrix = n * det
-        ok = (n >= min_points) & (n * np.abs(det) > 1e-9 * np.maximum(n, 1.0) ** 3 * self.cell_size_m**4)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s1 = np.where(ok, (vv * ur - uv * vr) / det, np.nan)
-            s2 = np.where(ok, (uu * vr - uv * ur) / det, np.nan)
-            mean_r = sr / n
-            rss = np.maximum(rr - sr * mean_r - (s1 * ur + s2 * vr), 0.0)
-            rough = np.sqrt(rss / n)
-            height = self.reference[:, 0] + mean_r - s1 * (sx / n) - s2 * (sy / n)
-        keep = ok & np.isfinite(rough) & np.isfinite(height)
-        return CellPlanes(self.cell_ij[keep], height[keep], rough[keep], n[keep].astype(np.int64), self.layer[keep])
-
-
-def _onto(sums: np.ndarray, ref: np.ndarray, target: np.ndarray, centroid: np.ndarray) -> np.ndarray:
-    """Rows of moment sums about their reference planes ``ref``, moved onto the planes ``target``
-    and onto the centroids ``centroid`` (``dx, dy``; per row).
-
-    With ``q = target - ref``: ``r' = r - (qc + q1 u + q2 v)``, ``qc`` the value of ``q`` at the
-    row's centroid, so ``Σr'² = Σr² - 2 (qc Σr + q1 Σu·r + q2 Σv·r) + n qc² + q·M·q``; the
-    co-moments ``M`` and the sums ``Σu·r, Σv·r`` move to the new centroid (parallel-variance
-    formula). ``q·M·q`` is summed on the eigenvectors of ``M``, as non-negative terms: expanded,
-    it would cancel where the points lie on one line along which both planes agree.
-    """
-    n, sx, sy, uu, uv, vv, sr, ur, vr, rr = sums.T
-    mx, my = sx / n, sy / n
-    ex, ey = mx - centroid[:, 0], my - centroid[:, 1]
-    q = target - ref
-    q1, q2 = q[:, 1], q[:, 2]
-    qc = q[:, 0] + q1 * mx + q2 * my
-    c, si, lam1, lam2 = _eig2(uu, uv, vv)
-    quad = lam1 * (c * q1 + si * q2) ** 2 + lam2 * (c * q2 - si * q1) ** 2
-    sr2 = sr - n * qc
-    ur2 = ur - (q1 * uu + q2 * uv)
-    vr2 = vr - (q1 * uv + q2 * vv)
-    rr2 = rr - 2.0 * (qc * sr + q1 * ur + q2 * vr) + n * qc * qc + quad
-    return np.column_stack([n, sx, sy, uu + n * ex * ex, uv + n * ex * ey, vv + n * ey * ey,
-                            sr2, ur2 + ex * sr2, vr2 + ey * sr2, rr2])
-
-
-def cell_moments(xyz: np.ndarray, cell_size_m: float = 1.0, layer: int = 0) -> CellMoments:
-    """Moment sums of one layer's points per raster cell (one chunk in memory; module docstring).
-
-    Vectorised with ``bincount``: the cells' centroids and mean heights, then the co-moments
-    about them and the least-squares plane (the cell's reference), then the residuals about it.
-    Rows come sorted by cell, one per cell.
-    """
-    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
-    ij = np.floor(xyz[:, :2] / cell_size_m).astype(np.int64)
-    cells, inv, counts = _cell_index(ij)
-    C = cells.shape[0]
-
-    def s(w):
-        return np.bincount(inv, w, C)
-
-    centre = (cells + 0.5) * cell_size_m
-    dx = xyz[:, 0] - centre[inv, 0]
-    dy = xyz[:, 1] - centre[inv, 1]
-    n = counts.astype(float)
-    sx, sy = s(dx), s(dy)
-    mx, my, z_mean = sx / n, sy / n, s(xyz[:, 2]) / n
-    u, v, dz = dx - mx[inv], dy - my[inv], xyz[:, 2] - z_mean[inv]
-    uu, uv, vv = s(u * u), s(u * v), s(v * v)
-    s1, s2, lam2 = _min_norm_slopes(uu, uv, vv, s(u * dz), s(v * dz))
-    r = dz - (s1[inv] * u + s2[inv] * v)
-    sums = np.column_stack([n, sx, sy, uu, uv, vv, s(r), s(u * r), s(v * r), s(r * r)])
-    reference = np.column_stack([z_mean - s1 * mx - s2 * my, s1, s2])
-    spans = (counts >= 3) & (lam2 >= n * (_SPANS * cell_size_m) ** 2)
-    return CellMoments(float(cell_size_m), np.full(C, int(layer), dtype=np.int64), cells, reference, spans, sums)
-
-
-def cell_planes(xyz: np.ndarray, cell_size_m: float = 1.0, min_points: int = 6) -> CellPlanes:
-    """Fit a plane to the points of every raster cell (points in memory; :func:`cell_moments`)."""
-    return cell_moments(xyz, cell_size_m).planes(min_points)
+def _keys(ij: np.ndarray) -> np.ndarray:
+    """One sortable int64 per cell index pair (``|i|, |j| < 2**31``: 2e9 cells of the raster)."""
+    return ij[:, 0].astype(np.int64) * (1 << 32) + (ij[:, 1].astype(np.int64) + (1 << 31))
 
 
 @dataclass(frozen=True)
@@ -308,28 +75,178 @@ class StripDifferenceMap:
                 "mean_m": float(np.mean(v))}
 
 
+@dataclass(frozen=True)
+class CellSpread:
+    """Per raster cell: the highest and lowest plane height over the layers planar there, and how
+    many they are (the map before it is rasterised). Rows sorted by ``(i, j)`` once merged."""
+
+    cell_ij: np.ndarray  # (K, 2) int64
+    high_m: np.ndarray  # (K,)
+    low_m: np.ndarray  # (K,)
+    layers: np.ndarray  # (K,) int64
+
+    def __len__(self) -> int:
+        return int(self.cell_ij.shape[0])
+
+    @classmethod
+    def of_planes(cls, planes: CellPlanes, max_roughness_m: float = 0.03) -> CellSpread:
+        """The spread of the planes (any layers) that fit within ``max_roughness_m``."""
+        good = planes.roughness_m <= max_roughness_m
+        h = planes.height_m[good]
+        return cls.merge([cls(planes.cell_ij[good], h, h, np.ones(h.size, dtype=np.int64))])
+
+    @classmethod
+    def merge(cls, parts: Iterable[CellSpread | None]) -> CellSpread:
+        """One row per cell: max of the highs, min of the lows, sum of the layers."""
+        parts = [p for p in parts if p is not None]
+        if not parts:
+            return cls(np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
+        ij = np.concatenate([p.cell_ij for p in parts])
+        if ij.shape[0] == 0:
+            return cls(ij, np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
+        order = np.argsort(_keys(ij), kind="stable")
+        ij = ij[order]
+        new = np.ones(ij.shape[0], dtype=bool)
+        new[1:] = np.any(ij[1:] != ij[:-1], axis=1)
+        starts = np.flatnonzero(new)
+        return cls(ij[starts],
+                   np.maximum.reduceat(np.concatenate([p.high_m for p in parts])[order], starts),
+                   np.minimum.reduceat(np.concatenate([p.low_m for p in parts])[order], starts),
+                   np.add.reduceat(np.concatenate([p.layers for p in parts])[order], starts))
+
+    def to_map(self, cell_size_m: float) -> StripDifferenceMap:
+        """The raster over the cells' bounding box: ``high - low`` where two or more layers are planar."""
+        if len(self) == 0:
+            return StripDifferenceMap(np.full((1, 1), np.nan), np.zeros((1, 1), dtype=int), 0.0, cell_size_m,
+                                      cell_size_m)
+        cells, counts = self.cell_ij, self.layers
+        i0, j0 = cells.min(axis=0)
+        i1, j1 = cells.max(axis=0)
+        rows, cols = int(j1 - j0 + 1), int(i1 - i0 + 1)
+        spread = np.full((rows, cols), np.nan)
+        nlay = np.zeros((rows, cols), dtype=int)
+        r = (j1 - cells[:, 1]).astype(np.int64)
+        c = (cells[:, 0] - i0).astype(np.int64)
+        nlay[r, c] = counts
+        two = counts >= 2
+        spread[r[two], c[two]] = (self.high_m - self.low_m)[two]
+        return StripDifferenceMap(spread, nlay, float(i0 * cell_size_m), float((j1 + 1) * cell_size_m), cell_size_m)
+
+
+class Reopened(RuntimeError):
+    """Points of a layer x cell arrived after :class:`StripDifferenceStream` had closed it."""
+
+
+class _Pile:
+    """Parts merged into a total once they hold as many rows as it (at least ``_MERGE_ROWS``): every
+    row is merged a few times on average and memory stays within a few times the total."""
+
+    def __init__(self, merge) -> None:
+        self._merge = merge
+        self.total = None
+        self.parts: list = []
+        self.rows = 0
+
+    def add(self, part) -> None:
+        self.parts.append(part)
+        self.rows += len(part)
+        if self.rows >= max(_MERGE_ROWS, len(self.total) if self.total is not None else 0):
+            self.merged()
+
+    def merged(self):
+        self.total = self._merge([self.total, *self.parts])
+        self.parts, self.rows = [], 0
+        return self.total
+
+
+class StripDifferenceStream:
+    """The strip-difference map of points that arrive in chunks (module docstring, "Streaming").
+
+    :meth:`add` takes a chunk's cell sums, one :class:`CellMoments` per layer (any layer codes),
+    and its number of records; :meth:`close_layer` declares a layer complete; :meth:`result`
+    gives the map. ``close_after``: records after which a layer x cell that got no points is
+    closed (``None``: cells are closed only with their layer).
+    """
+
+    def __init__(self, cell_size_m: float = 1.0, min_points: int = 6, max_roughness_m: float = 0.03, *,
+                 close_after: int | None = None) -> None:
+        self.cell_size_m = float(cell_size_m)
+        self.min_points = int(min_points)
+        self.max_roughness_m = float(max_roughness_m)
+        self.close_after = None if close_after is None else max(1, int(close_after))
+        self._sums: dict[int, _Pile] = {}  # open layers
+        self._touched: dict[int, list[np.ndarray]] = {}  # their cells with points since the last closing
+        self._closed_cells: dict[int, list[np.ndarray]] = {}  # sorted keys of closed cells of open layers
+        self._closed_layers: set[int] = set()
+        self._spread = _Pile(CellSpread.merge)
+        self._since = 0
+
+    def open_rows(self) -> int:
+        """Layer x cell rows held open (sums merged or not)."""
+        return sum(p.rows + (len(p.total) if p.total is not None else 0) for p in self._sums.values())
+
+    def add(self, chunk: Sequence[CellMoments], records: int) -> None:
+        """The cell sums of the next chunk (one :class:`CellMoments` per layer, rows of one layer)."""
+        for m in chunk:
+            if len(m) == 0:
+                continue
+            if m.cell_size_m != self.cell_size_m:
+                raise ValueError(f"cell sums of {m.cell_size_m} m added to a stream of {self.cell_size_m} m")
+            layer = int(m.layer[0])
+            if layer in self._closed_layers:
+                raise Reopened(f"layer {layer} has points after it was declared complete")
+            keys = _keys(m.cell_ij)
+            for closed in self._closed_cells.get(layer, ()):
+                at = np.minimum(np.searchsorted(closed, keys), closed.size - 1)
+                if np.any(closed[at] == keys):
+                    raise Reopened(f"layer {layer} has points in a cell it left more than {self.close_after} "
+                                   "records before")
+            self._sums.setdefault(layer, _Pile(CellMoments.merge)).add(m)
+            if self.close_after is not None:
+                self._touched.setdefault(layer, []).append(keys)
+        self._since += int(records)
+        if self.close_after is not None and self._since >= self.close_after:
+            self._close_untouched()
+            self._since = 0
+
+    def _fold(self, m: CellMoments) -> None:
+        """Fold closed rows' planes into the spread."""
+        if len(m):
+            self._spread.add(CellSpread.of_planes(m.planes(self.min_points), self.max_roughness_m))
+
+    def _close_untouched(self) -> None:
+        """Close the rows of open layers that got no points since the last closing."""
+        for layer, pile in self._sums.items():
+            total = pile.merged()
+            touched = self._touched.pop(layer, [])
+            keys = _keys(total.cell_ij)
+            idle = ~np.isin(keys, np.concatenate(touched)) if touched else np.ones(len(total), dtype=bool)
+            if not np.any(idle):
+                continue
+            self._fold(total.take(idle))
+            self._closed_cells.setdefault(layer, []).append(keys[idle])  # sorted: merged rows are
+            pile.total = total.take(~idle)
+
+    def close_layer(self, layer: int) -> None:
+        """Declare ``layer`` complete: its planes go into the spread, its sums are dropped."""
+        layer = int(layer)
+        pile = self._sums.pop(layer, None)
+        if pile is not None:
+            self._fold(pile.merged())
+        self._touched.pop(layer, None)
+        self._closed_cells.pop(layer, None)
+        self._closed_layers.add(layer)
+
+    def result(self) -> StripDifferenceMap:
+        """The map of everything added (every layer is closed)."""
+        for layer in list(self._sums):
+            self.close_layer(layer)
+        return self._spread.merged().to_map(self.cell_size_m)
+
+
 def strip_difference_map(planes: CellPlanes, cell_size_m: float, max_roughness_m: float = 0.03) -> StripDifferenceMap:
     """The raster of the planes of all layers (one plane per layer x cell): max - min per cell."""
-    good = planes.roughness_m <= max_roughness_m
-    allk, allh = planes.cell_ij[good], planes.height_m[good]
-    if allk.shape[0] == 0:
-        return StripDifferenceMap(np.full((1, 1), np.nan), np.zeros((1, 1), dtype=int), 0.0, cell_size_m, cell_size_m)
-    cells, inv, counts = _cell_index(allk)
-    hi = np.full(cells.shape[0], -np.inf)
-    lo = np.full(cells.shape[0], np.inf)
-    np.maximum.at(hi, inv, allh)
-    np.minimum.at(lo, inv, allh)
-    i0, j0 = cells.min(axis=0)
-    i1, j1 = cells.max(axis=0)
-    rows, cols = int(j1 - j0 + 1), int(i1 - i0 + 1)
-    spread = np.full((rows, cols), np.nan)
-    nlay = np.zeros((rows, cols), dtype=int)
-    r = (j1 - cells[:, 1]).astype(np.int64)
-    c = (cells[:, 0] - i0).astype(np.int64)
-    nlay[r, c] = counts
-    two = counts >= 2
-    spread[r[two], c[two]] = (hi - lo)[two]
-    return StripDifferenceMap(spread, nlay, float(i0 * cell_size_m), float((j1 + 1) * cell_size_m), cell_size_m)
+    return CellSpread.of_planes(planes, max_roughness_m).to_map(cell_size_m)
 
 
 def strip_differences(
