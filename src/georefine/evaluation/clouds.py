@@ -17,7 +17,7 @@ arguments) that reads its records and keeps only what the metrics need:
   for a surface larger than that), which are few, whatever the length of the corridor.
 
 One pass (:func:`scan_clouds`) serves both metrics. The results do not depend on the chunk
-size, the closing or the scheduler, beyond the order of floating-point sums (~1e-11 m). Writes:
+size, the closing or the scheduler, beyond the order of floating-point sums (< 1e-10 m). Writes:
 
 * ``reference_planes.json`` and ``reference_planes.csv``: the observations of the reference
   surfaces per strip x channel and paper 000's Table 1 figures
