@@ -16,10 +16,11 @@ so :class:`StripDifferenceStream` takes the points as a stream of chunks and kee
 cells still *open*: once a layer x cell has had no points for ``close_after`` records (a strip
 read in time order has passed it) or its layer is declared complete (the end of the strip's
 file), its plane is folded into the spread and its sums are dropped. Memory is then the
-cells of the last few chunks plus the map, whatever the number of points. Closing is checked,
-not assumed: points that arrive for a closed layer x cell raise :class:`Reopened` (the caller
-then reads again without closing, in memory that grows with the cells of all layers). Closing
-changes nothing in the results but the order of floating-point sums.
+cells of the last few chunks and the map -- plus 8 bytes per cell a still open layer has left,
+to check that it stays closed -- not the points. Closing is checked, not assumed: points that
+arrive for a closed layer x cell raise :class:`Reopened` (the caller then reads again without
+closing, in memory that grows with the cells of all layers). Closing changes nothing in the
+results but the order of floating-point sums.
 
 Outputs: the raster (NaN where undefined), its summary (median, P95 over the defined cells), a
 PNG map (0-0.1 m, green to red, colour bar, easting/northing axes) and a GeoTIFF (float32,
@@ -224,7 +225,10 @@ class StripDifferenceStream:
             if not np.any(idle):
                 continue
             self._fold(total.take(idle))
-            self._closed_cells.setdefault(layer, []).append(keys[idle])  # sorted: merged rows are
+            closed = self._closed_cells.setdefault(layer, [])
+            closed.append(keys[idle])  # sorted: merged rows are
+            if len(closed) > 8:  # one sorted array now and then keeps the checks cheap
+                closed[:] = [np.sort(np.concatenate(closed))]
             pile.total = total.take(~idle)
 
     def close_layer(self, layer: int) -> None:
