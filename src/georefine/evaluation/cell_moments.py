@@ -42,7 +42,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["MOMENTS", "CellMoments", "cell_moments", "CellPlanes", "cell_planes", "cell_index"]
+__all__ = ["MOMENTS", "CellMoments", "cell_moments", "CellPlanes", "cell_planes", "cell_index", "cell_keys"]
 
 MOMENTS = ("n", "dx", "dy", "uu", "uv", "vv", "r", "ur", "vr", "rr")
 """The sums of :class:`CellMoments` in column order (module docstring)."""
@@ -61,6 +61,11 @@ class CellPlanes:
     roughness_m: np.ndarray  # (C,) RMS residual of the plane
     n_points: np.ndarray  # (C,) int64
     layer: np.ndarray | None = None  # (C,) int64 layer of each plane (None: one layer)
+
+
+def cell_keys(ij: np.ndarray) -> np.ndarray:
+    """One int64 per cell index pair, in the order of ``(i, j)`` (for ``|i|, |j| < 2**31``)."""
+    return ij[:, 0].astype(np.int64) * (1 << 32) + (ij[:, 1].astype(np.int64) + (1 << 31))
 
 
 def cell_index(ij: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -162,17 +167,22 @@ class CellMoments:
     def merge(cls, parts: Sequence[CellMoments | None], cell_size_m: float | None = None) -> CellMoments:
         """One row per layer x cell, sorted by ``(layer, i, j)``: the sums of all ``parts``.
 
-        Vectorised: the rows are sorted (``lexsort``) into groups of one layer x cell and moved
-        onto one reference plane and the group's centroid (:func:`_onto`), then added with
-        ``np.add.reduceat``. Twice: first onto the reference of the group's first row (parts that
-        span the cell first, then the most points), which gives the group's plane, then -- from
-        the rows as they came -- onto that plane, which becomes the group's reference. Every
-        part's points lie close to the group's plane, so no term of the second pass is large.
+        Vectorised: the rows are sorted into groups of one layer x cell (a stable sort of one
+        key per row when all are of one layer: the parts' sorted runs merge), and the rows of a
+        group of several are moved onto one reference plane and the group's centroid
+        (:func:`_onto`), then added with ``np.add.reduceat``. Twice: first onto the reference of
+        the group's best part (one that spans the cell, with the most points), which gives the
+        group's plane, then -- from the rows as they came -- onto that plane, which becomes the
+        group's reference. Every part's points lie close to the group's plane, so no term of
+        the second pass is large.
         """
         m = cls.concatenate(parts, cell_size_m)
         if len(m) == 0:
             return m
-        order = np.lexsort((-m.sums[:, 0], ~m.spans, m.cell_ij[:, 1], m.cell_ij[:, 0], m.layer))
+        if np.all(m.layer == m.layer[0]):  # one layer: one key; a stable sort merges the sorted parts' runs
+            order = np.argsort(cell_keys(m.cell_ij), kind="stable")
+        else:
+            order = np.lexsort((m.cell_ij[:, 1], m.cell_ij[:, 0], m.layer))
         layer, ij, ref, spans, sums = m.layer[order], m.cell_ij[order], m.reference[order], m.spans[order], m.sums[order]
         new = np.ones(len(layer), dtype=bool)
         new[1:] = (layer[1:] != layer[:-1]) | (ij[1:, 0] != ij[:-1, 0]) | (ij[1:, 1] != ij[:-1, 1])
@@ -186,12 +196,16 @@ class CellMoments:
         s, r = sums[rows], ref[rows]
         first = np.flatnonzero(new[rows])  # the first rows of those groups, among their rows
         group = np.repeat(np.arange(first.size), size[several])
+        # Each group's first reference: that of a part spanning the cell, with the most points.
+        score = s[:, 0] + np.where(spans[rows], 2.0**60, 0.0)
+        top = score == np.maximum.reduceat(score, first)[group]
+        best = np.minimum.reduceat(np.where(top, np.arange(len(s)), len(s)), first)
         total = np.add.reduceat(s[:, :3], first, axis=0)
         centroid = total[:, 1:3] / total[:, :1]  # the groups' centroids (dx, dy)
-        merged = np.add.reduceat(_onto(s, r, r[first][group], centroid[group]), first, axis=0)
+        merged = np.add.reduceat(_onto(s, r, r[best][group], centroid[group]), first, axis=0)
         n, _, _, uu, uv, vv, sr, ur, vr, _ = merged.T
         s1, s2, lam2 = _min_norm_slopes(uu, uv, vv, ur, vr)
-        plane = r[first] + np.column_stack([sr / n - s1 * centroid[:, 0] - s2 * centroid[:, 1], s1, s2])
+        plane = r[best] + np.column_stack([sr / n - s1 * centroid[:, 0] - s2 * centroid[:, 1], s1, s2])
         out_ref, out_spans, out_sums = ref[starts], spans[starts], sums[starts]
         out_ref[several] = plane
         out_sums[several] = np.add.reduceat(_onto(s, r, plane[group], centroid[group]), first, axis=0)

@@ -39,6 +39,7 @@ import numpy as np
 from georefine.evaluation.cell_moments import (
     CellMoments,
     CellPlanes,
+    cell_keys,
     cell_moments,
     cell_planes,
 )
@@ -51,11 +52,6 @@ __all__ = [
 
 _MERGE_ROWS = 500_000
 """Rows held aside before they are merged into a total (sums of a layer, the spread)."""
-
-
-def _keys(ij: np.ndarray) -> np.ndarray:
-    """One sortable int64 per cell index pair (``|i|, |j| < 2**31``: 2e9 cells of the raster)."""
-    return ij[:, 0].astype(np.int64) * (1 << 32) + (ij[:, 1].astype(np.int64) + (1 << 31))
 
 
 @dataclass(frozen=True)
@@ -105,7 +101,7 @@ class CellSpread:
         ij = np.concatenate([p.cell_ij for p in parts])
         if ij.shape[0] == 0:
             return cls(ij, np.zeros(0), np.zeros(0), np.zeros(0, np.int64))
-        order = np.argsort(_keys(ij), kind="stable")
+        order = np.argsort(cell_keys(ij), kind="stable")
         ij = ij[order]
         new = np.ones(ij.shape[0], dtype=bool)
         new[1:] = np.any(ij[1:] != ij[:-1], axis=1)
@@ -196,7 +192,7 @@ class StripDifferenceStream:
             layer = int(m.layer[0])
             if layer in self._closed_layers:
                 raise Reopened(f"layer {layer} has points after it was declared complete")
-            keys = _keys(m.cell_ij)
+            keys = cell_keys(m.cell_ij)
             for closed in self._closed_cells.get(layer, ()):
                 at = np.minimum(np.searchsorted(closed, keys), closed.size - 1)
                 if np.any(closed[at] == keys):
@@ -219,14 +215,15 @@ class StripDifferenceStream:
         """Close the rows of open layers that got no points since the last closing."""
         for layer, pile in self._sums.items():
             total = pile.merged()
-            touched = self._touched.pop(layer, [])
-            keys = _keys(total.cell_ij)
-            idle = ~np.isin(keys, np.concatenate(touched)) if touched else np.ones(len(total), dtype=bool)
+            keys = cell_keys(total.cell_ij)  # sorted: merged rows are
+            idle = np.ones(len(total), dtype=bool)
+            for t in self._touched.pop(layer, []):  # keys are in the total: mark them
+                idle[np.searchsorted(keys, t)] = False
             if not np.any(idle):
                 continue
             self._fold(total.take(idle))
             closed = self._closed_cells.setdefault(layer, [])
-            closed.append(keys[idle])  # sorted: merged rows are
+            closed.append(keys[idle])
             if len(closed) > 8:  # one sorted array now and then keeps the checks cheap
                 closed[:] = [np.sort(np.concatenate(closed))]
             pile.total = total.take(~idle)
