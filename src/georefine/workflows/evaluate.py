@@ -21,10 +21,12 @@ from pathlib import Path
 from typing import Callable
 
 from georefine.evaluation.clouds import (
+    DEFAULT_CHUNK_POINTS,
     evaluate_reference_planes,
     evaluate_strip_differences,
     point_files,
-    read_layers,
+    reference_boxes,
+    scan_clouds,
 )
 from georefine.evaluation.plots import (
     plot_attitude_differences,
@@ -45,6 +47,7 @@ from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.files import write_json
 from georefine.io.reference import read_reference_surfaces
 from georefine.io.run_metrics import WorkflowMetrics
+from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.navigation import run_georeference
 
 log = logging.getLogger(__name__)
@@ -67,12 +70,14 @@ def evaluate_run(
     *,
     clouds: dict[str, CloudEvaluation] | None = None,
     progress: Callable[[str, float, float], None] | None = None,
+    scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
 ) -> RunEvaluation:
     """Evaluate ``run_dir`` (and ``single_dir``); write ``run_dir/evaluation`` and return the summary.
 
     ``clouds`` holds :func:`evaluate_cloud` results computed elsewhere (``georefine demo``
     evaluates the G/I cloud in a second process while the run goes on); the others are
-    computed here.
+    computed here, their per-chunk work on ``scheduler`` (a name or a running
+    :class:`~georefine.tasks.TaskRunner`, :mod:`georefine.tasks`).
     """
     project, run_dir = Path(project), Path(run_dir)
     report = progress or (lambda *a: None)
@@ -122,11 +127,19 @@ def evaluate_run(
     clouds = dict(clouds or {})
     reference_planes: dict[str, ReferencePlaneFigures] = {}
     strip_differences: dict[str, StripDifferenceFigures] = {}
-    for label in CLOUDS:
-        result = clouds.get(label) or evaluate_cloud(project, run_dir, label, progress=report)
-        if result.reference_planes is not None:
-            reference_planes[label] = result.reference_planes
-        strip_differences[label] = result.strip_differences
+    own = None
+    if any(label not in clouds for label in CLOUDS) and not isinstance(scheduler, TaskRunner):
+        own = TaskRunner(scheduler)
+    runner = own or scheduler
+    try:
+        for label in CLOUDS:
+            result = clouds.get(label) or evaluate_cloud(project, run_dir, label, progress=report, scheduler=runner)
+            if result.reference_planes is not None:
+                reference_planes[label] = result.reference_planes
+            strip_differences[label] = result.strip_differences
+    finally:
+        if own is not None:
+            own.close()
     summary = RunEvaluation(reference_name, trajectory, plots, reference_planes, strip_differences)
     write_json(out / "summary.json", summary.to_dict())
     return summary
@@ -140,6 +153,8 @@ def evaluate_cloud(
     trajectory: Path | None = None,
     strips: list[int] | None = None,
     progress: Callable[[str, float, float], None] | None = None,
+    scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
+    chunk_points: int = DEFAULT_CHUNK_POINTS,
 ) -> CloudEvaluation:
     """Reference planes and the strip-difference map of one point cloud of a run.
 
@@ -148,6 +163,12 @@ def evaluate_cloud(
     written by the run); ``strips`` (default: those of ``RUN/metrics.json``, else all) selects
     the strip files. Writes ``RUN/evaluation/gi`` or ``.../gil``; the reference planes are
     evaluated only when the project has reference surfaces.
+
+    The strip files are read once, in record ranges of ``chunk_points``, each a task on
+    ``scheduler`` (a name or a running :class:`~georefine.tasks.TaskRunner`), and reduced to the
+    cell sums of the strip differences and the points near the reference surfaces
+    (:func:`georefine.evaluation.clouds.scan_clouds`, docs/ARCHITECTURE.md §5): memory does not
+    grow with the number of points. The G/I georeferencing runs on the same scheduler.
     """
     project, run_dir = Path(project), Path(run_dir)
     report = progress or (lambda *a: None)
@@ -156,31 +177,35 @@ def evaluate_cloud(
         strips = list(WorkflowMetrics.read(run_dir / "metrics.json").strips)
     out = run_dir / "evaluation" / sub
     out.mkdir(parents=True, exist_ok=True)
-    if label == "G/I":
-        folder = run_dir / "gi" / "points"
-        sbet = Path(trajectory or run_dir / "gi" / "trajectory.sbet")
-        laz = list(folder.glob("*.laz"))
-        if not laz or min(f.stat().st_mtime_ns for f in laz) < sbet.stat().st_mtime_ns:  # none, or older
-            run_georeference(project, sbet, folder, progress=report)
-    else:
-        folder = run_dir / "points"
-    ref_csv = project / "reference" / "surfaces.csv"
-    zoom = None
-    if ref_csv.is_file():  # a 250 m detail around the first reference site (cf. paper 000, Fig. 7)
-        c = read_reference_surfaces(ref_csv).xyz[:4].mean(axis=0)
-        zoom = (c[0] - 125.0, c[0] + 125.0, c[1] - 125.0, c[1] + 125.0)
-    files = [f for f in point_files([folder])
-             if strips is None or f.stem in {f"strip_{s}" for s in strips} or not f.stem.startswith("strip_")]
-    report(f"point cloud evaluation {label}", 0, 2)
-    layers = read_layers(files)
+    own = TaskRunner(scheduler) if not isinstance(scheduler, TaskRunner) else None
+    runner = own or scheduler
+    try:
+        if label == "G/I":
+            folder = run_dir / "gi" / "points"
+            sbet = Path(trajectory or run_dir / "gi" / "trajectory.sbet")
+            laz = list(folder.glob("*.laz"))
+            if not laz or min(f.stat().st_mtime_ns for f in laz) < sbet.stat().st_mtime_ns:  # none, or older
+                run_georeference(project, sbet, folder, progress=report, scheduler=runner)
+        else:
+            folder = run_dir / "points"
+        ref_csv = project / "reference" / "surfaces.csv"
+        zoom = boxes = None
+        if ref_csv.is_file():  # a 250 m detail around the first reference site (cf. paper 000, Fig. 7)
+            c = read_reference_surfaces(ref_csv).xyz[:4].mean(axis=0)
+            zoom = (c[0] - 125.0, c[0] + 125.0, c[1] - 125.0, c[1] + 125.0)
+            boxes = reference_boxes(ref_csv)
+        files = [f for f in point_files([folder])
+                 if strips is None or f.stem in {f"strip_{s}" for s in strips} or not f.stem.startswith("strip_")]
+        scan = scan_clouds(files, cell_size_m=1.0, boxes=boxes, runner=runner, chunk_points=chunk_points,
+                           progress=report, label=f"point cloud evaluation {label}")
+    finally:
+        if own is not None:
+            own.close()
     planes = None
     if ref_csv.is_file():
-        _, rp = evaluate_reference_planes(files, ref_csv, out, layers=layers)
+        _, rp = evaluate_reference_planes(files, ref_csv, out, scan=scan)
         planes = ReferencePlaneFigures.from_summary(rp)
-    report(f"point cloud evaluation {label}", 1, 2)
-    sd = evaluate_strip_differences(files, out, title=f"strip differences, {label}", layers=layers, zoom=zoom)
-    del layers
+    sd = evaluate_strip_differences(files, out, title=f"strip differences, {label}", zoom=zoom, scan=scan)
     differences = StripDifferenceFigures.from_map(
         sd, f"{sub}/strip_differences.png", None if zoom is None else f"{sub}/strip_differences_zoom.png")
-    report(f"point cloud evaluation {label}", 2, 2)
     return CloudEvaluation(differences, planes)
