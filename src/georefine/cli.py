@@ -228,6 +228,7 @@ def demo(
     overrides: Optional[list[str]] = typer.Option(None, "--set", help="Scenario override key.sub=value (repeatable)."),
     single_pass: bool = typer.Option(True, "--single-pass/--no-single-pass", help="Also run the single-pass case."),
     method: str = typer.Option("sift", "--method", help="block: matcher, sift or xfeat."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Simulate a scenario, run the whole method on it, evaluate it as the paper does and write
     OUT/report.html and OUT/metrics.json.
@@ -245,7 +246,7 @@ def demo(
 
         with _progress() as report:
             result = run_demo(out, scenario=scenario, seed=seed, overrides=overrides or [], single_pass=single_pass,
-                              progress=report)
+                              progress=report, scheduler=scheduler)
     from rich.table import Table
 
     m = result.metrics
@@ -478,6 +479,7 @@ def evaluate_reference_planes_cmd(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for reference_planes.json and .csv."),
     inset: float = typer.Option(0.25, "--inset", help="Margin inside each surveyed outline (m)."),
     max_distance: float = typer.Option(0.3, "--max-distance", help="Points farther from the plane are ignored (m)."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Distances of the points to surveyed reference planes per strip x channel (paper 000, Table 1).
 
@@ -488,9 +490,12 @@ def evaluate_reference_planes_cmd(
     with _user_errors():
         from georefine.evaluation.clouds import evaluate_reference_planes, point_files
         from georefine.evaluation.summary import ReferencePlaneFigures
+        from georefine.tasks import TaskRunner
 
-        _, summary = evaluate_reference_planes(point_files(points), reference, out, inset_m=inset,
-                                               max_distance_m=max_distance)
+        files = point_files(points)
+        with TaskRunner(scheduler) as runner:
+            _, summary = evaluate_reference_planes(files, reference, out, inset_m=inset, max_distance_m=max_distance,
+                                                   runner=runner)
         figures = ReferencePlaneFigures.from_summary(summary)
     from rich.table import Table
 
@@ -513,13 +518,17 @@ def evaluate_strip_differences_cmd(
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for the map (PNG, GeoTIFF) and JSON."),
     cell: float = typer.Option(1.0, "--cell", help="Raster cell size (m)."),
     max_roughness: float = typer.Option(0.03, "--max-roughness", help="Planar cells only: RMS plane residual (m)."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Strip differences on a raster (paper 000, Fig. 7): per cell max - min of the plane heights
     of the layers strip x channel that are planar there."""
     with _user_errors():
         from georefine.evaluation.clouds import evaluate_strip_differences, point_files
+        from georefine.tasks import TaskRunner
 
-        m = evaluate_strip_differences(point_files(points), out, cell_size_m=cell, max_roughness_m=max_roughness)
+        files = point_files(points)
+        with TaskRunner(scheduler) as runner:
+            m = evaluate_strip_differences(files, out, cell_size_m=cell, max_roughness_m=max_roughness, runner=runner)
     s = m.summary()
     stdout.print(f"strip differences on {s['cells']:,} planar cells of {cell:g} m: median {s['median_m'] * 1e3:.1f} mm, "
                  f"P95 {s['p95_m'] * 1e3:.1f} mm")

@@ -34,6 +34,7 @@ from georefine.io.files import write_json
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import simulate_project
+from georefine.tasks import DEFAULT_SCHEDULER
 from georefine.workflows.evaluate import evaluate_cloud, evaluate_run
 from georefine.workflows.lidar import precompute_gnss_imu, run_workflow
 
@@ -89,7 +90,7 @@ class DemoResult:
 
 
 def _second_lane(project: Path, out: Path, cache: Path, first_strip: int,
-                 progress: QueuedProgress) -> tuple[dict[str, float], CloudEvaluation]:
+                 progress: QueuedProgress, scheduler: str = DEFAULT_SCHEDULER) -> tuple[dict[str, float], CloudEvaluation]:
     """The demo's second process: the single-pass run, then the G/I point cloud and its evaluation.
 
     Both need only the G/I adjustment (in the shared step cache), not the full run; the G/I
@@ -98,12 +99,13 @@ def _second_lane(project: Path, out: Path, cache: Path, first_strip: int,
     timings: dict[str, float] = {}
     t = _time.perf_counter()
     run_workflow(project, out / "run-single-pass", strips=[first_strip], points=False, cache_dir=cache,
-                 progress=replace(progress, prefix="single pass: "))
+                 progress=replace(progress, prefix="single pass: "), scheduler=scheduler)
     timings["run_single_pass"] = _time.perf_counter() - t
     gi_sbet = out / "run-single-pass" / "gi" / "trajectory.sbet"
     t = _time.perf_counter()
     strips = [int(p["strip_id"]) for p in yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["passes"]]
-    gi = evaluate_cloud(project, out / "run", "G/I", trajectory=gi_sbet, strips=strips, progress=progress)
+    gi = evaluate_cloud(project, out / "run", "G/I", trajectory=gi_sbet, strips=strips, progress=progress,
+                        scheduler=scheduler)
     timings["evaluate_gi_cloud"] = _time.perf_counter() - t
     return timings, gi
 
@@ -116,6 +118,7 @@ def run_demo(
     overrides: list[str] | None = None,
     single_pass: bool = True,
     progress: Progress = no_progress,
+    scheduler: str = DEFAULT_SCHEDULER,
 ) -> DemoResult:
     """Simulate, run (both passes and one), evaluate and report into ``out``.
 
@@ -123,7 +126,9 @@ def run_demo(
     cloud; a second process runs steps 1-2 as soon as the simulator has written GNSS and IMU,
     then the single-pass case and the G/I cloud (without the single pass, this process
     evaluates the G/I cloud). Results go through files and the step cache (``OUT/.cache``)
-    only, so each lane's results are those of the same commands run alone.
+    only, so each lane's results are those of the same commands run alone. ``scheduler``
+    names where each lane's per-tile work runs (:mod:`georefine.tasks`; an address puts both
+    lanes' tasks on one cluster).
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -154,12 +159,12 @@ def run_demo(
         second = None
         if single_pass:
             first = int(yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["passes"][0]["strip_id"])
-            second = lanes.submit(_second_lane, project, out, cache, first, lanes.queued())
+            second = lanes.submit(_second_lane, project, out, cache, first, lanes.queued(), scheduler)
         t = _time.perf_counter()
-        full = run_workflow(project, out / "run", cache_dir=cache, progress=lanes)
+        full = run_workflow(project, out / "run", cache_dir=cache, progress=lanes, scheduler=scheduler)
         timings["run_both_passes"] = _time.perf_counter() - t
         t = _time.perf_counter()
-        clouds = {"G/I/L": evaluate_cloud(project, out / "run", "G/I/L", progress=lanes)}
+        clouds = {"G/I/L": evaluate_cloud(project, out / "run", "G/I/L", progress=lanes, scheduler=scheduler)}
         timings["evaluate_gil_cloud"] = _time.perf_counter() - t
         if second is not None:
             t = _time.perf_counter()
@@ -169,7 +174,7 @@ def run_demo(
 
     t = _time.perf_counter()
     single_dir = out / "run-single-pass" if single_pass else None
-    evaluation = evaluate_run(project, out / "run", single_dir, clouds=clouds, progress=lanes)
+    evaluation = evaluate_run(project, out / "run", single_dir, clouds=clouds, progress=lanes, scheduler=scheduler)
     timings["evaluate"] = _time.perf_counter() - t
     t = _time.perf_counter()
     report = write_report(out / "run", out / "report.html", title=f"Georefine demo: {scenario}, seed {seed}")
