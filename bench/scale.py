@@ -17,6 +17,7 @@ Usage::
 
     python bench/scale.py WORKDIR [--rates 100000 400000 1800000] [--scheduler threads]
                                   [--no-single-pass]
+    python bench/scale.py WORKDIR --rates 100000 --schedulers sync threads processes
 
 Projects already in WORKDIR (``corridor-<rate>``) are reused (delete them to re-simulate).
 """
@@ -81,14 +82,44 @@ def stage_seconds(timings: dict[str, float]) -> dict[str, float]:
     return out
 
 
+def compare_schedulers(workdir: Path, rate: int, schedulers: list[str]) -> None:
+    """Both passes on each scheduler: per-point stage seconds, speed-up against the first, memory, same results."""
+    from georefine.io.trajectory import read_sbet
+
+    project, _, _, points = simulate(workdir, rate)
+    print(f"{rate / 1e3:.0f} kHz, {points:,} points; schedulers {', '.join(schedulers)}")
+    first = None
+    for name in schedulers:
+        out = workdir / f"run-{rate}-{name.replace('://', '-').replace(':', '-')}"
+        wall, peak, m = run(project, out, name, [])
+        secs = stage_seconds(m["timings_s"])
+        n_iter = len(m["outer_iterations"])
+        feat = secs["features"] / n_iter
+        sbet = read_sbet(out / "gil" / "trajectory.sbet", gps_week=int(m["t0_gps"] // 604800))
+        if first is None:
+            first = (feat, secs["final_georeferencing"], sbet)
+        d_att = max(float(np.degrees(np.abs(getattr(sbet, k) - getattr(first[2], k))).max())
+                    for k in ("roll_rad", "pitch_rad", "heading_rad"))
+        print(f"  {name:10s} {wall:7.1f} s  peak {peak:5.2f} GB  features {feat:5.1f} s per iteration "
+              f"({first[0] / feat:.2f}x)  final georeferencing {secs['final_georeferencing']:5.1f} s "
+              f"({first[1] / secs['final_georeferencing']:.2f}x)  max attitude difference to {schedulers[0]} "
+              f"{d_att:.1e} deg")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("workdir", type=Path)
     ap.add_argument("--rates", type=int, nargs="+", default=[100_000, 400_000, 1_800_000])
     ap.add_argument("--scheduler", default="threads")
     ap.add_argument("--no-single-pass", action="store_true")
+    ap.add_argument("--schedulers", nargs="+", metavar="NAME",
+                    help="Instead: run the lowest rate's project with each scheduler (e.g. sync threads processes) "
+                         "and compare the per-point stages, memory and trajectories.")
     a = ap.parse_args()
     a.workdir.mkdir(parents=True, exist_ok=True)
+    if a.schedulers:
+        compare_schedulers(a.workdir, min(a.rates), a.schedulers)
+        return
     rows = []
     for rate in a.rates:
         project, sim_wall, sim_peak, points = simulate(a.workdir, rate)
@@ -113,7 +144,7 @@ def main() -> None:
                 print(f"    pass {s}: roll/pitch/yaw RMSE G/I {gi.round(1).tolist()} mdeg, G/I/L {gil.round(1).tolist()} mdeg,"
                       f" yaw G/I/L : G/I = {gil[2] / gi[2]:.2f}")
             rows.append((rate, name, points, wall, peak))
-    full = [r for r in rows if r[1] == "both passes"]
+    full = sorted((r for r in rows if r[1] == "both passes"), key=lambda r: r[0])
     if len(full) > 1:
         base = full[0]
         print("\nagainst the lowest rate (both passes): points, wall time, peak memory")
