@@ -113,8 +113,8 @@ def test_plan_owns_every_record_once_and_reads_the_margins(strip):
     for a, b in zip(plan.tiles[:-1], plan.tiles[1:]):
         assert a.stop == b.start and a.own_t1 == b.own_t0
     for tile in plan.tiles:
-        own = (t >= tile.own_t0) & (t < tile.own_t1)
-        assert np.all(np.flatnonzero(own) >= tile.start) or tile.number == 0
+        own = np.flatnonzero((t >= tile.own_t0) & (t < tile.own_t1))  # times strictly increase here
+        assert own[0] == tile.start and own[-1] == tile.stop - 1 and own.size == tile.points
         # the records a feature task reads hold every point within the margin of its own times
         need = np.flatnonzero((t >= tile.own_t0 - 1.0) & (t < tile.own_t1 + 1.0))
         assert tile.read_start <= need.min() and need.max() < tile.read_stop

@@ -9,7 +9,8 @@ docs/ARCHITECTURE.md §1, "Scale"):
     Every task in this process, one after the other (debugging, profiling).
 ``threads``
     A ``dask.distributed`` cluster inside this process, one worker with a thread per core: no
-    data is copied between tasks; the numba kernels and LAZ coding release the GIL.
+    data is copied between tasks. The fastest on 2 cores (BENCHMARKS.md, "Scale"), although the
+    tasks share the GIL wherever numpy holds it.
 ``processes``
     A ``dask.distributed.LocalCluster`` of one single-threaded worker process per core.
 ``tcp://host:port`` (or any address a ``dask.distributed.Client`` accepts)
