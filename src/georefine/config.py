@@ -381,7 +381,7 @@ class LidargrammetryConfig(StrictModel):
 
 
 class ScaleConfig(StrictModel):
-    """Bounded memory of the per-point stages (docs/ARCHITECTURE.md §1, "Scale").
+    """Bounded memory of the per-point stages (docs/ARCHITECTURE.md §4.7).
 
     Strips are cut into time tiles sized so that the tiles in work at once -- one per task slot
     of the scheduler -- fit ``memory_budget_gb`` together, whatever the number of points.

@@ -1,9 +1,10 @@
 """Where per-tile work runs: in this process, on threads, on local processes or on a Dask cluster.
 
-Per-point stages split their data into tiles (time tiles along a strip, chunks of a simulated
-flight, photo–lidargram pairs) and hand one function call per tile to a :class:`TaskRunner`.
+Per-point stages split their data into tiles (time tiles along a strip for the planar features
+and the georeferencing, record ranges of point clouds for the evaluation) and hand one function
+call per tile to a :class:`TaskRunner`.
 The scheduler is the user's choice (``--scheduler`` on the command line,
-docs/ARCHITECTURE.md §1, "Scale"):
+docs/ARCHITECTURE.md §4.7):
 
 ``sync``
     Every task in this process, one after the other (debugging, profiling).

@@ -1,4 +1,4 @@
-"""Time tiles of a strip: the unit of per-point work in bounded memory (docs/ARCHITECTURE.md §1, "Scale").
+"""Time tiles of a strip: the unit of per-point work in bounded memory (docs/ARCHITECTURE.md §4.7).
 
 A strip file is read once in a light pass (:func:`georefine.io.las.time_index`: only the GPS-time
 layer of a LAZ file is decoded) that samples the point times and checks that they never
