@@ -35,22 +35,12 @@ import yaml
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from proctree import run_measured  # noqa: E402
 
-from georefine.evaluation.trajectory_files import compare_sbet_files  # noqa: E402
+from georefine.evaluation.trajectory_files import truth_pass_rmse as pass_rmse  # noqa: E402
 
 LINE_RATE = {100_000: 120.0, 400_000: 240.0, 1_800_000: 400.0}
 """Lines per second at each pulse rate (the corridor's, between, the VUX-160's in ``corridor-paper``)."""
 
 PER_POINT = ("read", "features", "final_georeferencing")
-
-
-def pass_rmse(sbet: Path, project: Path, strip: int) -> np.ndarray:
-    """Roll, pitch, yaw RMSE (mdeg) of ``sbet`` against the truth during a pass (1 s inset)."""
-    truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
-    p = next(p for p in truth["passes"] if p["strip_id"] == strip)
-    t0 = truth["t0_gps"]
-    cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet",
-                             time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
-    return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
 
 
 def simulate(workdir: Path, rate: int) -> tuple[Path, float | None, float | None, int]:

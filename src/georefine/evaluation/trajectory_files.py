@@ -190,3 +190,19 @@ def write_trajectory_evaluation(
     pos = plot_position_differences({label: comparison}, out / "position_differences.png",
                                     title="Position differences (estimate - reference)", protect=protect)
     return TrajectoryEvaluationFiles(json_path, att, pos)
+
+
+def truth_pass_rmse(sbet: PathLike, project: PathLike, strip: int) -> np.ndarray:
+    """Roll, pitch, yaw RMSE (mdeg) of ``sbet`` against a simulated project's truth during one pass.
+
+    The pass's span comes from ``truth/scenario.yaml``, shortened by 1 s at both ends.
+    """
+    import yaml
+
+    project = Path(project)
+    truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
+    p = next(p for p in truth["passes"] if p["strip_id"] == strip)
+    t0 = truth["t0_gps"]
+    cmp = compare_sbet_files(Path(sbet), project / "truth" / "trajectory.sbet",
+                             time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
+    return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])

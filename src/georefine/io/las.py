@@ -202,6 +202,17 @@ def read_las_info(path: PathLike) -> LasInfo:
         )
 
 
+def _extra_names(path: Path, header, extra_dims: Sequence[str] | None) -> tuple[str, ...]:
+    """The extra dimensions to read (``None``: all of the file's); a requested one that is absent is an error."""
+    available = tuple(header.point_format.extra_dimension_names)
+    names = available if extra_dims is None else tuple(extra_dims)
+    for name in names:
+        if name not in available:
+            raise InputError("extra dimension missing", path=path, field=name,
+                             expected="present", found=f"extra dimensions {list(available)}")
+    return names
+
+
 def _chunk_from_record(rec, extra_names: Sequence[str]) -> PointCloud:
     return PointCloud(
         time_gps=np.asarray(rec.gps_time, dtype=np.float64) + GPS_TIME_OFFSET_S,
@@ -234,12 +245,7 @@ def iter_las_chunks(
     with _open_reader(path) as reader:
         h = reader.header
         _validate_header(path, h)
-        available = tuple(h.point_format.extra_dimension_names)
-        names = available if extra_dims is None else tuple(extra_dims)
-        for name in names:
-            if name not in available:
-                raise InputError("extra dimension missing", path=path, field=name,
-                                 expected="present", found=f"extra dimensions {list(available)}")
+        names = _extra_names(path, h, extra_dims)
         total, done = int(h.point_count), 0
         it = reader.chunk_iterator(chunk_size)
         while True:
@@ -357,12 +363,7 @@ def read_las_range(path: PathLike, start: int, stop: int, extra_dims: Sequence[s
         total = int(h.point_count)
         if not 0 <= start <= stop <= total:
             raise ValueError(f"record range {start}..{stop} outside 0..{total} of {path}")
-        available = tuple(h.point_format.extra_dimension_names)
-        names = available if extra_dims is None else tuple(extra_dims)
-        for name in names:
-            if name not in available:
-                raise InputError("extra dimension missing", path=path, field=name,
-                                 expected="present", found=f"extra dimensions {list(available)}")
+        names = _extra_names(path, h, extra_dims)
         try:
             reader.seek(start)
             rec = reader.read_points(stop - start)
