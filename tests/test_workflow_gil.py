@@ -204,7 +204,7 @@ def test_boresight_error_of_005_deg_is_recovered_from_both_passes(project, tmp_p
 def test_ten_percent_wrong_matches_change_yaw_by_less_than_20_percent(project):
     nav = load_navigation(project)
     gi = step_adjust_gnss_imu(nav, step_initialise(nav))
-    features, _ = step_features(nav, imu_rate_trajectory(nav, gi.spline), read_strips(nav))
+    features, _ = step_features(nav, imu_rate_trajectory(nav, gi), read_strips(nav))
     objects = match_features(features, nav.config.processing.matching)
     sb = read_sbet(project / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
     truth = trajectory_from_sbet(sb, nav.frame, nav.t0_gps)

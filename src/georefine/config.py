@@ -224,6 +224,16 @@ class TrajectoryAdjustmentConfig(StrictModel):
         0.02, gt=0.0, le=1.0, description="IMU samples are averaged over windows of this length (down-sampling)."
     )
     quadrature_nodes: int = Field(3, ge=1, le=5, description="Gauss-Legendre nodes per IMU window.")
+    upsampling: bool = Field(
+        True,
+        description="Rebuild the motion faster than the knots from the raw, error-corrected IMU and "
+        "georeference with it (up-sampling, docs/ARCHITECTURE.md §4.6).",
+    )
+    upsampling_iterations: int = Field(
+        1, ge=0, le=5,
+        description="With upsampling: times the G/I adjustment is solved again with the rebuilt "
+        "high-frequency motion taken out of the IMU windows (each G/I/L outer iteration does so anyway).",
+    )
     bias_knot_interval_s: float = Field(10.0, gt=0.0, description="Knot spacing of the piecewise-linear biases.")
     estimate_scale_factors: bool = True
     gnss_loss: Literal["huber", "cauchy", "none"] = "huber"

@@ -27,6 +27,7 @@ from georefine.config import ImuErrorSpec, TrajectoryAdjustmentConfig
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import rph_from_R_n_b
+from georefine.trajectory.highrate import HighRateMotion
 from georefine.trajectory.spline import KnotGrid, SplineTrajectory
 
 DEG_PER_H = np.pi / 180.0 / 3600.0
@@ -101,6 +102,8 @@ class GnssImuResult:
     sigma_rph_rad: np.ndarray
     sigma_position_m: np.ndarray
     timings_s: dict = field(default_factory=dict)
+    high_rate: HighRateMotion | None = None
+    """Motion faster than the knots, rebuilt from the IMU (:mod:`georefine.adjustment.upsampling`)."""
 
 
 @dataclass
@@ -207,6 +210,16 @@ def build_gnss_imu_problem(
     return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors)
 
 
+def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate) -> GnssImuProblem:
+    """Start ``built``'s biases and scale factors at ``errors`` (same bias knots); returns ``built``."""
+    P = built.problem
+    P.set_values("acc_bias", errors.acc_bias)
+    P.set_values("gyro_bias", errors.gyro_bias)
+    P.set_values("acc_scale", np.asarray(errors.acc_scale, dtype=float).reshape(1, 3))
+    P.set_values("gyro_scale", np.asarray(errors.gyro_scale, dtype=float).reshape(1, 3))
+    return built
+
+
 def euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
     """``E^-1`` with ``omega_nb_b = E(rph) d(rph)/dt``: maps a body rotation to Euler-angle changes."""
     r, p = rph[:, 0], rph[:, 1]
@@ -280,4 +293,4 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
         gyro_scale_sigma=sig("gyro_scale")[0] if built.estimate_scale else None,
     )
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
-    return GnssImuResult(spline, errors, result.solve, tk, sigma_rph, sigma_p, timings)
+    return GnssImuResult(spline, errors, result.solve, tk, sigma_rph, sigma_p, timings, result.high_rate)

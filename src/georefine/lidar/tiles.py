@@ -155,12 +155,15 @@ class TileFeatures:
 
 def tile_features(
     tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
-    channels: tuple[int, ...], cfg: PlaneExtractionConfig,
+    channels: tuple[int, ...], cfg: PlaneExtractionConfig, frame_poses=None,
 ) -> TileFeatures:
     """Steps 3-4a on one tile: georeference with ``poses`` and extract each view's features.
 
     Only the features whose seed time lies in the tile's own times are returned; the points
     outside the trajectory are counted over the own records only (each point once).
+    ``frame_poses`` (default ``poses``) gives the pose at a feature's mean time that its
+    scanner-frame geometry refers to: the adjustment's spline, which lacks the up-sampled
+    high-frequency motion of ``poses`` (docs/ARCHITECTURE.md §4.6).
     """
     pc = read_tile_points(tile, margins=True)
     t = pc.time_gps - t0_gps
@@ -180,7 +183,7 @@ def tile_features(
         if not np.any(m):
             views[c] = 0
             continue
-        f = extract_features(x_w[m], t[m], tile.strip_id, c, poses, p_b_s, R_b_s, cfg,
+        f = extract_features(x_w[m], t[m], tile.strip_id, c, frame_poses or poses, p_b_s, R_b_s, cfg,
                              own_time=(tile.own_t0, tile.own_t1))
         views[c] = len(f)
         parts.append(f)

@@ -34,8 +34,10 @@ from georefine.adjustment.gnss_imu import (
     GnssImuResult,
     build_gnss_imu_problem,
     solve_gnss_imu,
+    start_imu_errors,
     with_posterior,
 )
+from georefine.adjustment.upsampling import rebuild_high_rate, without_high_rate
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.observations.prior import RotationPrior
 from georefine.adjustment.robust import make_loss
@@ -109,13 +111,12 @@ def step_adjust_gil(
     """
     cfg = nav.config
     lcfg = cfg.processing.lidar
-    built = build_gnss_imu_problem(nav.gnss, cfg.imu.errors, cfg.processing.trajectory, previous.spline)
-    e = previous.imu_errors
+    # Windows without the previous result's high-frequency motion (up-sampling, §4.6).
+    data = without_high_rate(nav.gnss, previous)
+    built = start_imu_errors(
+        build_gnss_imu_problem(data, cfg.imu.errors, cfg.processing.trajectory, previous.spline), previous.imu_errors
+    )
     P = built.problem
-    P.set_values("acc_bias", e.acc_bias)
-    P.set_values("gyro_bias", e.gyro_bias)
-    P.set_values("acc_scale", np.asarray(e.acc_scale).reshape(1, 3))
-    P.set_values("gyro_scale", np.asarray(e.gyro_scale).reshape(1, 3))
 
     grid = built.grid
     sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end))
@@ -147,6 +148,8 @@ def step_adjust_gil(
     tcfg = cfg.processing.trajectory
     options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance)
     result = solve_gnss_imu(built, options, progress=report, covariance=False)
+    if tcfg.upsampling:
+        result = replace(result, high_rate=rebuild_high_rate(nav.gnss, result))
     bs_deg = None
     if boresight:
         R = P.values("boresight")[0]
@@ -273,8 +276,8 @@ def _untimed(name: str) -> Iterator[None]:
 def _features_and_objects(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner):
     """Steps 3-4 from ``current``: planar features per view and their matching into objects."""
     with timed(f"features_{it}"):
-        traj = imu_rate_trajectory(nav, current.spline)
-        features, counts = step_features(nav, traj, strip_files, progress, runner)
+        traj = imu_rate_trajectory(nav, current)
+        features, counts = step_features(nav, traj, strip_files, progress, runner, frame_poses=current.spline.pose)
     with timed(f"matching_{it}"):
         objects = match_features(features, nav.config.processing.matching)
     return features, objects, counts
@@ -435,7 +438,7 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
 
     def compute() -> list[dict]:  # stored with each file's stamp, for ``written``
         runner = inputs.runner
-        poses = runner.share(PoseInterpolator(imu_rate_trajectory(nav, final.spline)))
+        poses = runner.share(PoseInterpolator(imu_rate_trajectory(nav, final)))
         records = []
         for s in inputs.strips:
             path = folder / (s.path.stem + ".laz")

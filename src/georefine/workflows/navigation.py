@@ -21,7 +21,10 @@ from georefine.adjustment.gnss_imu import (
     GnssImuResult,
     build_gnss_imu_problem,
     solve_gnss_imu,
+    start_imu_errors,
+    with_posterior,
 )
+from georefine.adjustment.upsampling import adjust_upsampled
 from georefine.config import ProjectConfig, load_project, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
@@ -163,7 +166,43 @@ def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Prog
     def report(it) -> None:
         progress("G/I adjustment", min(getattr(it, "iteration", 0), tcfg.max_iterations), tcfg.max_iterations)
 
-    return solve_gnss_imu(built, progress=report)
+    if not tcfg.upsampling:
+        result = solve_gnss_imu(built, progress=report)
+        _warn_on_imu_misfit(result)
+        return result
+    last = {}
+
+    def rebuild(data, previous):
+        last["built"] = start_imu_errors(build_gnss_imu_problem(data, nav.config.imu.errors, tcfg, previous.spline),
+                                         previous.imu_errors)
+        return last["built"]
+
+    def solve(b):
+        return solve_gnss_imu(b, progress=report, covariance=False)
+
+    first = solve(built)
+    last["built"] = built
+    result = adjust_upsampled(nav.gnss, first, rebuild, solve, tcfg.upsampling_iterations)
+    return with_posterior(last["built"], result)
+
+
+IMU_MISFIT_FACTOR = 10.0
+"""IMU windows whose variance factor exceeds this do not fit the spline (see :func:`_warn_on_imu_misfit`)."""
+
+
+def _warn_on_imu_misfit(result: GnssImuResult) -> None:
+    """Warn when the raw IMU windows fit the spline far worse than their noise model allows.
+
+    The usual cause is motion faster than the knots (vibration): the windows then carry it as
+    noise and the posterior sigma, scaled by the variance factor, grow with it.
+    """
+    imu = next((g for g in result.solve.groups if g.name == "imu"), None)
+    if imu is not None and imu.variance_factor > IMU_MISFIT_FACTOR:
+        log.warning(
+            "the IMU windows fit the trajectory %.0f times worse than the IMU noise model (RMS %.1f sigma): "
+            "motion faster than the %.3g s knots? processing.trajectory.upsampling rebuilds it from the raw IMU",
+            imu.variance_factor, imu.rms, result.spline.grid.dt,
+        )
 
 
 def _filter_sigma_rph(nav: NavigationData, filt: FilterResult) -> np.ndarray:
@@ -183,6 +222,10 @@ def write_trajectory_products(out: Path, nav: NavigationData, adj: GnssImuResult
     t_imu = nav.gnss.imu_time
     t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
     p, v, R, f, w = body_kinematics(nav.frame, spline, t_imu)
+    if adj.high_rate is not None:  # up-sampled: the spline plus the rebuilt high-frequency motion (§4.6)
+        traj = adj.high_rate.trajectory(spline)
+        d_omega, d_f = adj.high_rate.reading_corrections(nav.frame, spline)
+        p, v, R, f, w = traj.p_w_b, traj.v_w_b, traj.R_w_b, f + d_f, w + d_omega
     write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, t_imu, p, v, R, f, w)
     tk = spline.grid.knot_times
     pk, Rk = spline.pose(tk)
@@ -191,8 +234,15 @@ def write_trajectory_products(out: Path, nav: NavigationData, adj: GnssImuResult
     write_csv_product(out / "trajectory.csv", nav.frame, crs, nav.t0_gps, tk, pk, Rk, sig_rph, sig_p)
 
 
-def imu_rate_trajectory(nav: NavigationData, spline) -> Trajectory:
-    """The spline sampled at the IMU samples inside its span (for georeferencing)."""
+def imu_rate_trajectory(nav: NavigationData, adj: GnssImuResult) -> Trajectory:
+    """The adjusted trajectory at the IMU samples inside its span (for georeferencing).
+
+    The spline plus the rebuilt high-frequency motion when the adjustment up-sampled
+    (``adj.high_rate``, docs/ARCHITECTURE.md §4.6), else the spline alone.
+    """
+    if adj.high_rate is not None:
+        return adj.high_rate.trajectory(adj.spline)
+    spline = adj.spline
     t_imu = nav.gnss.imu_time
     t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
     return spline.to_sampled(t_imu)

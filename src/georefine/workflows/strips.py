@@ -119,16 +119,22 @@ def sort_features(features: PlanarFeatures) -> PlanarFeatures:
 
 def step_features(
     nav: NavigationData, trajectory: Trajectory, strips: list[StripFile], progress: Progress = no_progress,
-    runner: TaskRunner | None = None,
+    runner: TaskRunner | None = None, frame_poses=None,
 ) -> tuple[PlanarFeatures, FeatureCounts]:
-    """Steps 3-4a: georeference each tile of each strip with ``trajectory`` and extract its planar features."""
+    """Steps 3-4a: georeference each tile of each strip with ``trajectory`` and extract its planar features.
+
+    ``frame_poses`` (``t -> (p_w_b, R_w_b)``, default the trajectory) is the pose each feature's
+    scanner-frame geometry refers to: the adjustment's spline (see :func:`~georefine.lidar.tiles.tile_features`).
+    """
     cfg = nav.config
     runner = runner or TaskRunner("sync")
     p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
     R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
     poses = runner.share(PoseInterpolator(trajectory))
     channels = tuple(c.id for c in cfg.scanner.channels)
-    tasks = [(tile, poses, nav.t0_gps, p_b_s, R_b_s, channels, cfg.processing.planes)
+    if frame_poses is not None:
+        frame_poses = runner.share(frame_poses)
+    tasks = [(tile, poses, nav.t0_gps, p_b_s, R_b_s, channels, cfg.processing.planes, frame_poses)
              for s in strips for tile in s.tiles]
     parts, outside = [], 0
     per_view: dict[tuple[int, int], int] = {}

@@ -1,0 +1,109 @@
+"""Iterated IMU down- and up-sampling (Pöppl et al. 2025; docs/ARCHITECTURE.md §4.6).
+
+The adjustment (:mod:`georefine.adjustment.gnss_imu`) sees the IMU only through window means
+and estimates a spline on knots ``knot_interval_s`` apart. This module closes the loop:
+
+1. :func:`corrected_imu`: the raw readings with the estimated biases and scale factors
+   removed, ``(x~ - b(t)) / (1 + s)``;
+2. :func:`rebuild_high_rate`: the motion faster than the knots, rebuilt from them relative to
+   the spline (:func:`georefine.trajectory.highrate.reconstruct_high_rate`);
+3. :func:`without_high_rate`: the raw readings minus what that motion contributes where it
+   stands out of the sensor noise (spectral lines; scaled back by ``1 + s``), for the next
+   adjustment's windows. Without this a vibration that no knot can follow reaches the windows
+   as aliased noise, tens of times the sensor noise; removing the noise too would leave
+   windows that fit better than their weights say, and a meaningless variance factor.
+
+:func:`adjust_upsampled` runs ``solve -> rebuild -> re-solve on the cleaned windows -> rebuild``
+``processing.trajectory.upsampling_iterations`` times and returns the result with its
+:class:`~georefine.trajectory.highrate.HighRateMotion`, which georeferencing and the trajectory
+products add to the spline.
+"""
+
+from __future__ import annotations
+
+import logging
+import time as _time
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+
+from georefine.adjustment.gnss_imu import GnssImuData, GnssImuProblem, GnssImuResult, ImuErrorEstimate
+from georefine.trajectory.highrate import HighRateMotion, reconstruct_high_rate
+
+log = logging.getLogger(__name__)
+
+__all__ = ["adjust_upsampled", "corrected_imu", "rebuild_high_rate", "without_high_rate"]
+
+
+def _inside(data: GnssImuData, hf_or_span) -> np.ndarray:
+    t0, t1 = hf_or_span
+    return (data.imu_time >= t0) & (data.imu_time <= t1)
+
+
+def corrected_imu(data: GnssImuData, errors: ImuErrorEstimate, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Angular rate and specific force of samples ``sel`` with biases and scale factors removed."""
+    t = data.imu_time[sel]
+    grid = errors.bias_grid
+    gyro = (data.imu_gyro[sel] - grid.evaluate(errors.gyro_bias, t)) / (1.0 + np.asarray(errors.gyro_scale))
+    acc = (data.imu_acc[sel] - grid.evaluate(errors.acc_bias, t)) / (1.0 + np.asarray(errors.acc_scale))
+    return gyro, acc
+
+
+def rebuild_high_rate(data: GnssImuData, result: GnssImuResult) -> HighRateMotion:
+    """The motion of the raw IMU that ``result``'s spline does not hold (see module docstring)."""
+    sel = _inside(data, result.spline.span)
+    gyro, acc = corrected_imu(data, result.imu_errors, sel)
+    return reconstruct_high_rate(data.frame, result.spline, data.imu_time[sel], gyro, acc, data.imu_rate_hz)
+
+
+def without_high_rate(data: GnssImuData, result: GnssImuResult) -> GnssImuData:
+    """``data`` whose IMU readings no longer contain ``result.high_rate`` (inputs are not modified)."""
+    hf = result.high_rate
+    if hf is None or hf.time.size == 0:
+        return data
+    d_omega, d_f = hf.significant_corrections(data.frame, result.spline, data.imu_rate_hz)
+    sel = np.flatnonzero(_inside(data, (hf.time[0], hf.time[-1])))
+    if sel.size != hf.time.size or not np.array_equal(data.imu_time[sel], hf.time):
+        raise ValueError("the high-rate motion was rebuilt from other IMU samples than these")
+    e = result.imu_errors
+    gyro = data.imu_gyro.copy()
+    acc = data.imu_acc.copy()
+    gyro[sel] -= (1.0 + np.asarray(e.gyro_scale)) * d_omega
+    acc[sel] -= (1.0 + np.asarray(e.acc_scale)) * d_f
+    return replace(data, imu_gyro=gyro, imu_acc=acc)
+
+
+def adjust_upsampled(
+    data: GnssImuData,
+    result: GnssImuResult,
+    rebuild: Callable[[GnssImuData, GnssImuResult], GnssImuProblem],
+    solve: Callable[[GnssImuProblem], GnssImuResult],
+    iterations: int,
+) -> GnssImuResult:
+    """Iterate up-sampling from a first ``result`` (solved on ``data``'s raw windows).
+
+    ``rebuild(data, previous)`` builds the next problem on ``data`` started at ``previous``
+    (spline and IMU errors); ``solve`` solves it. Returns the last result with its
+    ``high_rate`` motion; ``timings_s['solve']`` sums the solves, ``timings_s['upsampling']``
+    is the time spent rebuilding and cleaning.
+    """
+    t = _time.perf_counter()
+    hf = rebuild_high_rate(data, result)
+    result = replace(result, high_rate=hf)
+    extra = _time.perf_counter() - t
+    for i in range(iterations):
+        rms = hf.rms()
+        log.info("up-sampling %d: high-frequency motion %.2f mdeg, %.2f mm RMS", i + 1, np.degrees(rms[0]) * 1e3,
+                 rms[1] * 1e3)
+        t = _time.perf_counter()
+        cleaned = without_high_rate(data, result)
+        extra += _time.perf_counter() - t
+        solve_s = result.timings_s.get("solve", 0.0)
+        solved = solve(rebuild(cleaned, result))
+        solved = replace(solved, timings_s=dict(solved.timings_s, solve=solved.timings_s.get("solve", 0.0) + solve_s))
+        t = _time.perf_counter()
+        hf = rebuild_high_rate(data, solved)
+        result = replace(solved, high_rate=hf)
+        extra += _time.perf_counter() - t
+    return replace(result, timings_s=dict(result.timings_s, upsampling=extra))

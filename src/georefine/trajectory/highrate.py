@@ -1,0 +1,237 @@
+"""High-frequency motion rebuilt from the raw IMU: the up-sampling half of Pöppl et al. (2025).
+
+docs/ARCHITECTURE.md §4.6. The adjustment estimates a *low-frequency* trajectory: a spline on
+knots ``dt`` apart observed by IMU window means. Motion faster than the knots (the vibration
+of a helicopter, 5-30 Hz) is not in the spline. It is in the raw IMU samples, and this module
+rebuilds it as a correction relative to the spline::
+
+    R_w_b(t) = R_s(t) Exp(dtheta(t)),     p_w_b(t) = p_s(t) + dp(t)
+
+from the error-corrected readings (biases and scale factors of the adjustment removed).
+
+**Orientation.** The residual rate ``domega = omega_wb_b - omega_s`` (the corrected gyro minus
+the Earth rate, minus the spline's body rate) drives ``dtheta' = domega - omega_s x dtheta``
+(first order in ``dtheta``; the coupling term is applied in a second pass).
+**Position.** With the corrected orientation, ``da = R_s (Exp(dtheta) f - f_s)`` is the
+residual kinematic acceleration (``f_s`` the spline's specific force), integrated twice.
+
+**Low frequencies stay in the spline.** Before and after every integration the signal's
+projection on the spline space is removed: a least-squares cubic B-spline on the same knot
+interval (``scipy.interpolate.make_lsq_spline``, banded normal equations, linear in the samples;
+the adjustment's splines -- cubic Hermite orientation, quintic Hermite position -- contain
+that space). So integrated noise and residual sensor errors cannot drift, the spline keeps
+everything it can represent, and ``dtheta``, ``dp`` hold only what it cannot.
+
+**Iteration.** :meth:`HighRateMotion.reading_corrections` gives the readings that the
+high-frequency motion produces; :meth:`~HighRateMotion.significant_corrections` keeps of them
+what stands out of the sensor noise spectrally (the vibration lines). The adjustment subtracts
+those from the raw IMU before the window means (``processing.trajectory.upsampling_iterations``):
+the windows then carry the low-frequency motion the spline can follow and the sensor noise
+their weights assume, instead of aliased vibration that no knot can fit; the motion is rebuilt
+again from the new spline and IMU errors.
+
+Everything is vectorised per contiguous IMU segment (no sample loop); segments shorter than
+four knot intervals get no correction.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.integrate import cumulative_trapezoid
+from scipy.interpolate import make_lsq_spline
+
+from georefine.geometry.frames import LocalFrame
+from georefine.geometry.rotation import exp_so3
+from georefine.trajectory.sampled import Trajectory
+from georefine.trajectory.spline import SplineTrajectory
+
+__all__ = ["HighRateMotion", "high_pass", "reconstruct_high_rate", "significant_content"]
+
+MIN_SEGMENT_KNOTS = 4
+STFT_SAMPLES = 2048
+"""Short-time Fourier blocks of :func:`significant_content` (about 10 s at 200 Hz)."""
+LINE_FACTOR = 12.0
+"""A spectral bin is signal when its power exceeds this many times the block's noise power:
+for Gaussian noise a bin's power is exponential, so noise passes with probability exp(-12)."""
+
+
+def high_pass(t: np.ndarray, y: np.ndarray, knot_interval_s: float) -> np.ndarray:
+    """``y`` minus its least-squares cubic B-spline on knots ``knot_interval_s`` apart.
+
+    ``t`` (N,) strictly increasing, ``y`` (N, ...). The knots are anchored at ``t[0]``; the
+    last interval is stretched to end at ``t[-1]``. With fewer than
+    ``MIN_SEGMENT_KNOTS`` intervals the whole signal counts as low frequency (zeros).
+    """
+    span = float(t[-1] - t[0])
+    n = int(np.floor(span / knot_interval_s))
+    if n < MIN_SEGMENT_KNOTS:
+        return np.zeros_like(y)
+    inner = t[0] + knot_interval_s * np.arange(1, n)
+    if span - (inner[-1] - t[0]) < 0.5 * knot_interval_s:  # no sliver interval at the end
+        inner = inner[:-1]
+    k = 3
+    knots = np.concatenate([np.full(k + 1, t[0]), inner, np.full(k + 1, t[-1])])
+    # Normal equations (banded Cholesky): 20x faster than the default QR here and well
+    # conditioned, every knot interval holding many samples.
+    return y - make_lsq_spline(t, y, knots, k=k, method="norm-eq")(t)
+
+
+def significant_content(x: np.ndarray, factor: float = LINE_FACTOR, block: int = STFT_SAMPLES) -> np.ndarray:
+    """The part of uniformly sampled ``x`` (N, C) that stands out of its noise, spectrally.
+
+    Short-time Fourier transform (``scipy.signal.stft``, Hann blocks of ``block`` samples, half
+    overlapping); per channel and block the noise power is the median bin power over ``ln 2``
+    (the median of an exponential variable; lines occupy few bins), and only the bins above
+    ``factor`` times it are kept (``istft``). Vibration lines pass whole, white noise does not:
+    removing them from the readings takes out the vibration and leaves the noise the window
+    weights assume.
+    """
+    from scipy.signal import istft, stft
+
+    n = x.shape[0]
+    nper = min(block, n)
+    if nper < 64:
+        return np.zeros_like(x)
+    _, _, Z = stft(x.T, nperseg=nper, noverlap=nper // 2, window="hann")
+    power = np.abs(Z) ** 2
+    noise = np.median(power, axis=1, keepdims=True) / np.log(2.0)
+    _, y = istft(np.where(power > factor * noise, Z, 0.0), nperseg=nper, noverlap=nper // 2, window="hann")
+    return y[:, :n].T
+
+
+def _segments(time: np.ndarray, rate_hz: float, max_gap_factor: float = 1.5) -> list[slice]:
+    """Contiguous runs of samples (no interval above ``max_gap_factor / rate_hz``)."""
+    cut = np.flatnonzero(np.diff(time) > max_gap_factor / rate_hz) + 1
+    edges = np.concatenate([[0], cut, [time.size]])
+    return [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]) if b - a >= 2]
+
+
+def _spline_kinematics(frame: LocalFrame, spline: SplineTrajectory, t: np.ndarray):
+    """Spline pose, velocity, acceleration, body rate and specific force at ``t``."""
+    p = spline.position(t, 0)
+    v = spline.position(t, 1)
+    a = spline.position(t, 2)
+    R, omega, _ = spline.orientation(t, rate=True)
+    f = np.einsum("nji,nj->ni", R, a + 2.0 * np.cross(frame.omega_ie_w, v) - frame.gravity_w(p))
+    return p, v, a, R, omega, f
+
+
+@dataclass(frozen=True)
+class HighRateMotion:
+    """The motion the spline cannot represent, at the IMU samples.
+
+    Attributes
+    ----------
+    time : (N,) s
+        IMU sample times inside the spline's span.
+    dtheta : (N, 3) rad
+        Body-frame rotation: ``R_w_b = R_s Exp(dtheta)``.
+    dtheta_rate : (N, 3) rad/s
+        Its derivative (from the integration, not by differencing).
+    dp, dv, da : (N, 3) m, m/s, m/s²
+        Position offset in ``w`` (``p_w_b = p_s + dp``) and its first two derivatives.
+    knot_interval_s : float
+        The low-pass cut of the reconstruction (the spline's knot interval).
+    """
+
+    time: np.ndarray
+    dtheta: np.ndarray
+    dtheta_rate: np.ndarray
+    dp: np.ndarray
+    dv: np.ndarray
+    da: np.ndarray
+    knot_interval_s: float
+
+    @classmethod
+    def none(cls, time: np.ndarray, knot_interval_s: float) -> "HighRateMotion":
+        """No high-frequency motion (the spline alone)."""
+        z = np.zeros((np.size(time), 3))
+        return cls(np.asarray(time, dtype=float), z, z, z, z, z, knot_interval_s)
+
+    def rms(self) -> tuple[float, float]:
+        """RMS rotation (rad, norm of ``dtheta``) and RMS offset (m, norm of ``dp``)."""
+        if self.time.size == 0:
+            return 0.0, 0.0
+        return (float(np.sqrt(np.mean(np.sum(self.dtheta**2, axis=1)))),
+                float(np.sqrt(np.mean(np.sum(self.dp**2, axis=1)))))
+
+    def trajectory(self, spline: SplineTrajectory) -> Trajectory:
+        """Spline plus high-frequency motion, sampled at :attr:`time` (for georeferencing)."""
+        p, R = spline.pose(self.time)
+        v = spline.velocity(self.time) + self.dv
+        return Trajectory(self.time, p + self.dp, R @ exp_so3(self.dtheta), t0_gps=spline.t0_gps, v_w_b=v)
+
+    def reading_corrections(self, frame: LocalFrame, spline: SplineTrajectory) -> tuple[np.ndarray, np.ndarray]:
+        """Angular rate and specific force (N, 3) that the high-frequency motion adds to the readings.
+
+        ``omega_ib`` changes by ``dtheta' + omega_s x dtheta``; the specific force becomes
+        ``Exp(dtheta)^T (f_s + R_s^T dp'')``. The derivatives are those of the integration
+        (central differences would damp 26 Hz at 200 Hz by a fifth).
+        """
+        _, _, _, R, omega, f_s = _spline_kinematics(frame, spline, self.time)
+        d_omega = self.dtheta_rate + np.cross(omega, self.dtheta)
+        f_total = np.einsum("nji,nj->ni", exp_so3(self.dtheta), f_s + np.einsum("nji,nj->ni", R, self.da))
+        return d_omega, f_total - f_s
+
+    def significant_corrections(self, frame: LocalFrame, spline: SplineTrajectory, rate_hz: float):
+        """:meth:`reading_corrections` reduced to what stands out of the noise (:func:`significant_content`).
+
+        These are taken out of the IMU windows: the vibration goes, the sensor noise stays, so
+        the windows' weights and the variance factor keep their meaning.
+        """
+        d_omega, d_f = self.reading_corrections(frame, spline)
+        both = np.hstack([d_omega, d_f])
+        out = np.zeros_like(both)
+        for s in _segments(self.time, rate_hz):
+            out[s] = significant_content(both[s])
+        return out[:, :3], out[:, 3:]
+
+
+def reconstruct_high_rate(
+    frame: LocalFrame,
+    spline: SplineTrajectory,
+    time: np.ndarray,
+    gyro: np.ndarray,
+    acc: np.ndarray,
+    rate_hz: float,
+) -> HighRateMotion:
+    """Rebuild the motion faster than ``spline``'s knots from error-corrected IMU readings.
+
+    Parameters
+    ----------
+    frame
+        Mapping frame (gravity, Earth rate).
+    spline
+        The adjusted low-frequency trajectory; its knot interval is the cut.
+    time : (N,) s
+        IMU sample times (relative to the epoch); samples outside the spline are dropped.
+    gyro, acc : (N, 3)
+        Angular rate ``omega_ib_b`` (rad/s) and specific force (m/s²), already corrected for
+        the estimated biases and scale factors.
+    rate_hz
+        Nominal IMU rate (for finding sampling gaps).
+    """
+    time = np.asarray(time, dtype=float)
+    inside = (time >= spline.grid.t_start) & (time <= spline.grid.t_end)
+    t, gyro, acc = time[inside], np.asarray(gyro, float)[inside], np.asarray(acc, float)[inside]
+    dt_k = spline.grid.dt
+    dtheta, dtheta_rate, dp, dv, da = (np.zeros((t.size, 3)) for _ in range(5))
+    for s in _segments(t, rate_hz):
+        ts = t[s]
+        if ts[-1] - ts[0] < MIN_SEGMENT_KNOTS * dt_k:
+            continue
+        p, v, a, R, omega, f_s = _spline_kinematics(frame, spline, ts)
+        omega_wb = gyro[s] - np.einsum("nji,j->ni", R, frame.omega_ie_w)
+        d_omega = omega_wb - omega
+        th = np.zeros((ts.size, 3))
+        for _ in range(2):  # second pass: the coupling term with the first pass's dtheta
+            rate = high_pass(ts, d_omega - np.cross(omega, th), dt_k)
+            th = high_pass(ts, cumulative_trapezoid(rate, ts, axis=0, initial=0.0), dt_k)
+        acc_w = np.einsum("nij,nj->ni", R, np.einsum("nij,nj->ni", exp_so3(th), acc[s]) - f_s)
+        da[s] = high_pass(ts, acc_w, dt_k)
+        dv[s] = high_pass(ts, cumulative_trapezoid(da[s], ts, axis=0, initial=0.0), dt_k)
+        dp[s] = high_pass(ts, cumulative_trapezoid(dv[s], ts, axis=0, initial=0.0), dt_k)
+        dtheta[s], dtheta_rate[s] = th, rate
+    return HighRateMotion(t, dtheta, dtheta_rate, dp, dv, da, dt_k)
