@@ -144,12 +144,6 @@ class HighRateMotion:
     da: np.ndarray
     knot_interval_s: float
 
-    @classmethod
-    def none(cls, time: np.ndarray, knot_interval_s: float) -> "HighRateMotion":
-        """No high-frequency motion (the spline alone)."""
-        z = np.zeros((np.size(time), 3))
-        return cls(np.asarray(time, dtype=float), z, z, z, z, z, knot_interval_s)
-
     def rms(self) -> tuple[float, float]:
         """RMS rotation (rad, norm of ``dtheta``) and RMS offset (m, norm of ``dp``)."""
         if self.time.size == 0:
