@@ -133,11 +133,14 @@ def test_scans_georeferenced_with_true_trajectory_reproduce_truth(ideal_project)
     assert result.max_error_m < 1e-3
 
 
-def test_same_seed_same_files_and_imr_matches_csv(tmp_path):
+def test_same_seed_same_files_on_any_scheduler_and_imr_matches_csv(tmp_path):
+    """The scan chunks simulated one after the other here and as tasks on two worker processes
+    give the same files, byte for byte."""
     args = dict(seed=5, overrides=["flight.passes=1", "scanner.pulse_rate_hz=5000"], write_imr=True)
     simulate_project("corridor-tiny", tmp_path / "a", **args)
-    simulate_project("corridor-tiny", tmp_path / "b", **args)
-    for rel in ("gnss/rover.pos", "imu/imu.csv", "imu/imu.imr", "scans/strip_1.laz", "reference/surfaces.csv"):
+    simulate_project("corridor-tiny", tmp_path / "b", scheduler="processes", **args)
+    for rel in ("gnss/rover.pos", "imu/imu.csv", "imu/imu.imr", "scans/strip_1.laz", "truth/strip_1.laz",
+                "reference/surfaces.csv"):
         assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
     assert not (tmp_path / "a" / "scans" / "strip_2.laz").exists()
     cfg = yaml.safe_load((tmp_path / "a" / "truth" / "scenario.yaml").read_text())["scenario"]

@@ -108,6 +108,7 @@ def simulate(
     imu_grade: Optional[str] = typer.Option(None, "--imu-grade", help="IMU grade: navigation, tactical, mems or ideal."),
     gnss_grade: Optional[str] = typer.Option(None, "--gnss-grade", help="GNSS grade: ppk (default) or ideal."),
     imr: bool = typer.Option(False, "--imr", help="Also write the IMU data as a NovAtel .imr file."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Simulate a flight and write a project folder with real file formats and the truth."""
     with _user_errors():
@@ -124,6 +125,7 @@ def simulate(
                 gnss_grade=gnss_grade,
                 write_imr=imr,
                 progress=report,
+                scheduler=scheduler,
             )
     stdout.print(result.summary())
 

@@ -21,15 +21,22 @@ from typing import Any, Callable
 
 from georefine.progress import Progress
 
-__all__ = ["Lanes", "QueuedProgress", "reusable_project"]
+__all__ = ["Lanes", "QueuedProgress", "demo_stamp", "reusable_project"]
+
+
+def demo_stamp(scenario: str, seed: int, overrides: list[str]) -> dict:
+    """What a demo writes to ``truth/demo.json``: the simulation's inputs and the simulator's version."""
+    from georefine.sim.scenarios import SIMULATOR_VERSION
+
+    return {"scenario": scenario, "seed": seed, "overrides": overrides, "simulator": SIMULATOR_VERSION}
 
 
 def reusable_project(project: Path, scenario: str, seed: int, overrides: list[str]) -> bool:
-    """Whether ``project`` was simulated by a demo with the same scenario, seed and overrides."""
+    """Whether ``project`` was simulated by this simulator for a demo with the same scenario, seed and overrides."""
     stamp = project / "truth" / "demo.json"
     if not stamp.is_file() or not (project / "project.yaml").is_file():
         return False
-    return json.loads(stamp.read_text()) == {"scenario": scenario, "seed": seed, "overrides": overrides}
+    return json.loads(stamp.read_text()) == demo_stamp(scenario, seed, overrides)
 
 
 @dataclass(frozen=True)

@@ -35,18 +35,25 @@ each point carries its pulse emission time and the pose at that time. Returns be
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from georefine.sim.scene import Scene
 
+if TYPE_CHECKING:
+    from georefine.tasks import TaskRunner
+
 log = logging.getLogger(__name__)
 
-__all__ = ["ScannerConfig", "ScanChunk", "scan", "beam_directions_s", "N_FACETS", "FACET_SWEEP_RAD"]
+__all__ = [
+    "ScannerConfig", "ScanChunk", "scan", "scan_span", "chunk_seed", "beam_directions_s", "N_FACETS", "FACET_SWEEP_RAD",
+]
 
 N_FACETS = 3
 FACET_SWEEP_RAD = 2 * np.pi / N_FACETS  #: scan angle swept by one facet (120 deg)
@@ -108,6 +115,8 @@ class ScanChunk:
     beam_w : ndarray (N, 3)
         Unit beam direction in ``w``; the measured point in ``w`` is
         ``xyz_w_true + range_error_m * beam_w``.
+    pulses : int
+        Pulses emitted in the chunk's field of view (returns and misses).
     """
 
     time: np.ndarray
@@ -119,6 +128,7 @@ class ScanChunk:
     face_id: np.ndarray
     xyz_w_true: np.ndarray
     beam_w: np.ndarray
+    pulses: int = 0
 
     def __post_init__(self):
         n = len(self.time)
@@ -173,8 +183,9 @@ def scan(
     cfg: ScannerConfig,
     p_b_s: np.ndarray,
     R_b_s: np.ndarray,
-    rng: np.random.Generator,
+    rng: np.random.Generator | np.random.SeedSequence,
     chunk_duration_s: float = 1.0,
+    runner: TaskRunner | None = None,
 ) -> Iterator[ScanChunk]:
     """Simulate the scanner from ``t_start`` to ``t_end``, chunk by chunk.
 
@@ -191,11 +202,19 @@ def scan(
         Scanner origin in the body frame [m] (lever arm).
     R_b_s : ndarray (3, 3)
         Boresight rotation from ``s`` to ``b``.
-    rng : numpy.random.Generator
-        Range and intensity noise (results depend on ``chunk_duration_s`` only through it).
+    rng : numpy.random.SeedSequence or numpy.random.Generator
+        Seed of the range and intensity noise. Chunk ``k`` draws its noise from its own
+        generator, ``SeedSequence(entropy, spawn_key=(*spawn_key, k))``, so that the chunks
+        can be simulated in any order and on any worker with the same result; a generator
+        gives the entropy (one draw). The noise depends on ``chunk_duration_s``; the
+        geometry does not.
     chunk_duration_s : float
         Duration of a chunk [s]; memory is bounded by
         ``pulse_rate_hz * chunk_duration_s`` pulses (~100 MB at 200 kHz and 1 s).
+    runner : TaskRunner, optional
+        Where the chunks are simulated (one task each, :mod:`georefine.tasks`); default: in
+        this process, one after the other. The chunks are yielded in time order either way,
+        and at most a few per task slot wait in memory.
 
     Yields
     ------
@@ -210,22 +229,42 @@ def scan(
         raise ValueError(f"need finite t_start < t_end, got {t_start}, {t_end}")
     if chunk_duration_s <= 0:
         raise ValueError("chunk_duration_s must be positive")
-    return _scan(pose_fn, float(t_start), float(t_end), scene, cfg, p_b_s, R_b_s, rng,
-                 float(chunk_duration_s))
+    seed = rng if isinstance(rng, np.random.SeedSequence) else np.random.SeedSequence(int(rng.integers(2**63)))
+    return _scan(pose_fn, float(t_start), float(t_end), scene, cfg, p_b_s, R_b_s, seed,
+                 float(chunk_duration_s), runner)
 
 
-def _scan(pose_fn, t_start, t_end, scene, cfg, p_b_s, R_b_s, rng, chunk_duration_s):
+def chunk_seed(seed: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
+    """The noise seed of chunk ``k`` of a scan seeded with ``seed`` (independent of the order)."""
+    return np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, int(k)))
+
+
+def _scan(pose_fn, t_start, t_end, scene, cfg, p_b_s, R_b_s, seed, chunk_duration_s, runner):
     n_chunks = int(np.ceil((t_end - t_start) / chunk_duration_s))
     edges = np.minimum(t_start + chunk_duration_s * np.arange(n_chunks + 1), t_end)
+    if runner is None:
+        chunks = (scan_span(pose_fn, a, b, scene, cfg, p_b_s, R_b_s, chunk_seed(seed, k))
+                  for k, (a, b) in enumerate(zip(edges[:-1], edges[1:])))
+    else:
+        # The trajectory and the scene (~60 MB at `corridor`) travel to each worker once.
+        pose, world = runner.share(pose_fn), runner.share(scene)
+        chunks = runner.map(scan_span, [(pose, a, b, world, cfg, p_b_s, R_b_s, chunk_seed(seed, k))
+                                        for k, (a, b) in enumerate(zip(edges[:-1], edges[1:]))], label="scan chunks")
     n_pulses = n_points = 0
-    for t_a, t_b in zip(edges[:-1], edges[1:]):
-        t, channel, alpha = _pulses(t_a, t_b, cfg)
-        n_pulses += len(t)
-        chunk = _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng)
+    for chunk in chunks:
+        n_pulses += chunk.pulses
         n_points += len(chunk)
         yield chunk
     log.info("scanned %.1f s: %d pulses in the field of view, %d returns (%.1f %%)",
              t_end - t_start, n_pulses, n_points, 100.0 * n_points / max(n_pulses, 1))
+
+
+def scan_span(pose_fn: PoseFn, t_a: float, t_b: float, scene: Scene, cfg: ScannerConfig, p_b_s: np.ndarray,
+              R_b_s: np.ndarray, seed: np.random.SeedSequence) -> ScanChunk:
+    """The returns of the pulses emitted in ``[t_a, t_b)``, noise from ``seed`` (one scan task)."""
+    t, channel, alpha = _pulses(t_a, t_b, cfg)
+    chunk = _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, np.random.default_rng(seed))
+    return dataclasses.replace(chunk, pulses=len(t))
 
 
 def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> ScanChunk:

@@ -18,7 +18,9 @@ sensor errors).
 
 The whole folder is written under a temporary name next to ``out`` and renamed when complete.
 Independent random streams (``SeedSequence(seed).spawn``) drive the scene, IMU, GNSS, scanner
-and survey, so changing one sensor's parameters leaves the others' errors unchanged.
+and survey, so changing one sensor's parameters leaves the others' errors unchanged. The scan
+noise has one stream per strip and chunk, so the scan chunks run as tasks on any scheduler
+(``georefine simulate --scheduler``) and give the same files.
 """
 
 from __future__ import annotations
@@ -59,10 +61,15 @@ from georefine.sim.camera import PhotoBlockConfig, write_photo_block
 from georefine.sim.flight import FlightConfig, TrueTrajectory, simulate_flight
 from georefine.sim.gnss import GnssConfig, simulate_gnss
 from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade, simulate_imu
-from georefine.sim.scanner import ScannerConfig, scan
+from georefine.sim.scanner import ScannerConfig, chunk_seed, scan
 from georefine.sim.scene import SceneConfig, build_scene
+from georefine.tasks import TaskRunner
 
 log = logging.getLogger(__name__)
+
+SIMULATOR_VERSION = 2
+"""Bumped whenever the same scenario and seed give different files (2: one noise seed per scan
+chunk, so that chunks can be simulated in parallel); a demo re-simulates a project of another version."""
 
 
 class JammingConfig(StrictModel):
@@ -240,24 +247,32 @@ def simulate_project(
     write_imr: bool = False,
     progress: Progress = no_progress,
     on_navigation: Callable[[Path], None] | None = None,
+    scheduler: str | TaskRunner = "sync",
 ) -> SimulationResult:
     """Simulate scenario ``scenario`` and write a project folder at ``out`` (see module docstring).
 
     The project is written into a temporary folder beside ``out`` and renamed when complete.
     ``on_navigation(folder)`` is called with that folder as soon as ``project.yaml``, the GNSS and
     the IMU files are written, before the (long) scanning: the navigation steps can start then.
+    ``scheduler`` (a name or address, or a running :class:`~georefine.tasks.TaskRunner`) is where
+    the scan chunks are simulated; every chunk draws its noise from its own seed
+    (:func:`~georefine.sim.scanner.chunk_seed`), so the files do not depend on it.
     """
     cfg = resolve_scenario(
         scenario, seed_overrides=overrides, config_file=config_file, imu_grade=imu_grade, gnss_grade=gnss_grade
     )
     out = Path(out)
     tmp = _prepare_output(out)
+    own = TaskRunner(scheduler) if not isinstance(scheduler, TaskRunner) else None
     try:
-        result = _simulate_into(cfg, tmp, seed, write_imr, progress, on_navigation)
+        result = _simulate_into(cfg, tmp, seed, write_imr, progress, on_navigation, own or scheduler)
         tmp.rename(out) if not out.exists() else _replace_empty_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        if own is not None:
+            own.close()
     return SimulationResult(out=out, **{k: v for k, v in result.items()})
 
 
@@ -267,13 +282,14 @@ def _replace_empty_dir(tmp: Path, out: Path) -> None:
 
 
 def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, progress: Progress,
-                   on_navigation: Callable[[Path], None] | None = None) -> dict:
+                   on_navigation: Callable[[Path], None] | None, runner: TaskRunner) -> dict:
     from georefine.sim import writers
 
     timings: dict[str, float] = {}
-    rng_scene, rng_imu, rng_gnss, rng_scan, rng_survey, rng_photos = (
-        np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(6)
-    )
+    seeds = np.random.SeedSequence(seed).spawn(6)
+    rng_scene, rng_imu, rng_gnss, _, rng_survey, rng_photos = (np.random.default_rng(s) for s in seeds)
+    # The scan noise: one seed per strip and chunk below it (sim.scanner.chunk_seed).
+    seed_scan = seeds[3]
     rp = cfg.reference_point
     frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
     crs = OutputCRS(cfg.output_epsg)
@@ -351,7 +367,8 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
         # Chunks of at most ~400 k pulses (1 s up to 400 kHz, as before; 0.22 s at 1.8 MHz): the
         # memory of a chunk, not the pulse rate, bounds the simulation's memory.
         chunk_s = min(1.0, 400_000.0 / cfg.scanner.pulse_rate_hz)
-        chunks = scan(traj.pose, t0, t1, scene, cfg.scanner, p_b_s, R_b_s, rng_scan, chunk_duration_s=chunk_s)
+        chunks = scan(traj.pose, t0, t1, scene, cfg.scanner, p_b_s, R_b_s, chunk_seed(seed_scan, strip_id),
+                      chunk_duration_s=chunk_s, runner=runner)
 
         def tick(t_chunk_end: float, _t0=t0, _done=done) -> None:
             progress("scanning", _done + (t_chunk_end - _t0), total)
