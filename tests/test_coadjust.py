@@ -185,6 +185,28 @@ def test_match_command_writes_matches_of_each_kind(demo, tmp_path):
     assert "photo-sky" in bad.stderr and not (tmp_path / "m2").exists()
 
 
+@pytest.mark.slow
+def test_lidargrams_and_matches_do_not_depend_on_the_scheduler(demo, tmp_path):
+    """Lidargrams, keypoints and pairs as tasks on two worker processes give the files of one process."""
+    from georefine.workflows.lidargrammetry import run_match
+
+    out, _ = demo
+    overrides = {"lidargram_scale": 0.25, "pair_kinds": ["photo-photo", "photo-lidargram"]}
+    a = run_match(out / "project", [out / "run" / "points"], tmp_path / "sync", overrides=overrides, scheduler="sync")
+    b = run_match(out / "project", [out / "run" / "points"], tmp_path / "processes", overrides=overrides,
+                  scheduler="processes")
+    assert a.lidargrams == b.lidargrams > 0 and a.tracks == b.tracks > 0
+    for name in ("pairs.csv", "matches.csv", "tracks.csv"):
+        assert (tmp_path / "sync" / name).read_bytes() == (tmp_path / "processes" / name).read_bytes(), name
+    npz = sorted((tmp_path / "sync" / "lidargrams").glob("*.npz"))
+    assert len(npz) == a.lidargrams
+    for f in npz:
+        x, y = np.load(f), np.load(tmp_path / "processes" / "lidargrams" / f.name)
+        assert set(x.files) == set(y.files), f.name
+        for k in x.files:  # NaN where the lidargram shows no point: equal too
+            np.testing.assert_array_equal(x[k], y[k], err_msg=f"{f.name}: {k}")
+
+
 def test_coadjust_refuses_a_project_without_photos(tmp_path):
     project = tmp_path / "p"
     simulate_project("corridor-tiny", project, seed=2, overrides=["scanner.pulse_rate_hz=2000"])

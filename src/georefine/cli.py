@@ -239,7 +239,8 @@ def demo(
     jammed G/I cloud and the three co-adjustment cases of paper 004.
     """
     if scenario == "block":
-        _block_demo(out or Path("georefine-demo-block"), 3 if seed is None else seed, overrides or [], method)
+        _block_demo(out or Path("georefine-demo-block"), 3 if seed is None else seed, overrides or [], method,
+                    scheduler)
         return
     out = out or Path("georefine-demo")
     seed = 42 if seed is None else seed
@@ -262,7 +263,7 @@ def demo(
     stdout.print(f"report: {result.report.resolve()}")
 
 
-def _block_demo(out: Path, seed: int, overrides: list[str], method: str) -> None:
+def _block_demo(out: Path, seed: int, overrides: list[str], method: str, scheduler: str) -> None:
     with _user_errors():
         if method not in ("sift", "xfeat"):
             from georefine.errors import InputError
@@ -272,7 +273,8 @@ def _block_demo(out: Path, seed: int, overrides: list[str], method: str) -> None
         from georefine.demo.block import run_block_demo
 
         with _progress() as report:
-            result = run_block_demo(out, seed=seed, overrides=overrides, method=method, progress=report)
+            result = run_block_demo(out, seed=seed, overrides=overrides, method=method, progress=report,
+                                    scheduler=scheduler)
     from rich.table import Table
 
     table = Table(title=f"Georefine demo (block, seed {seed}): co-adjustment, beside paper 004")
@@ -305,6 +307,7 @@ def lidargrams(
     scale: Optional[float] = typer.Option(
         None, "--scale", help=f"Lidargram resolution relative to the photos. {_FROM_CONFIG} 0.5."),
     merged: bool = typer.Option(False, "--merged", help="One lidargram per photo of all strips together."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Render lidargrams at the photos' approximate orientation: OUT/NAME.png and NAME.npz (ULPI raster).
 
@@ -314,7 +317,7 @@ def lidargrams(
         from georefine.workflows.lidargrammetry import run_lidargrams
 
         with _progress() as report:
-            names = run_lidargrams(project, points, out, progress=report,
+            names = run_lidargrams(project, points, out, progress=report, scheduler=scheduler,
                                    overrides=_given(lidargram_scale=scale, per_strip=False if merged else None))
     stdout.print(f"{len(names)} lidargrams written to {out}")
 
@@ -346,6 +349,7 @@ def match(
     features: Optional[str] = typer.Option(None, "--lightglue-features", help="LightGlue's features: disk or aliked."),
     extractor_weights: Optional[Path] = typer.Option(None, "--extractor-weights", help="DISK/ALIKED weights (.pth)."),
     lightglue_weights: Optional[Path] = typer.Option(None, "--lightglue-weights", help="LightGlue weights (.pth)."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Render lidargrams and match photos and lidargrams (verified matches, tracks, pictures).
 
@@ -360,7 +364,7 @@ def match(
         overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
                      **_given(pair_kinds=kinds, lidargram_scale=scale)}
         with _progress() as report:
-            summary = run_match(project, points, out, overrides=overrides, progress=report)
+            summary = run_match(project, points, out, overrides=overrides, progress=report, scheduler=scheduler)
     stdout.print(f"{summary.photos} photos, {summary.lidargrams} lidargrams, {summary.tracks} tracks")
     for k in summary.pair_kinds:
         stdout.print(f"  {k.kind}: {k.pairs} pairs ({k.pairs_with_matches} with matches), "
@@ -385,6 +389,7 @@ def coadjust(
         None, "--lidargram-sigma-rotation",
         help=f"A-priori sigma of lidargram rotations about the camera x,y,z axes [deg], one or three "
         f"comma-separated. {_FROM_CONFIG} 0.01,0.01,0.1."),
+    scheduler: str = _scheduler_option(),
 ) -> None:
     """Co-match photos and lidargrams and co-adjust them (paper 004, cases 1-3).
 
@@ -401,7 +406,7 @@ def coadjust(
                      **_given(use_depth=False if no_depth else None, lidargram_sigma_position_m=sigma_position,
                               lidargram_sigma_rotation_deg=sig_r)}
         with _progress() as report:
-            m = run_coadjust(project, points, out, case, overrides=overrides, progress=report)
+            m = run_coadjust(project, points, out, case, overrides=overrides, progress=report, scheduler=scheduler)
     stdout.print(f"case {case}: {m.description}")
     for label, st in (("control points", m.control_points), ("check points", m.check_points)):
         if st is not None:

@@ -37,6 +37,7 @@ from georefine.io.files import atomic_output, write_json
 from georefine.lidargrammetry.bundle import PointStats
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import simulate_project
+from georefine.tasks import DEFAULT_SCHEDULER
 from georefine.workflows.lidar import run_workflow
 from georefine.workflows.lidargrammetry import run_coadjust
 from georefine.workflows.lidargrammetry_results import (
@@ -143,16 +144,21 @@ class BlockDemoResult:
         return rows
 
 
-def _case3(project: Path, out: Path, cache: Path, method: str, progress: QueuedProgress) -> CoadjustResult:
+def _case3(project: Path, out: Path, cache: Path, method: str, progress: QueuedProgress,
+           scheduler: str) -> CoadjustResult:
     """The second process: case 3 on the true cloud."""
     r = run_coadjust(project, [project / "truth"], out / "case3", 3, overrides={"matcher": method}, cache_dir=cache,
-                     progress=progress)
+                     progress=progress, scheduler=scheduler)
     return replace(r, bundle=None)  # the metrics only come back through the queue
 
 
 def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | None = None, method: str = "sift",
-                   progress: Progress = no_progress) -> BlockDemoResult:
-    """Simulate, run, co-adjust (cases 1-3), evaluate and report into ``out``."""
+                   progress: Progress = no_progress, scheduler: str = DEFAULT_SCHEDULER) -> BlockDemoResult:
+    """Simulate, run, co-adjust (cases 1-3), evaluate and report into ``out``.
+
+    ``scheduler``: where each lane's tasks run (scan chunks, lidargrams, keypoints and pairs;
+    :mod:`georefine.tasks`).
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     overrides = list(overrides or [])
@@ -165,17 +171,18 @@ def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | Non
         if not reusable_project(project, "block", seed, overrides):
             if project.exists():
                 shutil.rmtree(project)
-            simulate_project("block", project, seed=seed, overrides=overrides, progress=lanes)
+            simulate_project("block", project, seed=seed, overrides=overrides, progress=lanes, scheduler=scheduler)
             write_json(project / "truth" / "demo.json", demo_stamp("block", seed, overrides))
         timings["simulate"] = _time.perf_counter() - t
-        third = lanes.submit(_case3, project, out, cache, method, lanes.queued("case 3: "))
+        third = lanes.submit(_case3, project, out, cache, method, lanes.queued("case 3: "), scheduler)
         t = _time.perf_counter()
-        run_workflow(project, out / "run", lidar=False, cache_dir=cache, progress=lanes)
+        run_workflow(project, out / "run", lidar=False, cache_dir=cache, progress=lanes, scheduler=scheduler)
         timings["run_gi"] = _time.perf_counter() - t
         for case in (1, 2):
             t = _time.perf_counter()
             cases[case] = run_coadjust(project, [out / "run" / "points"], out / f"case{case}", case,
-                                       overrides={"matcher": method}, cache_dir=cache, progress=lanes)
+                                       overrides={"matcher": method}, cache_dir=cache, progress=lanes,
+                                       scheduler=scheduler)
             timings[f"case{case}"] = _time.perf_counter() - t
         t = _time.perf_counter()
         cases[3] = lanes.result(third)

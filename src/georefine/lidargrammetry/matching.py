@@ -108,15 +108,23 @@ def detect_sift(image: np.ndarray, *, max_features: int = 8000, contrast_thresho
     return Keypoints(np.array([k.pt for k in kp], dtype=float) + 0.5, np.sqrt(des).astype(np.float32))
 
 
+FLANN_SEED = 0x5EED
+"""Seed of OpenCV's generator before each FLANN index build (:func:`match_descriptors`)."""
+
+
 def match_descriptors(da: np.ndarray, db: np.ndarray, *, ratio: float = 0.85) -> tuple[np.ndarray, np.ndarray]:
     """Mutual nearest neighbours passing the ratio test in both directions: indices ``(ia, ib)``."""
     if len(da) < 2 or len(db) < 2:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     # Approximate nearest neighbours (FLANN, randomised k-d trees): several times faster than
     # brute force on thousands of 128-D descriptors, and the ratio test absorbs the rare miss.
+    # The trees draw their split dimensions from OpenCV's per-thread generator: seeded here before
+    # each build, so a pair's matches do not depend on what this thread matched before (nor on
+    # the scheduler the pairs run on).
     matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 64})
 
     def best(x, y):
+        cv2.setRNGSeed(FLANN_SEED)
         m = matcher.knnMatch(np.ascontiguousarray(x, np.float32), np.ascontiguousarray(y, np.float32), k=2)
         j = np.array([p[0].trainIdx for p in m])
         ok = np.array([p[0].distance < ratio * p[1].distance for p in m])

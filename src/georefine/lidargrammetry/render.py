@@ -154,7 +154,7 @@ def _shape_problem(camera: Camera, arrays: dict) -> tuple[str, str, str] | None:
 # --------------------------------------------------------------------------- kernels
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)  # lidargram tasks on threads run their z-buffers side by side
 def _splat(u, v, z, r, idx, zbuf, ulpi):
     """Draw square splats into the z-buffer (in place): smaller ``z`` wins, then the lower index."""
     h, w = zbuf.shape
@@ -173,7 +173,7 @@ def _splat(u, v, z, r, idx, zbuf, ulpi):
                     ulpi[row, col] = ik
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _fill_holes(depth, image, ulpi, min_neighbours):
     """Filled copies of ``depth`` and ``image``: empty pixels with enough shown neighbours (docstring step 5)."""
     h, w = ulpi.shape

@@ -63,7 +63,7 @@ from georefine.sim.gnss import GnssConfig, simulate_gnss
 from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade, simulate_imu
 from georefine.sim.scanner import ScannerConfig, chunk_seed, scan
 from georefine.sim.scene import SceneConfig, build_scene
-from georefine.tasks import TaskRunner
+from georefine.tasks import TaskRunner, runner_for
 
 log = logging.getLogger(__name__)
 
@@ -263,16 +263,13 @@ def simulate_project(
     )
     out = Path(out)
     tmp = _prepare_output(out)
-    own = TaskRunner(scheduler) if not isinstance(scheduler, TaskRunner) else None
     try:
-        result = _simulate_into(cfg, tmp, seed, write_imr, progress, on_navigation, own or scheduler)
+        with runner_for(scheduler) as runner:
+            result = _simulate_into(cfg, tmp, seed, write_imr, progress, on_navigation, runner)
         tmp.rename(out) if not out.exists() else _replace_empty_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    finally:
-        if own is not None:
-            own.close()
     return SimulationResult(out=out, **{k: v for k, v in result.items()})
 
 

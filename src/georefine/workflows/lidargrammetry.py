@@ -67,6 +67,7 @@ from georefine.lidargrammetry.matching import (
 )
 from georefine.lidargrammetry.reintersect import feather_weights, reintersect
 from georefine.progress import Progress, no_progress
+from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, file_stamp
 from georefine.workflows.lidargrammetry_results import (
     CoadjustResult,
@@ -152,9 +153,13 @@ def _settings_matcher(st: LidargrammetryConfig, root: Path):
                         lightglue_weights=weights(st.lightglue_weights), max_features=st.deep_max_features)
 
 
+MATCHING_VERSION = 2
+"""Part of the matches' cache key; bumped when the same inputs give other matches (2: FLANN seeded per pair)."""
+
+
 def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.ndarray, is_lidargram: np.ndarray,
                 centres: np.ndarray, masks: list, settings: LidargrammetryConfig | None = None, *, matcher=None,
-                progress: Progress = no_progress) -> BlockMatches:
+                progress: Progress = no_progress, runner: TaskRunner | None = None) -> BlockMatches:
     """Keypoints of every image, verified matches of overlapping pairs of the kinds asked, tracks.
 
     ``settings``: the matching fields of :class:`~georefine.config.LidargrammetryConfig`
@@ -162,6 +167,11 @@ def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.nda
     ``max_pair_distance_m``, matched by ``matcher`` and verified. ``matcher``: a matcher object
     (:func:`make_matcher`) instead of the one ``settings.matcher`` names; ``None`` with
     ``settings.matcher == "sift"`` is SIFT.
+
+    ``runner``: where SIFT detects (one task per image) and matches (one task per pair); default
+    in this process. The matches do not depend on it (FLANN is seeded per pair,
+    :func:`~georefine.lidargrammetry.matching.match_descriptors`). A learned matcher runs here:
+    torch spreads one image pair over every core already.
     """
     st = settings or LidargrammetryConfig()
     pair_kinds = st.pair_kinds
@@ -172,33 +182,46 @@ def match_block(images: list[np.ndarray], cameras: list[Camera], station: np.nda
                                extractor_weights=st.extractor_weights, lightglue_weights=st.lightglue_weights,
                                max_features=st.deep_max_features)
     n = len(images)
-    if matcher is None:
-        kps = [detect_sift(im, mask=m, max_features=st.sift_max_features,
-                           contrast_threshold=st.sift_contrast_threshold) for im, m in zip(enhanced, masks)]
-    else:
-        kps = []
-        for k, im in enumerate(enhanced):
-            progress("keypoints", k, n)
-            kps.append(matcher.detect(im))
-        progress("keypoints", n, n)
     pairs = [(a, b) for a in range(n) for b in range(a + 1, n)
              if _pair_kind(is_lidargram, a, b) in pair_kinds
              and np.linalg.norm(centres[a] - centres[b]) < st.max_pair_distance_m]
+    if matcher is None:
+        runner = runner or TaskRunner("sync")
+        kps = list(runner.map(_detect, [(im, m, st.sift_max_features, st.sift_contrast_threshold)
+                                        for im, m in zip(enhanced, masks)], label="keypoints", progress=progress))
+        shared = runner.share((kps, cameras))
+        out = list(runner.map(_match_sift, [(shared, a, b, st.sift_ratio, st.verification_threshold_px,
+                                             st.min_verified_matches) for a, b in pairs],
+                              label="matching", progress=progress))
+        return BlockMatches(kps, out, build_tracks(kps, out))
+    kps = []
+    for k, im in enumerate(enhanced):
+        progress("keypoints", k, n)
+        kps.append(matcher.detect(im))
+    progress("keypoints", n, n)
     out = []
     for k, (a, b) in enumerate(pairs):
         progress("matching", k, len(pairs))
-        if matcher is None:
-            m = match_pair(kps[a], kps[b], cameras[a], cameras[b], a, b, ratio=st.sift_ratio,
-                           threshold_px=st.verification_threshold_px, min_matches=st.min_verified_matches)
-        else:
-            ia, ib = matcher.match(kps[a], kps[b], images[a].shape[::-1], images[b].shape[::-1])
-            ok = verify_pair(kps[a].uv[ia], kps[b].uv[ib], cameras[a], cameras[b],
-                             threshold_px=st.verification_threshold_px)
-            ok = ok if ok.sum() >= st.min_verified_matches else np.zeros_like(ok)
-            m = PairMatches(a, b, ia[ok], ib[ok], len(ia))
-        out.append(m)
+        ia, ib = matcher.match(kps[a], kps[b], images[a].shape[::-1], images[b].shape[::-1])
+        ok = verify_pair(kps[a].uv[ia], kps[b].uv[ib], cameras[a], cameras[b],
+                         threshold_px=st.verification_threshold_px)
+        ok = ok if ok.sum() >= st.min_verified_matches else np.zeros_like(ok)
+        out.append(PairMatches(a, b, ia[ok], ib[ok], len(ia)))
     progress("matching", len(pairs), len(pairs))
     return BlockMatches(kps, out, build_tracks(kps, out))
+
+
+def _detect(image: np.ndarray, mask: np.ndarray | None, max_features: int, contrast_threshold: float) -> Keypoints:
+    """One keypoint task: SIFT of one (enhanced) image."""
+    return detect_sift(image, mask=mask, max_features=max_features, contrast_threshold=contrast_threshold)
+
+
+def _match_sift(block: tuple[list[Keypoints], list[Camera]], a: int, b: int, ratio: float, threshold_px: float,
+                min_matches: int) -> PairMatches:
+    """One matching task: images ``a`` and ``b`` of ``block = (keypoints, cameras)``, verified."""
+    kps, cameras = block
+    return match_pair(kps[a], kps[b], cameras[a], cameras[b], a, b, ratio=ratio, threshold_px=threshold_px,
+                      min_matches=min_matches)
 
 
 def _ties(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: Cloud, n_photos: int,
@@ -274,8 +297,9 @@ def _lidargram_name(cloud: Cloud, strip: int, photo: str) -> str:
     return f"LG_{cloud.files[strip].stem if strip >= 0 else 'all'}_{photo}"
 
 
-def _block_images(pp: PhotoProject, cloud: Cloud, st: LidargrammetryConfig, progress: Progress) -> _Block:
-    lgs = render_lidargrams(pp, cloud, st, progress=progress)
+def _block_images(pp: PhotoProject, cloud: Cloud, st: LidargrammetryConfig, progress: Progress,
+                  runner: TaskRunner) -> _Block:
+    lgs = render_lidargrams(pp, cloud, st, progress=progress, runner=runner)
     n = len(pp.eop)
     photos = [cv2.imread(str(pp.folder / name), cv2.IMREAD_GRAYSCALE) for name in pp.eop.images]
     for name, img in zip(pp.eop.images, photos):
@@ -295,7 +319,8 @@ def _method(st: LidargrammetryConfig, matcher) -> str:
 
 
 def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str | Path, *,
-                   overrides: Mapping[str, Any] | None = None, progress: Progress = no_progress) -> list[str]:
+                   overrides: Mapping[str, Any] | None = None, progress: Progress = no_progress,
+                   scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> list[str]:
     """Render the lidargrams (:func:`render_lidargrams`) and write each as ``out/NAME.png`` and ``NAME.npz``.
 
     Names as ``run_match`` and ``run_coadjust`` give them: ``LG_<strip>_<photo>`` (``LG_all_<photo>``
@@ -305,15 +330,16 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
 
     st, _, pp, out, cloud = _open(project_dir, out, points, overrides, matching=False)
     names = []
-    for lg, i, s in render_lidargrams(pp, cloud, st, progress=progress):
-        names.append(_lidargram_name(cloud, s, Path(pp.eop.images[i]).stem))
-        save_lidargram(lg, out, names[-1])
+    with runner_for(scheduler) as runner:
+        for lg, i, s in render_lidargrams(pp, cloud, st, progress=progress, runner=runner):
+            names.append(_lidargram_name(cloud, s, Path(pp.eop.images[i]).stem))
+            save_lidargram(lg, out, names[-1])
     return names
 
 
 def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path, *,
               overrides: Mapping[str, Any] | None = None, matcher=None,
-              progress: Progress = no_progress) -> MatchSummary:
+              progress: Progress = no_progress, scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> MatchSummary:
     """Render the lidargrams, match the pairs of the kinds asked and write the matches.
 
     ``overrides``: fields of ``processing.lidargrammetry`` to set over ``project.yaml``
@@ -337,14 +363,15 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
     timings: dict[str, float] = {}
     t = _time.perf_counter()
     st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher)
-    blk = _block_images(pp, cloud, st, progress)
-    (out / "lidargrams").mkdir(exist_ok=True)
-    for (lg, _, _), name in zip(blk.lgs, blk.names[blk.n_photos:]):
-        save_lidargram(lg, out / "lidargrams", Path(name).stem)
-    timings["lidargrams"] = _time.perf_counter() - t
-    t = _time.perf_counter()
-    m = match_block(blk.images, blk.cameras, blk.station, blk.is_lidargram, blk.p0[:, :2], blk.masks, st,
-                    matcher=matcher, progress=progress)
+    with runner_for(scheduler) as runner:
+        blk = _block_images(pp, cloud, st, progress, runner)
+        (out / "lidargrams").mkdir(exist_ok=True)
+        for (lg, _, _), name in zip(blk.lgs, blk.names[blk.n_photos:]):
+            save_lidargram(lg, out / "lidargrams", Path(name).stem)
+        timings["lidargrams"] = _time.perf_counter() - t
+        t = _time.perf_counter()
+        m = match_block(blk.images, blk.cameras, blk.station, blk.is_lidargram, blk.p0[:, :2], blk.masks, st,
+                        matcher=matcher, progress=progress, runner=runner)
     timings["matching"] = _time.perf_counter() - t
     names, lg = blk.names, blk.is_lidargram
 
@@ -378,7 +405,7 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
 
 def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | Path, case: int, *,
                  overrides: Mapping[str, Any] | None = None, matcher=None, cache_dir: str | Path | None = None,
-                 progress: Progress = no_progress) -> CoadjustResult:
+                 progress: Progress = no_progress, scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> CoadjustResult:
     """Steps 1-4 of the module docstring for case ``case`` (1, 2 or 3); returns the metrics written.
 
     ``overrides``: fields of ``processing.lidargrammetry`` to set over ``project.yaml``;
@@ -405,23 +432,24 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     t = _time.perf_counter()
     st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher)
     timings["read"] = _time.perf_counter() - t
-    t = _time.perf_counter()
-    blk = _block_images(pp, cloud, st, progress)
-    timings["lidargrams"] = _time.perf_counter() - t
-    lgs, n, cameras, station, is_lg, R0, p0, images = (blk.lgs, blk.n_photos, blk.cameras, blk.station,
-                                                       blk.is_lidargram, blk.R0, blk.p0, blk.images)
-    t = _time.perf_counter()
-    cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
-    key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
-                        [file_stamp(f) for f in cloud.files], _method(st, matcher),
-                        st.model_dump(mode="json", include=_MATCH_FIELDS), len(lgs))
-    matches = cache.load("matches", key) if cache is not None else None
-    if matches is None:
-        matches = match_block(images, cameras, station, is_lg, p0[:, :2], blk.masks, st, matcher=matcher,
-                              progress=progress)
-        if cache is not None:
-            cache.store("matches", key, matches)
-    timings["matching"] = _time.perf_counter() - t
+    with runner_for(scheduler) as runner:
+        t = _time.perf_counter()
+        blk = _block_images(pp, cloud, st, progress, runner)
+        timings["lidargrams"] = _time.perf_counter() - t
+        lgs, n, cameras, station, is_lg, R0, p0, images = (blk.lgs, blk.n_photos, blk.cameras, blk.station,
+                                                           blk.is_lidargram, blk.R0, blk.p0, blk.images)
+        t = _time.perf_counter()
+        cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
+        key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
+                            [file_stamp(f) for f in cloud.files], _method(st, matcher),
+                            st.model_dump(mode="json", include=_MATCH_FIELDS), len(lgs), MATCHING_VERSION)
+        matches = cache.load("matches", key) if cache is not None else None
+        if matches is None:
+            matches = match_block(images, cameras, station, is_lg, p0[:, :2], blk.masks, st, matcher=matcher,
+                                  progress=progress, runner=runner)
+            if cache is not None:
+                cache.store("matches", key, matches)
+        timings["matching"] = _time.perf_counter() - t
     keep, xyz0, depth = _ties(lgs, R0, p0, cameras, station, matches, cloud, n, st.max_initial_reprojection_px)
     tr = matches.tracks
     sig_p = np.r_[pp.eop.sigma_xyz if pp.eop.sigma_xyz is not None else np.full((n, 3), st.photo_sigma_position_m),

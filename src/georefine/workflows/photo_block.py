@@ -30,9 +30,10 @@ from georefine.io import photos as pio
 from georefine.io.las import LasWriter, PointCloud, iter_las_chunks
 from georefine.lidargrammetry.render import Lidargram, render_lidargram
 from georefine.progress import Progress, no_progress
+from georefine.tasks import TaskRunner
 
 __all__ = ["SECTION", "PhotoProject", "Cloud", "lidargrammetry_settings", "load_photo_project", "read_cloud",
-           "render_lidargrams", "write_cloud"]
+           "render_lidargrams", "render_in_cloud", "write_cloud"]
 
 SECTION = "processing.lidargrammetry"
 """Where the settings are in ``project.yaml`` (errors name ``SECTION.field``)."""
@@ -119,11 +120,15 @@ def read_cloud(paths: list[Path], pp: PhotoProject) -> Cloud:
 
 
 def render_lidargrams(pp: PhotoProject, cloud: Cloud, settings: LidargrammetryConfig | None = None, *,
-                      progress: Progress = no_progress) -> list[tuple[Lidargram, int, int]]:
+                      progress: Progress = no_progress, runner: TaskRunner | None = None
+                      ) -> list[tuple[Lidargram, int, int]]:
     """Lidargrams ``(lidargram, photo index, strip or -1)`` at the photos' approximate poses.
 
     ``settings``: ``lidargram_scale``, ``per_strip``, ``point_spacing_m``, ``splat_scale``,
     ``fill_holes`` and ``min_coverage`` (defaults of :class:`~georefine.config.LidargrammetryConfig` if None).
+    ``runner``: where the lidargrams are rendered, one task per photo and strip
+    (:mod:`georefine.tasks`; default in this process). The cloud goes to each worker once; the
+    lidargrams come back in the order of strips and photos whatever the scheduler.
     """
     st = settings or LidargrammetryConfig()
     per_strip, point_spacing_m = st.per_strip, st.point_spacing_m
@@ -132,21 +137,32 @@ def render_lidargrams(pp: PhotoProject, cloud: Cloud, settings: LidargrammetryCo
     if point_spacing_m is None:  # from the density of the cloud: mean spacing of its strips together
         lo, hi = cloud.xyz_w[:, :2].min(axis=0), cloud.xyz_w[:, :2].max(axis=0)
         point_spacing_m = float(np.sqrt(np.prod(hi - lo) / len(cloud.xyz_w)))
-    out = []
-    total = len(groups) * len(pp.eop)
-    for g, sel in enumerate(groups):
+    runner = runner or TaskRunner("sync")
+    xyz, intensity = runner.share(cloud.xyz_w), runner.share(cloud.intensity)
+    tasks = []
+    for sel in groups:
+        shared_sel = runner.share(sel)
         for i in range(len(pp.eop)):
-            progress("lidargrams", g * len(pp.eop) + i, total)
-            lg = render_lidargram(cloud.xyz_w[sel], cloud.intensity[sel], pp.camera(i).scaled(st.lidargram_scale),
-                                  pp.R_w_c[i], pp.p_w_c[i], point_spacing_m=point_spacing_m,
-                                  splat_scale=st.splat_scale, fill_holes=st.fill_holes)
-            if np.mean(lg.ulpi >= 0) < st.min_coverage:
-                continue
-            lg = replace(lg, ulpi=np.where(lg.ulpi >= 0, sel[np.maximum(lg.ulpi, 0)], -1),
-                         point_index=sel[lg.point_index])
+            tasks.append((xyz, intensity, shared_sel, pp.camera(i).scaled(st.lidargram_scale), pp.R_w_c[i],
+                          pp.p_w_c[i], point_spacing_m, st.splat_scale, st.fill_holes, st.min_coverage))
+    out = []
+    for k, lg in enumerate(runner.map(render_in_cloud, tasks, label="lidargrams", progress=progress)):
+        if lg is not None:
+            g, i = divmod(k, len(pp.eop))
             out.append((lg, i, g if per_strip else -1))
-    progress("lidargrams", total, total)
     return out
+
+
+def render_in_cloud(xyz_w: np.ndarray, intensity: np.ndarray, sel: np.ndarray, camera: Camera, R_w_c: np.ndarray,
+                    p_w_c: np.ndarray, point_spacing_m: float, splat_scale: float, fill_holes: bool,
+                    min_coverage: float) -> Lidargram | None:
+    """One lidargram task: the points ``sel`` of the cloud rendered at a pose, its indices into the
+    whole cloud; ``None`` when less than ``min_coverage`` of its pixels show a point."""
+    lg = render_lidargram(xyz_w[sel], intensity[sel], camera, R_w_c, p_w_c, point_spacing_m=point_spacing_m,
+                          splat_scale=splat_scale, fill_holes=fill_holes)
+    if np.mean(lg.ulpi >= 0) < min_coverage:
+        return None
+    return replace(lg, ulpi=np.where(lg.ulpi >= 0, sel[np.maximum(lg.ulpi, 0)], -1), point_index=sel[lg.point_index])
 
 
 def write_cloud(cloud: Cloud, pp: PhotoProject, xyz_w: np.ndarray, n_lidargrams: np.ndarray, folder: Path) -> None:
