@@ -6,9 +6,15 @@ per second. As a yardstick measured in the same run, it also times the bare Embr
 of the same number of rays on the same scene, so the share of the simulation spent outside
 ray casting (trajectory evaluation, noise, LAZ encoding of scan and truth files) is visible.
 
+With several ``--schedulers`` each scenario is simulated on each (``georefine simulate
+--scheduler``: the scan chunks as tasks); peak memory is then summed over the process tree
+(``bench/proctree.py``, Dask workers included), the speed-up is against the first scheduler,
+and the scan and truth files are compared byte for byte with the first scheduler's.
+
 Usage::
 
     python bench/simulate.py [--scenarios corridor-tiny corridor] [--seed 42] [--keep DIR]
+                             [--schedulers sync threads processes]
 """
 
 from __future__ import annotations
@@ -26,19 +32,42 @@ import numpy as np
 import yaml
 
 
-def run_scenario(name: str, seed: int, out: Path) -> tuple[float, float, int]:
-    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    t = time.perf_counter()
-    subprocess.run(
-        [sys.executable, "-m", "georefine.cli", "simulate", name, "--out", str(out), "--seed", str(seed)],
-        check=True, stdout=subprocess.DEVNULL,
-    )
-    wall = time.perf_counter() - t
-    peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
-    if peak_kib < before:  # ru_maxrss is the maximum over all children so far
-        peak_kib = before
+def run_scenario(name: str, seed: int, out: Path, scheduler: str | None = None) -> tuple[float, float, int]:
+    args = [sys.executable, "-m", "georefine.cli", "simulate", name, "--out", str(out), "--seed", str(seed)]
+    if scheduler is not None:
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from proctree import run_measured
+
+        wall, peak_gb, proc = run_measured([*args, "--scheduler", scheduler])
+        if proc.returncode != 0:
+            raise RuntimeError(proc.stderr[-2000:])
+    else:
+        before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        t = time.perf_counter()
+        subprocess.run(args, check=True, stdout=subprocess.DEVNULL)
+        wall = time.perf_counter() - t
+        peak_kib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+        if peak_kib < before:  # ru_maxrss is the maximum over all children so far
+            peak_kib = before
+        peak_gb = peak_kib / 1024**2
     truth = yaml.safe_load((out / "truth" / "scenario.yaml").read_text())
-    return wall, peak_kib / 1024**2, int(sum(truth["points_per_strip"].values()))
+    return wall, peak_gb, int(sum(truth["points_per_strip"].values()))
+
+
+def compare_schedulers(name: str, seed: int, base: Path, schedulers: list[str]) -> None:
+    first = None
+    for sch in schedulers:
+        out = base / f"{name}-{sch}"
+        if out.exists():
+            shutil.rmtree(out)
+        wall, peak_gb, points = run_scenario(name, seed, out, sch)
+        files = sorted(p.relative_to(out) for p in out.rglob("*.laz"))
+        same = "" if first is None else (
+            ", files identical to " + schedulers[0] if all((out / f).read_bytes() == (first[1] / f).read_bytes()
+                                                            for f in files) else ", FILES DIFFER")
+        first = first or (wall, out)
+        print(f"{name:<15} {sch:<10} {wall:8.1f} s {peak_gb:6.2f} GB {points:12,} points "
+              f"{points / wall / 1e6:6.2f} M/s  {first[0] / wall:4.2f}x{same}", flush=True)
 
 
 def raycast_time(name: str, seed: int, n_rays: int) -> float:
@@ -63,9 +92,18 @@ def main() -> None:
     ap.add_argument("--scenarios", nargs="+", default=["corridor-tiny", "corridor"])
     ap.add_argument("--seed", type=int, default=42)
     ap.add_argument("--keep", type=Path, default=None, help="keep the projects in this folder")
+    ap.add_argument("--schedulers", nargs="+", default=None, help="compare these schedulers")
     args = ap.parse_args()
     base = args.keep or Path(tempfile.mkdtemp(prefix="georefine-bench-"))
     base.mkdir(parents=True, exist_ok=True)
+    if args.schedulers:
+        try:
+            for name in args.scenarios:
+                compare_schedulers(name, args.seed, base, args.schedulers)
+        finally:
+            if args.keep is None:
+                shutil.rmtree(base, ignore_errors=True)
+        return
     print(f"{'scenario':<15} {'wall s':>8} {'peak GB':>8} {'points':>12} {'Mpts/s':>7} {'raycast s':>9} {'other':>6}")
     try:
         for name in args.scenarios:

@@ -39,7 +39,7 @@ import dataclasses
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -186,7 +186,9 @@ def scan(
     rng: np.random.Generator | np.random.SeedSequence,
     chunk_duration_s: float = 1.0,
     runner: TaskRunner | None = None,
-) -> Iterator[ScanChunk]:
+    finish: Callable[..., Any] | None = None,
+    finish_args: tuple = (),
+) -> Iterator[Any]:
     """Simulate the scanner from ``t_start`` to ``t_end``, chunk by chunk.
 
     Parameters
@@ -215,11 +217,15 @@ def scan(
         Where the chunks are simulated (one task each, :mod:`georefine.tasks`); default: in
         this process, one after the other. The chunks are yielded in time order either way,
         and at most a few per task slot wait in memory.
+    finish, finish_args : callable, tuple, optional
+        ``finish(chunk, *finish_args)`` inside each chunk's task (a module-level function, e.g.
+        turning the chunk into file records); its results are yielded instead of the chunks.
 
     Yields
     ------
     ScanChunk
-        Returns of the pulses of each chunk (possibly empty), in time order.
+        Returns of the pulses of each chunk (possibly empty), in time order (or what ``finish``
+        made of them).
     """
     p_b_s = np.asarray(p_b_s, np.float64).reshape(3)
     R_b_s = np.asarray(R_b_s, np.float64)
@@ -231,7 +237,7 @@ def scan(
         raise ValueError("chunk_duration_s must be positive")
     seed = rng if isinstance(rng, np.random.SeedSequence) else np.random.SeedSequence(int(rng.integers(2**63)))
     return _scan(pose_fn, float(t_start), float(t_end), scene, cfg, p_b_s, R_b_s, seed,
-                 float(chunk_duration_s), runner)
+                 float(chunk_duration_s), runner, finish, tuple(finish_args))
 
 
 def chunk_seed(seed: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
@@ -239,24 +245,29 @@ def chunk_seed(seed: np.random.SeedSequence, k: int) -> np.random.SeedSequence:
     return np.random.SeedSequence(seed.entropy, spawn_key=(*seed.spawn_key, int(k)))
 
 
-def _scan(pose_fn, t_start, t_end, scene, cfg, p_b_s, R_b_s, seed, chunk_duration_s, runner):
+def _scan(pose_fn, t_start, t_end, scene, cfg, p_b_s, R_b_s, seed, chunk_duration_s, runner, finish, finish_args):
     n_chunks = int(np.ceil((t_end - t_start) / chunk_duration_s))
     edges = np.minimum(t_start + chunk_duration_s * np.arange(n_chunks + 1), t_end)
+    spans = [(a, b, chunk_seed(seed, k)) for k, (a, b) in enumerate(zip(edges[:-1], edges[1:]))]
     if runner is None:
-        chunks = (scan_span(pose_fn, a, b, scene, cfg, p_b_s, R_b_s, chunk_seed(seed, k))
-                  for k, (a, b) in enumerate(zip(edges[:-1], edges[1:])))
+        results = (_scan_task(pose_fn, a, b, scene, cfg, p_b_s, R_b_s, s, finish, finish_args) for a, b, s in spans)
     else:
         # The trajectory and the scene (~60 MB at `corridor`) travel to each worker once.
         pose, world = runner.share(pose_fn), runner.share(scene)
-        chunks = runner.map(scan_span, [(pose, a, b, world, cfg, p_b_s, R_b_s, chunk_seed(seed, k))
-                                        for k, (a, b) in enumerate(zip(edges[:-1], edges[1:]))], label="scan chunks")
+        results = runner.map(_scan_task, [(pose, a, b, world, cfg, p_b_s, R_b_s, s, finish, finish_args)
+                                          for a, b, s in spans], label="scan chunks")
     n_pulses = n_points = 0
-    for chunk in chunks:
-        n_pulses += chunk.pulses
-        n_points += len(chunk)
-        yield chunk
+    for result, pulses, points in results:
+        n_pulses += pulses
+        n_points += points
+        yield result
     log.info("scanned %.1f s: %d pulses in the field of view, %d returns (%.1f %%)",
              t_end - t_start, n_pulses, n_points, 100.0 * n_points / max(n_pulses, 1))
+
+
+def _scan_task(pose_fn, t_a, t_b, scene, cfg, p_b_s, R_b_s, seed, finish, finish_args) -> tuple[Any, int, int]:
+    chunk = scan_span(pose_fn, t_a, t_b, scene, cfg, p_b_s, R_b_s, seed)
+    return (chunk if finish is None else finish(chunk, *finish_args)), chunk.pulses, len(chunk)
 
 
 def scan_span(pose_fn: PoseFn, t_a: float, t_b: float, scene: Scene, cfg: ScannerConfig, p_b_s: np.ndarray,

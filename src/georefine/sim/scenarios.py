@@ -364,17 +364,17 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
         # Chunks of at most ~400 k pulses (1 s up to 400 kHz, as before; 0.22 s at 1.8 MHz): the
         # memory of a chunk, not the pulse rate, bounds the simulation's memory.
         chunk_s = min(1.0, 400_000.0 / cfg.scanner.pulse_rate_hz)
-        chunks = scan(traj.pose, t0, t1, scene, cfg.scanner, p_b_s, R_b_s, chunk_seed(seed_scan, strip_id),
-                      chunk_duration_s=chunk_s, runner=runner)
+        # Each task scans its chunk and makes its file records (the truth in the output CRS
+        # included); this process only encodes them, in time order.
+        records = scan(traj.pose, t0, t1, scene, cfg.scanner, p_b_s, R_b_s, chunk_seed(seed_scan, strip_id),
+                       chunk_duration_s=chunk_s, runner=runner, finish=writers.strip_records,
+                       finish_args=(strip_id, traj.t0_gps, frame, crs))
 
-        def tick(t_chunk_end: float, _t0=t0, _done=done) -> None:
-            progress("scanning", _done + (t_chunk_end - _t0), total)
+        def tick(t_gps_end: float, _t0=traj.t0_gps + t0, _done=done) -> None:
+            progress("scanning", _done + (t_gps_end - _t0), total)
 
         points[strip_id] = writers.write_strip(
-            root / "scans" / f"strip_{strip_id}.{ext}",
-            root / "truth" / f"strip_{strip_id}.{ext}",
-            chunks, strip_id, traj.t0_gps, frame, crs, tick,
-        )
+            root / "scans" / f"strip_{strip_id}.{ext}", root / "truth" / f"strip_{strip_id}.{ext}", records, tick, crs)
         done += t1 - t0
     timings["scanning"] = _time.perf_counter() - t
 

@@ -87,45 +87,49 @@ def write_reference(
     write_reference_surfaces(root / "truth" / "reference_surfaces.csv", ReferenceSurfaces(sid, pid, exact))
 
 
+def strip_records(chunk: ScanChunk, strip_id: int, t0_gps: float, frame: LocalFrame,
+                  crs: OutputCRS) -> tuple[PointCloud, PointCloud]:
+    """The scan-file and truth-file records of one chunk (the per-chunk work of :func:`write_strip`,
+    done inside the scan task so that the writer only encodes)."""
+    m = chunk.time.size
+    ones = np.ones(m, dtype=np.uint8)
+    sid = np.full(m, strip_id, dtype=np.uint16)
+    t_gps = t0_gps + chunk.time
+    scan = PointCloud(t_gps, chunk.xyz_s, chunk.intensity, chunk.channel, sid, ones, ones)
+    # Measured point georeferenced with the true pose: the true hit moved by the range noise
+    # along the beam (exactly what the scanner model measured).
+    measured_w = chunk.xyz_w_true + chunk.range_error_m[:, None] * chunk.beam_w
+    truth = PointCloud(t_gps, crs.from_w(frame, measured_w), chunk.intensity, chunk.channel, sid, ones, ones,
+                       extra={"range_error_m": chunk.range_error_m})
+    return scan, truth
+
+
 def write_strip(
     scan_path: Path,
     truth_path: Path,
-    chunks: Iterable[ScanChunk],
-    strip_id: int,
-    t0_gps: float,
-    frame: LocalFrame,
-    crs: OutputCRS,
+    records: Iterable[tuple[PointCloud, PointCloud]],
     tick: Callable[[float], None] | None = None,
+    crs: OutputCRS | None = None,
 ) -> int:
     """Write one strip: scanner-frame points and their true georeferenced positions.
 
+    ``records``: ``(scan, truth)`` record pairs of consecutive chunks (:func:`strip_records`).
     The truth file holds the *measured* point (with its range noise) georeferenced with the
-    true trajectory, in the output CRS, in the same order; ``range_error_m`` gives the noise,
-    so the noiseless surface point is ``truth - range_error_m * beam direction``.
-    Returns the number of points written.
+    true trajectory, in the output CRS ``crs``, in the same order; ``range_error_m`` gives the
+    noise, so the noiseless surface point is ``truth - range_error_m * beam direction``.
+    ``tick(t_gps)`` after each chunk. Returns the number of points written.
     """
     n = 0
     with LasWriter(scan_path, scale=LAS_SCALE_M, offset=(0.0, 0.0, 0.0)) as scans, LasWriter(
-        truth_path, scale=LAS_SCALE_M, crs=crs.crs, extra_dims={"range_error_m": np.float32}
+        truth_path, scale=LAS_SCALE_M, crs=None if crs is None else crs.crs, extra_dims={"range_error_m": np.float32}
     ) as truth:
-        for chunk in chunks:
-            m = chunk.time.size
-            if m == 0:
+        for scan_records, truth_records in records:
+            if len(scan_records) == 0:
                 continue
-            ones = np.ones(m, dtype=np.uint8)
-            sid = np.full(m, strip_id, dtype=np.uint16)
-            t_gps = t0_gps + chunk.time
-            scans.write(PointCloud(t_gps, chunk.xyz_s, chunk.intensity, chunk.channel, sid, ones, ones))
-            # Measured point georeferenced with the true pose: the true hit moved by the
-            # range noise along the beam (exactly what the scanner model measured).
-            measured_w = chunk.xyz_w_true + chunk.range_error_m[:, None] * chunk.beam_w
-            xyz = crs.from_w(frame, measured_w)
-            truth.write(
-                PointCloud(t_gps, xyz, chunk.intensity, chunk.channel, sid, ones, ones,
-                           extra={"range_error_m": chunk.range_error_m})
-            )
-            n += m
+            scans.write(scan_records)
+            truth.write(truth_records)
+            n += len(scan_records)
             if tick is not None:
-                tick(float(chunk.time[-1]))
+                tick(float(scan_records.time_gps[-1]))
     return n
 
