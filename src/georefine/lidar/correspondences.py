@@ -220,6 +220,9 @@ def _frames(
 # --------------------------------------------------------------------------- matching
 
 
+PAIR_BLOCK = 2_000_000  # candidate pairs tested at a time in candidate_pairs (bounds its temporaries)
+
+
 def candidate_pairs(features: PlanarFeatures, cfg: MatchingConfig) -> np.ndarray:
     """Accepted feature pairs (rule 1 of the module docstring).
 
@@ -229,19 +232,21 @@ def candidate_pairs(features: PlanarFeatures, cfg: MatchingConfig) -> np.ndarray
         Feature indices ``i < j`` of every accepted pair.
     """
     centre, normal, _, _ = _feature_arrays(features)
-    pairs = cKDTree(centre).query_pairs(cfg.max_centre_distance_m, output_type="ndarray").astype(np.int64)
+    pairs = cKDTree(centre).query_pairs(cfg.max_centre_distance_m, output_type="ndarray")
     if pairs.size == 0:
         return np.zeros((0, 2), np.int64)
-    i, j = pairs[:, 0], pairs[:, 1]
-    ok = np.ones(i.size, bool)
-    if cfg.cross_view_only:
-        view = view_ids(features)
-        ok &= view[i] != view[j]
-    ok &= np.abs(np.einsum("ij,ij->i", normal[i], normal[j])) >= np.cos(np.radians(cfg.max_normal_angle_deg))
-    dc = centre[j] - centre[i]
-    ok &= np.abs(np.einsum("ij,ij->i", normal[i], dc)) <= cfg.max_plane_distance_m
-    ok &= np.abs(np.einsum("ij,ij->i", normal[j], dc)) <= cfg.max_plane_distance_m
-    return pairs[ok]
+    view, cos_max = view_ids(features) if cfg.cross_view_only else None, np.cos(np.radians(cfg.max_normal_angle_deg))
+    # In blocks: a long flight has tens of millions of pairs, whose (P, 3) temporaries take GBs.
+    ok = np.empty(len(pairs), bool)
+    for a in range(0, len(pairs), PAIR_BLOCK):
+        i, j = pairs[a:a + PAIR_BLOCK, 0], pairs[a:a + PAIR_BLOCK, 1]
+        good = np.ones(i.size, bool) if view is None else view[i] != view[j]
+        good &= np.abs(np.einsum("ij,ij->i", normal[i], normal[j])) >= cos_max
+        dc = centre[j] - centre[i]
+        good &= np.abs(np.einsum("ij,ij->i", normal[i], dc)) <= cfg.max_plane_distance_m
+        good &= np.abs(np.einsum("ij,ij->i", normal[j], dc)) <= cfg.max_plane_distance_m
+        ok[a:a + PAIR_BLOCK] = good
+    return pairs[ok].astype(np.int64)
 
 
 def _star_split(active: np.ndarray, pairs: np.ndarray, sigma_d: np.ndarray) -> np.ndarray:
