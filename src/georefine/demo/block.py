@@ -24,7 +24,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from georefine import __version__
-from georefine.demo.lanes import Lanes, QueuedProgress, demo_stamp, reusable_project
+from georefine.demo.lanes import Lanes, QueuedProgress, demo_stamp, reusable_project, simulation_scheduler
 from georefine.evaluation.coadjust import (
     PAPER_004_GRAZ,
     PAPER_004_LOOSDORF,
@@ -171,7 +171,8 @@ def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | Non
         if not reusable_project(project, "block", seed, overrides):
             if project.exists():
                 shutil.rmtree(project)
-            simulate_project("block", project, seed=seed, overrides=overrides, progress=lanes, scheduler=scheduler)
+            simulate_project("block", project, seed=seed, overrides=overrides, progress=lanes,
+                             scheduler=simulation_scheduler(scheduler))
             write_json(project / "truth" / "demo.json", demo_stamp("block", seed, overrides))
         timings["simulate"] = _time.perf_counter() - t
         third = lanes.submit(_case3, project, out, cache, method, lanes.queued("case 3: "), scheduler)

@@ -27,7 +27,7 @@ from typing import Any
 
 import yaml
 
-from georefine.demo.lanes import Lanes, QueuedProgress, demo_stamp, reusable_project
+from georefine.demo.lanes import Lanes, QueuedProgress, demo_stamp, reusable_project, simulation_scheduler
 from georefine.evaluation.report import summary_rows, write_report
 from georefine.evaluation.summary import CloudEvaluation, RunEvaluation
 from georefine.io.files import write_json
@@ -143,7 +143,8 @@ def run_demo(
         if not reusable_project(project, scenario, seed, overrides):
             if project.exists():
                 shutil.rmtree(project)
-            simulate_project(scenario, project, seed=seed, overrides=overrides, progress=lanes, scheduler=scheduler,
+            simulate_project(scenario, project, seed=seed, overrides=overrides, progress=lanes,
+                             scheduler=simulation_scheduler(scheduler),
                              on_navigation=lambda root: navigation.append(lanes.submit(precompute_gnss_imu, root, cache)))
             write_json(project / "truth" / "demo.json", demo_stamp(scenario, seed, overrides))
         timings["simulate"] = _time.perf_counter() - t

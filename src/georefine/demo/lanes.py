@@ -21,7 +21,7 @@ from typing import Any, Callable
 
 from georefine.progress import Progress
 
-__all__ = ["Lanes", "QueuedProgress", "demo_stamp", "reusable_project"]
+__all__ = ["Lanes", "QueuedProgress", "demo_stamp", "reusable_project", "simulation_scheduler"]
 
 
 def demo_stamp(scenario: str, seed: int, overrides: list[str]) -> dict:
@@ -29,6 +29,13 @@ def demo_stamp(scenario: str, seed: int, overrides: list[str]) -> dict:
     from georefine.sim.scenarios import SIMULATOR_VERSION
 
     return {"scenario": scenario, "seed": seed, "overrides": overrides, "simulator": SIMULATOR_VERSION}
+
+
+def simulation_scheduler(scheduler: str) -> str:
+    """Where a demo simulates: a cluster's address as given; on this machine ``sync``, since Embree
+    and the LAZ encoder already use every core (scan tasks on threads or processes were slower,
+    BENCHMARKS.md, "Scenario simulation")."""
+    return scheduler if "://" in str(scheduler) else "sync"
 
 
 def reusable_project(project: Path, scenario: str, seed: int, overrides: list[str]) -> bool:
