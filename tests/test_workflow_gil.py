@@ -127,12 +127,12 @@ def test_demo_single_pass_and_report(project, tmp_path):
     """A reduced `georefine demo` (the fixture project stands in for the simulation)."""
     import html as _html
 
+    from georefine.demo.lanes import demo_stamp
     from georefine.evaluation.report import summary_rows
 
     out = tmp_path / "demo"
     shutil.copytree(project, out / "project")
-    (out / "project" / "truth" / "demo.json").write_text(
-        json.dumps({"scenario": "corridor-tiny", "seed": 7, "overrides": SCAN}))
+    (out / "project" / "truth" / "demo.json").write_text(json.dumps(demo_stamp("corridor-tiny", 7, SCAN)))
     args = ["demo", "--out", str(out), "--scenario", "corridor-tiny", "--seed", "7"]
     for o in SCAN:
         args += ["--set", o]

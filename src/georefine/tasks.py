@@ -29,8 +29,8 @@ from __future__ import annotations
 import logging
 import os
 from collections import deque
-from contextlib import contextmanager
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from contextlib import contextmanager
 from typing import Any
 
 from georefine.errors import InputError
