@@ -47,7 +47,7 @@ from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.files import write_json
 from georefine.io.reference import read_reference_surfaces
 from georefine.io.run_metrics import WorkflowMetrics
-from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
+from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.navigation import run_georeference
 
 log = logging.getLogger(__name__)
@@ -177,9 +177,7 @@ def evaluate_cloud(
         strips = list(WorkflowMetrics.read(run_dir / "metrics.json").strips)
     out = run_dir / "evaluation" / sub
     out.mkdir(parents=True, exist_ok=True)
-    own = TaskRunner(scheduler) if not isinstance(scheduler, TaskRunner) else None
-    runner = own or scheduler
-    try:
+    with runner_for(scheduler) as runner:
         if label == "G/I":
             folder = run_dir / "gi" / "points"
             sbet = Path(trajectory or run_dir / "gi" / "trajectory.sbet")
@@ -198,9 +196,6 @@ def evaluate_cloud(
                  if strips is None or f.stem in {f"strip_{s}" for s in strips} or not f.stem.startswith("strip_")]
         scan = scan_clouds(files, cell_size_m=1.0, boxes=boxes, runner=runner, chunk_points=chunk_points,
                            progress=report, label=f"point cloud evaluation {label}")
-    finally:
-        if own is not None:
-            own.close()
     planes = None
     if ref_csv.is_file():
         _, rp = evaluate_reference_planes(files, ref_csv, out, scan=scan)

@@ -32,7 +32,7 @@ from georefine.io.files import write_json
 from georefine.io.gnss import gnss_in_w
 from georefine.io.imu import ImuData, check_rate_gaps
 from georefine.progress import Progress, no_progress
-from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
+from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.trajectory.ekf import FilterResult, run_filter
 from georefine.trajectory.sampled import Trajectory
 from georefine.trajectory.spline import KnotGrid
@@ -360,9 +360,7 @@ def run_georeference(
     crs = OutputCRS(cfg.crs.output_epsg)
     out.mkdir(parents=True, exist_ok=True)
     results = []
-    own = TaskRunner(scheduler) if not isinstance(scheduler, TaskRunner) else None
-    runner = own or scheduler
-    try:
+    with runner_for(scheduler) as runner:
         poses = runner.share(PoseInterpolator(traj))
         size = tile_points(cfg.processing.scale, runner.workers)
         for rel in cfg.scanner.files:
@@ -373,7 +371,4 @@ def run_georeference(
                 boresight_matrix(cfg.scanner.boresight_deg), frame, crs, runner=runner, progress=progress,
                 protect=(root,),
             ))
-    finally:
-        if own is not None:
-            own.close()
     return GeoreferenceRunResult(out, tuple(results))
