@@ -41,6 +41,23 @@ def test_high_pass_removes_what_a_spline_on_the_knots_holds_and_keeps_faster_mot
     assert np.all(high_pass(t[:30], fast[:30], 0.1) == 0.0)  # shorter than four knot intervals: all slow
 
 
+
+def test_high_pass_is_the_least_squares_spline_residual_of_scipy():
+    """The banded normal equations give scipy's least-squares spline (irregular sampling, (N, 3, 3) values)."""
+    from scipy.interpolate import make_lsq_spline
+
+    rng = np.random.default_rng(8)
+    t = np.cumsum(rng.uniform(0.003, 0.007, 3000))
+    y = rng.normal(size=(t.size, 3, 3)) + np.sin(t)[:, None, None]
+    out = high_pass(t, y, 0.25)
+    inner = t[0] + 0.25 * np.arange(1, int(np.floor((t[-1] - t[0]) / 0.25)))
+    if t[-1] - inner[-1] < 0.125:
+        inner = inner[:-1]
+    knots = np.concatenate([np.full(4, t[0]), inner, np.full(4, t[-1])])
+    ref = y - make_lsq_spline(t, y.reshape(t.size, -1), knots, k=3)(t).reshape(y.shape)
+    assert out.shape == y.shape
+    np.testing.assert_allclose(out, ref, atol=1e-10)
+
 @pytest.fixture(scope="module")
 def vibrating_flight():
     frame = LocalFrame.from_degrees(48.0, 11.0, 500.0)
