@@ -18,11 +18,13 @@ from georefine.adjustment import linalg
 from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.linalg import (
     NotPositiveDefiniteError,
+    available_backends,
     cholesky,
     marginal_covariance_blocks,
 )
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import CauchyLoss, HuberLoss, TrivialLoss, make_loss
+from georefine.adjustment.selected_inverse import SelectedInverse, selected_inverse
 from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.testing import check_jacobians
 from georefine.geometry.rotation import exp_so3, log_so3, right_jacobian_inv
@@ -242,6 +244,94 @@ def test_marginal_covariance_blocks_batches_match_dense_inverse():
         expected = np.zeros((3, 3)) if s < 0 else inv[s : s + 3, s : s + 3]
         np.testing.assert_allclose(blocks[k], expected, atol=1e-12)
 
+
+
+def test_assembled_jacobian_equals_the_summed_triplets():
+    """Sub-blocks with repeated rows and columns, row offsets and row scales: the CSR matrix sums them."""
+    rng = np.random.default_rng(13)
+    shape = (50, 30)
+    pieces, dense = [], np.zeros(shape)
+    for offset, d, scaled in ((0, 3, False), (10, 2, True), (0, 3, True)):
+        rows = rng.integers(0, 40, (25, 4))
+        starts = rng.integers(0, shape[1] - d + 1, 25)
+        values = rng.normal(size=(25, 4, d))
+        scale = rng.uniform(0.5, 2.0, 40) if scaled else None
+        pieces.append(linalg.BlockTriplets(rows, starts, values, offset, scale))
+        for k in range(25):
+            for i in range(4):
+                w = 1.0 if scale is None else scale[rows[k, i]]
+                dense[rows[k, i] + offset, starts[k] : starts[k] + d] += values[k, i] * w
+    J = linalg.assemble_block_coo(pieces, shape)
+    assert J.format == "csr" and J.has_canonical_format and J.nnz < sum(p.values.size for p in pieces)
+    np.testing.assert_allclose(J.toarray(), dense, atol=1e-12)
+    np.testing.assert_allclose((J.T @ J).toarray(), dense.T @ dense, atol=1e-10)
+
+def test_lower_triangle_is_scipys_tril():
+    rng = np.random.default_rng(14)
+    A = sp.random(300, 300, density=0.05, random_state=rng, format="csr")
+    A = (A + A.T).tocsr()
+    L = linalg.lower_triangle(A)
+    assert L.format == "csr" and L.shape == A.shape
+    np.testing.assert_array_equal(L.toarray(), np.tril(A.toarray()))
+
+def _banded_spd(rng, n_elements: int, dim: int, reach: int) -> sp.csr_matrix:
+    """A trajectory-like normal matrix: elements coupled to their ``reach`` neighbours, plus a few global unknowns."""
+    n = n_elements * dim + 6
+    rows, cols = [], []
+    for e in range(n_elements):
+        lo, hi = e * dim, min(n_elements, e + reach + 1) * dim
+        r, c = np.meshgrid(np.arange(lo, lo + dim), np.arange(lo, hi), indexing="ij")
+        rows.append(r.ravel())
+        cols.append(c.ravel())
+    rows.append(np.repeat(np.arange(n - 6, n), n))
+    cols.append(np.tile(np.arange(n), 6))
+    r, c = np.concatenate(rows), np.concatenate(cols)
+    B = sp.csr_matrix((rng.normal(size=r.size), (r, c)), shape=(n, n))
+    return (B @ B.T + sp.eye(n) * 0.1).tocsr()
+
+
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt") if b in available_backends()])
+def test_selected_inverse_matches_dense_inverse(backend):
+    """Takahashi's recursion on a supernodal factor (block-banded, dense global rows) gives the exact blocks."""
+    rng = np.random.default_rng(11)
+    A = _banded_spd(rng, 400, 3, 4)
+    inv = np.linalg.inv(A.toarray())
+    si = selected_inverse(A, backend=backend)
+    assert si is not None and si.z.size == si.L.nnz
+    starts = np.array([0, 3, -1, 600, 1197, 1200])  # the last: the 6 global unknowns
+    for dim in (3, 6):
+        blocks = si.blocks(starts, dim)
+        for k, s in enumerate(starts):
+            expected = np.zeros((dim, dim)) if s < 0 else inv[s : s + dim, s : s + dim]
+            np.testing.assert_allclose(blocks[k], expected, atol=1e-10 * np.abs(inv).max())
+
+
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt") if b in available_backends()])
+def test_selected_inverse_solves_for_entries_off_the_factor_pattern(backend, monkeypatch):
+    """Leaves coupled only through a hub: their mutual entries of A^-1 lie off L's pattern and are solved for."""
+    solved = []
+    original = SelectedInverse._solved
+    monkeypatch.setattr(SelectedInverse, "_solved", lambda self, q, a, b: solved.append(q.shape) or original(self, q, a, b))
+    rng = np.random.default_rng(12)
+    n = 40
+    A = sp.lil_matrix((n, n))
+    A.setdiag(rng.uniform(2.0, 3.0, n) + n)
+    A[: n - 1, n - 1] = rng.uniform(0.5, 1.0, (n - 1, 1))
+    A[n - 1, : n - 1] = A[: n - 1, n - 1].T
+    A = A.tocsr()
+    si = selected_inverse(A, backend=backend)
+    inv = np.linalg.inv(A.toarray())
+    starts = np.array([0, 10, 37])
+    blocks = si.blocks(starts, 3)
+    for k, s in enumerate(starts):
+        np.testing.assert_allclose(blocks[k], inv[s : s + 3, s : s + 3], atol=1e-14)
+    assert abs(inv[0, 1]) > 1e-6  # non-zero although A's leaves 0 and 1 do not touch
+    assert solved and solved[0][1] == 3
+
+
+def test_selected_inverse_is_none_without_access_to_the_factor():
+    A = sp.eye(5, format="csr") * 2.0
+    assert selected_inverse(A, backend="scipy") is None
 
 # ---------------------------------------------------------------------------------------------
 # (2) non-linear Euclidean problem from a poor start

@@ -56,6 +56,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -72,6 +73,7 @@ __all__ = [
     "cholesky",
     "SparseCholesky",
     "marginal_covariance_blocks",
+    "lower_triangle",
 ]
 
 logger = logging.getLogger(__name__)
@@ -183,6 +185,11 @@ class SparseCholesky:
             candidates.remove("cholespy")
         return candidates[0]
 
+    def forget(self) -> None:
+        """Drop the symbolic analysis (the next :meth:`factorize` analyses afresh)."""
+        self._symbolic = None
+        self._pattern = None
+
     def factorize(self, A: sp.spmatrix | sp.sparray, *, lower: bool = False) -> Factorization:
         """Factorise ``A`` (full symmetric, or only its lower triangle with ``lower=True``).
 
@@ -194,7 +201,7 @@ class SparseCholesky:
         if A.shape[0] != A.shape[1]:
             raise ValueError(f"cholesky: matrix must be square, found shape {A.shape}")
         n = A.shape[0]
-        A_lower = sp.csr_matrix(A, copy=True) if lower else sp.tril(A, format="csr")
+        A_lower = sp.csr_matrix(A, copy=True) if lower else lower_triangle(A)
         A_lower.sum_duplicates()  # also sorts the column indices of every row
         backend = self._choose(A_lower.nnz)
         if n == 0:
@@ -431,32 +438,77 @@ class BlockTriplets:
 
 
 def assemble_block_coo(pieces: list[BlockTriplets], shape: tuple[int, int]) -> sp.csr_matrix:
-    """CSR matrix from dense sub-blocks, written straight into preallocated COO arrays.
+    """CSR matrix from dense sub-blocks, written straight into its arrays.
 
-    Duplicates are kept (scipy's products and ``@`` sum them); 32-bit indices when possible.
+    Rows are counted first (``indptr``), then every sub-block row is copied to its row's next
+    free slots by :func:`_fill_csr` (a numba loop), and entries of one row and column are
+    summed (``sum_duplicates``, which also sorts the columns): a G/I Jacobian holds each
+    spline coefficient several times per row, and unsummed they made ``J^T J`` six times
+    dearer. Through COO triplets and scipy's ``coo_tocsr`` the same took 4.3 s per Jacobian
+    of a 30-minute G/I adjustment, this way 1.4-2.2 s. 32-bit indices when possible.
     """
     index_dtype = np.int32 if max(shape) < _INT32_MAX else np.int64
     total = sum(p.values.size for p in pieces)
     if total == 0:
         return sp.csr_matrix(shape)
-    row_idx = np.empty(total, dtype=index_dtype)
-    col_idx = np.empty(total, dtype=index_dtype)
-    data = np.empty(total, dtype=np.float64)
-    pos = 0
+    counts = np.zeros(shape[0], dtype=np.int64)
     for p in pieces:
-        n, m, d = p.values.shape
-        size = n * m * d
-        out_r = row_idx[pos : pos + size].reshape(n, m, d)
-        out_c = col_idx[pos : pos + size].reshape(n, m, d)
-        out_v = data[pos : pos + size].reshape(n, m, d)
-        out_r[...] = (p.rows + p.row_offset)[:, :, None]
-        out_c[...] = (p.col_start[:, None] + np.arange(d))[:, None, :]
-        if p.row_scale is None:
-            out_v[...] = p.values
-        else:
-            np.multiply(p.values, p.row_scale[p.rows][:, :, None], out=out_v)
-        pos += size
-    return sp.csr_matrix((data, (row_idx, col_idx)), shape=shape)
+        counts += np.bincount((p.rows + p.row_offset).ravel(), minlength=shape[0]) * p.values.shape[2]
+    indptr = np.zeros(shape[0] + 1, dtype=np.int64)
+    np.cumsum(counts, out=indptr[1:])
+    cursor = indptr[:-1].copy()
+    indices = np.empty(total, dtype=index_dtype)
+    data = np.empty(total, dtype=np.float64)
+    arrays = [(np.ascontiguousarray(p.rows, dtype=np.int64), np.ascontiguousarray(p.col_start, dtype=np.int64),
+               np.ascontiguousarray(p.values, dtype=np.float64), p.row_offset,
+               np.ones(0) if p.row_scale is None else np.asarray(p.row_scale, dtype=np.float64)) for p in pieces]
+    # The pieces of one observation group cover the same rows in the same order (one piece per
+    # parameter block and spline coefficient): filled in step, chunk by chunk, their writes stay
+    # in a few MB of the output instead of sweeping all of it once per piece (9 s -> 3 s).
+    chunks = max(1, max(p.values.shape[0] for p in pieces) // _FILL_CHUNK)
+    for c in range(chunks):
+        for rows, starts, values, row_offset, scale in arrays:
+            n = rows.shape[0]
+            a, b = n * c // chunks, n * (c + 1) // chunks
+            if b > a:
+                _fill_csr(rows[a:b], starts[a:b], values[a:b], row_offset, scale, cursor, indices, data)
+    J = sp.csr_matrix((data, indices, indptr.astype(index_dtype)), shape=shape)
+    J.sum_duplicates()
+    return J
+
+
+_FILL_CHUNK = 2048
+"""Sub-block rows per piece and call of :func:`_fill_csr` (see :func:`assemble_block_coo`)."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _fill_csr(rows, col_start, values, row_offset, row_scale, cursor, indices, data):  # pragma: no cover - numba
+    n, m, d = values.shape
+    scaled = row_scale.size > 0
+    for k in range(n):
+        c0 = col_start[k]
+        for i in range(m):
+            r = rows[k, i]
+            s = row_scale[r] if scaled else 1.0
+            pos = cursor[r + row_offset]
+            for j in range(d):
+                indices[pos + j] = c0 + j
+                data[pos + j] = values[k, i, j] * s
+            cursor[r + row_offset] = pos + d
+
+
+def lower_triangle(A: sp.spmatrix | sp.sparray) -> sp.csr_matrix:
+    """The lower triangle with the diagonal of ``A`` as CSR (``scipy.sparse.tril``, four times faster).
+
+    ``tril`` goes through COO triplets; here the CSR rows are masked in place (1.2 s against
+    0.3 s on a 60-minute G/I normal matrix of 54 M non-zeros).
+    """
+    A = sp.csr_matrix(A)
+    rows = np.repeat(np.arange(A.shape[0], dtype=A.indices.dtype), np.diff(A.indptr))
+    keep = A.indices <= rows
+    indptr = np.zeros(A.shape[0] + 1, dtype=A.indptr.dtype)
+    np.cumsum(np.bincount(rows[keep], minlength=A.shape[0]), out=indptr[1:])
+    return sp.csr_matrix((A.data[keep], A.indices[keep], indptr), shape=A.shape)
 
 
 def normal_equations(J: sp.csr_matrix, r: np.ndarray) -> tuple[sp.csr_matrix, np.ndarray]:

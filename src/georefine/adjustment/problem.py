@@ -41,9 +41,11 @@ from georefine.adjustment.blocks import (
 )
 from georefine.adjustment.linalg import (
     Factorization,
+    SparseCholesky,
     cholesky,
     marginal_covariance_blocks,
 )
+from georefine.adjustment.selected_inverse import SelectedInverse, selected_inverse
 from georefine.adjustment.solver import (
     IterationSummary,
     SolveResult,
@@ -66,6 +68,8 @@ class _Posterior:
     variance_factor: float
     backend: str
     factor: Factorization | None = None
+    inverse: SelectedInverse | None = None
+    factorizer: SparseCholesky | None = None  # the solve's, whose symbolic analysis fits the normal matrix
 
 
 class Problem:
@@ -183,6 +187,7 @@ class Problem:
             dims={name: block.dim for name, block in self._blocks.items()},
             variance_factor=outcome.result.variance_factor,
             backend=options.linear_solver,
+            factorizer=outcome.factorizer,
         )
         return outcome.result
 
@@ -195,16 +200,17 @@ class Problem:
         """Marginal posterior covariances of chosen elements (tangent space), from the last solve.
 
         The blocks are the diagonal blocks of ``N^-1`` (``N = J^T W J`` at the solution, with
-        the final robust weights), computed column batch by column batch with the sparse
-        factor; multiplied by the a-posteriori variance factor ``sigma0^2`` when
-        ``scale_by_variance_factor``. For so3 blocks the covariance is that of the right
+        the final robust weights), multiplied by the a-posteriori variance factor ``sigma0^2``
+        when ``scale_by_variance_factor``. For so3 blocks the covariance is that of the right
         perturbation ``delta`` in ``R_true = R_est Exp(delta)`` (body frame). Constant elements get
         zero covariance.
 
         Cost: the first call factorises ``N`` (and assembles it if the solve ended on an
-        accepted step); then one forward/backward substitution per requested column, ``K d``
-        in total -- about 10 ms each for 300k unknowns. Subsample long trajectories (e.g. every
-        10th knot) rather than asking for every element.
+        accepted step) and, with the CHOLMOD backends, inverts it on the factor's pattern
+        (:mod:`georefine.adjustment.selected_inverse`, about the cost of the factorisation);
+        every block is then a look-up. With cholespy or SciPy each requested column is one
+        forward/backward substitution, ``K d`` in total -- about 10 ms each for 300k unknowns:
+        subsample long trajectories there rather than asking for every element.
 
         Parameters
         ----------
@@ -239,9 +245,16 @@ class Problem:
         dim = post.dims[block]
         if np.all(starts[idx] < 0):
             return np.zeros((idx.size, dim, dim))
-        if post.factor is None:
-            post.factor = cholesky(post.normal(), backend=post.backend)
-        cov = marginal_covariance_blocks(post.factor, starts[idx], dim)
+        if post.inverse is None and post.factor is None:
+            # Selected inversion where the backend shows its factor; unit-column solves otherwise.
+            post.inverse = selected_inverse(post.normal(), backend=post.backend, solver=post.factorizer)
+            post.factorizer = None
+            if post.inverse is None:
+                post.factor = cholesky(post.normal(), backend=post.backend)
+        if post.inverse is not None:
+            cov = post.inverse.blocks(starts[idx], dim)
+        else:
+            cov = marginal_covariance_blocks(post.factor, starts[idx], dim)
         if scale_by_variance_factor:
             if not np.isfinite(post.variance_factor):
                 raise ValueError(

@@ -59,6 +59,7 @@ from georefine.adjustment.linalg import (
     BlockTriplets,
     NotPositiveDefiniteError,
     SparseCholesky,
+    lower_triangle,
     assemble_block_coo,
     available_backends,
     normal_equations,
@@ -239,7 +240,7 @@ def _normal_equations(evaluation: _Evaluation, layout: ColumnLayout) -> _Normal:
     del J
     diag = N.diagonal()
     D = np.clip(diag, _MIN_DIAGONAL, _MAX_DIAGONAL)
-    N_lower = sp.tril(N, format="csr")
+    N_lower = lower_triangle(N)
     return _Normal(N, N_lower, g, D, time.perf_counter() - t0)
 
 
@@ -263,6 +264,7 @@ class LMOutcome:
     _normal: sp.csr_matrix | None
     _evaluation: _Evaluation | None
     _layout: ColumnLayout
+    factorizer: SparseCholesky | None = None  # its symbolic analysis fits the normal matrix too
 
     def normal_matrix(self) -> sp.csr_matrix:
         """``N = J^T W J`` at the solution (full symmetric CSR)."""
@@ -421,6 +423,7 @@ def run_levenberg_marquardt(
         normal.N if normal_is_current else None,
         None if normal_is_current else current,
         layout,
+        factorizer,
     )
 
 

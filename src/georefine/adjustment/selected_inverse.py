@@ -1,0 +1,194 @@
+"""Selected inversion: the entries of ``A^-1`` on the pattern of ``A``'s Cholesky factor.
+
+The posterior sigma of an adjustment are diagonal blocks of ``N^-1``. Solving for their unit
+columns costs one forward and backward substitution over the whole factor per column: at 150
+covariance knots (900 columns) of a 60-minute G/I adjustment (542,000 unknowns) that was 86 s,
+more than the adjustment itself. The Takahashi recursion (Takahashi, Fagan and Chen 1973; Erisman
+and Tinney 1975) computes every entry of ``Z = A^-1`` that lies on the pattern of ``L``, where
+``P A P^T = L L^T``, from the bottom right up, column by column::
+
+    Z_ij = -(1/L_jj) sum_{k in S_j} L_kj Z_ki        (i in S_j, i > j)
+    Z_jj = 1/L_jj^2 - (1/L_jj) sum_{k in S_j} L_kj Z_kj
+
+with ``S_j`` the rows below the diagonal of column ``j``. Every ``Z_ki`` it needs is on the
+pattern (for ``k`` in ``S_j``, the rows of ``S_j`` below ``k`` are rows of column ``k``:
+the fill path property of the elimination tree). The work is ``sum_j |S_j|^2``, about that of
+the factorisation itself: 1.6 s instead of 27 s on the 30-minute G/I matrix (271,062 unknowns,
+15 M non-zeros in ``L``).
+
+No library in our dependency list exposes it (CHOLMOD has none; MUMPS and PSelInv are not
+wheels), so it is a numba loop here, :func:`_takahashi`: one pass over the columns, each row
+pair found by walking the two sorted columns side by side.
+
+The factor ``L`` comes from CHOLMOD through scikit-sparse (``Factor.L()``) or CVXOPT
+(``cholmod.getfactor``, which turns its argument into a symbolic factor, so the factorisation
+used here is its own). With cholespy or SuperLU (no access to ``L``), :func:`selected_inverse`
+returns ``None`` and the caller solves for unit columns instead.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve_triangular
+
+from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky
+
+__all__ = ["SelectedInverse", "selected_inverse"]
+
+log = logging.getLogger(__name__)
+
+
+@numba.njit(cache=True, nogil=True)
+def _takahashi(indptr: np.ndarray, indices: np.ndarray, lval: np.ndarray, z: np.ndarray) -> bool:
+    """``z`` = ``(L L^T)^-1`` on the pattern of ``L`` (CSC, sorted rows, diagonal first in each column).
+
+    False when the pattern is not a factor's (a row of ``S_j`` missing from a column of ``S_j``).
+    """
+    n = indptr.size - 1
+    acc = np.zeros(n)  # sum_{k in S_j} L_kj Z_ki, indexed by the row i; zeroed again after each column
+    for j in range(n - 1, -1, -1):
+        p0 = indptr[j]
+        p1 = indptr[j + 1]
+        d = lval[p0]
+        for pb in range(p0 + 1, p1):
+            b = indices[pb]
+            lb = lval[pb]
+            q = indptr[b]
+            acc[b] += lb * z[q]  # Z_bb
+            q += 1
+            q1 = indptr[b + 1]
+            for pa in range(pb + 1, p1):  # rows a > b of S_j: also rows of column b
+                a = indices[pa]
+                while q < q1 and indices[q] < a:
+                    q += 1
+                if q == q1 or indices[q] != a:
+                    return False
+                zab = z[q]
+                acc[a] += lb * zab
+                acc[b] += lval[pa] * zab
+        s = 0.0
+        for pa in range(p0 + 1, p1):
+            a = indices[pa]
+            v = -acc[a] / d
+            acc[a] = 0.0
+            z[pa] = v
+            s += lval[pa] * v
+        z[p0] = 1.0 / (d * d) - s / d
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _lookup(indptr: np.ndarray, indices: np.ndarray, z: np.ndarray, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``Z[rows[k], cols[k]]`` (permuted indices, ``rows >= cols``) by bisection; NaN when off the pattern."""
+    out = np.empty(rows.size)
+    for k in range(rows.size):
+        r = rows[k]
+        c = cols[k]
+        lo = indptr[c]
+        hi = indptr[c + 1]
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if indices[mid] < r:
+                lo = mid + 1
+            else:
+                hi = mid
+        out[k] = z[lo] if lo < indptr[c + 1] and indices[lo] == r else np.nan
+    return out
+
+
+@dataclass(frozen=True)
+class SelectedInverse:
+    """``A^-1`` on the pattern of ``L`` (``P A P^T = L L^T``; row ``k`` of ``L`` is row ``perm[k]`` of ``A``)."""
+
+    L: sp.csc_matrix
+    perm: np.ndarray
+    z: np.ndarray  # values of Z on L's pattern (L.indptr, L.indices)
+
+    @property
+    def n(self) -> int:
+        return self.L.shape[0]
+
+    def blocks(self, col_start: np.ndarray, dim: int) -> np.ndarray:
+        """Diagonal ``dim x dim`` blocks of ``A^-1`` (as :func:`~georefine.adjustment.linalg.marginal_covariance_blocks`).
+
+        Entries off the factor's pattern (two unknowns of one element that nothing couples)
+        are solved for: ``(A^-1)_ij = x_i . x_j`` with ``x = L^-1 P e``.
+        """
+        col_start = np.asarray(col_start, dtype=np.int64).reshape(-1)
+        out = np.zeros((col_start.size, dim, dim))
+        free = np.flatnonzero(col_start >= 0)
+        if free.size == 0 or dim == 0:
+            return out
+        inv_perm = np.empty(self.n, dtype=np.int64)
+        inv_perm[self.perm] = np.arange(self.n)
+        a, b = np.tril_indices(dim)
+        q = inv_perm[col_start[free][:, None] + np.arange(dim)]  # (K, dim) permuted columns
+        qa, qb = q[:, a], q[:, b]
+        values = _lookup(self.L.indptr, self.L.indices, self.z, np.maximum(qa, qb).ravel(),
+                         np.minimum(qa, qb).ravel()).reshape(qa.shape)
+        missing = np.flatnonzero(np.isnan(values).any(axis=1))
+        if missing.size:
+            values[missing] = self._solved(q[missing], a, b)
+        blocks = np.zeros((free.size, dim, dim))
+        blocks[:, a, b] = values
+        blocks[:, b, a] = values
+        out[free] = blocks
+        return out
+
+    def _solved(self, q: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        """Lower-triangle entries of the blocks of permuted columns ``q`` (K, dim) by triangular solves."""
+        log.debug("selected inverse: %d element(s) off the factor's pattern, solved for", q.shape[0])
+        cols = q.ravel()
+        E = np.zeros((self.n, cols.size))
+        E[cols, np.arange(cols.size)] = 1.0
+        X = spsolve_triangular(self.L.tocsr(), E, lower=True).reshape(self.n, q.shape[0], q.shape[1])
+        return np.einsum("nka,nkb->kab", X, X)[:, a, b]
+
+
+def selected_inverse(
+    A: sp.spmatrix | sp.sparray, *, backend: str = "auto", solver: SparseCholesky | None = None
+) -> SelectedInverse | None:
+    """Factorise the symmetric positive definite ``A`` and invert it on the factor's pattern.
+
+    ``backend`` as :func:`~georefine.adjustment.linalg.cholesky`; ``None`` when the chosen
+    backend gives no access to its factor (cholespy, SciPy), so that the caller solves instead.
+    ``solver``: a :class:`~georefine.adjustment.linalg.SparseCholesky` whose symbolic analysis
+    may fit ``A`` (that of the adjustment's iterations); it is reused when it does, and must
+    not be used for solves afterwards (CVXOPT's factor is consumed).
+
+    Raises
+    ------
+    NotPositiveDefiniteError
+        As the factorisation.
+    """
+    solver = solver if solver is not None else SparseCholesky(backend)
+    factor = solver.factorize(A)
+    if factor.backend == "cholmod":
+        L = sp.csc_matrix(factor._factor.L())  # LL^T form, converted from the supernodal factor
+        perm = np.asarray(factor._factor.P(), dtype=np.int64)
+    elif factor.backend == "cvxopt":
+        from cvxopt import cholmod, matrix
+
+        p = matrix(np.arange(factor.n, dtype=np.float64))
+        cholmod.solve(factor._factor, p, sys=7)  # x = P b: the pivot order
+        perm = np.array(p).reshape(-1).astype(np.int64)
+        colptr, rowind, values = cholmod.getfactor(factor._factor).CCS  # leaves the factor symbolic
+        solver.forget()
+        n = factor.n
+        L = sp.csc_matrix((np.array(values).reshape(-1), np.array(rowind).reshape(-1),
+                           np.array(colptr).reshape(-1)), shape=(n, n))
+    else:
+        return None
+    L.sort_indices()
+    if L.nnz and np.any(L.indices[L.indptr[:-1]] != np.arange(L.shape[0])):
+        raise NotPositiveDefiniteError("selected inverse: the factor has a column without its diagonal entry")
+    L.data = np.ascontiguousarray(L.data, dtype=np.float64)
+    z = np.empty_like(L.data)
+    if not _takahashi(L.indptr, L.indices, L.data, z):
+        raise RuntimeError("selected inverse: the factor's pattern is not closed under elimination")
+    return SelectedInverse(L, perm, z)
