@@ -296,8 +296,8 @@ def test_selected_inverse_matches_dense_inverse(backend):
     rng = np.random.default_rng(11)
     A = _banded_spd(rng, 400, 3, 4)
     inv = np.linalg.inv(A.toarray())
-    si = selected_inverse(A, backend=backend)
-    assert si is not None and si.z.size == si.L.nnz
+    si, factor = selected_inverse(A, backend=backend, always=True)
+    assert factor is None and si.z.size == si.L.nnz
     starts = np.array([0, 3, -1, 600, 1197, 1200])  # the last: the 6 global unknowns
     for dim in (3, 6):
         blocks = si.blocks(starts, dim)
@@ -319,7 +319,7 @@ def test_selected_inverse_solves_for_entries_off_the_factor_pattern(backend, mon
     A[: n - 1, n - 1] = rng.uniform(0.5, 1.0, (n - 1, 1))
     A[n - 1, : n - 1] = A[: n - 1, n - 1].T
     A = A.tocsr()
-    si = selected_inverse(A, backend=backend)
+    si, _ = selected_inverse(A, backend=backend, always=True)
     inv = np.linalg.inv(A.toarray())
     starts = np.array([0, 10, 37])
     blocks = si.blocks(starts, 3)
@@ -331,7 +331,30 @@ def test_selected_inverse_solves_for_entries_off_the_factor_pattern(backend, mon
 
 def test_selected_inverse_is_none_without_access_to_the_factor():
     A = sp.eye(5, format="csr") * 2.0
-    assert selected_inverse(A, backend="scipy") is None
+    si, factor = selected_inverse(A, backend="scipy")
+    assert si is None and factor.backend == "scipy"
+
+
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt") if b in available_backends()])
+@pytest.mark.parametrize("ns_per_unit", [1e-9, 1e9])
+def test_covariance_is_the_same_whether_inverted_or_solved(backend, ns_per_unit, monkeypatch):
+    """The cost model picks the recursion (cheap) or unit-column solves (dear); the blocks are the same."""
+    from georefine.adjustment import selected_inverse as module
+
+    monkeypatch.setattr(module, "NS_PER_WORK_UNIT", ns_per_unit)
+    rng = np.random.default_rng(15)
+    A = _banded_spd(rng, 200, 3, 3)
+    si, factor = selected_inverse(A, backend=backend)
+    starts = np.array([0, 300, 597])
+    if ns_per_unit < 1:
+        assert si is not None and factor is None
+        blocks = si.blocks(starts, 3)
+    else:
+        assert si is None
+        blocks = marginal_covariance_blocks(factor if factor is not None else cholesky(A, backend=backend), starts, 3)
+    inv = np.linalg.inv(A.toarray())
+    for k, s in enumerate(starts):
+        np.testing.assert_allclose(blocks[k], inv[s : s + 3, s : s + 3], atol=1e-10 * np.abs(inv).max())
 
 # ---------------------------------------------------------------------------------------------
 # (2) non-linear Euclidean problem from a poor start

@@ -246,10 +246,11 @@ class Problem:
         if np.all(starts[idx] < 0):
             return np.zeros((idx.size, dim, dim))
         if post.inverse is None and post.factor is None:
-            # Selected inversion where the backend shows its factor; unit-column solves otherwise.
-            post.inverse = selected_inverse(post.normal(), backend=post.backend, solver=post.factorizer)
+            # Selected inversion where the backend shows its factor and the recursion pays;
+            # unit-column solves otherwise.
+            post.inverse, post.factor = selected_inverse(post.normal(), backend=post.backend, solver=post.factorizer)
             post.factorizer = None
-            if post.inverse is None:
+            if post.inverse is None and post.factor is None:
                 post.factor = cholesky(post.normal(), backend=post.backend)
         if post.inverse is not None:
             cov = post.inverse.blocks(starts[idx], dim)

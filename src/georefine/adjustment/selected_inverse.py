@@ -29,6 +29,7 @@ returns ``None`` and the caller solves for unit columns instead.
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 
 import numba
@@ -36,11 +37,44 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve_triangular
 
-from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky
+from georefine.adjustment.linalg import Factorization, NotPositiveDefiniteError, SparseCholesky
 
 __all__ = ["SelectedInverse", "selected_inverse"]
 
 log = logging.getLogger(__name__)
+
+
+NS_PER_WORK_UNIT = 2.0
+"""Time of the recursion per unit of ``sum_j |S_j|^2`` (ns; measured 1.4-2.4 on one core)."""
+EXPECTED_COLUMNS = 2000
+"""Unit columns a posterior asks for (attitude and position at 150 knots, the IMU bias nodes)."""
+PROBE_COLUMNS = 64
+
+
+def _probe_solves(factor: Factorization) -> float:
+    """Seconds that :data:`EXPECTED_COLUMNS` unit-column solves take, timed on :data:`PROBE_COLUMNS`."""
+    cols = np.linspace(0, factor.n - 1, min(PROBE_COLUMNS, factor.n)).astype(np.int64)
+    E = np.zeros((factor.n, cols.size))
+    E[cols, np.arange(cols.size)] = 1.0
+    t = time.perf_counter()
+    factor.solve(E)
+    return (time.perf_counter() - t) / cols.size * EXPECTED_COLUMNS
+
+
+def _recursion_pays(factor: Factorization, work: float, solve_s: float | None = None) -> bool:
+    """Whether the recursion (``work`` multiply-adds) beats :data:`EXPECTED_COLUMNS` unit-column solves.
+
+    Which one wins depends on the factor's supernodes: on a G/I normal matrix (narrow band,
+    small supernodes) the recursion took 2 s against 27 s of solves at 30 minutes of flight; on a
+    G/I/L one the planes fill the factor (36 M non-zeros for 108,000 unknowns at 10 minutes) into
+    large supernodes, where batched solves run at BLAS-3 speed and the scalar recursion lost
+    (30 s against 14 s). So a batch of :data:`PROBE_COLUMNS` solves is timed.
+    """
+    solve_s = _probe_solves(factor) if solve_s is None else solve_s
+    recursion_s = NS_PER_WORK_UNIT * 1e-9 * work
+    log.debug("selected inverse: recursion ~%.1f s (sum |S_j|^2 = %.3g), %d unit-column solves ~%.1f s (%d unknowns)",
+              recursion_s, work, EXPECTED_COLUMNS, solve_s, factor.n)
+    return recursion_s < solve_s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -151,15 +185,20 @@ class SelectedInverse:
 
 
 def selected_inverse(
-    A: sp.spmatrix | sp.sparray, *, backend: str = "auto", solver: SparseCholesky | None = None
-) -> SelectedInverse | None:
+    A: sp.spmatrix | sp.sparray, *, backend: str = "auto", solver: SparseCholesky | None = None,
+    always: bool = False,
+) -> tuple[SelectedInverse | None, Factorization | None]:
     """Factorise the symmetric positive definite ``A`` and invert it on the factor's pattern.
 
-    ``backend`` as :func:`~georefine.adjustment.linalg.cholesky`; ``None`` when the chosen
-    backend gives no access to its factor (cholespy, SciPy), so that the caller solves instead.
-    ``solver``: a :class:`~georefine.adjustment.linalg.SparseCholesky` whose symbolic analysis
-    may fit ``A`` (that of the adjustment's iterations); it is reused when it does, and must
-    not be used for solves afterwards (CVXOPT's factor is consumed).
+    Returns ``(inverse, None)``; or ``(None, factor)`` when the recursion would cost more than
+    solving for unit columns with ``factor`` (:func:`_recursion_pays`) or when the backend gives
+    no access to its factor (cholespy, SciPy); or ``(None, None)`` when CVXOPT's factor was
+    consumed to find out (factorise again to solve).
+
+    ``backend`` as :func:`~georefine.adjustment.linalg.cholesky`. ``solver``: a
+    :class:`~georefine.adjustment.linalg.SparseCholesky` whose symbolic analysis may fit ``A``
+    (that of the adjustment's iterations); it is reused when it does. ``always``: invert even
+    where solving would be cheaper.
 
     Raises
     ------
@@ -170,6 +209,8 @@ def selected_inverse(
     factor = solver.factorize(A)
     if factor.backend == "cholmod":
         L = sp.csc_matrix(factor._factor.L())  # LL^T form, converted from the supernodal factor
+        if not always and not _recursion_pays(factor, _work(L)):
+            return None, factor
         perm = np.asarray(factor._factor.P(), dtype=np.int64)
     elif factor.backend == "cvxopt":
         from cvxopt import cholmod, matrix
@@ -177,13 +218,16 @@ def selected_inverse(
         p = matrix(np.arange(factor.n, dtype=np.float64))
         cholmod.solve(factor._factor, p, sys=7)  # x = P b: the pivot order
         perm = np.array(p).reshape(-1).astype(np.int64)
+        solve_s = None if always else _probe_solves(factor)  # before getfactor consumes the factor
         colptr, rowind, values = cholmod.getfactor(factor._factor).CCS  # leaves the factor symbolic
         solver.forget()
         n = factor.n
         L = sp.csc_matrix((np.array(values).reshape(-1), np.array(rowind).reshape(-1),
                            np.array(colptr).reshape(-1)), shape=(n, n))
+        if not always and not _recursion_pays(factor, _work(L), solve_s):
+            return None, None
     else:
-        return None
+        return None, factor
     L.sort_indices()
     if L.nnz and np.any(L.indices[L.indptr[:-1]] != np.arange(L.shape[0])):
         raise NotPositiveDefiniteError("selected inverse: the factor has a column without its diagonal entry")
@@ -191,4 +235,10 @@ def selected_inverse(
     z = np.empty_like(L.data)
     if not _takahashi(L.indptr, L.indices, L.data, z):
         raise RuntimeError("selected inverse: the factor's pattern is not closed under elimination")
-    return SelectedInverse(L, perm, z)
+    return SelectedInverse(L, perm, z), None
+
+
+def _work(L: sp.csc_matrix) -> float:
+    """``sum_j |S_j|^2``: the recursion's multiply-adds."""
+    counts = np.diff(L.indptr).astype(np.float64) - 1.0
+    return float(counts @ counts)
