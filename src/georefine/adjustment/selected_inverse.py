@@ -49,6 +49,12 @@ NS_PER_WORK_UNIT = 2.0
 EXPECTED_COLUMNS = 2000
 """Unit columns a posterior asks for (attitude and position at 150 knots, the IMU bias nodes)."""
 PROBE_COLUMNS = 64
+MIN_SOLVES_PER_FACTORISATION = 12.0
+"""Below this ratio of the solves' time to the factorisation's the factor is not even copied out.
+
+The recursion's multiply-adds are about the factorisation's, done one at a time instead of by
+BLAS. Measured ratios: 18-20 on G/I matrices (where the recursion won by 13 times), 6-10 on
+G/I/L matrices (where it lost by 2 times)."""
 
 
 def _probe_solves(factor: Factorization) -> float:
@@ -206,19 +212,31 @@ def selected_inverse(
         As the factorisation.
     """
     solver = solver if solver is not None else SparseCholesky(backend)
+    t = time.perf_counter()
     factor = solver.factorize(A)
+    factor_s = time.perf_counter() - t
+    if factor.backend not in ("cholmod", "cvxopt"):
+        return None, factor
+    solve_s = None
+    if not always:
+        # Before the factor is copied out (a G/I/L factor at 60 minutes of flight is GBs): when
+        # all the solves cost less than a few factorisations, the scalar recursion cannot win.
+        solve_s = _probe_solves(factor)
+        if solve_s < MIN_SOLVES_PER_FACTORISATION * factor_s:
+            log.debug("selected inverse: %d unit-column solves ~%.1f s, factorisation %.1f s: solving",
+                      EXPECTED_COLUMNS, solve_s, factor_s)
+            return None, factor
     if factor.backend == "cholmod":
         L = sp.csc_matrix(factor._factor.L())  # LL^T form, converted from the supernodal factor
-        if not always and not _recursion_pays(factor, _work(L)):
+        if not always and not _recursion_pays(factor, _work(L), solve_s):
             return None, factor
         perm = np.asarray(factor._factor.P(), dtype=np.int64)
-    elif factor.backend == "cvxopt":
+    else:
         from cvxopt import cholmod, matrix
 
         p = matrix(np.arange(factor.n, dtype=np.float64))
         cholmod.solve(factor._factor, p, sys=7)  # x = P b: the pivot order
         perm = np.array(p).reshape(-1).astype(np.int64)
-        solve_s = None if always else _probe_solves(factor)  # before getfactor consumes the factor
         colptr, rowind, values = cholmod.getfactor(factor._factor).CCS  # leaves the factor symbolic
         solver.forget()
         n = factor.n
@@ -226,8 +244,6 @@ def selected_inverse(
                            np.array(colptr).reshape(-1)), shape=(n, n))
         if not always and not _recursion_pays(factor, _work(L), solve_s):
             return None, None
-    else:
-        return None, factor
     L.sort_indices()
     if L.nnz and np.any(L.indices[L.indptr[:-1]] != np.arange(L.shape[0])):
         raise NotPositiveDefiniteError("selected inverse: the factor has a column without its diagonal entry")
