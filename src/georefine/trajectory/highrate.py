@@ -17,7 +17,7 @@ residual kinematic acceleration (``f_s`` the spline's specific force), integrate
 
 **Low frequencies stay in the spline.** Before and after every integration the signal's
 projection on the spline space is removed: a least-squares cubic B-spline on the same knot
-interval (``scipy.interpolate.make_lsq_spline``, banded normal equations, linear in the samples;
+interval (:func:`high_pass`: banded normal equations from scipy's design matrix, linear in the samples;
 the adjustment's splines -- cubic Hermite orientation, quintic Hermite position -- contain
 that space). So integrated noise and residual sensor errors cannot drift, the spline keeps
 everything it can represent, and ``dtheta``, ``dp`` hold only what it cannot.
