@@ -464,7 +464,9 @@ def assemble_block_coo(pieces: list[BlockTriplets], shape: tuple[int, int]) -> s
                np.ones(0) if p.row_scale is None else np.asarray(p.row_scale, dtype=np.float64)) for p in pieces]
     # The pieces of one observation group cover the same rows in the same order (one piece per
     # parameter block and spline coefficient): filled in step, chunk by chunk, their writes stay
-    # in a few MB of the output instead of sweeping all of it once per piece (9 s -> 3 s).
+    # in a few MB of the output instead of sweeping all of it once per piece. On a stored
+    # 30-minute G/I Jacobian 2.0 s -> 0.6 s; inside the adjustment, where the output is freshly
+    # allocated memory, about 1.8 s -> 1.4 s.
     chunks = max(1, max(p.values.shape[0] for p in pieces) // _FILL_CHUNK)
     for c in range(chunks):
         for rows, starts, values, row_offset, scale in arrays:

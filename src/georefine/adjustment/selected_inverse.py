@@ -1,9 +1,9 @@
 """Selected inversion: the entries of ``A^-1`` on the pattern of ``A``'s Cholesky factor.
 
 The posterior sigma of an adjustment are diagonal blocks of ``N^-1``. Solving for their unit
-columns costs one forward and backward substitution over the whole factor per column: at 150
-covariance knots (900 columns) of a 60-minute G/I adjustment (542,000 unknowns) that was 86 s,
-more than the adjustment itself. The Takahashi recursion (Takahashi, Fagan and Chen 1973; Erisman
+columns costs one forward and backward substitution over the whole factor per column: for the
+roll/pitch/yaw and position of 150 knots and the IMU bias nodes (about 2,000 columns) of a
+60-minute G/I adjustment (542,000 unknowns) that was 86 s, more than the solve itself. The Takahashi recursion (Takahashi, Fagan and Chen 1973; Erisman
 and Tinney 1975) computes every entry of ``Z = A^-1`` that lies on the pattern of ``L``, where
 ``P A P^T = L L^T``, from the bottom right up, column by column::
 
@@ -13,8 +13,9 @@ and Tinney 1975) computes every entry of ``Z = A^-1`` that lies on the pattern o
 with ``S_j`` the rows below the diagonal of column ``j``. Every ``Z_ki`` it needs is on the
 pattern (for ``k`` in ``S_j``, the rows of ``S_j`` below ``k`` are rows of column ``k``:
 the fill path property of the elimination tree). The work is ``sum_j |S_j|^2``, about that of
-the factorisation itself: 1.6 s instead of 27 s on the 30-minute G/I matrix (271,062 unknowns,
-15 M non-zeros in ``L``).
+the factorisation itself: 1.6-2.0 s instead of 27 s of solves on the 30-minute G/I matrix
+(271,062 unknowns, 15 M non-zeros in ``L``). It is not always the cheaper: see
+:func:`_recursion_pays`.
 
 No library in our dependency list exposes it (CHOLMOD has none; MUMPS and PSelInv are not
 wheels), so it is a numba loop here, :func:`_takahashi`: one pass over the columns, each row
@@ -22,8 +23,8 @@ pair found by walking the two sorted columns side by side.
 
 The factor ``L`` comes from CHOLMOD through scikit-sparse (``Factor.L()``) or CVXOPT
 (``cholmod.getfactor``, which turns its argument into a symbolic factor, so the factorisation
-used here is its own). With cholespy or SuperLU (no access to ``L``), :func:`selected_inverse`
-returns ``None`` and the caller solves for unit columns instead.
+used here is its own). With cholespy or SuperLU (no access to ``L``), or where solving is the
+cheaper, :func:`selected_inverse` returns no inverse and the caller solves for unit columns.
 """
 
 from __future__ import annotations
@@ -53,8 +54,9 @@ MIN_SOLVES_PER_FACTORISATION = 12.0
 """Below this ratio of the solves' time to the factorisation's the factor is not even copied out.
 
 The recursion's multiply-adds are about the factorisation's, done one at a time instead of by
-BLAS. Measured ratios: 18-20 on G/I matrices (where the recursion won by 13 times), 6-10 on
-G/I/L matrices (where it lost by 2 times)."""
+BLAS. Measured: on the 30-minute G/I matrix 25 s of solves predicted against a factorisation
+of 1-2 s (the recursion won, 2 s); on G/I/L matrices 8.1 (10 minutes: 22.0 s against 2.7 s;
+the recursion lost, 30 s against 14 s of solves) and 6.2 (60 minutes: 156 s against 25 s)."""
 
 
 def _probe_solves(factor: Factorization) -> float:
