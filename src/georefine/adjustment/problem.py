@@ -206,9 +206,9 @@ class Problem:
         zero covariance.
 
         Cost: the first call factorises ``N`` (and assembles it if the solve ended on an
-        accepted step) and, with the CHOLMOD backends, inverts it on the factor's pattern
+        accepted step) and, with scikit-sparse where it pays, inverts it on the factor's pattern
         (:mod:`georefine.adjustment.selected_inverse`, about the cost of the factorisation);
-        every block is then a look-up. With cholespy or SciPy each requested column is one
+        every block is then a look-up. Otherwise each requested column is one
         forward/backward substitution, ``K d`` in total -- about 10 ms each for 300k unknowns:
         subsample long trajectories there rather than asking for every element.
 
