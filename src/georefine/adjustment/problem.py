@@ -42,7 +42,6 @@ from georefine.adjustment.blocks import (
 from georefine.adjustment.linalg import (
     Factorization,
     SparseCholesky,
-    cholesky,
     marginal_covariance_blocks,
 )
 from georefine.adjustment.selected_inverse import SelectedInverse, selected_inverse
@@ -250,8 +249,6 @@ class Problem:
             # unit-column solves otherwise.
             post.inverse, post.factor = selected_inverse(post.normal(), backend=post.backend, solver=post.factorizer)
             post.factorizer = None
-            if post.inverse is None and post.factor is None:
-                post.factor = cholesky(post.normal(), backend=post.backend)
         if post.inverse is not None:
             cov = post.inverse.blocks(starts[idx], dim)
         else:

@@ -70,16 +70,16 @@ def _probe_solves(factor: Factorization) -> float:
     return (time.perf_counter() - t) / cols.size * EXPECTED_COLUMNS
 
 
-def _recursion_pays(factor: Factorization, work: float, solve_s: float | None = None) -> bool:
+def _recursion_pays(factor: Factorization, work: float, solve_s: float) -> bool:
     """Whether the recursion (``work`` multiply-adds) beats :data:`EXPECTED_COLUMNS` unit-column solves.
 
     Which one wins depends on the factor's supernodes: on a G/I normal matrix (narrow band,
     small supernodes) the recursion took 2 s against 27 s of solves at 30 minutes of flight; on a
     G/I/L one the planes fill the factor (36 M non-zeros for 108,000 unknowns at 10 minutes) into
     large supernodes, where batched solves run at BLAS-3 speed and the scalar recursion lost
-    (30 s against 14 s). So a batch of :data:`PROBE_COLUMNS` solves is timed.
+    (30 s against 14 s). So a batch of :data:`PROBE_COLUMNS` solves is timed first
+    (``solve_s``, :func:`_probe_solves`).
     """
-    solve_s = _probe_solves(factor) if solve_s is None else solve_s
     recursion_s = NS_PER_WORK_UNIT * 1e-9 * work
     log.debug("selected inverse: recursion ~%.1f s (sum |S_j|^2 = %.3g), %d unit-column solves ~%.1f s (%d unknowns)",
               recursion_s, work, EXPECTED_COLUMNS, solve_s, factor.n)
@@ -200,9 +200,9 @@ def selected_inverse(
     """Factorise the symmetric positive definite ``A`` and invert it on the factor's pattern.
 
     Returns ``(inverse, None)``; or ``(None, factor)`` when the recursion would cost more than
-    solving for unit columns with ``factor`` (:func:`_recursion_pays`) or when the backend gives
-    no access to its factor (cholespy, SciPy); or ``(None, None)`` when CVXOPT's factor was
-    consumed to find out (factorise again to solve).
+    solving for unit columns with ``factor`` (:func:`_recursion_pays`), or when the backend is
+    not scikit-sparse's CHOLMOD and ``always`` is not set (CVXOPT's sparse substitutions, which
+    the probe does not time, stay; cholespy and SciPy give no access to their factor).
 
     ``backend`` as :func:`~georefine.adjustment.linalg.cholesky`. ``solver``: a
     :class:`~georefine.adjustment.linalg.SparseCholesky` whose symbolic analysis may fit ``A``
@@ -235,10 +235,10 @@ def selected_inverse(
             return None, factor
     if factor.backend == "cholmod":
         L = sp.csc_matrix(factor._factor.L())  # LL^T form, converted from the supernodal factor
-        if not always and not _recursion_pays(factor, _work(L), solve_s):
+        if solve_s is not None and not _recursion_pays(factor, _work(L), solve_s):
             return None, factor
         perm = np.asarray(factor._factor.P(), dtype=np.int64)
-    else:
+    else:  # CVXOPT, asked for
         from cvxopt import cholmod, matrix
 
         p = matrix(np.arange(factor.n, dtype=np.float64))
@@ -249,8 +249,6 @@ def selected_inverse(
         n = factor.n
         L = sp.csc_matrix((np.array(values).reshape(-1), np.array(rowind).reshape(-1),
                            np.array(colptr).reshape(-1)), shape=(n, n))
-        if not always and not _recursion_pays(factor, _work(L), solve_s):
-            return None, None
     L.sort_indices()
     if L.nnz and np.any(L.indices[L.indptr[:-1]] != np.arange(L.shape[0])):
         raise NotPositiveDefiniteError("selected inverse: the factor has a column without its diagonal entry")
