@@ -246,14 +246,15 @@ def test_marginal_covariance_blocks_batches_match_dense_inverse():
 
 
 
-def test_assembled_jacobian_equals_the_summed_triplets():
-    """Sub-blocks with repeated rows and columns, row offsets and row scales: the CSR matrix sums them."""
-    rng = np.random.default_rng(13)
-    shape = (50, 30)
+def _random_pieces(rng, shape, rows_from=None):
+    """Sub-blocks with repeated rows and columns, row offsets and row scales, and their dense sum."""
     pieces, dense = [], np.zeros(shape)
-    for offset, d, scaled in ((0, 3, False), (10, 2, True), (0, 3, True)):
-        rows = rng.integers(0, 40, (25, 4))
-        starts = rng.integers(0, shape[1] - d + 1, 25)
+    for n, (offset, d, scaled) in enumerate(((0, 3, False), (10, 2, True), (0, 3, True))):
+        if rows_from is None:
+            rows = rng.integers(0, 40, (25, 4))
+            starts = rng.integers(0, shape[1] - d + 1, 25)
+        else:  # the same pattern as an earlier set (new arrays, equal contents)
+            rows, starts = rows_from[n].rows.copy(), rows_from[n].col_start.copy()
         values = rng.normal(size=(25, 4, d))
         scale = rng.uniform(0.5, 2.0, 40) if scaled else None
         pieces.append(linalg.BlockTriplets(rows, starts, values, offset, scale))
@@ -261,10 +262,44 @@ def test_assembled_jacobian_equals_the_summed_triplets():
             for i in range(4):
                 w = 1.0 if scale is None else scale[rows[k, i]]
                 dense[rows[k, i] + offset, starts[k] : starts[k] + d] += values[k, i] * w
+    return pieces, dense
+
+
+def test_assembled_jacobian_equals_the_summed_triplets():
+    """Sub-blocks with repeated rows and columns, row offsets and row scales: the CSR matrix sums them."""
+    rng = np.random.default_rng(13)
+    shape = (50, 30)
+    pieces, dense = _random_pieces(rng, shape)
     J = linalg.assemble_block_coo(pieces, shape)
     assert J.format == "csr" and J.has_canonical_format and J.nnz < sum(p.values.size for p in pieces)
+    assert J.nnz == np.count_nonzero(dense)
     np.testing.assert_allclose(J.toarray(), dense, atol=1e-12)
     np.testing.assert_allclose((J.T @ J).toarray(), dense.T @ dense, atol=1e-10)
+    # What assemble() claims about the structure is what scipy finds in it.
+    K = sp.csr_matrix((J.data, J.indices, J.indptr), shape=shape)
+    assert K.has_sorted_indices and K.has_canonical_format
+
+
+def test_assembler_reuses_its_structure_and_notices_a_new_pattern():
+    """New values and row scales on the same pattern go through the kept structure; a new pattern is analysed again."""
+    rng = np.random.default_rng(15)
+    shape = (50, 30)
+    assembler = linalg.JacobianAssembler()
+    first, dense = _random_pieces(rng, shape)
+    np.testing.assert_allclose(assembler.assemble(first, shape).toarray(), dense, atol=1e-12)
+    kept = assembler._dest
+    same, dense = _random_pieces(rng, shape, rows_from=first)
+    J = assembler.assemble(same, shape)
+    assert assembler._dest is kept  # no second analysis
+    np.testing.assert_allclose(J.toarray(), dense, atol=1e-12)
+    other, dense = _random_pieces(rng, shape)  # other rows and columns
+    J = assembler.assemble(other, shape)
+    assert assembler._dest is not kept
+    np.testing.assert_allclose(J.toarray(), dense, atol=1e-12)
+    fewer = [other[0], other[1]]  # a piece left out (e.g. all its elements held constant)
+    dense_fewer = linalg.assemble_block_coo(fewer, shape).toarray()
+    np.testing.assert_allclose(assembler.assemble(fewer, shape).toarray(), dense_fewer, atol=1e-12)
+
 
 def test_lower_triangle_is_scipys_tril():
     rng = np.random.default_rng(14)

@@ -60,7 +60,7 @@ from georefine.adjustment.linalg import (
     NotPositiveDefiniteError,
     SparseCholesky,
     lower_triangle,
-    assemble_block_coo,
+    JacobianAssembler,
     available_backends,
     normal_equations,
 )
@@ -182,11 +182,14 @@ def _evaluate(
     return _Evaluation(out, total, finite and math.isfinite(total), jacobians, time.perf_counter() - t0)
 
 
-def _assemble_jacobian(evaluation: _Evaluation, layout: ColumnLayout) -> tuple[sp.csr_matrix, np.ndarray]:
+def _assemble_jacobian(
+    evaluation: _Evaluation, layout: ColumnLayout, assembler: JacobianAssembler
+) -> tuple[sp.csr_matrix, np.ndarray]:
     """Global whitened, robustly weighted ``J`` (CSR, rows x free columns) and ``r``.
 
     Validates every JacobianBlock, drops the entries of constant elements and writes all
-    triplets at once (:func:`~georefine.adjustment.linalg.assemble_block_coo`).
+    sub-blocks at once (:class:`~georefine.adjustment.linalg.JacobianAssembler`, which keeps
+    the structure from one iteration to the next).
     """
     pieces, residuals = [], []
     offset = 0
@@ -221,7 +224,7 @@ def _assemble_jacobian(evaluation: _Evaluation, layout: ColumnLayout) -> tuple[s
             pieces.append(BlockTriplets(rows, starts, vals, offset, sqrt_w))
         offset += m_group
     r = np.concatenate(residuals) if residuals else np.zeros(0)
-    return assemble_block_coo(pieces, (evaluation.n_rows, layout.n_cols)), r
+    return assembler.assemble(pieces, (evaluation.n_rows, layout.n_cols)), r
 
 
 @dataclass
@@ -233,9 +236,9 @@ class _Normal:
     seconds: float
 
 
-def _normal_equations(evaluation: _Evaluation, layout: ColumnLayout) -> _Normal:
+def _normal_equations(evaluation: _Evaluation, layout: ColumnLayout, assembler: JacobianAssembler) -> _Normal:
     t0 = time.perf_counter()
-    J, r = _assemble_jacobian(evaluation, layout)
+    J, r = _assemble_jacobian(evaluation, layout, assembler)
     N, g = normal_equations(J, r)
     del J
     diag = N.diagonal()
@@ -265,12 +268,14 @@ class LMOutcome:
     _evaluation: _Evaluation | None
     _layout: ColumnLayout
     factorizer: SparseCholesky | None = None  # its symbolic analysis fits the normal matrix too
+    _assembler: JacobianAssembler | None = None  # the solve's, whose structure fits J at the solution
 
     def normal_matrix(self) -> sp.csr_matrix:
         """``N = J^T W J`` at the solution (full symmetric CSR)."""
         if self._normal is None:
-            self._normal = _normal_equations(self._evaluation, self._layout).N
+            self._normal = _normal_equations(self._evaluation, self._layout, self._assembler or JacobianAssembler()).N
             self._evaluation = None
+            self._assembler = None
         return self._normal
 
 
@@ -312,7 +317,8 @@ def run_levenberg_marquardt(
     if not current.finite:
         bad = [g.name for g, ge in zip(groups, current.groups) if not math.isfinite(ge.cost)]
         raise ValueError(f"non-finite residuals at the initial values in group(s): {', '.join(bad)}")
-    normal = _normal_equations(current, layout)
+    assembler = JacobianAssembler()  # one structure of J for all iterations
+    normal = _normal_equations(current, layout, assembler)
     t_asm += normal.seconds
     normal_is_current = True
     current = _strip_jacobians(current)
@@ -388,7 +394,7 @@ def run_levenberg_marquardt(
             converged = actual <= options.function_tolerance * (cost + actual)
             normal_is_current = False
             if not converged:  # else N at the solution is assembled only if covariances are asked for
-                normal = _normal_equations(current, layout)
+                normal = _normal_equations(current, layout, assembler)
                 t_asm += normal.seconds
                 normal_is_current = True
                 current = _strip_jacobians(current)
@@ -424,6 +430,7 @@ def run_levenberg_marquardt(
         None if normal_is_current else current,
         layout,
         factorizer,
+        None if normal_is_current else assembler,
     )
 
 
