@@ -88,6 +88,7 @@ _MAX_DIAGONAL = 1e32
 _MIN_LAMBDA = 1e-15
 _MAX_LAMBDA = 1e16
 _MIN_GAIN_RATIO = 1e-3
+_PIVOT_SAFE_LAMBDA = 1e-10  # damping above which a factorisation needs no singularity test
 
 
 @dataclass(frozen=True)
@@ -349,7 +350,8 @@ def run_levenberg_marquardt(
         t0 = time.perf_counter()
         try:
             A = normal.N_lower + sp.diags(lam * normal.D, format="csr")
-            factor = factorizer.factorize(A, lower=True)
+            # The damping keeps every pivot above lam * D (SparseCholesky.factorize): no singularity test.
+            factor = factorizer.factorize(A, lower=True, check_pivots=lam < _PIVOT_SAFE_LAMBDA)
             backend_used = factor.backend
             delta = factor.solve(-normal.g)
             solved = bool(np.all(np.isfinite(delta)))
