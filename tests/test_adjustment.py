@@ -486,6 +486,52 @@ def test_rotation_averaging_converges_and_covariance_matches_monte_carlo():
     assert 2.4 < nees < 3.6
 
 
+def test_steps_by_preconditioned_conjugate_gradients_reach_the_direct_solution():
+    """Steps after the first solved by CG on the last factor: the same estimate, fewer factorisations."""
+    rng = np.random.default_rng(21)
+    n = 400
+    R_true = random_rotations(rng, n)
+    g_abs, g_rel = _rotation_chain(rng, R_true, 0.02, 0.005, np.array([0, 100, 250, 399]))
+    start = noisy(rng, R_true, 0.3)  # ~17 deg: several iterations with changing linearisation and damping
+    estimates, results = {}, {}
+    for name, reuse_from in (("direct", 10**9), ("cg", 0)):
+        problem = Problem()
+        problem.add_block("R", start, manifold="so3")
+        problem.add_group(g_abs)
+        problem.add_group(g_rel)
+        results[name] = problem.solve(SolverOptions(reuse_factor_from=reuse_from, function_tolerance=1e-12))
+        assert results[name].converged, results[name].termination
+        estimates[name] = problem.values("R")
+    direct, cg = results["direct"], results["cg"]
+    assert direct.iterative_steps == 0 and direct.factorisations == direct.iterations
+    assert cg.iterative_steps > 0 and cg.factorisations < direct.factorisations
+    assert cg.factorisations + cg.iterative_steps == cg.iterations
+    assert "conjugate-gradient steps" in cg.summary()
+    diff = log_so3(np.swapaxes(estimates["cg"], 1, 2) @ estimates["direct"])
+    assert np.abs(diff).max() < 1e-8
+    assert cg.final_cost == pytest.approx(direct.final_cost, rel=1e-10)
+
+
+def test_conjugate_gradient_steps_under_changing_robust_weights():
+    """Cauchy IRLS reweights the rows every iteration; CG steps on the old factor still reach the same fit."""
+    rng = np.random.default_rng(22)
+    n, sigma = 400, 0.1
+    x = rng.uniform(0.0, 10.0, n)
+    y = 0.7 * x - 1.2 + rng.normal(scale=sigma, size=n)
+    bad = rng.choice(n, size=n // 5, replace=False)
+    y[bad] += rng.uniform(3.0, 8.0, bad.size)
+    fits = {}
+    for name, reuse_from in (("direct", 10**9), ("cg", 0)):
+        problem = Problem()
+        problem.add_block("theta", np.zeros((1, 2)))
+        problem.add_group(LineGroup(x, y, sigma, CauchyLoss(2.385)))
+        result = problem.solve(SolverOptions(max_iterations=100, reuse_factor_from=reuse_from, function_tolerance=1e-12))
+        assert result.converged, result.termination
+        fits[name] = (problem.values("theta")[0], result)
+    assert fits["cg"][1].iterative_steps > 0
+    np.testing.assert_allclose(fits["cg"][0], fits["direct"][0], rtol=0, atol=1e-7)
+
+
 # ---------------------------------------------------------------------------------------------
 # (4) robust losses
 # ---------------------------------------------------------------------------------------------

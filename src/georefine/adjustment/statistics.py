@@ -106,6 +106,9 @@ class SolveResult:
         :class:`Timings`.
     backend
         Sparse Cholesky backend used.
+    factorisations, iterative_steps
+        Steps solved by a Cholesky factorisation, and by conjugate gradients preconditioned
+        with an earlier one (large problems, :class:`~georefine.adjustment.solver.SolverOptions`).
     """
 
     termination: str
@@ -123,6 +126,8 @@ class SolveResult:
     groups: tuple[GroupStatistics, ...]
     timings: Timings
     backend: str
+    factorisations: int = 0
+    iterative_steps: int = 0
 
     @property
     def converged(self) -> bool:
@@ -154,7 +159,8 @@ class SolveResult:
             f"{self.termination} after {self.iterations} iterations ({self.successful_iterations} accepted), "
             f"cost {self.initial_cost:.6g} -> {self.final_cost:.6g}",
             f"unknowns {self.n_unknowns}, residuals {self.n_residuals}, redundancy {self.redundancy}, "
-            f"sigma0^2 {self.variance_factor:.4g}, {self.timings.total_s:.2f} s ({self.backend})",
+            f"sigma0^2 {self.variance_factor:.4g}, {self.timings.total_s:.2f} s ({self.backend}; "
+            f"{self.factorisations} factorisations, {self.iterative_steps} conjugate-gradient steps)",
         ]
         for g in self.groups:
             lines.append(
