@@ -364,10 +364,33 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
             steps.keep("gil_features", key, (outcome.features, outcome.objects))
         records.append(outcome.record)
         current = outcome.gil.result
-        if (outcome.record.attitude_change_mdeg < lcfg.convergence_attitude_mdeg
-                and outcome.record.position_change_m < lcfg.convergence_position_m):
+        if outer_converged(outcome.record, lcfg):
             break
+    else:
+        warn_unconverged(records, lcfg)
     return OuterIterations(outcome, start, key, tuple(records))
+
+
+def outer_converged(record: OuterIteration, lcfg) -> bool:
+    """Whether an outer iteration changed the trajectory less than both thresholds."""
+    return (record.attitude_change_mdeg < lcfg.convergence_attitude_mdeg
+            and record.position_change_m < lcfg.convergence_position_m)
+
+
+def warn_unconverged(records: list[OuterIteration], lcfg) -> None:
+    """Warn, with the figures, when the last allowed outer iteration still moved the trajectory too much."""
+    last = records[-1]
+    if outer_converged(last, lcfg):
+        return
+    log.warning(
+        "the G/I/L outer iterations did not converge: after %d (processing.lidar.outer_iterations) the last one "
+        "still moved the trajectory by %.2f mdeg and %.1f mm RMS (thresholds %.2f mdeg and %.1f mm; changes "
+        "before it: %s); it used %s of %s features extracted (processing.lidar.max_features)",
+        len(records), last.attitude_change_mdeg, last.position_change_m * 1e3, lcfg.convergence_attitude_mdeg,
+        lcfg.convergence_position_m * 1e3,
+        ", ".join(f"{r.attitude_change_mdeg:.2f} mdeg" for r in records[:-1]) or "none",
+        f"{last.features_used:,}", f"{last.features:,}",
+    )
 
 
 def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterIterations,
