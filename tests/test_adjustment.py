@@ -232,14 +232,18 @@ def test_linear_least_squares_matches_lstsq(seed):
     np.testing.assert_allclose(problem.covariance("x", scale_by_variance_factor=False)[0], cov_ref / s0, rtol=1e-8)
 
 
-def test_marginal_covariance_blocks_batches_match_dense_inverse():
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt", "cholespy", "scipy") if b in available_backends()])
+def test_marginal_covariance_blocks_batches_match_dense_inverse(backend):
+    """Whole solves (cholespy, SciPy) or their forward half (CHOLMOD dense, CVXOPT sparse): the same blocks."""
     rng = np.random.default_rng(3)
     n = 60
     B = sp.random(n, n, density=0.1, random_state=rng)
     A = (B @ B.T + sp.eye(n) * 2.0).tocsr()
     inv = np.linalg.inv(A.toarray())
     starts = np.array([0, 9, -1, 30, 57])
-    blocks = marginal_covariance_blocks(cholesky(A), starts, 3, max_rhs=4)
+    factor = cholesky(A, backend=backend)
+    assert hasattr(factor, "solve_half") == (backend == "cholmod")
+    blocks = marginal_covariance_blocks(factor, starts, 3, max_rhs=4)
     for k, s in enumerate(starts):
         expected = np.zeros((3, 3)) if s < 0 else inv[s : s + 3, s : s + 3]
         np.testing.assert_allclose(blocks[k], expected, atol=1e-12)
@@ -393,6 +397,24 @@ def test_covariance_is_the_same_whether_inverted_or_solved(backend, ns_per_unit,
     inv = np.linalg.inv(A.toarray())
     for k, s in enumerate(starts):
         np.testing.assert_allclose(blocks[k], inv[s : s + 3, s : s + 3], atol=1e-10 * np.abs(inv).max())
+
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt") if b in available_backends()])
+@pytest.mark.parametrize(("ns_per_unit", "min_ratio"), [(1e-9, 0.0), (1e9, 0.0), (1e-9, 1e9)])
+def test_selected_inverse_rejects_a_singular_matrix_on_every_path(backend, ns_per_unit, min_ratio, monkeypatch):
+    """A gauge left free (a null space): refused whether the recursion runs (pivots of the copied factor) or
+    the solves (by a solve), though the factorisation itself skips the pivot test."""
+    from georefine.adjustment import selected_inverse as module
+
+    monkeypatch.setattr(module, "NS_PER_WORK_UNIT", ns_per_unit)
+    monkeypatch.setattr(module, "MIN_SOLVES_PER_FACTORISATION", min_ratio)
+    rng = np.random.default_rng(16)
+    A = _banded_spd(rng, 200, 3, 3).toarray()
+    null = np.zeros(A.shape[0])
+    null[:603:3] = 1.0  # the first coordinate of every element moves together
+    P = np.eye(A.shape[0]) - np.outer(null, null) / (null @ null)
+    with pytest.raises(NotPositiveDefiniteError):
+        selected_inverse(sp.csr_matrix(P @ A @ P), backend=backend)
+
 
 # ---------------------------------------------------------------------------------------------
 # (2) non-linear Euclidean problem from a poor start

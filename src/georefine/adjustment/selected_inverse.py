@@ -39,7 +39,13 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve_triangular
 
-from georefine.adjustment.linalg import Factorization, NotPositiveDefiniteError, SparseCholesky
+from georefine.adjustment.linalg import (
+    Factorization,
+    NotPositiveDefiniteError,
+    SparseCholesky,
+    check_by_solve,
+    check_pivot_ratios,
+)
 
 __all__ = ["SelectedInverse", "selected_inverse"]
 
@@ -61,12 +67,16 @@ the recursion lost, 30 s against 14 s of solves) and 6.2 (60 minutes: 156 s agai
 
 
 def _probe_solves(factor: Factorization) -> float:
-    """Seconds that :data:`EXPECTED_COLUMNS` unit-column solves take, timed on :data:`PROBE_COLUMNS`."""
+    """Seconds that :data:`EXPECTED_COLUMNS` unit-column solves take, timed on :data:`PROBE_COLUMNS`.
+
+    The forward half (``solve_half``) where the factor has it, as the covariance blocks use it.
+    """
     cols = np.linspace(0, factor.n - 1, min(PROBE_COLUMNS, factor.n)).astype(np.int64)
     E = np.zeros((factor.n, cols.size))
     E[cols, np.arange(cols.size)] = 1.0
+    solve = getattr(factor, "solve_half", factor.solve)
     t = time.perf_counter()
-    factor.solve(E)
+    solve(E)
     return (time.perf_counter() - t) / cols.size * EXPECTED_COLUMNS
 
 
@@ -215,15 +225,24 @@ def selected_inverse(
         As the factorisation.
     """
     solver = solver if solver is not None else SparseCholesky(backend)
+    A = sp.csr_matrix(A)
     t = time.perf_counter()
-    factor = solver.factorize(A)
+    # The singularity test comes below: from the diagonal of L where L is copied out anyway,
+    # else by a solve (with scikit-sparse the pivot test copies the whole factor, 9.1 s for a
+    # 60-minute G/I/L matrix, and the solves' path would not use the copy).
+    factor = solver.factorize(A, check_pivots=False)
     factor_s = time.perf_counter() - t
+
+    def solving() -> tuple[None, Factorization]:
+        check_by_solve(factor, lambda v: A @ v)
+        return None, factor
+
     if factor.backend != "cholmod" and not (always and factor.backend == "cvxopt"):
         # CVXOPT's factorisations solve for unit columns by sparse forward substitutions
         # (``solve_unit_columns_half``), which the probe below does not time: with the recursion
         # chosen by it, the demo's G/I/L posterior took 104 s instead of 30 s. So the recursion
         # runs on CVXOPT's factor only when asked for (``always``).
-        return None, factor
+        return solving()
     solve_s = None
     if not always:
         # Before the factor is copied out (a G/I/L factor at 60 minutes of flight is GBs): when
@@ -232,12 +251,18 @@ def selected_inverse(
         if solve_s < MIN_SOLVES_PER_FACTORISATION * factor_s:
             log.debug("selected inverse: %d unit-column solves ~%.1f s, factorisation %.1f s: solving",
                       EXPECTED_COLUMNS, solve_s, factor_s)
-            return None, factor
+            return solving()
     if factor.backend == "cholmod":
-        L = sp.csc_matrix(factor._factor.L())  # LL^T form, converted from the supernodal factor
+        from sksparse import cholmod
+
+        try:
+            L = sp.csc_matrix(factor._factor.L())  # LL^T form, converted from the supernodal factor
+        except cholmod.CholmodError as exc:  # a factor CHOLMOD itself marks as not positive definite
+            raise NotPositiveDefiniteError(f"normal matrix ({factor.n} unknowns) is not positive definite") from exc
+        perm = np.asarray(factor._factor.P(), dtype=np.int64)
+        check_pivot_ratios(L.diagonal(), A.diagonal()[perm], factor.n)
         if solve_s is not None and not _recursion_pays(factor, _work(L), solve_s):
             return None, factor
-        perm = np.asarray(factor._factor.P(), dtype=np.int64)
     else:  # CVXOPT, asked for
         from cvxopt import cholmod, matrix
 
@@ -249,6 +274,7 @@ def selected_inverse(
         n = factor.n
         L = sp.csc_matrix((np.array(values).reshape(-1), np.array(rowind).reshape(-1),
                            np.array(colptr).reshape(-1)), shape=(n, n))
+        check_pivot_ratios(L.diagonal(), A.diagonal()[perm], n)
     L.sort_indices()
     if L.nnz and np.any(L.indices[L.indptr[:-1]] != np.arange(L.shape[0])):
         raise NotPositiveDefiniteError("selected inverse: the factor has a column without its diagonal entry")
