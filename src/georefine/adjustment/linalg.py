@@ -574,6 +574,8 @@ class JacobianAssembler:
         csr_dtype = index_dtype if nnz < _INT32_MAX else np.int64
         self._indices = merged[:nnz].astype(csr_dtype, copy=True)
         self._indptr = merged_indptr.astype(csr_dtype)
+        for shared in (self._indices, self._indptr):  # every matrix assembled shares them: read-only
+            shared.setflags(write=False)
         self._dest = [dest[first : first + vshape[0] * vshape[1] * vshape[2]] for _, _, vshape, _, first in arrays]
         self._key = [(p.rows, p.col_start, p.values.shape, p.row_offset) for p in pieces]
         self._shape = shape
