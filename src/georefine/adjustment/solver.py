@@ -59,15 +59,8 @@ from georefine.adjustment.blocks import (
     ObservationGroup,
     ParameterBlock,
 )
-from georefine.adjustment.linalg import (
-    BlockTriplets,
-    NotPositiveDefiniteError,
-    SparseCholesky,
-    lower_triangle,
-    JacobianAssembler,
-    available_backends,
-    normal_equations,
-)
+from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler, lower_triangle, normal_equations
+from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky, available_backends
 from georefine.adjustment.robust import irls_weights
 from georefine.adjustment.statistics import (
     GroupStatistics,
@@ -198,7 +191,7 @@ def _assemble_jacobian(
     """Global whitened, robustly weighted ``J`` (CSR, rows x free columns) and ``r``.
 
     Validates every JacobianBlock, drops the entries of constant elements and writes all
-    sub-blocks at once (:class:`~georefine.adjustment.linalg.JacobianAssembler`, which keeps
+    sub-blocks at once (:class:`~georefine.adjustment.assembly.JacobianAssembler`, which keeps
     the structure from one iteration to the next).
     """
     pieces, residuals = [], []
