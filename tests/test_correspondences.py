@@ -96,6 +96,7 @@ def _make_features(parts, rng):
         centre_w=cat["centre"], normal_w=cat["normal"], n_points=np.full(f, 60),
         roughness_m=np.full(f, 0.01), extent_m=np.full(f, 1.0),
         sigma_d_m=rng.uniform(0.005, 0.02, f), sigma_slope_rad=rng.uniform(0.002, 0.01, f),
+        seed_cell=np.floor(cat["centre"]).astype(np.int64),
     )
 
 

@@ -15,7 +15,9 @@ from georefine.lidar.planes import (
     PlaneExtractionConfig,
     extract_features,
     extract_features_chunked,
+    feature_keys,
     read_features,
+    stable_subset,
     write_features,
 )
 
@@ -312,6 +314,47 @@ def test_chunked_equals_whole_view(simulated):
         extract_features_chunked([(t[10:20], xyz[10:20]), (t[:10], xyz[:10])], 4, 1, pose_fn, p_b_s, R_b_s)
 
 
+def test_features_keep_their_keys_when_the_trajectory_changes_a_little(simulated):
+    """A re-extraction after an outer iteration names the same features; the bottom-k sample of
+    their keys stays the same, where two random draws would share only the sample's fraction."""
+    _, pts, feats, pose_fn, p_b_s, R_b_s = simulated
+    dR = Rotation.from_rotvec(np.radians([2e-3, -3e-3, 2.5e-3])).as_matrix()  # ~2-3 mdeg
+
+    def moved(t):
+        p, R = pose_fn(t)
+        return p + [0.004, -0.003, 0.005], R @ dR
+
+    m = pts["channel"] == 1
+    p_w_b, R_w_b = moved(pts["time"][m])
+    xyz_w = p_w_b + np.einsum("nij,nj->ni", R_w_b, pts["xyz_s"][m] @ R_b_s.T + p_b_s)
+    f = feats[1]
+    g = extract_features(xyz_w, pts["time"][m], 4, 1, moved, p_b_s, R_b_s)
+    kf, kg = feature_keys(f), feature_keys(g)
+    assert kf.dtype == np.uint64 and np.unique(kf).size == len(f)  # one feature per seed voxel
+    shared = np.intersect1d(kf, kg).size
+    assert shared >= 0.97 * min(len(f), len(g))
+    size = len(f) // 10
+    a = stable_subset(np.arange(len(f)), kf, size)
+    b = stable_subset(np.arange(len(g)), kg, size)
+    assert a.size == b.size == size and np.all(np.diff(a) > 0)
+    assert np.intersect1d(kf[a], kg[b]).size >= 0.95 * size
+    # keys do not depend on the feature order, and differ between views of the same places
+    perm = np.random.default_rng(5).permutation(len(f))
+    np.testing.assert_array_equal(feature_keys(f.select(perm)), kf[perm])
+    assert np.intersect1d(kf, feature_keys(feats[0])).size < 0.01 * len(f)
+    # the sample is spread like a random one: over time, and not tied to the seed grid's rows
+    tq = np.quantile(f.time, [0.25, 0.5, 0.75])
+    counts = np.bincount(np.searchsorted(tq, f.time[a]), minlength=4)
+    assert np.all(np.abs(counts - size / 4) < 4 * np.sqrt(size / 4))
+
+
+def test_stable_subset_small_and_exact():
+    keys = np.array([9, 3, 7, 1, 5], dtype=np.uint64)
+    np.testing.assert_array_equal(stable_subset(np.array([4, 0, 2]), keys, 5), [0, 2, 4])
+    np.testing.assert_array_equal(stable_subset(np.arange(5), keys, 2), [1, 3])
+    np.testing.assert_array_equal(stable_subset(np.array([0, 2, 4]), keys, 2), [2, 4])
+
+
 # --------------------------------------------------------------------------- container and files
 
 
@@ -336,7 +379,7 @@ def test_write_read_round_trip(tmp_path, simulated):
     assert path.read_text().splitlines()[0] == ",".join(CSV_COLUMNS)
     g = read_features(path)
     assert len(g) == len(f)
-    for name in ("strip", "channel", "n_points"):
+    for name in ("strip", "channel", "n_points", "seed_cell"):
         np.testing.assert_array_equal(getattr(g, name), getattr(f, name))
         assert getattr(g, name).dtype == getattr(f, name).dtype
     np.testing.assert_allclose(g.time, f.time, atol=1e-6)

@@ -73,14 +73,21 @@ from georefine.io.files import (
 
 __all__ = [
     "CSV_COLUMNS",
+    "FEATURES_VERSION",
     "PlanarFeatures",
     "PlaneExtractionConfig",
     "PoseFn",
     "extract_features",
     "extract_features_chunked",
+    "feature_keys",
     "read_features",
+    "stable_subset",
     "write_features",
 ]
+
+FEATURES_VERSION = 2
+"""Changes when :class:`PlanarFeatures` or their extraction change (part of the step cache's
+keys); 2: the seed voxel (``seed_cell``)."""
 
 PoseFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 """``pose_fn(t (M,)) -> (p_w_b (M,3), R_w_b (M,3,3))``: the trajectory used to georeference."""
@@ -88,7 +95,7 @@ PoseFn = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 _FLOAT_FIELDS = ("time", "roughness_m", "extent_m", "sigma_d_m", "sigma_slope_rad")
 _VEC_FIELDS = ("centre_s", "axis1_s", "axis2_s", "normal_s", "centre_w", "normal_w")
-_DTYPES = {"strip": np.int32, "channel": np.int16, "n_points": np.int32}
+_DTYPES = {"strip": np.int32, "channel": np.int16, "n_points": np.int32, "seed_cell": np.int64}
 
 
 @dataclass(frozen=True)
@@ -118,6 +125,11 @@ class PlanarFeatures:
     sigma_d_m, sigma_slope_rad : (F,) float64
         Standard deviations of the normal distance and of each of the two slopes (module
         docstring).
+    seed_cell : (F, 3) int64
+        The seed's voxel of the grid anchored in ``w`` (step 1 of the module docstring):
+        ``rint(x / seed_spacing_m)``, ``rint(y / seed_spacing_m)``, ``floor(z / seed_layer_m)``.
+        With ``strip`` and ``channel`` it names the feature across re-extractions with a slightly
+        different trajectory (:func:`feature_keys`).
     """
 
     strip: np.ndarray
@@ -134,6 +146,7 @@ class PlanarFeatures:
     extent_m: np.ndarray
     sigma_d_m: np.ndarray
     sigma_slope_rad: np.ndarray
+    seed_cell: np.ndarray
 
     def __post_init__(self) -> None:
         f = np.shape(self.time)[0] if np.ndim(self.time) == 1 else -1
@@ -143,7 +156,7 @@ class PlanarFeatures:
             name = fld.name
             dtype = _DTYPES.get(name, np.float64)
             arr = np.ascontiguousarray(getattr(self, name), dtype=dtype)
-            want = (f, 3) if name in _VEC_FIELDS else (f,)
+            want = (f, 3) if name in _VEC_FIELDS or name == "seed_cell" else (f,)
             if arr.shape != want:
                 raise ValueError(f"{name} must have shape {want}, got {arr.shape}")
             object.__setattr__(self, name, arr)
@@ -155,7 +168,8 @@ class PlanarFeatures:
     def empty() -> PlanarFeatures:
         """No features."""
         return PlanarFeatures(**{
-            f.name: np.zeros((0, 3) if f.name in _VEC_FIELDS else (0,)) for f in fields(PlanarFeatures)
+            f.name: np.zeros((0, 3) if f.name in (*_VEC_FIELDS, "seed_cell") else (0,))
+            for f in fields(PlanarFeatures)
         })
 
     @staticmethod
@@ -174,6 +188,41 @@ class PlanarFeatures:
         if index.dtype == bool and index.shape != (len(self),):
             raise ValueError(f"mask must have shape ({len(self)},), got {index.shape}")
         return PlanarFeatures(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """SplitMix64's finaliser on uint64 (wrapping arithmetic): a bijection that scatters bits."""
+    x = x ^ (x >> np.uint64(30))
+    x = x * np.uint64(0xBF58476D1CE4E5B9)
+    x = x ^ (x >> np.uint64(27))
+    x = x * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+def feature_keys(features: PlanarFeatures) -> np.ndarray:
+    """(F,) uint64 pseudo-random key of each feature, fixed by its strip, channel and seed voxel.
+
+    A feature extracted again with a slightly changed trajectory keeps its seed voxel, and so
+    its key. The features with the smallest keys are a random-like sample that stays the same
+    from one outer iteration to the next (:func:`stable_subset`).
+    """
+    h = np.full(len(features), 0x9E3779B97F4A7C15, dtype=np.uint64)
+    for column in (features.strip, features.channel, *features.seed_cell.T):
+        h = _mix64(h ^ np.asarray(column, dtype=np.int64).astype(np.uint64))
+    return h
+
+
+def stable_subset(index: np.ndarray, keys: np.ndarray, size: int) -> np.ndarray:
+    """The ``size`` entries of ``index`` with the smallest ``keys[index]``, in increasing order.
+
+    A bottom-k sample: where two sets of candidates share most of their keys, their samples share
+    most of their members, unlike two independent random draws.
+    """
+    index = np.asarray(index)
+    if index.size <= size:
+        return np.sort(index)
+    k = keys[index]
+    return np.sort(index[np.argpartition(k, size - 1)[:size]])
 
 
 # --------------------------------------------------------------------------- kernels
@@ -262,14 +311,19 @@ def _ball_moments(pts, t, ukeys, starts, ends, lo, dims, cell, seeds, radius):
 # --------------------------------------------------------------------------- extraction
 
 
+def _seed_cells(points_w: np.ndarray, cfg: PlaneExtractionConfig) -> np.ndarray:
+    """(n, 3) int64 voxel of the seed grid anchored in ``w`` that holds each point (step 1)."""
+    ixy = np.rint(points_w[:, :2] / cfg.seed_spacing_m).astype(np.int64)
+    iz = np.floor(points_w[:, 2] / cfg.seed_layer_m).astype(np.int64)
+    return np.column_stack([ixy, iz])
+
+
 def _select_seeds(points_w: np.ndarray, cfg: PlaneExtractionConfig) -> np.ndarray:
     """Indices of the seed points (step 1 of the module docstring), sorted by voxel."""
     s, h = cfg.seed_spacing_m, cfg.seed_layer_m
-    ixy = np.rint(points_w[:, :2] / s).astype(np.int64)
-    iz = np.floor(points_w[:, 2] / h).astype(np.int64)
-    d = points_w - np.column_stack([ixy * s, (iz + 0.5) * h])
+    ijk = _seed_cells(points_w, cfg)
+    d = points_w - np.column_stack([ijk[:, :2] * s, (ijk[:, 2] + 0.5) * h])
     d2 = np.einsum("ij,ij->i", d, d)
-    ijk = np.column_stack([ixy, iz])
     ijk -= ijk.min(axis=0)
     dims = ijk.max(axis=0) + 1
     key = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]
@@ -380,6 +434,7 @@ def _extract(points_w, time, strip, channel, pose_fn, p_b_s, R_b_s, cfg, own_t0,
     n, s1, s2, tsum, tmin, tmax = _neighbourhood_moments(points_w, time - t_ref, seed_xyz, cfg.radius_m)
     ok = (n >= cfg.min_points) & (tmax - tmin <= cfg.max_time_span_s)
     n, s1, s2, tsum, seed_xyz = n[ok], s1[ok], s2[ok], tsum[ok], seed_xyz[ok]
+    seed_cell = _seed_cells(seed_xyz, cfg)
 
     # Step 3: PCA of all candidate patches at once.
     nf = n.astype(np.float64)
@@ -427,6 +482,7 @@ def _extract(points_w, time, strip, channel, pose_fn, p_b_s, R_b_s, cfg, own_t0,
         centre_s=to_s(centre_w - p_w_s), axis1_s=to_s(axis1_w), axis2_s=to_s(axis2_w),
         normal_s=to_s(normal_w), centre_w=centre_w, normal_w=normal_w, n_points=n,
         roughness_m=roughness, extent_m=2.0 * np.sqrt(l1), sigma_d_m=sigma_d, sigma_slope_rad=sigma_slope,
+        seed_cell=seed_cell[keep],
     )
 
 
@@ -496,12 +552,16 @@ CSV_COLUMNS: tuple[str, ...] = (
     "strip", "channel", "time", "n_points",
     *(f"{v}_{a}" for v in _VEC_FIELDS for a in "xyz"),
     *_FLOAT_FIELDS[1:],
+    "seed_cell_i", "seed_cell_j", "seed_cell_k",
 )
 """Header of the features CSV: ids, mean time (s rel. epoch), point count, the vectors of
-:class:`PlanarFeatures` by component (``centre_s_x`` ...), then roughness, extent and sigmas."""
+:class:`PlanarFeatures` by component (``centre_s_x`` ...), roughness, extent and sigmas, then
+the seed voxel (``seed_cell``)."""
+
+_INT_COLUMNS = ("strip", "channel", "n_points", "seed_cell_i", "seed_cell_j", "seed_cell_k")
 
 _CSV_FORMAT = {"time": "%.6f", "roughness_m": "%.7f", "extent_m": "%.5f", "sigma_d_m": "%.4e",
-               "sigma_slope_rad": "%.4e", "strip": "%d", "channel": "%d", "n_points": "%d"}
+               "sigma_slope_rad": "%.4e", **dict.fromkeys(_INT_COLUMNS, "%d")}
 
 
 def _column_format(name: str) -> str:
@@ -525,7 +585,7 @@ def write_features(path: PathLike, features: PlanarFeatures, protect: Iterable[P
     """
     f = features
     table = [f.strip, f.channel, f.time, f.n_points, *(getattr(f, v)[:, i] for v in _VEC_FIELDS for i in range(3)),
-             *(getattr(f, name) for name in _FLOAT_FIELDS[1:])]
+             *(getattr(f, name) for name in _FLOAT_FIELDS[1:]), *f.seed_cell.T]
     fmt = ",".join(_column_format(c) for c in CSV_COLUMNS)
     with atomic_output(path, "w", protect=protect) as fh:
         fh.write(",".join(CSV_COLUMNS) + "\n")
@@ -556,11 +616,12 @@ def read_features(path: PathLike) -> PlanarFeatures:
     rows, numbers = data_lines(lines, 1)
     values = parse_float_rows(path, rows, numbers, header, delimiter=",")
     col = {c: values[:, header.index(c)] for c in CSV_COLUMNS}
-    for c in ("strip", "channel", "n_points"):
+    for c in _INT_COLUMNS:
         bad = np.flatnonzero(col[c] != np.round(col[c]))
         if bad.size:
             raise InputError("not an integer", path=path, line=int(numbers[bad[0]]), field=c,
                              expected="an integer", found=repr(col[c][bad[0]]))
     kw = {name: col[name] for name in ("strip", "channel", "time", "n_points", *_FLOAT_FIELDS[1:])}
     kw.update({v: np.column_stack([col[f"{v}_{a}"] for a in "xyz"]) for v in _VEC_FIELDS})
+    kw["seed_cell"] = np.column_stack([np.round(col[f"seed_cell_{a}"]) for a in "ijk"])
     return PlanarFeatures(**kw)
