@@ -171,3 +171,73 @@ def test_missing_extra_dimension(tmp_path):
     path = write_las(tmp_path / "a.las", _cloud(0, n=10))
     with pytest.raises(InputError, match=r"field 'sigma_m': extra dimension missing"):
         read_las(path, extra_dims=["sigma_m"])
+
+
+# --- points encoded elsewhere (georefine.io.las_encode) -----------------------
+
+
+def _part(c: PointCloud, a: int, b: int) -> PointCloud:
+    s = slice(a, b)
+    return PointCloud(c.time_gps[s], c.xyz[s], c.intensity[s], c.scanner_channel[s], c.point_source_id[s],
+                      c.return_number[s], c.number_of_returns[s], {k: v[s] for k, v in c.extra.items()})
+
+
+@pytest.mark.parametrize("suffix", [".laz", ".las"])
+def test_points_encoded_by_tasks_give_the_file_the_writer_makes(tmp_path, suffix):
+    """Parts on the chunk grid keep their LAZ chunks, parts off it are compressed again; either
+    way the file is the one the writer makes from the points itself, byte for byte."""
+    from georefine.io.las_encode import LAZ_CHUNK_POINTS, encode_points
+
+    c = _cloud(11, n=237_000)
+    kw = dict(scale=0.001, offset=(0.0, 0.0, 0.0), crs="EPSG:25832", extra_dims=("range_error_m",))
+    with LasWriter(tmp_path / f"own{suffix}", **kw) as w:
+        for a in range(0, len(c), 64_000):
+            w.write(_part(c, a, a + 64_000))
+    own = (tmp_path / f"own{suffix}").read_bytes()
+    for name, cuts in (("grid", (0, 100_000, 200_000)), ("off", (0, 70_000, 120_000, 200_000))):
+        path = tmp_path / f"{name}{suffix}"
+        with LasWriter(path, **kw) as w:
+            for a, b in zip(cuts, (*cuts[1:], len(c))):
+                enc = encode_points(_part(c, a, b), w.layout_for())
+                assert enc.count == b - a
+                if suffix == ".laz":
+                    assert len(enc.chunk_bytes) == (b - a) // LAZ_CHUNK_POINTS
+                w.write_encoded(enc)
+        assert (w.recompressed_points > 0) == (name == "off" and suffix == ".laz")
+        assert path.read_bytes() == own, name
+    _assert_same_points(read_las(tmp_path / f"off{suffix}"), _part(c, 0, len(c)), 6e-4)
+    # the extra-bytes VLR holds the true range of the dimension
+    struct = laspy.read(tmp_path / f"own{suffix}").header.vlrs.get("ExtraBytesVlr")[0].extra_bytes_structs[0]
+    values = c.extra["range_error_m"].astype(np.float32)
+    assert struct._raw_min()[0] == values.min() and struct._raw_max()[0] == values.max()
+
+
+def test_encoded_laz_reads_and_seeks_with_every_decoder(tmp_path):
+    from georefine.io.las_encode import encode_points
+
+    c = _cloud(12, n=123_457)
+    path = tmp_path / "parts.laz"
+    with LasWriter(path, scale=0.001, offset=(0.0, 0.0, 0.0), extra_dims=("range_error_m",)) as w:
+        for a, b in ((0, 50_000), (50_000, 61_000), (61_000, 123_457)):
+            w.write_encoded(encode_points(_part(c, a, b), w.layout_for()))
+    backends = [b for b in laspy.LazBackend.detect_available()]  # lazrs (both), LASzip where installed
+    assert laspy.LazBackend.LazrsParallel in backends
+    for backend in backends:
+        d = laspy.read(path, laz_backend=backend)
+        np.testing.assert_allclose(d.x, c.xyz[:, 0], atol=6e-4, err_msg=str(backend))
+        with laspy.open(path, laz_backend=backend) as r:
+            r.seek(100_001)
+            np.testing.assert_allclose(r.read_points(5).x, c.xyz[100_001:100_006, 0], atol=6e-4)
+
+
+def test_encoded_points_of_another_layout_are_refused(tmp_path):
+    from georefine.io.las_encode import LasLayout, encode_points
+
+    c = _cloud(13, n=1000)
+    with LasWriter(tmp_path / "a.laz", scale=0.001, offset=(0.0, 0.0, 0.0)) as w:
+        with pytest.raises(ValueError, match="encoded for"):
+            w.write_encoded(encode_points(c, LasLayout((0.01,) * 3, (0.0, 0.0, 0.0))))
+        w.write_encoded(encode_points(c, w.layout_for()))
+    assert len(read_las(tmp_path / "a.laz")) == 1000
+    with pytest.raises(ValueError, match="offset"):  # no offset: the first chunk fixes it
+        LasWriter(tmp_path / "b.laz").layout_for()
