@@ -8,7 +8,8 @@ per N, each the same work on the same project:
   georeferenced with the true trajectory and searched for planar features; tasks return
   features only);
 * ``georeference``: ``run_georeference`` with the true trajectory (every tile read,
-  georeferenced, transformed to the output CRS and sent back; this process writes the LAZ files).
+  georeferenced, transformed to the output CRS and compressed into LAZ chunks by its task; this
+  process appends the chunks to the LAZ files).
 
 Printed: seconds, points per second and the ratio against the first N, and whether the results
 are the same (features equal, LAZ points equal record for record).

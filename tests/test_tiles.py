@@ -21,7 +21,13 @@ from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.las import LasWriter, PointCloud, read_las, read_las_range, time_index
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import extract_features
-from georefine.lidar.tiles import georeference_strip, plan_strip, tile_features, tile_points
+from georefine.lidar.tiles import (
+    georeference_strip,
+    georeference_strips,
+    plan_strip,
+    tile_features,
+    tile_points,
+)
 from georefine.tasks import TaskRunner, check_scheduler
 from georefine.trajectory.sampled import Trajectory
 from georefine.workflows.strips import sort_features
@@ -170,6 +176,53 @@ def test_a_cluster_gives_the_same_features_and_points_as_this_process(strip, pos
     for dim in ("X", "Y", "Z", "gps_time", "scanner_channel"):
         assert np.array_equal(la[dim], lb[dim]), dim
     assert np.all(np.diff(la.gps_time) >= 0)
+
+
+def test_georeferencing_tasks_compress_on_the_chunk_grid(strip, poses, tmp_path, caplog):
+    """Tiles planned in multiples of the LAZ chunk hand their chunks to the file as they are;
+    tiles off the grid are compressed again by the writer; both give the same file."""
+    import logging
+
+    from georefine.io.las_encode import LAZ_CHUNK_POINTS
+
+    frame, crs = LocalFrame(math.radians(48.0), math.radians(11.0), 500.0), OutputCRS(25832)
+    on = plan_strip(strip, 5, T0, 120_000, 0.0, index=time_index(strip))  # sampled every 5000 records
+    off = plan_strip(strip, 5, T0, 70_000, 0.0, index=time_index(strip, step=4096))
+    assert all(t.start % LAZ_CHUNK_POINTS == 0 for t in on.tiles) and len(on.tiles) >= 3
+    assert any(t.start % LAZ_CHUNK_POINTS for t in off.tiles)
+    with caplog.at_level(logging.DEBUG, logger="georefine.lidar.tiles"):
+        a = georeference_strip(on, tmp_path / "on.laz", poses, T0, np.zeros(3), np.eye(3), frame, crs)
+        assert "compressed again" not in caplog.text
+        b = georeference_strip(off, tmp_path / "off.laz", poses, T0, np.zeros(3), np.eye(3), frame, crs)
+        assert "compressed again" in caplog.text
+    assert a.points_written == b.points_written == time_index(strip).point_count
+    assert a.output.read_bytes() == b.output.read_bytes()
+
+
+def test_strips_in_one_stream_give_the_files_of_one_strip_at_a_time(strip, poses, cluster, tmp_path):
+    """``georeference_strips`` runs the tiles of all strips as one stream (no worker waits for a
+    strip's last tile); the files are those of one strip at a time, and an error leaves none."""
+    frame, crs = LocalFrame(math.radians(48.0), math.radians(11.0), 500.0), OutputCRS(25832)
+    a = plan_strip(strip, 5, T0, 120_000, 0.0, index=time_index(strip))
+    b = plan_strip(strip, 5, T0, 70_000, 0.0, index=time_index(strip, step=4096))
+    shared = cluster.share(poses)
+    both = georeference_strips([a, b], [tmp_path / "a.laz", tmp_path / "b.laz"], shared, T0, np.zeros(3), np.eye(3),
+                               frame, crs, runner=cluster)
+    one = georeference_strip(a, tmp_path / "one.laz", poses, T0, np.zeros(3), np.eye(3), frame, crs)
+    assert [r.points_written for r in both] == [one.points_written] * 2
+    assert both[0].output.read_bytes() == both[1].output.read_bytes() == one.output.read_bytes()
+    with pytest.raises(AttributeError):  # no poses: every task fails
+        georeference_strips([a, b], [tmp_path / "x.laz", tmp_path / "y.laz"], None, T0, np.zeros(3), np.eye(3),
+                            frame, crs)
+    assert not (tmp_path / "x.laz").exists() and not (tmp_path / "y.laz").exists()
+    assert not list(tmp_path.glob(".*.part"))
+
+
+def test_equal_tiles_within_the_budget(strip):
+    n = time_index(strip).point_count
+    plan = plan_strip(strip, 5, T0, int(0.7 * n), 0.0, index=time_index(strip))
+    sizes = [t.points for t in plan.tiles]
+    assert len(sizes) == 2 and max(sizes) <= 0.7 * n and min(sizes) >= 0.45 * n
 
 
 def test_task_errors_reach_the_caller_intact(cluster, tmp_path):

@@ -8,7 +8,7 @@ blend, quaternion to matrix, lever arm and boresight) is one numba loop, :func:`
 numpy needs a dozen (N, 3, 3) temporaries for it and ran at 3 M points/s; no library offers
 this fused, and the loop runs several times faster (``bench/lidar_throughput.py``).
 
-Whole strips are georeferenced tile by tile (:func:`georefine.lidar.tiles.georeference_strip`);
+Whole strips are georeferenced tile by tile (:func:`georefine.lidar.tiles.georeference_strips`);
 points whose time lies outside the trajectory are counted, reported and left out, never
 extrapolated.
 """

@@ -19,12 +19,16 @@ then grows with its points; a warning says so). The tile size follows
 ``processing.scale.memory_budget_gb``: the tiles in work at once -- one per task slot -- fit the
 budget together (:func:`tile_points`).
 
-The task functions (:func:`tile_features`, :func:`tile_georeference`) are module-level and take
-only picklable arguments, so any scheduler of :class:`georefine.tasks.TaskRunner` runs them.
+The task functions (:func:`tile_features`, :func:`tile_georeference`,
+:func:`tile_georeference_encoded`) are module-level and take only picklable arguments, so any
+scheduler of :class:`georefine.tasks.TaskRunner` runs them. Tiles of at least
+:data:`~georefine.io.las_encode.LAZ_CHUNK_POINTS` records are planned in multiples of it, so the
+georeferencing tasks' LAZ chunks fall on the output file's chunk grid.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 from dataclasses import dataclass
@@ -35,6 +39,7 @@ import numpy as np
 from georefine.config import PlaneExtractionConfig, ScaleConfig
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.las import LasWriter, PointCloud, TimeIndex, read_las_range, time_index
+from georefine.io.las_encode import LAZ_CHUNK_POINTS, EncodedPoints, LasLayout, encode_points
 from georefine.lidar.georeference import PoseInterpolator, georeference
 from georefine.lidar.planes import PlanarFeatures, extract_features
 from georefine.progress import Progress, no_progress
@@ -43,8 +48,9 @@ from georefine.tasks import TaskRunner
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "BYTES_PER_POINT", "GEOREFERENCE_CHUNK", "Tile", "StripPlan", "TileFeatures", "plan_strip", "tile_points", "tile_features",
-    "tile_georeference", "read_tile_points", "georeference_strip", "StripGeoreferenceResult",
+    "BYTES_PER_POINT", "GEOREFERENCE_CHUNK", "Tile", "StripPlan", "TileFeatures", "plan_strip", "tile_points",
+    "tile_features", "tile_georeference", "tile_georeference_encoded", "read_tile_points", "georeference_strip",
+    "georeference_strips", "StripGeoreferenceResult",
 ]
 
 BYTES_PER_POINT = 130
@@ -121,7 +127,15 @@ def plan_strip(
         return StripPlan(path, strip_id, n, float(np.min(ti.time_gps) - t0_gps),
                          float(np.max(ti.time_gps) - t0_gps), False, (tile,))
     step = int(ti.index[1] - ti.index[0]) if ti.index.size > 1 else n
-    size = max(step, (max(1, int(tile_size)) // step) * step)  # a multiple of the sampling step
+    # A multiple of the sampling step and, where the tile is large enough, of the LAZ chunk, so
+    # that the georeferencing tasks' LAZ chunks start on the output file's chunk grid.
+    unit = math.lcm(step, LAZ_CHUNK_POINTS) if step > 0 else 1
+    if tile_size < unit:
+        unit = max(1, step)
+    size = max(unit, (max(1, int(tile_size)) // unit) * unit)
+    # Tiles of about equal size (never larger): a 15 M-point strip becomes two tiles of 7.5 M for
+    # a budget of 11.5 M, not 11.5 M and 3.5 M, which would leave a worker idle.
+    size = max(unit, -(-n // (-(-n // size)) // unit) * unit) if n else size
     bounds = list(range(0, n, size)) + [n]
     if len(bounds) > 2 and n - bounds[-2] < size // 4:  # no sliver at the end
         bounds.pop(-2)
@@ -214,6 +228,19 @@ def tile_georeference(
     return (parts[0] if len(parts) == 1 else PointCloud.concatenate(parts)), outside
 
 
+def tile_georeference_encoded(
+    tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
+    frame: LocalFrame, crs: OutputCRS, layout: LasLayout,
+) -> tuple[EncodedPoints, int]:
+    """:func:`tile_georeference`, the points encoded for the output file of ``layout`` (LAZ
+    chunks compressed here, :mod:`georefine.io.las_encode`)."""
+    cloud, outside = tile_georeference(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs)
+    if cloud is None:
+        cloud = PointCloud(np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0), np.empty(0), np.empty(0),
+                           np.empty(0))
+    return encode_points(cloud, layout), outside
+
+
 @dataclass(frozen=True)
 class StripGeoreferenceResult:
     """One georeferenced strip: points written and points left out (outside the trajectory)."""
@@ -229,26 +256,57 @@ def georeference_strip(
     R_b_s: np.ndarray, frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
     scale_m: float = 0.001, progress: Progress = no_progress, protect: tuple = (),
 ) -> StripGeoreferenceResult:
-    """Georeference a scanner-frame strip into an output-CRS LAZ (LAS 1.4, PF 6), tile by tile.
+    """Georeference one scanner-frame strip into an output-CRS LAZ (:func:`georeference_strips`)."""
+    return georeference_strips([plan], [out_path], poses, t0_gps, p_b_s, R_b_s, frame, crs, runner=runner,
+                               scale_m=scale_m, progress=progress, protect=protect)[0]
 
-    The tiles run as tasks on ``runner`` (default: this process); their points are written in
-    the order of the input records as they arrive, so memory holds a few tiles whatever the
-    strip's size. Keeps gps_time, intensity, ``scanner_channel``, ``point_source_id`` and return
-    numbers; the CRS is written as WKT; heights are ellipsoidal. Points outside the trajectory's
-    time span are left out and counted (a warning is logged). ``poses`` may be a value that
-    ``runner.share`` returned.
+
+def georeference_strips(
+    plans: list[StripPlan], out_paths: list[str | Path], poses: PoseInterpolator, t0_gps: float,
+    p_b_s: np.ndarray, R_b_s: np.ndarray, frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
+    scale_m: float = 0.001, progress: Progress = no_progress, protect: tuple = (),
+) -> list[StripGeoreferenceResult]:
+    """Georeference scanner-frame strips into output-CRS LAZ files (LAS 1.4, PF 6), tile by tile.
+
+    The tiles of all strips run as one stream of tasks on ``runner`` (default: this process), so
+    a worker that finishes a strip's last tile goes on with the next strip's first. Each task
+    also encodes its points (LAZ chunks, :mod:`georefine.io.las_encode`); they are written in
+    the order of the input records as they arrive, one file open at a time, so memory holds a
+    few tiles whatever the strips' sizes. The files' offset is fixed before the tasks start:
+    the local frame's origin in the output CRS, rounded to 1000 units. Keeps gps_time,
+    intensity, ``scanner_channel``, ``point_source_id`` and return numbers; the CRS is written
+    as WKT; heights are ellipsoidal. Points outside the trajectory's time span are left out and
+    counted (a warning is logged). ``poses`` may be a value that ``runner.share`` returned.
     """
+    if len(plans) != len(out_paths):
+        raise ValueError(f"{len(plans)} strips but {len(out_paths)} output paths")
     runner = runner or TaskRunner("sync")
-    out_path = Path(out_path)
-    written = outside = 0
-    tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs) for tile in plan.tiles]
-    with LasWriter(out_path, scale=scale_m, crs=crs.crs, protect=protect) as writer:
-        for cloud, left_out in runner.map(tile_georeference, tasks, label=f"georeference {plan.path.name}",
-                                          window=runner.workers + 1, progress=progress):
-            outside += left_out
-            if cloud is not None:
-                writer.write(cloud)
-                written += len(cloud)
-    if outside:
-        log.warning("%s: %d points outside the trajectory span were left out", plan.path, outside)
-    return StripGeoreferenceResult(plan.path, out_path, written, outside)
+    offset = tuple(np.round(crs.from_w(frame, np.zeros((1, 3)))[0] / 1000.0) * 1000.0)
+    writers = [LasWriter(Path(o), scale=scale_m, offset=offset, crs=crs.crs, protect=protect) for o in out_paths]
+    tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, w.layout_for())
+             for plan, w in zip(plans, writers) for tile in plan.tiles]
+    owner = [k for k, plan in enumerate(plans) for _ in plan.tiles]
+    last = {k: i for i, k in enumerate(owner)}  # a file is complete after its strip's last tile
+    written, outside = [0] * len(plans), [0] * len(plans)
+    label = f"georeference {plans[0].path.name}" if len(plans) == 1 else f"georeference {len(plans)} strips"
+    with contextlib.ExitStack() as stack:
+        for w in writers:
+            stack.enter_context(w)  # on an error every file is discarded, none half-written
+        results = runner.map(tile_georeference_encoded, tasks, label=label, window=runner.workers + 1,
+                             progress=progress)
+        for i, (k, (points, left_out)) in enumerate(zip(owner, results)):
+            outside[k] += left_out
+            writers[k].write_encoded(points)
+            written[k] += len(points)
+            if i == last[k]:
+                writers[k].close()
+        for k in range(len(plans)):
+            writers[k].close()  # a strip without tiles: an empty file
+    out = []
+    for plan, w, n, left in zip(plans, writers, written, outside):
+        if w.recompressed_points:
+            log.debug("%s: %d points compressed again (tiles off the LAZ chunk grid)", w.path, w.recompressed_points)
+        if left:
+            log.warning("%s: %d points outside the trajectory span were left out", plan.path, left)
+        out.append(StripGeoreferenceResult(plan.path, w.path, n, left))
+    return out

@@ -51,7 +51,7 @@ from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetr
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, feature_keys, stable_subset, write_features
-from georefine.lidar.tiles import georeference_strip
+from georefine.lidar.tiles import georeference_strips
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
@@ -121,9 +121,9 @@ def step_adjust_gil(
     grid = built.grid
     sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end))
     if sel.size > lcfg.max_features:
-        # The same sample of views and places in every outer iteration, not a fresh random draw:
-        # two independent draws of 200,000 from 15.6 M features moved the 60-minute trajectory
-        # by 2.5 mdeg RMS, more than the convergence threshold, so the iterations never ended.
+        # The same sample of views and places in every outer iteration, not a fresh random draw
+        # from an index whose length changes with every re-extraction (bottom-k of a key fixed by
+        # strip, channel and seed voxel). The re-matching still changes which features are matched.
         sel = stable_subset(sel, feature_keys(features), lcfg.max_features)
     if sel.size == 0:
         raise InputError("no matched planar features inside the trajectory span", field="processing.matching")
@@ -465,14 +465,12 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
     def compute() -> list[dict]:  # stored with each file's stamp, for ``written``
         runner = inputs.runner
         poses = runner.share(PoseInterpolator(imu_rate_trajectory(nav, final)))
-        records = []
-        for s in inputs.strips:
-            path = folder / (s.path.stem + ".laz")
-            r = georeference_strip(s.plan, path, poses, nav.t0_gps, p_b_s, R_b_s, nav.frame, inputs.crs,
-                                   runner=runner, progress=progress, protect=(nav.root,))
-            records.append({"strip": s.strip_id, "file": path.name, "points": r.points_written,
-                            "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]})
-        return records
+        paths = [folder / (s.path.stem + ".laz") for s in inputs.strips]
+        results = georeference_strips([s.plan for s in inputs.strips], paths, poses, nav.t0_gps, p_b_s, R_b_s,
+                                      nav.frame, inputs.crs, runner=runner, progress=progress, protect=(nav.root,))
+        return [{"strip": s.strip_id, "file": path.name, "points": r.points_written,
+                 "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]}
+                for s, path, r in zip(inputs.strips, paths, results)]
 
     records = steps.cached("points", _points_key(nav, inputs.strips, key), compute, valid=written)
     return tuple(PointsWritten.from_dict(r) for r in records)
