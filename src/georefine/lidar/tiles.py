@@ -291,7 +291,7 @@ def georeference_strips(
     label = f"georeference {plans[0].path.name}" if len(plans) == 1 else f"georeference {len(plans)} strips"
     with contextlib.ExitStack() as stack:
         for w in writers:
-            stack.enter_context(w)  # on an error every file is discarded, none half-written
+            stack.enter_context(w)  # on an error the files not yet complete are discarded: none half-written
         results = runner.map(tile_georeference_encoded, tasks, label=label, window=runner.workers + 1,
                              progress=progress)
         for i, (k, (points, left_out)) in enumerate(zip(owner, results)):
