@@ -211,11 +211,16 @@ def test_strips_in_one_stream_give_the_files_of_one_strip_at_a_time(strip, poses
     one = georeference_strip(a, tmp_path / "one.laz", poses, T0, np.zeros(3), np.eye(3), frame, crs)
     assert [r.points_written for r in both] == [one.points_written] * 2
     assert both[0].output.read_bytes() == both[1].output.read_bytes() == one.output.read_bytes()
-    with pytest.raises(AttributeError):  # no poses: every task fails
-        georeference_strips([a, b], [tmp_path / "x.laz", tmp_path / "y.laz"], None, T0, np.zeros(3), np.eye(3),
+    # The second strip's file vanished: the first file is complete, the second is not written.
+    from dataclasses import replace
+
+    gone = tmp_path / "gone.laz"
+    lost = replace(b, path=gone, tiles=tuple(replace(t, path=gone) for t in b.tiles))
+    with pytest.raises(InputError, match="gone.laz"):
+        georeference_strips([a, lost], [tmp_path / "x.laz", tmp_path / "y.laz"], poses, T0, np.zeros(3), np.eye(3),
                             frame, crs)
-    assert not (tmp_path / "x.laz").exists() and not (tmp_path / "y.laz").exists()
-    assert not list(tmp_path.glob(".*.part"))
+    assert (tmp_path / "x.laz").read_bytes() == one.output.read_bytes()
+    assert not (tmp_path / "y.laz").exists() and not list(tmp_path.glob(".*.part"))
 
 
 def test_equal_tiles_within_the_budget(strip):
