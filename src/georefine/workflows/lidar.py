@@ -310,7 +310,8 @@ def _lidar_key(nav: NavigationData, strips: list[StripFile], upstream: str, iter
     """Key of outer iteration ``iteration``: the strips, the LiDAR configuration and the key before it."""
     cfg = nav.config
     return StepCache.key(
-        "gil", iteration, upstream, FEATURES_VERSION, [file_stamp(s.path, nav.root) for s in strips], cfg.scanner.model_dump(),
+        "gil", iteration, upstream, FEATURES_VERSION, [file_stamp(s.path, nav.root) for s in strips],
+        cfg.scanner.model_dump(),
         cfg.processing.planes.model_dump(), cfg.processing.matching.model_dump(), cfg.processing.lidar.model_dump(),
     )
 
