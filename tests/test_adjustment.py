@@ -14,7 +14,7 @@ import pytest
 import scipy.optimize
 import scipy.sparse as sp
 
-from georefine.adjustment import linalg
+from georefine.adjustment import assembly, linalg
 from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.linalg import (
     NotPositiveDefiniteError,
@@ -261,7 +261,7 @@ def _random_pieces(rng, shape, rows_from=None):
             rows, starts = rows_from[n].rows.copy(), rows_from[n].col_start.copy()
         values = rng.normal(size=(25, 4, d))
         scale = rng.uniform(0.5, 2.0, 40) if scaled else None
-        pieces.append(linalg.BlockTriplets(rows, starts, values, offset, scale))
+        pieces.append(assembly.BlockTriplets(rows, starts, values, offset, scale))
         for k in range(25):
             for i in range(4):
                 w = 1.0 if scale is None else scale[rows[k, i]]
@@ -274,7 +274,7 @@ def test_assembled_jacobian_equals_the_summed_triplets():
     rng = np.random.default_rng(13)
     shape = (50, 30)
     pieces, dense = _random_pieces(rng, shape)
-    J = linalg.assemble_block_coo(pieces, shape)
+    J = assembly.assemble_block_coo(pieces, shape)
     assert J.format == "csr" and J.has_canonical_format and J.nnz < sum(p.values.size for p in pieces)
     assert J.nnz == np.count_nonzero(dense)
     np.testing.assert_allclose(J.toarray(), dense, atol=1e-12)
@@ -288,7 +288,7 @@ def test_assembler_reuses_its_structure_and_notices_a_new_pattern():
     """New values and row scales on the same pattern go through the kept structure; a new pattern is analysed again."""
     rng = np.random.default_rng(15)
     shape = (50, 30)
-    assembler = linalg.JacobianAssembler()
+    assembler = assembly.JacobianAssembler()
     first, dense = _random_pieces(rng, shape)
     np.testing.assert_allclose(assembler.assemble(first, shape).toarray(), dense, atol=1e-12)
     kept = assembler._dest
@@ -301,7 +301,7 @@ def test_assembler_reuses_its_structure_and_notices_a_new_pattern():
     assert assembler._dest is not kept
     np.testing.assert_allclose(J.toarray(), dense, atol=1e-12)
     fewer = [other[0], other[1]]  # a piece left out (e.g. all its elements held constant)
-    dense_fewer = linalg.assemble_block_coo(fewer, shape).toarray()
+    dense_fewer = assembly.assemble_block_coo(fewer, shape).toarray()
     np.testing.assert_allclose(assembler.assemble(fewer, shape).toarray(), dense_fewer, atol=1e-12)
 
 
@@ -309,7 +309,7 @@ def test_lower_triangle_is_scipys_tril():
     rng = np.random.default_rng(14)
     A = sp.random(300, 300, density=0.05, random_state=rng, format="csr")
     A = (A + A.T).tocsr()
-    L = linalg.lower_triangle(A)
+    L = assembly.lower_triangle(A)
     assert L.format == "csr" and L.shape == A.shape
     np.testing.assert_array_equal(L.toarray(), np.tril(A.toarray()))
 

@@ -60,20 +60,10 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from georefine.adjustment.assembly import (  # noqa: F401 - re-exported, their home before the split
-    BlockTriplets,
-    JacobianAssembler,
-    assemble_block_coo,
-    lower_triangle,
-    normal_equations,
-)
+from georefine.adjustment.assembly import lower_triangle
 from georefine.errors import GeorefineError
 
 __all__ = [
-    "BlockTriplets",
-    "assemble_block_coo",
-    "JacobianAssembler",
-    "normal_equations",
     "Factorization",
     "NotPositiveDefiniteError",
     "available_backends",
@@ -82,7 +72,6 @@ __all__ = [
     "marginal_covariance_blocks",
     "check_by_solve",
     "check_pivot_ratios",
-    "lower_triangle",
 ]
 
 logger = logging.getLogger(__name__)
