@@ -10,13 +10,12 @@ import pytest
 from georefine.errors import InputError
 from georefine.io.las import (
     GPS_TIME_OFFSET_S,
-    LasWriter,
     PointCloud,
     iter_las_chunks,
     read_las,
     read_las_info,
-    write_las,
 )
+from georefine.io.las_writer import LasWriter, write_las
 
 T0 = 1_400_000_000.0
 

@@ -18,7 +18,8 @@ import pytest
 from georefine.config import PlaneExtractionConfig, ScaleConfig
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
-from georefine.io.las import LasWriter, PointCloud, read_las, read_las_range, time_index
+from georefine.io.las import PointCloud, read_las, read_las_range, time_index
+from georefine.io.las_writer import LasWriter
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import extract_features
 from georefine.lidar.tiles import (

@@ -13,39 +13,31 @@ Conventions (docs/ARCHITECTURE.md §3):
   are read and written by name, e.g. ``range_error_m``.
 
 Files can be larger than memory: :func:`iter_las_chunks` streams them with
-``laspy.open(...).chunk_iterator(n)`` and :class:`LasWriter` writes chunk by
-chunk to a temporary name that is renamed on :meth:`LasWriter.close`; the
-records and LAZ chunks may be encoded by the tasks that compute them
+``laspy.open(...).chunk_iterator(n)``; :class:`georefine.io.las_writer.LasWriter`
+writes chunk by chunk to a temporary name that is renamed on close, the records
+and LAZ chunks possibly encoded by the tasks that compute them
 (:mod:`georefine.io.las_encode`). LAZ uses the lazrs backend.
 """
 
 from __future__ import annotations
 
 import logging
-import os
-import tempfile
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
 from georefine.errors import InputError
-from georefine.io.files import PathLike, check_output_path
-from georefine.io.las_encode import (
-    GPS_TIME_OFFSET_S,
-    LAZ_CHUNK_POINTS,
-    EncodedPoints,
-    LasLayout,
-    compress_chunks,
-    decompress_chunks,
-    encode_points,
-)
+from georefine.io.files import PathLike
 
-__all__ = ["PointCloud", "ScanChunk", "LasInfo", "LasWriter", "TimeIndex", "read_las_info", "iter_las_chunks",
-           "read_las", "read_las_range", "time_index", "write_las", "GPS_TIME_OFFSET_S"]
+__all__ = ["PointCloud", "ScanChunk", "LasInfo", "TimeIndex", "read_las_info", "iter_las_chunks",
+           "read_las", "read_las_range", "time_index", "GPS_TIME_OFFSET_S"]
 
 _log = logging.getLogger(__name__)
+
+GPS_TIME_OFFSET_S = 1.0e9
+"""Adjusted standard GPS time = GPS seconds − this offset."""
 
 _MIN_POINT_FORMAT = 6
 
@@ -391,257 +383,3 @@ def read_las(path: PathLike, extra_dims: Sequence[str] | None = None) -> PointCl
         return PointCloud(np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0), np.empty(0), np.empty(0),
                           np.empty(0), {k: np.empty(0) for k in (extra_dims or info.extra_dims)})
     return PointCloud.concatenate(chunks)
-
-
-class LasWriter:
-    """Chunked LAS 1.4 / LAZ writer (point format 6) with an atomic rename on close.
-
-    Parameters
-    ----------
-    path
-        Destination; ``.laz`` is compressed (lazrs) unless ``compress`` says otherwise.
-    scale
-        Coordinate resolution in metres (scalar or (3,)); default 0.0001 m.
-    offset
-        Header offsets (3,); default from the first chunk: its centre rounded to
-        a multiple of 1000 m (0 for scanner-frame data near the origin).
-    crs
-        Optional coordinate reference system (``pyproj.CRS``, WKT, EPSG code or
-        "EPSG:xxxx"); written as a WKT VLR.
-    extra_dims
-        Extra float dimensions to write: names (float32) or ``{name: dtype}``.
-    system_identifier, generating_software
-        Header texts; both default to Georefine.
-    protect
-        Input files/folders that must not be written into.
-
-    Notes
-    -----
-    Use as a context manager: on an exception the temporary file is removed and
-    ``path`` is left untouched. Points are encoded by :mod:`georefine.io.las_encode` (laspy's
-    records; LAZ chunks of at most ``LAZ_CHUNK_POINTS`` points, compressed by lazrs), here or in
-    the task that made them (:meth:`write_encoded`); this object appends them, and on close writes
-    the LAZ chunk table and the header's counts and bounds.
-    """
-
-    def __init__(
-        self,
-        path: PathLike,
-        *,
-        scale: float | Sequence[float] = 1e-4,
-        offset: Sequence[float] | None = None,
-        crs=None,
-        extra_dims: Sequence[str] | Mapping[str, type] = (),
-        compress: bool | None = None,
-        system_identifier: str = "Georefine",
-        generating_software: str | None = None,
-        protect: Sequence[PathLike] = (),
-    ) -> None:
-        self.path = check_output_path(path, protect)
-        self._compress = self.path.suffix.lower() == ".laz" if compress is None else bool(compress)
-        self._scale = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy()
-        self._offset = None if offset is None else np.asarray(offset, dtype=np.float64).reshape(3)
-        self._crs = crs
-        self._extra = dict(extra_dims) if isinstance(extra_dims, Mapping) else {k: np.float32 for k in extra_dims}
-        self._system_identifier = system_identifier
-        if generating_software is None:
-            from georefine import __version__
-
-            generating_software = f"Georefine {__version__}"
-        self._software = generating_software
-        self._layout: LasLayout | None = None
-        self._header = None
-        self._vlr = None
-        self._chunks: list[int] = []  # bytes of every LAZ chunk so far
-        self._carry = bytearray()  # raw records after the last whole chunk
-        self.recompressed_points = 0  # points of chunks made elsewhere but compressed again here
-        self._points_at = 0
-        self._fh = None
-        self._tmp: Path | None = None
-        self._closed = False
-        self._aborted = False
-        self.point_count = 0
-
-    def __enter__(self) -> LasWriter:
-        return self
-
-    def __exit__(self, exc_type, exc, tb) -> None:
-        if exc_type is None:
-            self.close()
-        elif not self._closed:
-            self.abort()
-
-    def layout_for(self, first: PointCloud | None = None) -> LasLayout:
-        """The file's record layout; without an ``offset`` given, the first chunk fixes it (its
-        centre rounded to a multiple of 1000 m), so it is known once ``first`` is."""
-        if self._layout is None:
-            if self._offset is None:
-                if first is None:
-                    raise ValueError("the offset is fixed by the first chunk: pass offset= to encode points elsewhere")
-                centre = 0.5 * (first.xyz.min(axis=0) + first.xyz.max(axis=0)) if len(first) else np.zeros(3)
-                self._offset = np.round(centre / 1000.0) * 1000.0
-            self._layout = LasLayout(tuple(self._scale), tuple(self._offset),
-                                     tuple((k, np.dtype(t).str) for k, t in self._extra.items()), self._compress)
-        return self._layout
-
-    def _open(self) -> None:
-        """Write the header and VLRs (counts and bounds follow on close) to the temporary file."""
-        from laspy.header import GpsTimeType
-        from laspy.vlrs.known import LasZipVlr
-
-        layout = self.layout_for()
-        header = layout.point_header()
-        header.global_encoding.gps_time_type = GpsTimeType.STANDARD
-        if self._crs is not None:
-            import pyproj
-
-            header.add_crs(pyproj.CRS.from_user_input(self._crs))
-            header.global_encoding.wkt = True
-        header.system_identifier = self._system_identifier[:32]
-        header.generating_software = self._software[:32]
-        if self._compress:
-            self._vlr = layout.laz_vlr()
-            header.vlrs.append(LasZipVlr(self._vlr.record_data()))
-            header.are_points_compressed = True
-        header.partial_reset()
-        fd, name = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".part", dir=self.path.parent)
-        os.close(fd)
-        self._tmp = Path(name)
-        self._fh = open(self._tmp, "wb")
-        header.write_to(self._fh)
-        self._points_at = self._fh.tell()
-        if self._compress:
-            self._fh.write(bytes(8))  # the offset to the chunk table, set on close
-        self._header = header
-
-    def write(self, chunk: PointCloud) -> None:
-        """Append a chunk of points (its extra dimensions must include the writer's)."""
-        if self._closed:
-            raise ValueError("LasWriter is closed")
-        # Raw records: the whole chunks are compressed below on all cores.
-        self.write_encoded(encode_points(chunk, self.layout_for(chunk), compress=False))
-
-    def write_encoded(self, points: EncodedPoints) -> None:
-        """Append points encoded elsewhere (:func:`georefine.io.las_encode.encode_points` with
-        :meth:`layout_for`), e.g. by the task that computed them. Their LAZ chunks are used as
-        they are when they start at a chunk boundary of the file, else compressed again."""
-        if self._closed:
-            raise ValueError("LasWriter is closed")
-        if points.layout != self.layout_for():
-            raise ValueError(f"points encoded for {points.layout}, this file is {self.layout_for()}")
-        if self._fh is None:
-            self._open()
-        h = self._header
-        if h.point_count + points.count > h.max_point_count():
-            raise ValueError(f"{h.point_count + points.count} points exceed what a LAS {h.version} file holds")
-        if not self._compress:
-            self._fh.write(points.chunk_data)  # empty: a LAS layout is never compressed
-            self._fh.write(points.records)
-        else:
-            if points.chunk_bytes and not self._carry:
-                self._fh.write(points.chunk_data)
-                self._chunks.extend(points.chunk_bytes)
-            elif points.chunk_bytes:
-                self.recompressed_points += len(points.chunk_bytes) * LAZ_CHUNK_POINTS
-                self._carry += decompress_chunks(points.chunk_data, points.chunk_bytes, self._vlr)
-            self._carry += points.records
-            self._flush(final=False)
-        if points.count:
-            h.mins = np.minimum(h.mins, points.mins)
-            h.maxs = np.maximum(h.maxs, points.maxs)
-            h.number_of_points_by_return = h.number_of_points_by_return + points.returns
-            h.point_count += points.count
-            if points.extremes:
-                _grow_extra_ranges(h, points.extremes)
-        self.point_count += points.count
-
-    def _flush(self, final: bool) -> None:
-        """Compress the whole chunks of the raw records held back (all of them if ``final``)."""
-        per_chunk = LAZ_CHUNK_POINTS * self._vlr.item_size()
-        cut = len(self._carry) if final else (len(self._carry) // per_chunk) * per_chunk
-        if cut:
-            data, sizes = compress_chunks(memoryview(self._carry)[:cut], self._vlr, parallel=True)
-            self._fh.write(data)
-            self._chunks.extend(sizes)
-            del self._carry[:cut]
-
-    def close(self) -> Path:
-        """Finish the file and rename it to ``path``. Returns ``path``."""
-        if self._aborted:
-            raise ValueError("LasWriter was aborted; nothing was written")
-        if self._closed:
-            return self.path
-        try:
-            if self._fh is None:  # nothing written: still a valid, empty file
-                self.layout_for(PointCloud(np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0), np.empty(0),
-                                           np.empty(0), np.empty(0)))
-                self._open()
-            fh, h = self._fh, self._header
-            if self._compress:
-                import lazrs
-
-                self._flush(final=True)
-                table_at = fh.tell()
-                counts = [LAZ_CHUNK_POINTS] * len(self._chunks)
-                if self._chunks:
-                    counts[-1] = h.point_count - LAZ_CHUNK_POINTS * (len(self._chunks) - 1)
-                lazrs.write_chunk_table(fh, list(zip(counts, self._chunks)), self._vlr)
-                fh.seek(self._points_at)
-                fh.write(table_at.to_bytes(8, "little", signed=True))
-            if h.point_count == 0:
-                h.mins, h.maxs = np.zeros(3), np.zeros(3)
-            fh.seek(0)
-            h.write_to(fh, ensure_same_size=True)
-            fh.flush()
-            os.fsync(fh.fileno())
-            fh.close()
-            os.chmod(self._tmp, 0o644)  # mkstemp made it private
-            os.replace(self._tmp, self.path)
-        except BaseException:
-            self.abort()
-            raise
-        self._closed = True
-        _log.info("wrote %d points to %s", self.point_count, self.path)
-        return self.path
-
-    def abort(self) -> None:
-        """Discard the temporary file; ``path`` is left untouched."""
-        try:
-            if self._fh is not None:
-                self._fh.close()
-        except Exception:  # already failing; the temp file is removed below
-            pass
-        if self._tmp is not None and self._tmp.exists():
-            self._tmp.unlink()
-        self._fh = None
-        self._closed = self._aborted = True
-
-
-def _grow_extra_ranges(header, extremes: bytes) -> None:
-    """Widen the minimum and maximum of each extra dimension in the extra-bytes VLR.
-
-    ``extremes``: two raw records, the smallest and the largest stored values
-    (:class:`~georefine.io.las_encode.EncodedPoints`). laspy's own update reads only the first
-    point of every batch of a one-element dimension (``pts[..., i]``), so the file would claim a
-    narrower range than its points have; the struct's stored values are set here instead
-    (``_raw_min``/``_raw_max``: views of the struct's bytes).
-    """
-    ext = np.frombuffer(extremes, dtype=header.point_format.dtype())
-    for struct in header.vlrs.get("ExtraBytesVlr")[0].extra_bytes_structs:
-        name = struct.format_name()
-        if name not in ext.dtype.names:
-            continue
-        lo, hi = np.atleast_1d(ext[name][0]), np.atleast_1d(ext[name][1])
-        raw_min, raw_max = struct._raw_min(), struct._raw_max()
-        if raw_min is not None:
-            raw_min[:] = np.minimum(raw_min, lo)
-        if raw_max is not None:
-            raw_max[:] = np.maximum(raw_max, hi)
-
-
-def write_las(path: PathLike, cloud: PointCloud, **kwargs) -> Path:
-    """Write one cloud in one go (keyword arguments as :class:`LasWriter`)."""
-    with LasWriter(path, extra_dims=kwargs.pop("extra_dims", tuple(cloud.extra)), **kwargs) as writer:
-        writer.write(cloud)
-    return Path(path)
-

@@ -6,7 +6,7 @@ last one holds the rest), and the chunk table (LASzip specification, "LAZ File L
 task that georeferenced a tile can also compress it: :func:`encode_points` turns a
 :class:`~georefine.io.las.PointCloud` into whole LAZ chunks (lazrs) and the raw records of the
 points after the last whole chunk, with the figures the header needs (count, bounds, points by
-return). The process that writes the file (:class:`georefine.io.las.LasWriter`) appends the
+return). The process that writes the file (:class:`georefine.io.las_writer.LasWriter`) appends the
 chunks as they are when the tile starts at a chunk boundary of the file -- tiles are planned in
 multiples of :data:`LAZ_CHUNK_POINTS` records (:func:`georefine.lidar.tiles.plan_strip`) -- and
 otherwise decodes them and compresses the points again itself, so the file is the same either
@@ -24,14 +24,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["GPS_TIME_OFFSET_S", "LAZ_CHUNK_POINTS", "EncodedPoints", "LasLayout", "compress_chunks",
+from georefine.io.las import GPS_TIME_OFFSET_S
+
+__all__ = ["LAZ_CHUNK_POINTS", "EncodedPoints", "LasLayout", "compress_chunks",
            "decompress_chunks", "encode_points"]
 
 LAZ_CHUNK_POINTS = 50_000
 """Points per LAZ chunk (LASzip's default); a tile's last chunk holds the rest."""
 
-GPS_TIME_OFFSET_S = 1.0e9
-"""Adjusted standard GPS time = GPS seconds − this offset (re-exported by :mod:`georefine.io.las`)."""
 
 
 @dataclass(frozen=True)

@@ -38,8 +38,9 @@ import numpy as np
 
 from georefine.config import PlaneExtractionConfig, ScaleConfig
 from georefine.geometry.frames import LocalFrame, OutputCRS
-from georefine.io.las import LasWriter, PointCloud, TimeIndex, read_las_range, time_index
+from georefine.io.las import PointCloud, TimeIndex, read_las_range, time_index
 from georefine.io.las_encode import LAZ_CHUNK_POINTS, EncodedPoints, LasLayout, encode_points
+from georefine.io.las_writer import LasWriter
 from georefine.lidar.georeference import PoseInterpolator, georeference
 from georefine.lidar.planes import PlanarFeatures, extract_features
 from georefine.progress import Progress, no_progress

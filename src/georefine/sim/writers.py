@@ -16,7 +16,8 @@ from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.files import week_from_gps_seconds
 from georefine.io.gnss import GnssSolution, write_pos
 from georefine.io.imu import ImuData, write_imr, write_imu_csv
-from georefine.io.las import LasWriter, PointCloud
+from georefine.io.las import PointCloud
+from georefine.io.las_writer import LasWriter
 from georefine.io.reference import ReferenceSurfaces, write_reference_surfaces
 from georefine.io.trajectory import SbetData, write_sbet
 from georefine.sim.flight import TrueTrajectory

@@ -27,7 +27,8 @@ from georefine.evaluation.clouds import point_files
 from georefine.geometry.camera import Camera
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import photos as pio
-from georefine.io.las import LasWriter, PointCloud, iter_las_chunks
+from georefine.io.las import PointCloud, iter_las_chunks
+from georefine.io.las_writer import LasWriter
 from georefine.lidargrammetry.render import Lidargram, render_lidargram
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
