@@ -51,6 +51,7 @@ the analysis is a quarter of a factorisation.
 
 from __future__ import annotations
 
+import abc
 import importlib.util
 import logging
 from dataclasses import dataclass
@@ -240,7 +241,7 @@ class SparseCholesky:
 
 
 @dataclass
-class _BaseFactorization:
+class _BaseFactorization(abc.ABC):
     """``solve(B)`` for every backend: checks the right-hand side, then ``_solve`` (non-empty ``B``)."""
 
     backend: str
@@ -254,13 +255,15 @@ class _BaseFactorization:
             return b.copy()
         return self._solve(b)
 
+    @abc.abstractmethod
     def _solve(self, b: np.ndarray) -> np.ndarray:
-        raise NotImplementedError
+        """``A^-1 b`` for a checked, non-empty ``b`` of shape ``(n,)`` or ``(n, k)`` (each backend)."""
 
 
 @dataclass
 class _EmptyFactorization(_BaseFactorization):
-    pass
+    def _solve(self, b: np.ndarray) -> np.ndarray:  # n = 0: every right-hand side is empty
+        return b.copy()
 
 
 @dataclass
