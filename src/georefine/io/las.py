@@ -106,6 +106,12 @@ class PointCloud:
         return self.time_gps.shape[0]
 
     @classmethod
+    def empty(cls, extra_dims: Sequence[str] = ()) -> PointCloud:
+        """No points (with the given extra dimensions)."""
+        e = np.empty(0)
+        return cls(e, np.empty((0, 3)), e, e, e, e, e, {k: e for k in extra_dims})
+
+    @classmethod
     def concatenate(cls, chunks: Sequence[PointCloud]) -> PointCloud:
         """One cloud from several chunks with the same extra dimensions."""
         if not chunks:
@@ -380,6 +386,5 @@ def read_las(path: PathLike, extra_dims: Sequence[str] | None = None) -> PointCl
     chunks = list(iter_las_chunks(path, extra_dims=extra_dims))
     if not chunks:
         info = read_las_info(path)
-        return PointCloud(np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0), np.empty(0), np.empty(0),
-                          np.empty(0), {k: np.empty(0) for k in (extra_dims or info.extra_dims)})
+        return PointCloud.empty(extra_dims or info.extra_dims)
     return PointCloud.concatenate(chunks)

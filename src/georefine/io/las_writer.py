@@ -212,8 +212,7 @@ class LasWriter:
             return self.path
         try:
             if self._fh is None:  # nothing written: still a valid, empty file
-                self.layout_for(PointCloud(np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0), np.empty(0),
-                                           np.empty(0), np.empty(0)))
+                self.layout_for(PointCloud.empty())
                 self._open()
             fh, h = self._fh, self._header
             if self._compress:

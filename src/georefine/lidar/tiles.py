@@ -236,10 +236,7 @@ def tile_georeference_encoded(
     """:func:`tile_georeference`, the points encoded for the output file of ``layout`` (LAZ
     chunks compressed here, :mod:`georefine.io.las_encode`)."""
     cloud, outside = tile_georeference(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs)
-    if cloud is None:
-        cloud = PointCloud(np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0), np.empty(0), np.empty(0),
-                           np.empty(0))
-    return encode_points(cloud, layout), outside
+    return encode_points(PointCloud.empty() if cloud is None else cloud, layout), outside
 
 
 @dataclass(frozen=True)
