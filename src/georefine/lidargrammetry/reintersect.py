@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-__all__ = ["Reintersection", "reintersect", "feather_weights"]
+__all__ = ["Reintersection", "Reintersector", "reintersect", "feather_weights"]
 
 
 @dataclass(frozen=True)
@@ -58,6 +58,80 @@ def feather_weights(uv: np.ndarray, width: int, height: int, floor: float = 0.05
     return np.maximum(np.clip(tu, 0.0, 1.0) * np.clip(tv, 0.0, 1.0), floor)
 
 
+class Reintersector:
+    """The moves of a re-intersection, held for the shown points only, applied to any points.
+
+    Built from the lidargrams' poses before and after the adjustment and the points they show
+    (their identifiers ``shown[j]`` and coordinates): the mean displacement of every shown point
+    and, per strip, a k-d tree of the shown points for the interpolation. :meth:`refine` then
+    moves any set of points of the cloud (module docstring), so the cloud can be refined range by
+    range: its memory is that of the shown points, not of the cloud.
+
+    Parameters
+    ----------
+    index : (M,) int64
+        The distinct points shown in any lidargram, sorted.
+    xyz_w : (M, 3) float64, m
+        Their coordinates.
+    groups : (M,) int
+        Their strips.
+    shown, R0, p0, R1, p1, weights, k, min_distance_m, max_distance_m
+        As :func:`reintersect`.
+    """
+
+    def __init__(self, index: np.ndarray, xyz_w: np.ndarray, groups: np.ndarray, shown: list[np.ndarray],
+                 R0: np.ndarray, p0: np.ndarray, R1: np.ndarray, p1: np.ndarray, *,
+                 weights: list[np.ndarray] | None = None, k: int = 8, min_distance_m: float = 0.1,
+                 max_distance_m: float = 5.0) -> None:
+        self.index = np.asarray(index, dtype=np.int64)
+        X = np.asarray(xyz_w, dtype=float)
+        disp = np.zeros_like(X)
+        count = np.zeros(len(X), dtype=np.int64)
+        wsum = np.zeros(len(X))
+        for j, idx in enumerate(shown):
+            pos = np.searchsorted(self.index, np.asarray(idx, dtype=np.int64))
+            moved = p1[j] + (X[pos] - p0[j]) @ R0[j] @ R1[j].T
+            w = np.ones(pos.size) if weights is None else np.asarray(weights[j], dtype=float)
+            np.add.at(disp, pos, w[:, None] * (moved - X[pos]))
+            np.add.at(wsum, pos, w)
+            np.add.at(count, pos, 1)
+        if np.any(count == 0):
+            raise ValueError("index holds points that no lidargram shows")
+        self.disp = disp / wsum[:, None]
+        self.count = count
+        self.k, self.min_distance_m, self.max_distance_m = int(k), float(min_distance_m), float(max_distance_m)
+        groups = np.asarray(groups)
+        self._trees = {}
+        for g in np.unique(groups):
+            src = np.flatnonzero(groups == g)
+            self._trees[int(g)] = (cKDTree(X[src]), self.disp[src])
+
+    def refine(self, xyz_w: np.ndarray, index: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Refined coordinates of the points ``index`` at ``xyz_w`` (strips ``groups``) and how many
+        lidargrams showed each (0: interpolated, -1: unchanged)."""
+        X = np.asarray(xyz_w, dtype=float)
+        index, groups = np.asarray(index, dtype=np.int64), np.asarray(groups)
+        pos = np.minimum(np.searchsorted(self.index, index), max(len(self.index) - 1, 0))
+        seen = (self.index[pos] == index) if len(self.index) else np.zeros(len(index), bool)
+        disp = np.zeros_like(X)
+        count = np.zeros(len(X), dtype=np.int64)
+        disp[seen] = self.disp[pos[seen]]
+        count[seen] = self.count[pos[seen]]
+        for g in np.unique(groups[~seen]):
+            dst = np.flatnonzero(~seen & (groups == g))
+            if int(g) not in self._trees:  # a strip no lidargram shows keeps its coordinates
+                count[dst] = -1
+                continue
+            tree, src_disp = self._trees[int(g)]
+            dist, nb = tree.query(X[dst], k=min(self.k, tree.n))
+            dist, nb = dist.reshape(len(dst), -1), nb.reshape(len(dst), -1)
+            near = dist[:, 0] <= self.max_distance_m
+            w = 1.0 / np.maximum(dist[near], self.min_distance_m)
+            disp[dst[near]] = np.einsum("nk,nkd->nd", w, src_disp[nb[near]]) / w.sum(axis=1, keepdims=True)
+            count[dst[~near]] = -1
+        return X + disp, count
+
+
 def reintersect(points_w: np.ndarray, groups: np.ndarray, shown: list[np.ndarray], R0: np.ndarray, p0: np.ndarray,
                 R1: np.ndarray, p1: np.ndarray, *, weights: list[np.ndarray] | None = None, k: int = 8,
                 min_distance_m: float = 0.1, max_distance_m: float = 5.0) -> Reintersection:
@@ -65,33 +139,14 @@ def reintersect(points_w: np.ndarray, groups: np.ndarray, shown: list[np.ndarray
 
     ``shown[j]``: indices of the points lidargram ``j`` shows (its ``point_index``);
     ``groups`` (N,): strip of every point -- interpolation stays within a strip, whose
-    trajectory error is one smooth function.
+    trajectory error is one smooth function. The cloud held whole: :class:`Reintersector`
+    does the same range by range.
     """
     X = np.asarray(points_w, dtype=float)
-    disp = np.zeros_like(X)
-    count = np.zeros(len(X), dtype=np.int64)
-    wsum = np.zeros(len(X))
-    for j, idx in enumerate(shown):
-        idx = np.asarray(idx, dtype=np.int64)
-        moved = p1[j] + (X[idx] - p0[j]) @ R0[j] @ R1[j].T
-        w = np.ones(idx.size) if weights is None else np.asarray(weights[j], dtype=float)
-        np.add.at(disp, idx, w[:, None] * (moved - X[idx]))
-        np.add.at(wsum, idx, w)
-        np.add.at(count, idx, 1)
-    seen = count > 0
-    disp[seen] /= wsum[seen, None]
-    for g in np.unique(groups):
-        src = np.flatnonzero(seen & (groups == g))
-        dst = np.flatnonzero(~seen & (groups == g))
-        if dst.size == 0:
-            continue
-        if src.size == 0:  # a strip no lidargram shows keeps its coordinates
-            continue
-        dist, nb = cKDTree(X[src]).query(X[dst], k=min(k, src.size))
-        dist, nb = dist.reshape(len(dst), -1), nb.reshape(len(dst), -1)
-        near = dist[:, 0] <= max_distance_m
-        w = 1.0 / np.maximum(dist[near], min_distance_m)
-        disp[dst[near]] = np.einsum("nk,nkd->nd", w, disp[src][nb[near]]) / w.sum(axis=1, keepdims=True)
-        count[dst[~near]] = -1
-    count[~seen & (count == 0) & ~np.isin(groups, np.unique(groups[seen]))] = -1  # strips no lidargram shows
-    return Reintersection(X + disp, count)
+    groups = np.asarray(groups)
+    u = np.unique(np.concatenate([np.asarray(i, dtype=np.int64) for i in shown])) if len(shown) else \
+        np.zeros(0, np.int64)
+    r = Reintersector(u, X[u], groups[u], shown, R0, p0, R1, p1, weights=weights, k=k,
+                      min_distance_m=min_distance_m, max_distance_m=max_distance_m)
+    xyz, count = r.refine(X, np.arange(len(X)), groups)
+    return Reintersection(xyz, count)
