@@ -53,9 +53,14 @@ from georefine.errors import InputError
 from georefine.geometry.camera import Camera
 from georefine.io.files import PathLike, atomic_output
 
-__all__ = ["Lidargram", "estimate_point_spacing", "render_lidargram", "save_lidargram", "load_lidargram"]
+__all__ = ["Lidargram", "estimate_point_spacing", "max_normalised_radius2", "render_lidargram", "save_lidargram",
+           "load_lidargram"]
 
 FORMAT_VERSION = 1
+MAX_SPLAT_PX = 7
+"""Default largest splat radius (px) of :func:`render_lidargram`."""
+NEAR_M = 0.1
+"""Default near limit (m) of :func:`render_lidargram`."""
 _CAMERA_FIELDS = ("width_px", "height_px", "fx_px", "fy_px", "cx_px", "cy_px", "k1", "k2", "k3", "p1", "p2")
 
 
@@ -225,8 +230,9 @@ def _camera_coords(X_w: np.ndarray, R_w_c: np.ndarray, p_w_c: np.ndarray) -> np.
     return np.stack([d[0] * R_w_c[0, k] + d[1] * R_w_c[1, k] + d[2] * R_w_c[2, k] for k in range(3)], axis=1)
 
 
-def _max_normalised_radius2(camera: Camera, margin_px: float) -> float:
-    """Largest squared ideal normalised radius on the image border widened by ``margin_px``, plus 5 %."""
+def max_normalised_radius2(camera: Camera, margin_px: float) -> float:
+    """Largest squared ideal normalised radius on the image border widened by ``margin_px``, plus 5 %:
+    the view test of :func:`render_lidargram` (``inf`` where the distortion does not invert)."""
     w, h, m = camera.width_px, camera.height_px, margin_px
     s = np.linspace(0.0, 1.0, 65)
     border = np.concatenate([np.stack([-m + s * (w + 2 * m), np.full_like(s, y)], 1) for y in (-m, h + m)]
@@ -247,10 +253,10 @@ def render_lidargram(
     *,
     point_spacing_m: float | None = None,
     splat_scale: float = 1.0,
-    max_splat_px: int = 7,
+    max_splat_px: int = MAX_SPLAT_PX,
     fill_holes: bool = False,
     fill_min_neighbours: int = 5,
-    near_m: float = 0.1,
+    near_m: float = NEAR_M,
     chunk_size: int = 5_000_000,
 ) -> Lidargram:
     """Render the point cloud seen from pose ``(R_w_c, p_w_c)`` (module docstring).
@@ -289,7 +295,7 @@ def render_lidargram(
         point_spacing_m = estimate_point_spacing(points_w)
     spacing = float(point_spacing_m)
     radius_factor = splat_scale * 0.5 * spacing * camera.fx_px if np.isfinite(spacing) and spacing > 0 else 0.0
-    rn2_max = _max_normalised_radius2(camera, float(max_splat_px))
+    rn2_max = max_normalised_radius2(camera, float(max_splat_px))
     h, w = camera.height_px, camera.width_px
     zbuf = np.full((h, w), np.inf)
     ulpi = np.full((h, w), -1, np.int64)

@@ -65,7 +65,7 @@ from georefine.lidargrammetry.matching import (
     match_pair,
     verify_pair,
 )
-from georefine.lidargrammetry.reintersect import feather_weights, reintersect
+from georefine.lidargrammetry.reintersect import Reintersector, feather_weights
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, file_stamp
@@ -82,7 +82,7 @@ from georefine.workflows.lidargrammetry_results import (
 )
 from georefine.workflows.photo_block import (
     SECTION,
-    Cloud,
+    CloudIndex,
     PhotoProject,
     lidargrammetry_settings,
     load_photo_project,
@@ -94,7 +94,7 @@ from georefine.workflows.project import output_folder
 
 log = logging.getLogger(__name__)
 
-__all__ = ["PhotoProject", "Cloud", "PAIR_KINDS", "SECTION", "load_photo_project", "lidargrammetry_settings",
+__all__ = ["PhotoProject", "CloudIndex", "PAIR_KINDS", "SECTION", "load_photo_project", "lidargrammetry_settings",
            "read_cloud", "render_lidargrams", "make_matcher", "match_block", "run_lidargrams", "run_match",
            "run_coadjust", "export_colmap"]
 
@@ -224,22 +224,30 @@ def _match_sift(block: tuple[list[Keypoints], list[Camera]], a: int, b: int, rat
                       min_matches=min_matches)
 
 
-def _ties(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: Cloud, n_photos: int,
+def _ties(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: CloudIndex, n_photos: int,
           max_initial_px: float):
-    """Tie observations, initial points (ULPI points, else photo intersections), lidargram depths."""
+    """Tie observations, initial points (ULPI points, read from the cloud's blocks, else photo
+    intersections), lidargram depths."""
     tr = matches.tracks
     ntr = tr.n_tracks
     is_lg = tr.image >= n_photos
     acc, cnt = np.zeros((ntr, 3)), np.zeros(ntr)
     depth = np.full(len(tr), np.nan)
+    hits = []  # (observation, point)
     for o in np.flatnonzero(is_lg):
         lg = lgs[tr.image[o] - n_photos][0]
         u = lg.ulpi_at(tr.uv[o][None])[0]
         if u >= 0:
-            acc[tr.track[o]] += cloud.xyz_w[u]
-            cnt[tr.track[o]] += 1
+            hits.append((o, u))
             c, r = np.floor(tr.uv[o]).astype(int)
             depth[o] = lg.depth[r, c]
+    if hits:
+        obs, pts = np.array(hits, dtype=np.int64).T
+        ids, inv = np.unique(pts, return_inverse=True)
+        xyz = cloud.gather(ids)
+        for o, i in zip(obs, inv):  # in observation order, as the sums were always taken
+            acc[tr.track[o]] += xyz[i]
+            cnt[tr.track[o]] += 1
     xyz0 = np.full((ntr, 3), np.nan)
     has = cnt > 0
     xyz0[has] = acc[has] / cnt[has, None]
@@ -271,11 +279,12 @@ class _Block:
     names: tuple
 
 
-def _open(project_dir, out, points, overrides: Mapping[str, Any] | None, matcher=None, *, matching: bool = True
-          ) -> tuple[LidargrammetryConfig, Any, PhotoProject, Path, Cloud]:
+def _open(project_dir, out, points, overrides: Mapping[str, Any] | None, matcher=None, *, matching: bool = True,
+          runner: TaskRunner | None = None, progress: Progress = no_progress
+          ) -> tuple[LidargrammetryConfig, Any, PhotoProject, Path, CloudIndex]:
     """Settings and matcher (the given one, else the settings'; checked before anything is read or
     written), the photo project, the output folder (outside the project; created once the inputs
-    are read, with the resolved configuration) and the cloud."""
+    are read, with the resolved configuration) and the cloud, indexed on ``runner``."""
     root = Path(project_dir)
     cfg = load_project(root)
     st = lidargrammetry_settings(cfg, overrides)
@@ -283,21 +292,21 @@ def _open(project_dir, out, points, overrides: Mapping[str, Any] | None, matcher
         matcher = _settings_matcher(st, root)
     pp = load_photo_project(root, cfg)
     out = output_folder(out, pp.root)
-    cloud = read_cloud([Path(p) for p in points], pp)
+    cloud = read_cloud([Path(p) for p in points], pp, runner=runner, progress=progress)
     out.mkdir(parents=True, exist_ok=True)
     resolved = cfg.model_copy(update={"processing": cfg.processing.model_copy(update={"lidargrammetry": st})})
     write_yaml(out / "config.resolved.yaml", resolved)
     return st, matcher, pp, out, cloud
 
 
-def _lidargram_name(cloud: Cloud, strip: int, photo: str) -> str:
+def _lidargram_name(cloud: CloudIndex, strip: int, photo: str) -> str:
     """``LG_<strip file stem>_<photo>`` of the lidargram rendered at ``photo`` from strip ``strip``
     (``LG_all_<photo>`` for one of all strips, ``strip`` -1): the one naming rule of the block's
     image list and of the lidargram files."""
     return f"LG_{cloud.files[strip].stem if strip >= 0 else 'all'}_{photo}"
 
 
-def _block_images(pp: PhotoProject, cloud: Cloud, st: LidargrammetryConfig, progress: Progress,
+def _block_images(pp: PhotoProject, cloud: CloudIndex, st: LidargrammetryConfig, progress: Progress,
                   runner: TaskRunner) -> _Block:
     lgs = render_lidargrams(pp, cloud, st, progress=progress, runner=runner)
     n = len(pp.eop)
@@ -328,9 +337,10 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
     """
     from georefine.lidargrammetry.render import save_lidargram
 
-    st, _, pp, out, cloud = _open(project_dir, out, points, overrides, matching=False)
     names = []
     with runner_for(scheduler) as runner:
+        st, _, pp, out, cloud = _open(project_dir, out, points, overrides, matching=False, runner=runner,
+                                      progress=progress)
         for lg, i, s in render_lidargrams(pp, cloud, st, progress=progress, runner=runner):
             names.append(_lidargram_name(cloud, s, Path(pp.eop.images[i]).stem))
             save_lidargram(lg, out, names[-1])
@@ -362,8 +372,9 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
 
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher)
     with runner_for(scheduler) as runner:
+        st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher, runner=runner,
+                                            progress=progress)
         blk = _block_images(pp, cloud, st, progress, runner)
         (out / "lidargrams").mkdir(exist_ok=True)
         for (lg, _, _), name in zip(blk.lgs, blk.names[blk.n_photos:]):
@@ -428,28 +439,35 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     """
     if case not in CASES:
         raise InputError("unknown case", field="case", expected="1, 2 or 3", found=str(case))
+    with runner_for(scheduler) as runner:
+        return _coadjust(project_dir, points, out, case, overrides, matcher, cache_dir, progress, runner)
+
+
+def _coadjust(project_dir, points, out, case: int, overrides, matcher, cache_dir, progress: Progress,
+              runner: TaskRunner) -> CoadjustResult:
+    """:func:`run_coadjust` on a running ``runner``."""
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher)
+    st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher, runner=runner,
+                                        progress=progress)
     timings["read"] = _time.perf_counter() - t
-    with runner_for(scheduler) as runner:
-        t = _time.perf_counter()
-        blk = _block_images(pp, cloud, st, progress, runner)
-        timings["lidargrams"] = _time.perf_counter() - t
-        lgs, n, cameras, station, is_lg, R0, p0, images = (blk.lgs, blk.n_photos, blk.cameras, blk.station,
-                                                           blk.is_lidargram, blk.R0, blk.p0, blk.images)
-        t = _time.perf_counter()
-        cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
-        key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
-                            [file_stamp(f) for f in cloud.files], _method(st, matcher),
-                            st.model_dump(mode="json", include=_MATCH_FIELDS), len(lgs), MATCHING_VERSION)
-        matches = cache.load("matches", key) if cache is not None else None
-        if matches is None:
-            matches = match_block(images, cameras, station, is_lg, p0[:, :2], blk.masks, st, matcher=matcher,
-                                  progress=progress, runner=runner)
-            if cache is not None:
-                cache.store("matches", key, matches)
-        timings["matching"] = _time.perf_counter() - t
+    t = _time.perf_counter()
+    blk = _block_images(pp, cloud, st, progress, runner)
+    timings["lidargrams"] = _time.perf_counter() - t
+    lgs, n, cameras, station, is_lg, R0, p0, images = (blk.lgs, blk.n_photos, blk.cameras, blk.station,
+                                                       blk.is_lidargram, blk.R0, blk.p0, blk.images)
+    t = _time.perf_counter()
+    cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
+    key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
+                        [file_stamp(f) for f in cloud.files], _method(st, matcher),
+                        st.model_dump(mode="json", include=_MATCH_FIELDS), len(lgs), MATCHING_VERSION)
+    matches = cache.load("matches", key) if cache is not None else None
+    if matches is None:
+        matches = match_block(images, cameras, station, is_lg, p0[:, :2], blk.masks, st, matcher=matcher,
+                              progress=progress, runner=runner)
+        if cache is not None:
+            cache.store("matches", key, matches)
+    timings["matching"] = _time.perf_counter() - t
     keep, xyz0, depth = _ties(lgs, R0, p0, cameras, station, matches, cloud, n, st.max_initial_reprojection_px)
     tr = matches.tracks
     sig_p = np.r_[pp.eop.sigma_xyz if pp.eop.sigma_xyz is not None else np.full((n, 3), st.photo_sigma_position_m),
@@ -493,11 +511,13 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
         t = _time.perf_counter()
         w = [feather_weights(lg.point_uv, lg.camera.width_px, lg.camera.height_px) for lg, _, _ in lgs] \
             if st.feather else None
-        ref = reintersect(cloud.xyz_w, cloud.strip, [lg.point_index for lg, _, _ in lgs], R0[n:], p0[n:],
-                          result.R_w_c[n:], result.p_w_c[n:], weights=w, k=st.interpolation_neighbours,
-                          max_distance_m=st.interpolation_max_distance_m)
-        write_cloud(cloud, pp, ref.xyz_w, ref.n_lidargrams, out / "points")
-        counts = ReintersectionCounts.from_dict(ref.summary())
+        shown = [lg.point_index for lg, _, _ in lgs]
+        u = np.unique(np.concatenate(shown)) if shown else np.zeros(0, np.int64)
+        refine = Reintersector(u, cloud.gather(u), cloud.strip_of(u), shown, R0[n:], p0[n:], result.R_w_c[n:],
+                               result.p_w_c[n:], weights=w, k=st.interpolation_neighbours,
+                               max_distance_m=st.interpolation_max_distance_m)
+        counts = ReintersectionCounts.from_dict(write_cloud(cloud, refine, out / "points", protect=[pp.root],
+                                                            runner=runner, progress=progress))
         timings["reintersection"] = _time.perf_counter() - t
     ex = result.extra
     pbp = ex.get("photo_block_precision")

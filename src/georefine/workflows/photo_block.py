@@ -1,15 +1,16 @@
 """The photo block of a project and its LiDAR cloud, read for lidargrammetry (paper 004; docs/ARCHITECTURE.md §4.8).
 
 :func:`load_photo_project` reads and checks the photo files a project names (``photos``
-section), :func:`read_cloud` a georeferenced cloud into the block's local frame ``w``,
+section), :func:`read_cloud` indexes a georeferenced cloud for block reads in the block's local frame ``w``,
 :func:`render_lidargrams` renders a lidargram per photo (and strip) at the photo's approximate
 pose, :func:`write_cloud` writes a refined cloud back in the input's files and point order.
+None of them holds the cloud: each task reads the blocks it needs (:mod:`georefine.workflows.cloud_index`).
 :func:`lidargrammetry_settings` resolves the ``processing.lidargrammetry`` settings.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -27,13 +28,16 @@ from georefine.evaluation.clouds import point_files
 from georefine.geometry.camera import Camera
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import photos as pio
-from georefine.io.las import PointCloud, iter_las_chunks
+from georefine.io.las import PointCloud, read_las_range
+from georefine.io.las_encode import EncodedPoints, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter
-from georefine.lidargrammetry.render import Lidargram, render_lidargram
+from georefine.lidargrammetry.reintersect import Reintersector
+from georefine.lidargrammetry.render import MAX_SPLAT_PX, NEAR_M, Lidargram, max_normalised_radius2, render_lidargram
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
+from georefine.workflows.cloud_index import INDEX_RANGE_POINTS, CloudIndex, index_cloud
 
-__all__ = ["SECTION", "PhotoProject", "Cloud", "lidargrammetry_settings", "load_photo_project", "read_cloud",
+__all__ = ["SECTION", "PhotoProject", "CloudIndex", "lidargrammetry_settings", "load_photo_project", "read_cloud",
            "render_lidargrams", "render_in_cloud", "write_cloud"]
 
 SECTION = "processing.lidargrammetry"
@@ -57,16 +61,6 @@ class PhotoProject:
 
     def camera(self, i: int) -> Camera:
         return self.cameras[self.eop.cameras[i]]
-
-
-@dataclass(frozen=True)
-class Cloud:
-    """A georeferenced point cloud in ``w``, strip by strip (files kept for writing back)."""
-
-    files: tuple[Path, ...]
-    xyz_w: np.ndarray
-    intensity: np.ndarray
-    strip: np.ndarray  # (N,) index into files
 
 
 def lidargrammetry_settings(config: ProjectConfig, overrides: Mapping[str, Any] | None = None) -> LidargrammetryConfig:
@@ -108,19 +102,14 @@ def load_photo_project(project_dir: str | Path, config: ProjectConfig | None = N
     return PhotoProject(root, frame, crs, cameras, eop, gc, pts or empty, root / ph.folder, R, p)
 
 
-def read_cloud(paths: list[Path], pp: PhotoProject) -> Cloud:
-    """Georeferenced LAZ/LAS strips (output CRS) into ``w``."""
-    files = point_files([Path(p) for p in paths])
-    xyz, inten, strip = [], [], []
-    for k, f in enumerate(files):
-        for c in iter_las_chunks(f, 5_000_000):
-            xyz.append(pp.crs.to_w(pp.frame, c.xyz))
-            inten.append(np.asarray(c.intensity, dtype=float))
-            strip.append(np.full(len(c.xyz), k, dtype=np.int32))
-    return Cloud(tuple(files), np.concatenate(xyz), np.concatenate(inten), np.concatenate(strip))
+def read_cloud(paths: list[Path], pp: PhotoProject, *, runner: TaskRunner | None = None,
+               progress: Progress = no_progress) -> CloudIndex:
+    """Georeferenced LAZ/LAS strips (output CRS), indexed for block reads in ``w``
+    (:mod:`georefine.workflows.cloud_index`; the points are not held)."""
+    return index_cloud(point_files([Path(p) for p in paths]), pp.frame, pp.crs, runner=runner, progress=progress)
 
 
-def render_lidargrams(pp: PhotoProject, cloud: Cloud, settings: LidargrammetryConfig | None = None, *,
+def render_lidargrams(pp: PhotoProject, cloud: CloudIndex, settings: LidargrammetryConfig | None = None, *,
                       progress: Progress = no_progress, runner: TaskRunner | None = None
                       ) -> list[tuple[Lidargram, int, int]]:
     """Lidargrams ``(lidargram, photo index, strip or -1)`` at the photos' approximate poses.
@@ -128,24 +117,20 @@ def render_lidargrams(pp: PhotoProject, cloud: Cloud, settings: LidargrammetryCo
     ``settings``: ``lidargram_scale``, ``per_strip``, ``point_spacing_m``, ``splat_scale``,
     ``fill_holes`` and ``min_coverage`` (defaults of :class:`~georefine.config.LidargrammetryConfig` if None).
     ``runner``: where the lidargrams are rendered, one task per photo and strip
-    (:mod:`georefine.tasks`; default in this process). The cloud goes to each worker once; the
-    lidargrams come back in the order of strips and photos whatever the scheduler.
+    (:mod:`georefine.tasks`; default in this process). Each task reads the blocks of the cloud
+    in its view (:meth:`CloudIndex.blocks_in_view`); the lidargrams come back in the order of
+    strips and photos whatever the scheduler, and are those of the whole cloud rendered at once.
     """
     st = settings or LidargrammetryConfig()
-    per_strip, point_spacing_m = st.per_strip, st.point_spacing_m
-    groups = [np.flatnonzero(cloud.strip == s) for s in range(len(cloud.files))] if per_strip else \
-        [np.arange(len(cloud.xyz_w))]
+    per_strip = st.per_strip
+    point_spacing_m = st.point_spacing_m
     if point_spacing_m is None:  # from the density of the cloud: mean spacing of its strips together
-        lo, hi = cloud.xyz_w[:, :2].min(axis=0), cloud.xyz_w[:, :2].max(axis=0)
-        point_spacing_m = float(np.sqrt(np.prod(hi - lo) / len(cloud.xyz_w)))
+        point_spacing_m = cloud.point_spacing_m()
     runner = runner or TaskRunner("sync")
-    xyz, intensity = runner.share(cloud.xyz_w), runner.share(cloud.intensity)
-    tasks = []
-    for sel in groups:
-        shared_sel = runner.share(sel)
-        for i in range(len(pp.eop)):
-            tasks.append((xyz, intensity, shared_sel, pp.camera(i).scaled(st.lidargram_scale), pp.R_w_c[i],
-                          pp.p_w_c[i], point_spacing_m, st.splat_scale, st.fill_holes, st.min_coverage))
+    index = runner.share(cloud)
+    strips = range(len(cloud.files)) if per_strip else [-1]
+    tasks = [(index, s, pp.camera(i).scaled(st.lidargram_scale), pp.R_w_c[i], pp.p_w_c[i], point_spacing_m,
+              st.splat_scale, st.fill_holes, st.min_coverage) for s in strips for i in range(len(pp.eop))]
     out = []
     for k, lg in enumerate(runner.map(render_in_cloud, tasks, label="lidargrams", progress=progress)):
         if lg is not None:
@@ -154,34 +139,63 @@ def render_lidargrams(pp: PhotoProject, cloud: Cloud, settings: LidargrammetryCo
     return out
 
 
-def render_in_cloud(xyz_w: np.ndarray, intensity: np.ndarray, sel: np.ndarray, camera: Camera, R_w_c: np.ndarray,
-                    p_w_c: np.ndarray, point_spacing_m: float, splat_scale: float, fill_holes: bool,
-                    min_coverage: float) -> Lidargram | None:
-    """One lidargram task: the points ``sel`` of the cloud rendered at a pose, its indices into the
-    whole cloud; ``None`` when less than ``min_coverage`` of its pixels show a point."""
-    lg = render_lidargram(xyz_w[sel], intensity[sel], camera, R_w_c, p_w_c, point_spacing_m=point_spacing_m,
-                          splat_scale=splat_scale, fill_holes=fill_holes)
-    if np.mean(lg.ulpi >= 0) < min_coverage:
+def render_in_cloud(cloud: CloudIndex, strip: int, camera: Camera, R_w_c: np.ndarray, p_w_c: np.ndarray,
+                    point_spacing_m: float, splat_scale: float, fill_holes: bool, min_coverage: float
+                    ) -> Lidargram | None:
+    """One lidargram task: the points of strip ``strip`` (-1: all) in the view of a pose, read
+    block by block and rendered with their identifiers in the cloud; ``None`` when less than
+    ``min_coverage`` of its pixels show a point."""
+    blocks = cloud.blocks_in_view(camera, R_w_c, p_w_c, max_normalised_radius2(camera, float(MAX_SPLAT_PX)), NEAR_M)
+    if strip >= 0:
+        blocks = blocks[cloud.block_file[blocks] == strip]
+    xyz, intensity, ids = cloud.read(blocks)
+    lg = render_lidargram(xyz, intensity, camera, R_w_c, p_w_c, point_spacing_m=point_spacing_m,
+                          splat_scale=splat_scale, fill_holes=fill_holes, max_splat_px=MAX_SPLAT_PX, near_m=NEAR_M)
+    if np.mean(lg.ulpi >= 0) < min_coverage or not len(ids):
         return None
-    return replace(lg, ulpi=np.where(lg.ulpi >= 0, sel[np.maximum(lg.ulpi, 0)], -1), point_index=sel[lg.point_index])
+    return replace(lg, ulpi=np.where(lg.ulpi >= 0, ids[np.maximum(lg.ulpi, 0)], -1), point_index=ids[lg.point_index])
 
 
-def write_cloud(cloud: Cloud, pp: PhotoProject, xyz_w: np.ndarray, n_lidargrams: np.ndarray, folder: Path) -> None:
-    """The refined strips, same files and point order as the input (output CRS).
+def write_cloud(cloud: CloudIndex, refine: Reintersector, folder: Path, *, protect: Sequence[Path] = (),
+                runner: TaskRunner | None = None, progress: Progress = no_progress) -> dict[str, int]:
+    """The refined strips, same file names and point order as the input (output CRS), streamed.
 
-    Extra dimension ``lidargrams``: how many lidargrams showed the point (0: interpolated from
-    its neighbours, -1: outside every lidargram, unchanged).
+    Every point is moved by ``refine`` (:class:`~georefine.lidargrammetry.reintersect.Reintersector`)
+    in tasks of :data:`~georefine.workflows.cloud_index.INDEX_RANGE_POINTS` records that read their
+    range, move it and compress it (:func:`georefine.io.las_encode.encode_points`); this process
+    writes the chunks in order. Extra dimension ``lidargrams``: how many lidargrams showed the
+    point (0: interpolated from its neighbours, -1: outside every lidargram, unchanged).
+    Returns how many points were moved which way (as :meth:`Reintersection.summary`).
     """
     folder.mkdir(parents=True, exist_ok=True)
+    runner = runner or TaskRunner("sync")
+    shared = runner.share((cloud, refine))
+    counts = np.zeros(4, np.int64)
     for k, f in enumerate(cloud.files):
-        sel = np.flatnonzero(cloud.strip == k)
-        xyz = pp.crs.from_w(pp.frame, xyz_w[sel])
-        done = 0
-        count = n_lidargrams[sel].astype(np.float64)
-        with LasWriter(folder / (f.stem + ".laz"), scale=0.001, crs=pp.crs.crs, protect=[pp.root, f],
-                       extra_dims=["lidargrams"]) as w:
-            for c in iter_las_chunks(f, 5_000_000, extra_dims=()):
-                m = len(c.xyz)
-                w.write(PointCloud(c.time_gps, xyz[done:done + m], c.intensity, c.scanner_channel, c.point_source_id,
-                                   c.return_number, c.number_of_returns, {"lidargrams": count[done:done + m]}))
-                done += m
+        offset = np.round(cloud.file_centre[k] / 1000.0) * 1000.0
+        with LasWriter(folder / (f.stem + ".laz"), scale=0.001, offset=offset, crs=cloud.crs.crs,
+                       protect=[*protect, f], extra_dims=["lidargrams"]) as w:
+            layout = w.layout_for()
+            n = int(cloud.file_start[k + 1] - cloud.file_start[k])
+            tasks = [(shared, k, a, min(a + INDEX_RANGE_POINTS, n), layout) for a in range(0, n, INDEX_RANGE_POINTS)]
+            for enc, c in runner.map(_refine_range, tasks, label=f"refined {f.stem}", progress=progress):
+                w.write_encoded(enc)
+                counts += c
+    return {"points": int(counts.sum()), "multi_ray": int(counts[2]), "single_ray": int(counts[1]),
+            "interpolated": int(counts[0]), "unchanged": int(counts[3])}
+
+
+def _refine_range(shared: tuple[CloudIndex, Reintersector], strip: int, start: int, stop: int, layout: LasLayout
+                  ) -> tuple[EncodedPoints, np.ndarray]:
+    """One re-intersection task: records ``start..stop`` of a strip moved, encoded, and their
+    counts (interpolated, single-ray, multi-ray, unchanged)."""
+    cloud, refine = shared
+    c = read_las_range(cloud.files[strip], start, stop)
+    ids = cloud.file_start[strip] + np.arange(start, stop, dtype=np.int64)
+    xyz_w, n = refine.refine(cloud.crs.to_w(cloud.frame, c.xyz), ids, np.full(len(ids), strip))
+    out = PointCloud(c.time_gps, cloud.crs.from_w(cloud.frame, xyz_w), c.intensity, c.scanner_channel,
+                     c.point_source_id, c.return_number, c.number_of_returns,
+                     {"lidargrams": n.astype(np.float64)})
+    counts = np.array([np.count_nonzero(n == 0), np.count_nonzero(n == 1), np.count_nonzero(n >= 2),
+                       np.count_nonzero(n < 0)], np.int64)
+    return encode_points(out, layout), counts

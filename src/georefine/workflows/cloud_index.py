@@ -1,0 +1,212 @@
+"""A georeferenced cloud read block by block for lidargrammetry (docs/ARCHITECTURE.md §4.8).
+
+Lidargrammetry needs the cloud in three places: every lidargram renders the points in its view,
+the tie points take the coordinates of the points the lidargrams show, and the re-intersection
+moves every point. None of them needs the whole cloud at once, so the cloud is never held: it is
+indexed once (:func:`index_cloud`) and read back in blocks.
+
+* **Blocks.** Each strip (LAS/LAZ file) is cut into blocks of :data:`BLOCK_POINTS` consecutive
+  records, the LAZ chunk size, so a block is read by one seek through the chunk table
+  (:func:`georefine.io.las.read_las_range`). The index keeps each block's bounding box in the
+  block's local frame ``w``: 48 bytes per 50,000 points.
+* **Point identifiers.** A point is its record number in the files taken in order
+  (:attr:`CloudIndex.file_start`): the identifier the lidargram's ULPI raster holds, the same
+  as for a cloud read whole, so the lidargrams and the refined cloud do not depend on the blocks.
+* **A lidargram's blocks** (:meth:`CloudIndex.blocks_in_view`): those whose box may reach into
+  the camera's field of view, tested conservatively on the projected box corners; the renderer
+  applies its own exact test to their points.
+
+Memory is that of one block range per task (a lidargram's view, a re-intersection range), not
+of the cloud.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from georefine.geometry.camera import Camera
+from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.io.las import read_las_info, read_las_range
+from georefine.io.las_encode import LAZ_CHUNK_POINTS
+from georefine.progress import Progress, no_progress
+from georefine.tasks import TaskRunner
+
+__all__ = ["BLOCK_POINTS", "INDEX_RANGE_POINTS", "CloudIndex", "index_cloud"]
+
+BLOCK_POINTS = LAZ_CHUNK_POINTS
+"""Records per block: one LAZ chunk, read by one seek."""
+
+INDEX_RANGE_POINTS = 40 * BLOCK_POINTS
+"""Records one indexing or re-intersection task reads at a time (2 M: about 0.2 GB of temporaries)."""
+
+
+@dataclass(frozen=True, eq=False)
+class CloudIndex:
+    """Where the blocks of a cloud's strips are (module docstring). B blocks, F files.
+
+    Attributes
+    ----------
+    files : the strips in order
+    frame, crs : the local frame ``w`` the boxes are in and the files' output CRS
+    file_start : (F + 1,) int64
+        Identifier of each file's first point; the last entry is the number of points.
+    block_start, block_stop : (B,) int64
+        Identifiers of each block's first point and of the one after its last.
+    block_file : (B,) int64
+    lo, hi : (B, 3) float64, m
+        Bounding box of each block's points in ``w``.
+    file_centre : (F, 3) float64
+        Centre of each file's header bounds (output CRS), from which refined files take their offset.
+    """
+
+    files: tuple[Path, ...]
+    frame: LocalFrame
+    crs: OutputCRS
+    file_start: np.ndarray
+    block_start: np.ndarray
+    block_stop: np.ndarray
+    block_file: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    file_centre: np.ndarray
+
+    @property
+    def n_points(self) -> int:
+        return int(self.file_start[-1])
+
+    def strip_of(self, index: np.ndarray) -> np.ndarray:
+        """File of each point identifier."""
+        return (np.searchsorted(self.file_start, index, side="right") - 1).astype(np.int64)
+
+    def point_spacing_m(self) -> float:
+        """Mean horizontal point spacing: the square root of the cloud's XY box area per point."""
+        if not self.n_points:
+            return float("nan")
+        lo, hi = self.lo[:, :2].min(axis=0), self.hi[:, :2].max(axis=0)
+        return float(np.sqrt(np.prod(hi - lo) / self.n_points))
+
+    def blocks_of_strip(self, strip: int) -> np.ndarray:
+        return np.flatnonzero(self.block_file == strip)
+
+    def blocks_in_view(self, camera: Camera, R_w_c: np.ndarray, p_w_c: np.ndarray, max_normalised_radius2: float,
+                       near_m: float) -> np.ndarray:
+        """Blocks that may hold a point with ``z_c > near_m`` and ideal normalised radius² at most
+        ``max_normalised_radius2`` (the renderer's view test; ``inf``: no radius limit).
+
+        A box wholly in front of the camera projects inside the bounding rectangle of its
+        projected corners (perspective keeps convexity), so a box whose rectangle misses the
+        square of that radius holds no such point. A box reaching behind the camera is kept
+        unless it lies wholly at or behind ``near_m``.
+        """
+        corners = np.stack([np.where(np.array([(c >> i) & 1 for i in range(3)], bool), self.hi, self.lo)
+                            for c in range(8)], axis=1)  # (B, 8, 3)
+        d = corners - np.asarray(p_w_c, float)
+        x_c = d @ np.asarray(R_w_c, float)  # (B, 8, 3): R^T d per corner
+        z = x_c[..., 2]
+        reaches = (z > near_m).any(axis=1)
+        ahead = (z > 0).all(axis=1)
+        keep = reaches.copy()
+        if np.isfinite(max_normalised_radius2):
+            r = np.sqrt(max_normalised_radius2) * (1 + 1e-9)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xn, yn = x_c[..., 0] / z, x_c[..., 1] / z
+            a = ahead
+            miss = np.zeros(len(z), bool)
+            miss[a] = ((xn[a].min(axis=1) > r) | (xn[a].max(axis=1) < -r)
+                       | (yn[a].min(axis=1) > r) | (yn[a].max(axis=1) < -r))
+            keep &= ~miss
+        return np.flatnonzero(keep)
+
+    def read(self, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(xyz_w, intensity, identifiers)`` of the points of ``blocks``, in identifier order.
+
+        Consecutive blocks of a file are read as one record range.
+        """
+        blocks = np.unique(np.asarray(blocks, dtype=np.int64))
+        xyz, inten, ids = [], [], []
+        for f, start, stop in self._runs(blocks):
+            c = read_las_range(self.files[f], start, stop)
+            xyz.append(self.crs.to_w(self.frame, c.xyz))
+            inten.append(np.asarray(c.intensity))
+            ids.append(self.file_start[f] + np.arange(start, stop, dtype=np.int64))
+        if not xyz:
+            return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
+        return np.concatenate(xyz), np.concatenate(inten), np.concatenate(ids)
+
+    def gather(self, index: np.ndarray, max_points: int = INDEX_RANGE_POINTS) -> np.ndarray:
+        """``w`` coordinates of the points ``index`` (sorted, distinct), reading their blocks
+        about ``max_points`` records at a time."""
+        index = np.asarray(index, dtype=np.int64)
+        out = np.zeros((len(index), 3))
+        if not len(index):
+            return out
+        if np.any(np.diff(index) <= 0) or index[0] < 0 or index[-1] >= self.n_points:
+            raise ValueError("point identifiers must be sorted, distinct and within the cloud")
+        blk = np.searchsorted(self.block_start, index, side="right") - 1
+        need = np.unique(blk)
+        sizes = np.cumsum(self.block_stop[need] - self.block_start[need])
+        batch = sizes // max(1, max_points)
+        for b in np.unique(batch):
+            xyz, _, ids = self.read(need[batch == b])
+            sel = np.flatnonzero((index >= ids[0]) & (index <= ids[-1]))
+            pos = np.searchsorted(ids, index[sel])
+            out[sel] = xyz[pos]
+        return out
+
+    def _runs(self, blocks: np.ndarray):
+        """``(file, start record, stop record)`` of each run of consecutive blocks in a file."""
+        if not len(blocks):
+            return
+        cut = np.flatnonzero((np.diff(blocks) != 1) | (np.diff(self.block_file[blocks]) != 0)) + 1
+        for run in np.split(blocks, cut):
+            f = int(self.block_file[run[0]])
+            yield f, int(self.block_start[run[0]] - self.file_start[f]), int(self.block_stop[run[-1]]
+                                                                            - self.file_start[f])
+
+
+def _index_range(path: Path, start: int, stop: int, frame: LocalFrame, crs: OutputCRS
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """One indexing task: ``w`` bounding boxes of the blocks of records ``start..stop`` of a file."""
+    c = read_las_range(path, start, stop)
+    xyz = crs.to_w(frame, c.xyz)
+    cut = np.arange(0, len(xyz), BLOCK_POINTS)
+    return np.minimum.reduceat(xyz, cut, axis=0), np.maximum.reduceat(xyz, cut, axis=0)
+
+
+def index_cloud(files: list[Path], frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
+                progress: Progress = no_progress) -> CloudIndex:
+    """Index georeferenced strips (output CRS) for block reads in ``frame``: one pass over the points,
+    as tasks of :data:`INDEX_RANGE_POINTS` records on ``runner`` (default in this process).
+
+    Raises
+    ------
+    InputError
+        A file that does not open or is corrupt (named, with the record range); a cloud without points.
+    """
+    from georefine.errors import InputError
+
+    files = [Path(f) for f in files]
+    infos = [read_las_info(f) for f in files]
+    counts = np.array([i.point_count for i in infos], dtype=np.int64)
+    if not counts.sum():
+        raise InputError("the point cloud has no points", path=", ".join(map(str, files)),
+                         expected="georeferenced strips with points")
+    file_start = np.r_[0, np.cumsum(counts)].astype(np.int64)
+    starts, stops, owner = [], [], []
+    for f, n in enumerate(counts):
+        s = np.arange(0, n, BLOCK_POINTS, dtype=np.int64)
+        starts.append(file_start[f] + s)
+        stops.append(file_start[f] + np.minimum(s + BLOCK_POINTS, n))
+        owner.append(np.full(len(s), f, dtype=np.int64))
+    tasks = [(files[f], a, min(a + INDEX_RANGE_POINTS, int(n)), frame, crs)
+             for f, n in enumerate(counts) for a in range(0, int(n), INDEX_RANGE_POINTS)]
+    runner = runner or TaskRunner("sync")
+    parts = list(runner.map(_index_range, tasks, label="indexing the cloud", progress=progress))
+    lo = np.concatenate([p[0] for p in parts]) if parts else np.zeros((0, 3))
+    hi = np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, 3))
+    centre = np.array([0.5 * (i.mins + i.maxs) for i in infos]).reshape(-1, 3)
+    return CloudIndex(tuple(files), frame, crs, file_start, np.concatenate(starts), np.concatenate(stops),
+                      np.concatenate(owner), lo, hi, centre)
