@@ -9,6 +9,7 @@ from georefine.errors import InputError
 from georefine.geometry.camera import Camera, R_w_c_from_opk, project_points
 from georefine.lidargrammetry.render import (
     Lidargram,
+    LidargramCanvas,
     estimate_point_spacing,
     load_lidargram,
     render_lidargram,
@@ -146,6 +147,23 @@ def test_chunking_does_not_change_the_result_and_ties_go_to_the_lower_index(scen
         np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
     assert a.point_index.max() < len(pts)
     np.testing.assert_array_equal(a.ulpi, lg.ulpi)
+
+
+def test_a_canvas_fed_in_parts_with_identifiers_renders_the_whole_cloud(scene):
+    """Parts of uneven size, identifiers with gaps (a subset of a larger cloud): the lidargram of
+    the points held whole, its ULPI and point indices mapped to the identifiers."""
+    pts, inten, R, p, lg = scene
+    rng = np.random.default_rng(12)
+    ids = np.cumsum(rng.integers(1, 4, len(pts)))
+    canvas = LidargramCanvas(CAM, R, p, point_spacing_m=lg.point_spacing_m, chunk_size=3000)
+    cuts = np.sort(rng.choice(np.arange(1, len(pts)), 6, replace=False))
+    for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(pts)]):
+        canvas.add(pts[a:b], inten[a:b], ids[a:b])
+    got = canvas.finish()
+    np.testing.assert_array_equal(got.ulpi, np.where(lg.ulpi >= 0, ids[np.maximum(lg.ulpi, 0)], -1))
+    np.testing.assert_array_equal(got.point_index, ids[lg.point_index])
+    for f in ("image", "depth", "point_uv"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(lg, f))
 
 
 def test_hole_filling_fills_image_and_depth_only():

@@ -53,8 +53,8 @@ from georefine.errors import InputError
 from georefine.geometry.camera import Camera
 from georefine.io.files import PathLike, atomic_output
 
-__all__ = ["Lidargram", "estimate_point_spacing", "max_normalised_radius2", "render_lidargram", "save_lidargram",
-           "load_lidargram"]
+__all__ = ["Lidargram", "LidargramCanvas", "estimate_point_spacing", "max_normalised_radius2", "render_lidargram",
+           "save_lidargram", "load_lidargram"]
 
 FORMAT_VERSION = 1
 MAX_SPLAT_PX = 7
@@ -244,6 +244,82 @@ def max_normalised_radius2(camera: Camera, margin_px: float) -> float:
     return float(np.max(np.sum(xn * xn, axis=1))) * 1.05**2
 
 
+class LidargramCanvas:
+    """A lidargram rendered from points given in parts (:func:`render_lidargram` in steps).
+
+    :meth:`add` draws a part of the cloud into the z-buffer, each point with its identifier
+    (``ids``, ascending within a part; e.g. its record number in the cloud), and keeps, per
+    pixel, the coordinates and intensity of the point it shows; :meth:`finish` makes the
+    lidargram. The result does not depend on how the cloud is cut into parts, so a cloud can be
+    rendered without being held: memory is the rasters and one part. Parameters as
+    :func:`render_lidargram` (``point_spacing_m`` is required here).
+    """
+
+    def __init__(self, camera: Camera, R_w_c: np.ndarray, p_w_c: np.ndarray, *, point_spacing_m: float,
+                 splat_scale: float = 1.0, max_splat_px: int = MAX_SPLAT_PX, near_m: float = NEAR_M,
+                 chunk_size: int = 5_000_000) -> None:
+        R = np.array(R_w_c, dtype=np.float64)
+        p = np.array(p_w_c, dtype=np.float64).reshape(-1)
+        if R.shape != (3, 3) or p.shape != (3,) or chunk_size < 1 or max_splat_px < 0.5 or splat_scale < 0:
+            raise ValueError("need R_w_c (3, 3), p_w_c (3,), chunk_size >= 1, max_splat_px >= 0.5, splat_scale >= 0")
+        self.camera, self.R, self.p = camera, R, p
+        self.spacing = float(point_spacing_m)
+        self.radius_factor = (splat_scale * 0.5 * self.spacing * camera.fx_px
+                              if np.isfinite(self.spacing) and self.spacing > 0 else 0.0)
+        self.max_splat_px, self.near_m, self.chunk_size = max_splat_px, float(near_m), int(chunk_size)
+        self.rn2_max = max_normalised_radius2(camera, float(max_splat_px))
+        h, w = camera.height_px, camera.width_px
+        self.zbuf = np.full((h, w), np.inf)
+        self.ulpi = np.full((h, w), -1, np.int64)
+        self.xyz = np.zeros((h, w, 3))  # the shown point's coordinates and intensity
+        self.intensity = np.zeros((h, w))
+
+    def add(self, points_w: np.ndarray, intensity: np.ndarray, ids: np.ndarray) -> None:
+        """Draw points ``(N, 3)`` with their intensities ``(N,)`` and identifiers ``(N,)`` (ascending)."""
+        cam, R, p = self.camera, self.R, self.p
+        h, w = cam.height_px, cam.width_px
+        for start in range(0, len(ids), self.chunk_size):
+            stop = start + self.chunk_size
+            x_c = _camera_coords(np.asarray(points_w[start:stop], dtype=np.float64), R, p)
+            z = x_c[:, 2]
+            keep = np.flatnonzero(z > self.near_m)
+            x_c, z = x_c[keep], z[keep]
+            rn2 = (x_c[:, 0] * x_c[:, 0] + x_c[:, 1] * x_c[:, 1]) / (z * z)
+            fov = rn2 <= self.rn2_max
+            keep, x_c, z = keep[fov], x_c[fov], z[fov]
+            uv = cam.project(x_c)
+            r = np.clip(self.radius_factor / z, 0.5, self.max_splat_px)
+            inside = (uv[:, 0] > -r - 1) & (uv[:, 0] < w + r + 1) & (uv[:, 1] > -r - 1) & (uv[:, 1] < h + r + 1)
+            local = keep[inside] + start
+            before = self.ulpi.copy()
+            _splat(uv[inside, 0], uv[inside, 1], z[inside], r[inside], np.asarray(ids[local], dtype=np.int64),
+                   self.zbuf, self.ulpi)
+            won = self.ulpi != before  # pixels a point of this chunk now shows
+            if won.any():
+                at = local[np.searchsorted(ids[local], self.ulpi[won])]
+                self.xyz[won] = points_w[at]
+                self.intensity[won] = intensity[at]
+
+    def finish(self, *, fill_holes: bool = False, fill_min_neighbours: int = 5) -> Lidargram:
+        """The lidargram of the points drawn (module docstring, steps 3-5)."""
+        cam, h, w = self.camera, self.camera.height_px, self.camera.width_px
+        shown = self.ulpi >= 0
+        point_index, first = np.unique(self.ulpi[shown], return_index=True)
+        point_uv = cam.project(_camera_coords(self.xyz[shown][first], self.R, self.p))
+        depth = np.where(shown, self.zbuf, np.nan).astype(np.float32)
+        image = np.zeros((h, w), np.uint8)
+        if point_index.size:
+            values = self.intensity[shown][first]
+            lo, hi = np.percentile(values, [2.0, 98.0])
+            grey = (np.clip((self.intensity[shown] - lo) / (hi - lo), 0.0, 1.0) * 255.0 + 0.5 if hi > lo
+                    else np.full(int(shown.sum()), 128.0))
+            image[shown] = grey.astype(np.uint8)
+        if fill_holes:
+            depth, image = _fill_holes(depth, image, self.ulpi, int(fill_min_neighbours))
+        return Lidargram(cam, self.R, self.p, image, depth, self.ulpi.copy(), point_index.astype(np.int64),
+                         point_uv, self.spacing)
+
+
 def render_lidargram(
     points_w: np.ndarray,
     intensity: np.ndarray,
@@ -281,53 +357,20 @@ def render_lidargram(
         Points with ``z_c <= near_m`` (m) are not drawn.
     chunk_size
         Points projected at a time (bounds the temporaries; the result does not depend on it).
+
+    A cloud too large to hold is rendered part by part with :class:`LidargramCanvas`.
     """
     points_w = np.asarray(points_w)
     intensity = np.asarray(intensity).reshape(-1)
-    R = np.array(R_w_c, dtype=np.float64)
-    p = np.array(p_w_c, dtype=np.float64).reshape(-1)
     n = points_w.shape[0] if points_w.ndim == 2 else -1
     if points_w.ndim != 2 or points_w.shape[1] != 3 or intensity.shape != (n,):
         raise ValueError(f"points_w must be (N, 3) and intensity (N,), got {points_w.shape} and {intensity.shape}")
-    if R.shape != (3, 3) or p.shape != (3,) or chunk_size < 1 or max_splat_px < 0.5 or splat_scale < 0:
-        raise ValueError("need R_w_c (3, 3), p_w_c (3,), chunk_size >= 1, max_splat_px >= 0.5, splat_scale >= 0")
     if point_spacing_m is None:
         point_spacing_m = estimate_point_spacing(points_w)
-    spacing = float(point_spacing_m)
-    radius_factor = splat_scale * 0.5 * spacing * camera.fx_px if np.isfinite(spacing) and spacing > 0 else 0.0
-    rn2_max = max_normalised_radius2(camera, float(max_splat_px))
-    h, w = camera.height_px, camera.width_px
-    zbuf = np.full((h, w), np.inf)
-    ulpi = np.full((h, w), -1, np.int64)
-    for start in range(0, n, chunk_size):
-        x_c = _camera_coords(np.asarray(points_w[start:start + chunk_size], dtype=np.float64), R, p)
-        z = x_c[:, 2]
-        keep = np.flatnonzero(z > near_m)
-        x_c, z = x_c[keep], z[keep]
-        rn2 = (x_c[:, 0] * x_c[:, 0] + x_c[:, 1] * x_c[:, 1]) / (z * z)
-        fov = rn2 <= rn2_max
-        keep, x_c, z = keep[fov], x_c[fov], z[fov]
-        uv = camera.project(x_c)
-        r = np.clip(radius_factor / z, 0.5, max_splat_px)
-        inside = (uv[:, 0] > -r - 1) & (uv[:, 0] < w + r + 1) & (uv[:, 1] > -r - 1) & (uv[:, 1] < h + r + 1)
-        _splat(uv[inside, 0], uv[inside, 1], z[inside], r[inside], keep[inside] + start, zbuf, ulpi)
-
-    shown = ulpi >= 0
-    marked = np.zeros(n, bool)  # np.unique would sort or hash all H x W identifiers
-    marked[ulpi[shown]] = True
-    point_index = np.flatnonzero(marked).astype(np.int64)
-    point_uv = camera.project(_camera_coords(np.asarray(points_w[point_index], dtype=np.float64), R, p))
-    depth = np.where(shown, zbuf, np.nan).astype(np.float32)
-    image = np.zeros((h, w), np.uint8)
-    if point_index.size:
-        values = intensity[point_index].astype(np.float64)
-        lo, hi = np.percentile(values, [2.0, 98.0])
-        grey = (np.clip((intensity[ulpi[shown]] - lo) / (hi - lo), 0.0, 1.0) * 255.0 + 0.5 if hi > lo
-                else np.full(int(shown.sum()), 128.0))
-        image[shown] = grey.astype(np.uint8)
-    if fill_holes:
-        depth, image = _fill_holes(depth, image, ulpi, int(fill_min_neighbours))
-    return Lidargram(camera, R, p, image, depth, ulpi, point_index, point_uv, spacing)
+    canvas = LidargramCanvas(camera, R_w_c, p_w_c, point_spacing_m=point_spacing_m, splat_scale=splat_scale,
+                             max_splat_px=max_splat_px, near_m=near_m, chunk_size=chunk_size)
+    canvas.add(points_w, intensity, np.arange(n, dtype=np.int64))
+    return canvas.finish(fill_holes=fill_holes, fill_min_neighbours=fill_min_neighbours)
 
 
 # --------------------------------------------------------------------------- files

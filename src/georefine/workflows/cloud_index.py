@@ -22,6 +22,7 @@ of the cloud.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -121,20 +122,24 @@ class CloudIndex:
         return np.flatnonzero(keep)
 
     def read(self, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(xyz_w, intensity, identifiers)`` of the points of ``blocks``, in identifier order.
+        """``(xyz_w, intensity, identifiers)`` of the points of ``blocks``, in identifier order."""
+        parts = list(self.iter_read(blocks))
+        if not parts:
+            return np.zeros((0, 3)), np.zeros(0, np.uint16), np.zeros(0, np.int64)
+        return tuple(np.concatenate(x) for x in zip(*parts))  # type: ignore[return-value]
 
-        Consecutive blocks of a file are read as one record range.
-        """
+    def iter_read(self, blocks: np.ndarray, max_points: int = INDEX_RANGE_POINTS
+                  ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """:meth:`read` in parts of at most ``max_points`` records (whole blocks, at least one),
+        in identifier order: consecutive blocks of a file are read as one record range."""
         blocks = np.unique(np.asarray(blocks, dtype=np.int64))
-        xyz, inten, ids = [], [], []
         for f, start, stop in self._runs(blocks):
-            c = read_las_range(self.files[f], start, stop)
-            xyz.append(self.crs.to_w(self.frame, c.xyz))
-            inten.append(np.asarray(c.intensity))
-            ids.append(self.file_start[f] + np.arange(start, stop, dtype=np.int64))
-        if not xyz:
-            return np.zeros((0, 3)), np.zeros(0), np.zeros(0, np.int64)
-        return np.concatenate(xyz), np.concatenate(inten), np.concatenate(ids)
+            step = max(BLOCK_POINTS, max_points // BLOCK_POINTS * BLOCK_POINTS)
+            for a in range(start, stop, step):
+                b = min(a + step, stop)
+                c = read_las_range(self.files[f], a, b)
+                yield (self.crs.to_w(self.frame, c.xyz), np.asarray(c.intensity),
+                       self.file_start[f] + np.arange(a, b, dtype=np.int64))
 
     def gather(self, index: np.ndarray, max_points: int = INDEX_RANGE_POINTS) -> np.ndarray:
         """``w`` coordinates of the points ``index`` (sorted, distinct), reading their blocks
@@ -146,14 +151,9 @@ class CloudIndex:
         if np.any(np.diff(index) <= 0) or index[0] < 0 or index[-1] >= self.n_points:
             raise ValueError("point identifiers must be sorted, distinct and within the cloud")
         blk = np.searchsorted(self.block_start, index, side="right") - 1
-        need = np.unique(blk)
-        sizes = np.cumsum(self.block_stop[need] - self.block_start[need])
-        batch = sizes // max(1, max_points)
-        for b in np.unique(batch):
-            xyz, _, ids = self.read(need[batch == b])
+        for xyz, _, ids in self.iter_read(np.unique(blk), max_points):
             sel = np.flatnonzero((index >= ids[0]) & (index <= ids[-1]))
-            pos = np.searchsorted(ids, index[sel])
-            out[sel] = xyz[pos]
+            out[sel] = xyz[index[sel] - ids[0]]
         return out
 
     def _runs(self, blocks: np.ndarray):

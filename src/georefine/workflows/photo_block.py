@@ -11,7 +11,7 @@ None of them holds the cloud: each task reads the blocks it needs (:mod:`georefi
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -32,7 +32,7 @@ from georefine.io.las import PointCloud, read_las_range
 from georefine.io.las_encode import EncodedPoints, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter
 from georefine.lidargrammetry.reintersect import Reintersector
-from georefine.lidargrammetry.render import MAX_SPLAT_PX, NEAR_M, Lidargram, max_normalised_radius2, render_lidargram
+from georefine.lidargrammetry.render import MAX_SPLAT_PX, NEAR_M, Lidargram, LidargramCanvas, max_normalised_radius2
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
 from georefine.workflows.cloud_index import INDEX_RANGE_POINTS, CloudIndex, index_cloud
@@ -143,17 +143,20 @@ def render_in_cloud(cloud: CloudIndex, strip: int, camera: Camera, R_w_c: np.nda
                     point_spacing_m: float, splat_scale: float, fill_holes: bool, min_coverage: float
                     ) -> Lidargram | None:
     """One lidargram task: the points of strip ``strip`` (-1: all) in the view of a pose, read
-    block by block and rendered with their identifiers in the cloud; ``None`` when less than
+    a few blocks at a time and drawn with their identifiers in the cloud
+    (:class:`~georefine.lidargrammetry.render.LidargramCanvas`); ``None`` when less than
     ``min_coverage`` of its pixels show a point."""
     blocks = cloud.blocks_in_view(camera, R_w_c, p_w_c, max_normalised_radius2(camera, float(MAX_SPLAT_PX)), NEAR_M)
     if strip >= 0:
         blocks = blocks[cloud.block_file[blocks] == strip]
-    xyz, intensity, ids = cloud.read(blocks)
-    lg = render_lidargram(xyz, intensity, camera, R_w_c, p_w_c, point_spacing_m=point_spacing_m,
-                          splat_scale=splat_scale, fill_holes=fill_holes, max_splat_px=MAX_SPLAT_PX, near_m=NEAR_M)
-    if np.mean(lg.ulpi >= 0) < min_coverage or not len(ids):
+    canvas = LidargramCanvas(camera, R_w_c, p_w_c, point_spacing_m=point_spacing_m, splat_scale=splat_scale,
+                             max_splat_px=MAX_SPLAT_PX, near_m=NEAR_M)
+    for xyz, intensity, ids in cloud.iter_read(blocks):  # a part at a time: memory is not the view's points
+        canvas.add(xyz, intensity, ids)
+    lg = canvas.finish(fill_holes=fill_holes)
+    if not lg.point_index.size or np.mean(lg.ulpi >= 0) < min_coverage:
         return None
-    return replace(lg, ulpi=np.where(lg.ulpi >= 0, ids[np.maximum(lg.ulpi, 0)], -1), point_index=ids[lg.point_index])
+    return lg
 
 
 def write_cloud(cloud: CloudIndex, refine: Reintersector, folder: Path, *, protect: Sequence[Path] = (),
