@@ -58,6 +58,10 @@ def feather_weights(uv: np.ndarray, width: int, height: int, floor: float = 0.05
     return np.maximum(np.clip(tu, 0.0, 1.0) * np.clip(tv, 0.0, 1.0), floor)
 
 
+_QUERY_POINTS = 250_000
+"""Points interpolated at a time (their neighbours' displacements: about 50 MB)."""
+
+
 class Reintersector:
     """The moves of a re-intersection, held for the shown points only, applied to any points.
 
@@ -97,13 +101,20 @@ class Reintersector:
             np.add.at(count, pos, 1)
         if np.any(count == 0):
             raise ValueError("index holds points that no lidargram shows")
-        self.disp = disp / wsum[:, None]
-        self.count = count
+        disp /= wsum[:, None]
+        del wsum
+        self.disp, self.count = disp, count
         self.k, self.min_distance_m, self.max_distance_m = int(k), float(min_distance_m), float(max_distance_m)
         groups = np.asarray(groups)
         self._trees = {}
+        # Points sorted by strip (identifiers over the files in order are): each strip's points
+        # are a slice, and the trees and displacements views of the arrays, not copies.
+        grouped = bool(np.all(groups[1:] >= groups[:-1]))
         for g in np.unique(groups):
-            src = np.flatnonzero(groups == g)
+            if grouped:
+                src = slice(int(np.searchsorted(groups, g, "left")), int(np.searchsorted(groups, g, "right")))
+            else:
+                src = np.flatnonzero(groups == g)
             self._trees[int(g)] = (cKDTree(X[src]), self.disp[src])
 
     def refine(self, xyz_w: np.ndarray, index: np.ndarray, groups: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -123,12 +134,13 @@ class Reintersector:
                 count[dst] = -1
                 continue
             tree, src_disp = self._trees[int(g)]
-            dist, nb = tree.query(X[dst], k=min(self.k, tree.n))
-            dist, nb = dist.reshape(len(dst), -1), nb.reshape(len(dst), -1)
-            near = dist[:, 0] <= self.max_distance_m
-            w = 1.0 / np.maximum(dist[near], self.min_distance_m)
-            disp[dst[near]] = np.einsum("nk,nkd->nd", w, src_disp[nb[near]]) / w.sum(axis=1, keepdims=True)
-            count[dst[~near]] = -1
+            for part in np.array_split(dst, -(-len(dst) // _QUERY_POINTS)):  # bounded temporaries
+                dist, nb = tree.query(X[part], k=min(self.k, tree.n))
+                dist, nb = dist.reshape(len(part), -1), nb.reshape(len(part), -1)
+                near = dist[:, 0] <= self.max_distance_m
+                w = 1.0 / np.maximum(dist[near], self.min_distance_m)
+                disp[part[near]] = np.einsum("nk,nkd->nd", w, src_disp[nb[near]]) / w.sum(axis=1, keepdims=True)
+                count[part[~near]] = -1
         return X + disp, count
 
 

@@ -35,7 +35,7 @@ from georefine.lidargrammetry.reintersect import Reintersector
 from georefine.lidargrammetry.render import MAX_SPLAT_PX, NEAR_M, Lidargram, LidargramCanvas, max_normalised_radius2
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
-from georefine.workflows.cloud_index import INDEX_RANGE_POINTS, CloudIndex, index_cloud
+from georefine.workflows.cloud_index import INDEX_RANGE_POINTS, RENDER_PART_POINTS, CloudIndex, index_cloud
 
 __all__ = ["SECTION", "PhotoProject", "CloudIndex", "lidargrammetry_settings", "load_photo_project", "read_cloud",
            "render_lidargrams", "render_in_cloud", "write_cloud"]
@@ -151,7 +151,7 @@ def render_in_cloud(cloud: CloudIndex, strip: int, camera: Camera, R_w_c: np.nda
         blocks = blocks[cloud.block_file[blocks] == strip]
     canvas = LidargramCanvas(camera, R_w_c, p_w_c, point_spacing_m=point_spacing_m, splat_scale=splat_scale,
                              max_splat_px=MAX_SPLAT_PX, near_m=NEAR_M)
-    for xyz, intensity, ids in cloud.iter_read(blocks):  # a part at a time: memory is not the view's points
+    for xyz, intensity, ids in cloud.iter_read(blocks, RENDER_PART_POINTS):  # memory: a part, not the view
         canvas.add(xyz, intensity, ids)
     lg = canvas.finish(fill_holes=fill_holes)
     if not lg.point_index.size or np.mean(lg.ulpi >= 0) < min_coverage:
