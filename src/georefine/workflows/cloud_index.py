@@ -28,6 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
+from georefine.errors import InputError
 from georefine.geometry.camera import Camera
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.las import read_las_info, read_las_range
@@ -94,9 +95,6 @@ class CloudIndex:
         lo, hi = self.lo[:, :2].min(axis=0), self.hi[:, :2].max(axis=0)
         return float(np.sqrt(np.prod(hi - lo) / self.n_points))
 
-    def blocks_of_strip(self, strip: int) -> np.ndarray:
-        return np.flatnonzero(self.block_file == strip)
-
     def blocks_in_view(self, camera: Camera, R_w_c: np.ndarray, p_w_c: np.ndarray, max_normalised_radius2: float,
                        near_m: float) -> np.ndarray:
         """Blocks that may hold a point with ``z_c > near_m`` and ideal normalised radius² at most
@@ -119,10 +117,9 @@ class CloudIndex:
             r = np.sqrt(max_normalised_radius2) * (1 + 1e-9)
             with np.errstate(divide="ignore", invalid="ignore"):
                 xn, yn = x_c[..., 0] / z, x_c[..., 1] / z
-            a = ahead
             miss = np.zeros(len(z), bool)
-            miss[a] = ((xn[a].min(axis=1) > r) | (xn[a].max(axis=1) < -r)
-                       | (yn[a].min(axis=1) > r) | (yn[a].max(axis=1) < -r))
+            miss[ahead] = ((xn[ahead].min(axis=1) > r) | (xn[ahead].max(axis=1) < -r)
+                           | (yn[ahead].min(axis=1) > r) | (yn[ahead].max(axis=1) < -r))
             keep &= ~miss
         return np.flatnonzero(keep)
 
@@ -156,8 +153,8 @@ class CloudIndex:
         if np.any(np.diff(index) <= 0) or index[0] < 0 or index[-1] >= self.n_points:
             raise ValueError("point identifiers must be sorted, distinct and within the cloud")
         blk = np.searchsorted(self.block_start, index, side="right") - 1
-        for xyz, _, ids in self.iter_read(np.unique(blk), max_points):
-            sel = np.flatnonzero((index >= ids[0]) & (index <= ids[-1]))
+        for xyz, _, ids in self.iter_read(np.unique(blk), max_points):  # a part: consecutive records
+            sel = slice(int(np.searchsorted(index, ids[0])), int(np.searchsorted(index, ids[-1], side="right")))
             out[sel] = xyz[index[sel] - ids[0]]
         return out
 
@@ -191,8 +188,6 @@ def index_cloud(files: list[Path], frame: LocalFrame, crs: OutputCRS, *, runner:
     InputError
         A file that does not open or is corrupt (named, with the record range); a cloud without points.
     """
-    from georefine.errors import InputError
-
     files = [Path(f) for f in files]
     infos = [read_las_info(f) for f in files]
     counts = np.array([i.point_count for i in infos], dtype=np.int64)

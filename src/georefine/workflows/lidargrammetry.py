@@ -37,7 +37,7 @@ import cv2
 import numpy as np
 
 from georefine.adjustment.observations.reprojection import ReprojectionObservation
-from georefine.config import PAIR_KINDS, LidargrammetryConfig, load_project, write_yaml
+from georefine.config import PAIR_KINDS, LidargrammetryConfig, ProjectConfig, load_project, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.camera import Camera
 from georefine.io import metashape
@@ -279,24 +279,38 @@ class _Block:
     names: tuple
 
 
-def _open(project_dir, out, points, overrides: Mapping[str, Any] | None, matcher=None, *, matching: bool = True,
-          runner: TaskRunner | None = None, progress: Progress = no_progress
-          ) -> tuple[LidargrammetryConfig, Any, PhotoProject, Path, CloudIndex]:
-    """Settings and matcher (the given one, else the settings'; checked before anything is read or
-    written), the photo project, the output folder (outside the project; created once the inputs
-    are read, with the resolved configuration) and the cloud, indexed on ``runner``."""
+@dataclass(frozen=True)
+class _Opened:
+    """A project checked for lidargrammetry, before its cloud is read."""
+
+    config: ProjectConfig
+    settings: LidargrammetryConfig
+    matcher: Any
+    pp: PhotoProject
+    out: Path
+
+    def read_cloud(self, points, runner: TaskRunner, progress: Progress) -> CloudIndex:
+        """The cloud indexed on ``runner`` (every file checked); then the output folder is created,
+        with the resolved configuration."""
+        cloud = read_cloud([Path(p) for p in points], self.pp, runner=runner, progress=progress)
+        self.out.mkdir(parents=True, exist_ok=True)
+        proc = self.config.processing
+        write_yaml(self.out / "config.resolved.yaml",
+                   self.config.model_copy(update={"processing": proc.model_copy(update={"lidargrammetry":
+                                                                                        self.settings})}))
+        return cloud
+
+
+def _open(project_dir, out, overrides: Mapping[str, Any] | None, matcher=None, *, matching: bool = True) -> _Opened:
+    """Settings and matcher (the given one, else the settings'), the photo project and the output
+    folder (outside the project), checked before a cluster starts or anything is read or written."""
     root = Path(project_dir)
     cfg = load_project(root)
     st = lidargrammetry_settings(cfg, overrides)
     if matcher is None and matching:
         matcher = _settings_matcher(st, root)
     pp = load_photo_project(root, cfg)
-    out = output_folder(out, pp.root)
-    cloud = read_cloud([Path(p) for p in points], pp, runner=runner, progress=progress)
-    out.mkdir(parents=True, exist_ok=True)
-    resolved = cfg.model_copy(update={"processing": cfg.processing.model_copy(update={"lidargrammetry": st})})
-    write_yaml(out / "config.resolved.yaml", resolved)
-    return st, matcher, pp, out, cloud
+    return _Opened(cfg, st, matcher, pp, output_folder(out, pp.root))
 
 
 def _lidargram_name(cloud: CloudIndex, strip: int, photo: str) -> str:
@@ -338,9 +352,10 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
     from georefine.lidargrammetry.render import save_lidargram
 
     names = []
+    opened = _open(project_dir, out, overrides, matching=False)
+    st, pp, out = opened.settings, opened.pp, opened.out
     with runner_for(scheduler) as runner:
-        st, _, pp, out, cloud = _open(project_dir, out, points, overrides, matching=False, runner=runner,
-                                      progress=progress)
+        cloud = opened.read_cloud(points, runner, progress)
         for lg, i, s in render_lidargrams(pp, cloud, st, progress=progress, runner=runner):
             names.append(_lidargram_name(cloud, s, Path(pp.eop.images[i]).stem))
             save_lidargram(lg, out, names[-1])
@@ -372,9 +387,10 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
 
     timings: dict[str, float] = {}
     t = _time.perf_counter()
+    opened = _open(project_dir, out, overrides, matcher)
+    st, matcher, pp, out = opened.settings, opened.matcher, opened.pp, opened.out
     with runner_for(scheduler) as runner:
-        st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher, runner=runner,
-                                            progress=progress)
+        cloud = opened.read_cloud(points, runner, progress)
         blk = _block_images(pp, cloud, st, progress, runner)
         (out / "lidargrams").mkdir(exist_ok=True)
         for (lg, _, _), name in zip(blk.lgs, blk.names[blk.n_photos:]):
@@ -439,17 +455,18 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     """
     if case not in CASES:
         raise InputError("unknown case", field="case", expected="1, 2 or 3", found=str(case))
+    opened = _open(project_dir, out, overrides, matcher)
     with runner_for(scheduler) as runner:
-        return _coadjust(project_dir, points, out, case, overrides, matcher, cache_dir, progress, runner)
+        return _coadjust(opened, points, case, cache_dir, progress, runner)
 
 
-def _coadjust(project_dir, points, out, case: int, overrides, matcher, cache_dir, progress: Progress,
-              runner: TaskRunner) -> CoadjustResult:
-    """:func:`run_coadjust` on a running ``runner``."""
+def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress, runner: TaskRunner
+              ) -> CoadjustResult:
+    """:func:`run_coadjust` on a checked project and a running ``runner``."""
+    st, matcher, pp, out = opened.settings, opened.matcher, opened.pp, opened.out
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    st, matcher, pp, out, cloud = _open(project_dir, out, points, overrides, matcher, runner=runner,
-                                        progress=progress)
+    cloud = opened.read_cloud(points, runner, progress)
     timings["read"] = _time.perf_counter() - t
     t = _time.perf_counter()
     blk = _block_images(pp, cloud, st, progress, runner)
