@@ -129,6 +129,8 @@ def test_refined_cloud_streamed_is_the_cloud_refined_whole(strips, tmp_path, sch
     ref = reintersect(whole, strip, shown, R0, p0, R1, p1, k=6, max_distance_m=3.0)
     u = np.unique(np.concatenate(shown))
     refine = Reintersector(u, idx.gather(u), idx.strip_of(u), shown, R0, p0, R1, p1, k=6, max_distance_m=3.0)
+    with pytest.raises(ValueError, match="lidargram 1 shows points that index does not hold"):
+        Reintersector(u[1:], idx.gather(u[1:]), idx.strip_of(u[1:]), [shown[0][1:], shown[2]], R0, p0, R1, p1)
     with TaskRunner(scheduler, workers=2) as runner:
         counts = write_cloud(idx, refine, tmp_path / "points", runner=runner)
     assert counts == ref.summary()

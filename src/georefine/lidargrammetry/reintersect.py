@@ -93,7 +93,11 @@ class Reintersector:
         count = np.zeros(len(X), dtype=np.int64)
         wsum = np.zeros(len(X))
         for j, idx in enumerate(shown):
-            pos = np.searchsorted(self.index, np.asarray(idx, dtype=np.int64))
+            idx = np.asarray(idx, dtype=np.int64)
+            pos = np.searchsorted(self.index, idx)
+            if idx.size and (not len(self.index)
+                             or not np.array_equal(self.index[np.minimum(pos, len(self.index) - 1)], idx)):
+                raise ValueError(f"lidargram {j} shows points that index does not hold")
             moved = p1[j] + (X[pos] - p0[j]) @ R0[j] @ R1[j].T
             w = np.ones(pos.size) if weights is None else np.asarray(weights[j], dtype=float)
             np.add.at(disp, pos, w[:, None] * (moved - X[pos]))
