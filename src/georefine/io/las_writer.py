@@ -27,9 +27,15 @@ from georefine.io.las_encode import (
     encode_points,
 )
 
-__all__ = ["LasWriter", "write_las"]
+__all__ = ["LasWriter", "offset_near", "write_las"]
 
 _log = logging.getLogger(__name__)
+
+
+def offset_near(centre) -> np.ndarray:
+    """The record offset of a file whose points lie about ``centre`` (CRS units): the centre
+    rounded to a multiple of 1000, so that the offset reads as a round coordinate."""
+    return np.round(np.asarray(centre, dtype=np.float64) / 1000.0) * 1000.0
 
 
 class LasWriter:
@@ -118,7 +124,7 @@ class LasWriter:
                 if first is None:
                     raise ValueError("the offset is fixed by the first chunk: pass offset= to encode points elsewhere")
                 centre = 0.5 * (first.xyz.min(axis=0) + first.xyz.max(axis=0)) if len(first) else np.zeros(3)
-                self._offset = np.round(centre / 1000.0) * 1000.0
+                self._offset = offset_near(centre)
             self._layout = LasLayout(tuple(self._scale), tuple(self._offset),
                                      tuple((k, np.dtype(t).str) for k, t in self._extra.items()), self._compress)
         return self._layout

@@ -40,7 +40,7 @@ from georefine.config import PlaneExtractionConfig, ScaleConfig
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.las import PointCloud, TimeIndex, read_las_range, time_index
 from georefine.io.las_encode import LAZ_CHUNK_POINTS, EncodedPoints, LasLayout, encode_points
-from georefine.io.las_writer import LasWriter
+from georefine.io.las_writer import LasWriter, offset_near
 from georefine.lidar.georeference import PoseInterpolator, georeference
 from georefine.lidar.planes import PlanarFeatures, extract_features
 from georefine.progress import Progress, no_progress
@@ -279,7 +279,7 @@ def georeference_strips(
     if len(plans) != len(out_paths):
         raise ValueError(f"{len(plans)} strips but {len(out_paths)} output paths")
     runner = runner or TaskRunner("sync")
-    offset = tuple(np.round(crs.from_w(frame, np.zeros((1, 3)))[0] / 1000.0) * 1000.0)
+    offset = tuple(offset_near(crs.from_w(frame, np.zeros((1, 3)))[0]))
     writers = [LasWriter(Path(o), scale=scale_m, offset=offset, crs=crs.crs, protect=protect) for o in out_paths]
     tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, w.layout_for())
              for plan, w in zip(plans, writers) for tile in plan.tiles]

@@ -30,7 +30,7 @@ from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import photos as pio
 from georefine.io.las import PointCloud, read_las_range
 from georefine.io.las_encode import EncodedPoints, LasLayout, encode_points
-from georefine.io.las_writer import LasWriter
+from georefine.io.las_writer import LasWriter, offset_near
 from georefine.lidargrammetry.reintersect import Reintersector
 from georefine.lidargrammetry.render import MAX_SPLAT_PX, NEAR_M, Lidargram, LidargramCanvas, max_normalised_radius2
 from georefine.progress import Progress, no_progress
@@ -175,9 +175,8 @@ def write_cloud(cloud: CloudIndex, refine: Reintersector, folder: Path, *, prote
     shared = runner.share((cloud, refine))
     counts = np.zeros(4, np.int64)
     for k, f in enumerate(cloud.files):
-        offset = np.round(cloud.file_centre[k] / 1000.0) * 1000.0
-        with LasWriter(folder / (f.stem + ".laz"), scale=0.001, offset=offset, crs=cloud.crs.crs,
-                       protect=[*protect, f], extra_dims=["lidargrams"]) as w:
+        with LasWriter(folder / (f.stem + ".laz"), scale=0.001, offset=offset_near(cloud.file_centre[k]),
+                       crs=cloud.crs.crs, protect=[*protect, f], extra_dims=["lidargrams"]) as w:
             layout = w.layout_for()
             n = int(cloud.file_start[k + 1] - cloud.file_start[k])
             tasks = [(shared, k, a, min(a + INDEX_RANGE_POINTS, n), layout) for a in range(0, n, INDEX_RANGE_POINTS)]
