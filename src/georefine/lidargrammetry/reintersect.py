@@ -58,6 +58,14 @@ def feather_weights(uv: np.ndarray, width: int, height: int, floor: float = 0.05
     return np.maximum(np.clip(tu, 0.0, 1.0) * np.clip(tv, 0.0, 1.0), floor)
 
 
+def _positions(sorted_ids: np.ndarray, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where ``ids`` are in the ascending ``sorted_ids``, and whether each is there."""
+    if not len(sorted_ids):
+        return np.zeros(len(ids), np.int64), np.zeros(len(ids), bool)
+    pos = np.minimum(np.searchsorted(sorted_ids, ids), len(sorted_ids) - 1)
+    return pos, sorted_ids[pos] == ids
+
+
 _QUERY_POINTS = 250_000
 """Points interpolated at a time (their neighbours' displacements: about 50 MB)."""
 
@@ -94,9 +102,8 @@ class Reintersector:
         wsum = np.zeros(len(X))
         for j, idx in enumerate(shown):
             idx = np.asarray(idx, dtype=np.int64)
-            pos = np.searchsorted(self.index, idx)
-            if idx.size and (not len(self.index)
-                             or not np.array_equal(self.index[np.minimum(pos, len(self.index) - 1)], idx)):
+            pos, held = _positions(self.index, idx)
+            if not held.all():
                 raise ValueError(f"lidargram {j} shows points that index does not hold")
             moved = p1[j] + (X[pos] - p0[j]) @ R0[j] @ R1[j].T
             w = np.ones(pos.size) if weights is None else np.asarray(weights[j], dtype=float)
@@ -126,8 +133,7 @@ class Reintersector:
         lidargrams showed each (0: interpolated, -1: unchanged)."""
         X = np.asarray(xyz_w, dtype=float)
         index, groups = np.asarray(index, dtype=np.int64), np.asarray(groups)
-        pos = np.minimum(np.searchsorted(self.index, index), max(len(self.index) - 1, 0))
-        seen = (self.index[pos] == index) if len(self.index) else np.zeros(len(index), bool)
+        pos, seen = _positions(self.index, index)
         disp = np.zeros_like(X)
         count = np.zeros(len(X), dtype=np.int64)
         disp[seen] = self.disp[pos[seen]]

@@ -123,17 +123,11 @@ class CloudIndex:
             keep &= ~miss
         return np.flatnonzero(keep)
 
-    def read(self, blocks: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(xyz_w, intensity, identifiers)`` of the points of ``blocks``, in identifier order."""
-        parts = list(self.iter_read(blocks))
-        if not parts:
-            return np.zeros((0, 3)), np.zeros(0, np.uint16), np.zeros(0, np.int64)
-        return tuple(np.concatenate(x) for x in zip(*parts))  # type: ignore[return-value]
-
     def iter_read(self, blocks: np.ndarray, max_points: int = INDEX_RANGE_POINTS
                   ) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """:meth:`read` in parts of at most ``max_points`` records (whole blocks, at least one),
-        in identifier order: consecutive blocks of a file are read as one record range."""
+        """``(xyz_w, intensity, identifiers)`` of the points of ``blocks`` in parts of at most
+        ``max_points`` records (whole blocks, at least one), in identifier order: consecutive
+        blocks of a file are read as one record range."""
         blocks = np.unique(np.asarray(blocks, dtype=np.int64))
         for f, start, stop in self._runs(blocks):
             step = max(BLOCK_POINTS, max_points // BLOCK_POINTS * BLOCK_POINTS)
