@@ -9,15 +9,14 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from georefine.errors import InputError
+from georefine.lidar.feature_sample import feature_keys, stable_subset
 from georefine.lidar.planes import (
     CSV_COLUMNS,
     PlanarFeatures,
     PlaneExtractionConfig,
     extract_features,
     extract_features_chunked,
-    feature_keys,
     read_features,
-    stable_subset,
     write_features,
 )
 

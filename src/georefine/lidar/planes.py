@@ -79,9 +79,7 @@ __all__ = [
     "PoseFn",
     "extract_features",
     "extract_features_chunked",
-    "feature_keys",
     "read_features",
-    "stable_subset",
     "write_features",
 ]
 
@@ -188,41 +186,6 @@ class PlanarFeatures:
         if index.dtype == bool and index.shape != (len(self),):
             raise ValueError(f"mask must have shape ({len(self)},), got {index.shape}")
         return PlanarFeatures(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
-
-
-def _mix64(x: np.ndarray) -> np.ndarray:
-    """SplitMix64's finaliser on uint64 (wrapping arithmetic): a bijection that scatters bits."""
-    x = x ^ (x >> np.uint64(30))
-    x = x * np.uint64(0xBF58476D1CE4E5B9)
-    x = x ^ (x >> np.uint64(27))
-    x = x * np.uint64(0x94D049BB133111EB)
-    return x ^ (x >> np.uint64(31))
-
-
-def feature_keys(features: PlanarFeatures) -> np.ndarray:
-    """(F,) uint64 pseudo-random key of each feature, fixed by its strip, channel and seed voxel.
-
-    A feature extracted again with a slightly changed trajectory keeps its seed voxel, and so
-    its key. The features with the smallest keys are a random-like sample that stays the same
-    from one outer iteration to the next (:func:`stable_subset`).
-    """
-    h = np.full(len(features), 0x9E3779B97F4A7C15, dtype=np.uint64)
-    for column in (features.strip, features.channel, *features.seed_cell.T):
-        h = _mix64(h ^ np.asarray(column, dtype=np.int64).astype(np.uint64))
-    return h
-
-
-def stable_subset(index: np.ndarray, keys: np.ndarray, size: int) -> np.ndarray:
-    """The ``size`` entries of ``index`` with the smallest ``keys[index]``, in increasing order.
-
-    A bottom-k sample: where two sets of candidates share most of their keys, their samples share
-    most of their members, unlike two independent random draws.
-    """
-    index = np.asarray(index)
-    if index.size <= size:
-        return np.sort(index)
-    k = keys[index]
-    return np.sort(index[np.argpartition(k, size - 1)[:size]])
 
 
 # --------------------------------------------------------------------------- kernels

@@ -49,8 +49,9 @@ from georefine.geometry.rotation import log_so3, rph_from_R_n_b
 from georefine.io.files import write_json
 from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
+from georefine.lidar.feature_sample import feature_keys, stable_subset
 from georefine.lidar.georeference import PoseInterpolator
-from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, feature_keys, stable_subset, write_features
+from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
 from georefine.lidar.tiles import georeference_strips
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
