@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from georefine.errors import InputError
-from georefine.lidar.feature_sample import feature_keys, stable_subset
+from georefine.lidar.feature_sample import feature_keys, stable_object_subset
 from georefine.lidar.planes import (
     CSV_COLUMNS,
     PlanarFeatures,
@@ -333,8 +333,9 @@ def test_features_keep_their_keys_when_the_trajectory_changes_a_little(simulated
     shared = np.intersect1d(kf, kg).size
     assert shared >= 0.97 * min(len(f), len(g))
     size = len(f) // 10
-    a = stable_subset(np.arange(len(f)), kf, size)
-    b = stable_subset(np.arange(len(g)), kg, size)
+    # each feature its own object: the sample is the features of smallest key (bottom-k)
+    a = stable_object_subset(np.arange(len(f)), kf, np.arange(len(f)), size)
+    b = stable_object_subset(np.arange(len(g)), kg, np.arange(len(g)), size)
     assert a.size == b.size == size and np.all(np.diff(a) > 0)
     assert np.intersect1d(kf[a], kg[b]).size >= 0.95 * size
     # keys do not depend on the feature order, and differ between views of the same places
@@ -347,11 +348,43 @@ def test_features_keep_their_keys_when_the_trajectory_changes_a_little(simulated
     assert np.all(np.abs(counts - size / 4) < 4 * np.sqrt(size / 4))
 
 
-def test_stable_subset_small_and_exact():
-    keys = np.array([9, 3, 7, 1, 5], dtype=np.uint64)
-    np.testing.assert_array_equal(stable_subset(np.array([4, 0, 2]), keys, 5), [0, 2, 4])
-    np.testing.assert_array_equal(stable_subset(np.arange(5), keys, 2), [1, 3])
-    np.testing.assert_array_equal(stable_subset(np.array([0, 2, 4]), keys, 2), [2, 4])
+def test_stable_object_subset_small_and_exact():
+    keys = np.array([9, 3, 7, 1, 5, 2, 8], dtype=np.uint64)
+    obj = np.array([0, 1, 0, 2, 1, 0, 2])  # min-hashes: object 2 -> 1, object 0 -> 2, object 1 -> 3
+    np.testing.assert_array_equal(stable_object_subset(np.arange(7), keys, obj, 7), np.arange(7))
+    np.testing.assert_array_equal(stable_object_subset(np.array([6, 3, 0]), keys, obj, 5), [0, 3, 6])
+    np.testing.assert_array_equal(stable_object_subset(np.arange(7), keys, obj, 5), [0, 2, 3, 5, 6])
+    # a prefix of the ranking: object 1 would fit after object 0 is refused, but is not taken
+    np.testing.assert_array_equal(stable_object_subset(np.arange(7), keys, obj, 4), [3, 6])
+    # object 0 without its smallest-keyed member ranks by its next one (7), after object 1 (3)
+    np.testing.assert_array_equal(stable_object_subset(np.array([0, 1, 2, 3, 4, 6]), keys, obj, 4), [1, 3, 4, 6])
+    with pytest.raises(ValueError, match="object"):
+        stable_object_subset(np.arange(7), keys, np.array([0, 1, 0, -1, 1, 0, 2]), 3)
+
+
+def test_stable_object_subset_keeps_whole_objects_and_its_sample_through_a_rematching():
+    """The sample is whole objects; after a re-matching that moves a few members between
+    objects and drops others, most sampled objects are sampled again (two random draws of a
+    fifth of the objects would share a fifth)."""
+    rng = np.random.default_rng(11)
+    n_obj = 4000
+    size_of = rng.integers(2, 13, n_obj)
+    obj = np.repeat(np.arange(n_obj), size_of)
+    keys = rng.integers(0, 2**63, obj.size, dtype=np.uint64)
+    cap = obj.size // 5
+    a = stable_object_subset(np.arange(obj.size), keys, obj, cap)
+    assert a.size <= cap and a.size > cap - 12 and np.all(np.diff(a) > 0)
+    taken = np.unique(obj[a])
+    np.testing.assert_array_equal(np.bincount(obj[a], minlength=n_obj)[taken], size_of[taken])  # whole
+    # the re-matching: 3 % of the features change object, 3 % are no longer matched
+    obj2 = obj.copy()
+    moved = rng.random(obj.size) < 0.03
+    obj2[moved] = rng.integers(0, n_obj, int(moved.sum()))
+    kept = np.flatnonzero(rng.random(obj.size) >= 0.03)
+    b = stable_object_subset(kept, keys, obj2, cap)
+    shared = np.intersect1d(taken, np.unique(obj2[b])).size
+    assert shared >= 0.8 * taken.size
+
 
 
 # --------------------------------------------------------------------------- container and files

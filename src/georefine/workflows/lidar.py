@@ -49,7 +49,7 @@ from georefine.geometry.rotation import log_so3, rph_from_R_n_b
 from georefine.io.files import write_json
 from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
-from georefine.lidar.feature_sample import feature_keys, stable_subset
+from georefine.lidar.feature_sample import feature_keys, stable_object_subset
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
 from georefine.lidar.tiles import georeference_strips
@@ -122,10 +122,10 @@ def step_adjust_gil(
     grid = built.grid
     sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end))
     if sel.size > lcfg.max_features:
-        # The same sample of views and places in every outer iteration, not a fresh random draw
-        # from an index whose length changes with every re-extraction (bottom-k of a key fixed by
-        # strip, channel and seed voxel). The re-matching still changes which features are matched.
-        sel = stable_subset(sel, feature_keys(features), lcfg.max_features)
+        # Whole objects, the same ones in every outer iteration as far as the re-matching allows
+        # (ranked by a min-hash of keys fixed by strip, channel and seed voxel), not a fresh random
+        # draw, and not single features, which would leave objects with one view or one member.
+        sel = stable_object_subset(sel, feature_keys(features), objects.feature_object, lcfg.max_features)
     if sel.size == 0:
         raise InputError("no matched planar features inside the trajectory span", field="processing.matching")
     used_objects, obj_index = np.unique(objects.feature_object[sel], return_inverse=True)
