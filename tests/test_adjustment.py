@@ -534,6 +534,43 @@ def test_steps_by_preconditioned_conjugate_gradients_reach_the_direct_solution()
     assert cg.final_cost == pytest.approx(direct.final_cost, rel=1e-10)
 
 
+@pytest.mark.parametrize("reported", [3, 20])
+def test_a_factor_that_needed_many_conjugate_gradient_iterations_is_replaced_next(monkeypatch, reported):
+    """After a step whose conjugate gradients needed more than half their cap, the next step is
+    factorised without trying them (the old factor has aged); after a cheap one they go on."""
+    from georefine.adjustment import solver
+
+    events = []
+    pcg, factorize = solver._pcg_step, solver.SparseCholesky.factorize
+
+    def counted_pcg(normal, lam, factor):
+        delta, _ = pcg(normal, lam, factor)
+        events.append("cg")
+        return delta, reported  # the iterations the step is said to have needed
+
+    def counted_factorize(self, *args, **kwargs):
+        events.append("factor")
+        return factorize(self, *args, **kwargs)
+
+    monkeypatch.setattr(solver, "_pcg_step", counted_pcg)
+    monkeypatch.setattr(solver.SparseCholesky, "factorize", counted_factorize)
+    rng = np.random.default_rng(21)
+    R_true = random_rotations(rng, 400)
+    g_abs, g_rel = _rotation_chain(rng, R_true, 0.02, 0.005, np.array([0, 100, 250, 399]))
+    problem = Problem()
+    problem.add_block("R", noisy(rng, R_true, 0.3), manifold="so3")
+    problem.add_group(g_abs)
+    problem.add_group(g_rel)
+    result = problem.solve(SolverOptions(reuse_factor_from=0, function_tolerance=1e-12))
+    assert result.converged and result.iterations >= 4, result.termination
+    pairs = list(zip(events, events[1:]))
+    assert events[0] == "factor" and "cg" in events
+    if reported > solver._PCG_STALE_ITERATIONS:
+        assert ("cg", "cg") not in pairs
+    else:
+        assert ("cg", "cg") in pairs
+
+
 def test_conjugate_gradient_steps_under_changing_robust_weights():
     """Cauchy IRLS reweights the rows every iteration; CG steps on the old factor still reach the same fit."""
     rng = np.random.default_rng(22)

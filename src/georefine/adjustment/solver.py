@@ -17,8 +17,8 @@ Each iteration
        reused while the pattern of ``N`` stays the same), and the step applied through the
        retraction. From ``SolverOptions.reuse_factor_from`` unknowns on, the steps after the
        first are first tried by conjugate gradients preconditioned with the last factor
-       (:func:`_pcg_step`, ``N`` not formed); a new factorisation only when they do not
-       converge.
+       (:func:`_pcg_step`, ``N`` not formed); a new factorisation when they do not
+       converge, or right away after a step that needed many of them (the factor has aged).
     5. Gain ratio ``rho = (F(x) - F(x')) / (L(0) - L(delta))`` with the model decrease
        ``L(0) - L(delta) = 1/2 delta^T (lambda D delta - g)`` (for an inexact step from
        conjugate gradients ``-g^T delta - |J delta|^2 / 2``). Accepted if
@@ -276,6 +276,12 @@ _PCG_MAX_ITERATIONS = 25
 iteration (a solve with the factor, a product with ``J`` and ``J^T``) took 0.55 s on that G/I/L
 matrix, a factorisation with ``N`` formed 20 s: 25 iterations stay below it."""
 
+_PCG_STALE_ITERATIONS = _PCG_MAX_ITERATIONS // 2
+"""After a step whose conjugate gradients needed more than this, the next step is factorised
+without trying them: the factor ages with every step (other weights, another linearisation
+point), and on the first G/I/L outer iterations of the 60-minute and 10-minute flights every
+step after one of 15 to 25 iterations failed to converge in 25 (four and two wasted attempts)."""
+
 
 def _pcg_step(normal: _Normal, lam: float, factor) -> tuple[np.ndarray | None, int]:
     """``(N + lambda D) delta = -g`` by conjugate gradients preconditioned with an earlier factor.
@@ -409,6 +415,7 @@ def run_levenberg_marquardt(
     backend_used = options.linear_solver
     reuse = layout.n_cols >= options.reuse_factor_from
     factor = None  # the last factorisation: the preconditioner of the next steps (reuse)
+    pcg_iterations = 0  # of the last step by conjugate gradients since that factorisation
     n_factorisations = n_pcg_steps = 0
     termination = "max_iterations"
     log("LM start: cost %.6g, %d unknowns, %d residuals", cost, layout.n_cols, current.n_rows)
@@ -426,7 +433,7 @@ def run_levenberg_marquardt(
         iterations += 1
         t0 = time.perf_counter()
         delta, exact = None, True
-        if reuse and factor is not None:
+        if reuse and factor is not None and pcg_iterations <= _PCG_STALE_ITERATIONS:
             delta, pcg_iterations = _pcg_step(normal, lam, factor)
             exact = delta is None
             log("iter %3d: conjugate gradients %s after %d iterations", iterations,
@@ -442,6 +449,7 @@ def run_levenberg_marquardt(
                 factor = factorizer.factorize(A, lower=True, check_pivots=lam < _PIVOT_SAFE_LAMBDA)
                 del A
                 n_factorisations += 1
+                pcg_iterations = 0
                 backend_used = factor.backend
                 delta = factor.solve(-normal.g)
                 solved = bool(np.all(np.isfinite(delta)))
