@@ -39,7 +39,7 @@ def _records(seed: int) -> tuple[WorkflowMetrics, RunEvaluation]:
         outer_iterations=tuple(
             OuterIteration(i, int(rng.integers(10_000, 20_000)), int(rng.integers(500, 900)), int(rng.integers(900, 5000)),
                            int(rng.integers(100, 500)), float(rng.uniform(0, 20)), float(rng.uniform(0, 0.01)), 0,
-                           {"strip1_nadir": 7, "strip2_nadir": 9})
+                           {"strip1_nadir": 7, "strip2_nadir": 9}, 0.25 if i == 1 else 0.1)
             for i in (1, 2)),
         points=(PointsWritten(1, "strip_1.laz", 1234, 0), PointsWritten(2, "strip_2.laz", 5678, 3)),
         resumed=("gi",), timings_s={"read": 0.5, "gi_adjustment": 2.25, "final_georeferencing": 1.0},
@@ -119,7 +119,7 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     for row in summary_rows(RunEvaluation.read(run / "evaluation" / "summary.json")):
         assert "".join(f"<td>{c}</td>" for c in row) in page, row
     last = metrics.outer_iterations[-1]
-    assert (f"<td>{last.iteration}</td><td>{last.features:,}</td><td>{last.objects:,}</td>"
+    assert (f"<td>{last.iteration}</td><td>0.1</td><td>{last.features:,}</td><td>{last.objects:,}</td>"
             f"<td>{last.features_used:,}</td><td>{last.attitude_change_mdeg:.2f}</td>") in page
     assert "Resumed from the cache: gi." in page and "<td>gi_adjustment</td><td>2.2</td>" in page
     assert "strips [1, 2]" in page and "trajectory reference: truth" in page

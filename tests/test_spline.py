@@ -75,6 +75,47 @@ def test_grid_covering(seed):
         grid.locate(np.array([t_first, t_first + span]))  # both ends evaluable
 
 
+@pytest.mark.parametrize("seed", SEEDS)
+def test_grid_spanning(seed):
+    rng = np.random.default_rng(seed)
+    t_first, span = rng.uniform(-100, 100), rng.uniform(1.0, 100.0)
+    for dt in (0.1, 0.25, rng.uniform(0.01, 0.5), 2 * span):
+        grid = KnotGrid.spanning(t_first, t_first + span, dt)
+        assert grid.t_start == t_first and grid.t_end == pytest.approx(t_first + span, abs=1e-9)
+        assert abs(grid.dt - dt) <= 0.5 * grid.dt ** 2 / span * 1.000001 or grid.n_knots == 2  # nearest whole number
+    fine = KnotGrid(t_first, 0.1, 361)
+    again = KnotGrid.spanning(fine.t_start, fine.t_end, 0.1)  # a grid spans its own span with its own knots
+    assert again.n_knots == fine.n_knots
+    np.testing.assert_allclose(again.knot_times, fine.knot_times, rtol=0, atol=1e-9)
+    with pytest.raises(ValueError):
+        KnotGrid.spanning(1.0, 1.0, 0.1)
+    with pytest.raises(ValueError):
+        KnotGrid.spanning(0.0, 1.0, 0.0)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_resampled_keeps_the_curve_at_the_new_knots(seed):
+    rng = np.random.default_rng(seed)
+    grid, P, V, A, R, W = random_knots(rng, 40)
+    spline = SplineTrajectory(grid, P, V, A, R, W, t0_gps=1.4e9)
+    for dt in (grid.dt / 3.0, 2.5 * grid.dt):
+        other = KnotGrid.spanning(grid.t_start, grid.t_end, dt)
+        moved = spline.resampled(other)
+        assert moved.grid == other and moved.t0_gps == spline.t0_gps
+        t = other.knot_times
+        np.testing.assert_allclose(moved.p_w_b, spline.position(t), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(moved.v_w_b, spline.velocity(t), rtol=0, atol=1e-9)
+        np.testing.assert_allclose(moved.a_w_b, spline.acceleration(t), rtol=0, atol=1e-9)
+        assert angle(moved.R_w_b, spline.orientation(t).R_w_b).max() < 1e-12
+        np.testing.assert_allclose(moved.omega_wb_b, spline.body_rate(t), rtol=0, atol=1e-9)
+    # on a grid three times finer the states at the old knots are the old ones
+    finer = spline.resampled(KnotGrid.spanning(grid.t_start, grid.t_end, grid.dt / 3.0))
+    np.testing.assert_allclose(finer.p_w_b[::3], P, rtol=0, atol=1e-8)
+    assert angle(finer.R_w_b[::3], R).max() < 1e-10
+    with pytest.raises(InputError):
+        spline.resampled(KnotGrid(grid.t_start, grid.dt, grid.n_knots + 1))
+
+
 def test_grid_rejects_bad_parameters():
     for args in [(0.0, 0.0, 5), (0.0, -0.1, 5), (0.0, 0.1, 1), (0.0, 0.1, 2.5), (np.nan, 0.1, 5)]:
         with pytest.raises(ValueError):

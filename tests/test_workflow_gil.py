@@ -24,6 +24,7 @@ from truth_helpers import pass_rmse
 from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.summary import RunEvaluation
+from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.las import read_las
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.io.trajectory import read_sbet
@@ -80,7 +81,10 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, tmp_path):
                 "metrics.json", "config.resolved.yaml"):
         assert (out / rel).is_file(), rel
     metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["strips"] == [1, 2] and 1 <= len(metrics["outer_iterations"]) <= 3
+    assert metrics["strips"] == [1, 2] and 2 <= len(metrics["outer_iterations"]) <= 3
+    # The first outer iteration on coarse knots (processing.lidar.first_knot_interval_s), the rest on 0.1 s.
+    knots = [it["knot_interval_s"] for it in metrics["outer_iterations"]]
+    assert knots[0] == pytest.approx(0.25, rel=1e-3) and knots[1:] == pytest.approx([0.1] * (len(knots) - 1), rel=1e-6)
     # The typed record reads the file back to exactly what was written.
     typed = WorkflowMetrics.from_dict(metrics)
     assert typed.to_dict() == metrics
@@ -363,6 +367,40 @@ def test_a_local_cluster_writes_the_same_trajectory_and_points_as_one_process(pr
         assert len(pa.points) == len(pb.points) > 0
         for dim in ("X", "Y", "Z", "gps_time"):
             assert np.array_equal(pa[dim], pb[dim]), (f, dim)
+
+
+@pytest.mark.slow
+def test_a_coarse_first_outer_iteration_ends_where_fine_ones_do(project, tmp_path):
+    """Outer iterations that start on 0.25 s knots give the trajectory of outer iterations on 0.1 s
+    knots alone: the same accuracy against the truth, and the two within the churn of re-matching."""
+    fine = tmp_path / "p"
+    shutil.copytree(project, fine)
+    cfg = yaml.safe_load((fine / "project.yaml").read_text())
+    cfg["processing"] = {"lidar": {"first_knot_interval_s": None}}
+    (fine / "project.yaml").write_text(yaml.safe_dump(cfg))
+    a = run_workflow(project, tmp_path / "coarse", points=False, cache_dir=tmp_path / "cache")
+    b = run_workflow(fine, tmp_path / "fine", points=False, cache_dir=tmp_path / "cache")
+    assert b.metrics.resumed == ("gi",)  # the same G/I start
+    assert [it.knot_interval_s for it in a.metrics.outer_iterations][0] == pytest.approx(0.25, rel=1e-3)
+    assert {round(it.knot_interval_s, 6) for it in b.metrics.outer_iterations} == {0.1}
+    for strip in (1, 2):
+        ra = pass_rmse(a.out / "gil" / "trajectory.sbet", project, strip)
+        rb = pass_rmse(b.out / "gil" / "trajectory.sbet", project, strip)
+        assert np.all(ra <= 1.15 * rb + 0.1), (strip, ra, rb)  # mdeg
+    between = compare_sbet_files(a.out / "gil" / "trajectory.sbet", b.out / "gil" / "trajectory.sbet").stats
+    assert between["attitude_angle_rmse_mdeg"] < 1.5, between  # processing.lidar.convergence_attitude_mdeg
+
+
+def test_only_a_first_outer_iteration_that_others_follow_takes_coarse_knots():
+    from georefine.config import LidarAdjustmentConfig as Lidar
+    from georefine.workflows.lidar import outer_knot_interval
+
+    assert outer_knot_interval(Lidar(), 0.1, 1) == 0.25 and outer_knot_interval(Lidar(), 0.1, 2) is None
+    assert outer_knot_interval(Lidar(outer_iterations=1), 0.1, 1) is None  # the only one is the result
+    assert outer_knot_interval(Lidar(first_knot_interval_s=None), 0.1, 1) is None
+    assert outer_knot_interval(Lidar(first_knot_interval_s=0.1), 0.1, 1) is None  # not coarser
+    assert outer_knot_interval(Lidar(), 0.5, 1) is None
+    assert outer_knot_interval(Lidar(first_knot_interval_s=0.5), 0.1, 1) == 0.5
 
 
 def test_outer_iterations_that_do_not_converge_are_reported_with_their_figures(caplog):

@@ -202,6 +202,15 @@ class LidarAdjustmentConfig(StrictModel):
         "without changing its accuracy (measured), so a tighter threshold only adds iterations.",
     )
     convergence_position_m: float = Field(0.005, gt=0.0, description="... and the RMS position change below this.")
+    first_knot_interval_s: float | None = Field(
+        0.25, gt=0.0, le=1.0,
+        description="The first outer iteration adjusts a trajectory with knots about this far apart (IMU windows "
+        "in proportion) when that is coarser than processing.trajectory.knot_interval_s and more outer "
+        "iterations may follow; the later ones use the configured knots, and it never ends the outer iterations. "
+        "It starts from the G/I trajectory, tens of mdeg away, and only has to bring it near enough to "
+        "re-extract and re-match: on coarse knots its Cauchy reweighting converges in fewer and much cheaper "
+        "iterations (BENCHMARKS.md, Flight length). null: every outer iteration on the configured knots.",
+    )
     plane_loss: Literal["cauchy", "huber", "none"] = "cauchy"
     plane_loss_scale: float = Field(2.0, gt=0.0, description="Cauchy c / Huber delta in units of sigma.")
     estimate_boresight: bool = Field(False, description="Estimate the scanner boresight (needs two passes).")

@@ -109,9 +109,11 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
     parts.append(table(["step", "seconds"], [[k, f"{v:.1f}"] for k, v in metrics.timings_s.items()]))
     if metrics.outer_iterations:
         parts.append(table(
-            ["outer iteration", "features", "objects", "features used", "RMS change (mdeg)", "RMS change (mm)"],
-            [[it.iteration, f"{it.features:,}", f"{it.objects:,}", f"{it.features_used:,}",
-              f"{it.attitude_change_mdeg:.2f}", f"{it.position_change_m * 1e3:.1f}"]
+            ["outer iteration", "knots (s)", "features", "objects", "features used", "RMS change (mdeg)",
+             "RMS change (mm)"],
+            [[it.iteration, "" if it.knot_interval_s is None else f"{it.knot_interval_s:.3g}", f"{it.features:,}",
+              f"{it.objects:,}", f"{it.features_used:,}", f"{it.attitude_change_mdeg:.2f}",
+              f"{it.position_change_m * 1e3:.1f}"]
              for it in metrics.outer_iterations]))
     if metrics.resumed:
         parts.append(f'<p class="note">Resumed from the cache: {html.escape(", ".join(metrics.resumed))}.</p>')

@@ -42,6 +42,9 @@ class OuterIteration:
         Points of all strips outside the trajectory's span (left out of the features).
     views
         Features extracted per view, ``strip{id}_{channel name}``, in the order extracted.
+    knot_interval_s
+        Knot interval of the iteration's trajectory (coarser in a first iteration with
+        ``processing.lidar.first_knot_interval_s``); None in files written before it was recorded.
     """
 
     iteration: int
@@ -53,6 +56,7 @@ class OuterIteration:
     position_change_m: float
     points_outside_trajectory: int
     views: dict[str, int] = field(default_factory=dict)
+    knot_interval_s: float | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -60,6 +64,7 @@ class OuterIteration:
             "features_used": self.features_used, "objects_used": self.objects_used,
             "attitude_change_mdeg": self.attitude_change_mdeg, "position_change_m": self.position_change_m,
             "points_outside_trajectory": self.points_outside_trajectory, "views": dict(self.views),
+            "knot_interval_s": self.knot_interval_s,
         }
 
     @classmethod
@@ -68,6 +73,7 @@ class OuterIteration:
             int(d["iteration"]), int(d["features"]), int(d["objects"]), int(d["features_used"]),
             int(d["objects_used"]), float(d["attitude_change_mdeg"]), float(d["position_change_m"]),
             int(d["points_outside_trajectory"]), {str(k): int(v) for k, v in d["views"].items()},
+            None if d.get("knot_interval_s") is None else float(d["knot_interval_s"]),
         )
 
 

@@ -100,6 +100,20 @@ class KnotGrid:
             n += 1
         return cls(t_first, dt, max(n, 2))
 
+    @classmethod
+    def spanning(cls, t_first: float, t_last: float, dt: float) -> KnotGrid:
+        """The grid from ``t_first`` to ``t_last`` whose whole intervals are nearest ``dt`` long.
+
+        Two grids spanning the same times share their end knots whatever their intervals, so a
+        trajectory moves between them without extrapolating (:meth:`SplineTrajectory.resampled`).
+        """
+        if not t_last > t_first:
+            raise ValueError(f"need t_last > t_first, got {t_first} .. {t_last}")
+        if not dt > 0.0:
+            raise ValueError(f"need dt > 0, got {dt}")
+        n = max(int(round((t_last - t_first) / dt)), 1)
+        return cls(t_first, (t_last - t_first) / n, n + 1)
+
     @property
     def t_end(self) -> float:
         """Last knot (s)."""
@@ -499,6 +513,18 @@ class SplineTrajectory:
     def orientation(self, t: np.ndarray, rate: bool = True, jacobians: bool = False) -> OrientationEval:
         """See :func:`eval_orientation`."""
         return eval_orientation(self.grid, self.R_w_b, self.omega_wb_b, t, rate, jacobians)
+
+    def resampled(self, grid: KnotGrid) -> SplineTrajectory:
+        """The trajectory's states at ``grid``'s knots, which must lie inside its span.
+
+        On a finer grid the result is the same curve at its knots and close between them; on a
+        coarser one it keeps the states at the new knots only. A starting value for an adjustment
+        on another grid, not an approximation of the curve.
+        """
+        t = grid.knot_times
+        ori = self.orientation(t)
+        return SplineTrajectory(grid, self.position(t), self.velocity(t), self.acceleration(t), ori.R_w_b,
+                                ori.omega_wb_b, self.t0_gps)
 
     def to_sampled(self, times: np.ndarray) -> Trajectory:
         """The trajectory at ``times`` (N,) s (strictly increasing), with ``v_w_b``."""

@@ -55,6 +55,7 @@ from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_featu
 from georefine.lidar.tiles import georeference_strips
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
+from georefine.trajectory.spline import KnotGrid
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
 from georefine.workflows.navigation import (
     NavigationData,
@@ -105,18 +106,27 @@ def step_adjust_gil(
     objects: PlanarObjects,
     progress: Progress = no_progress,
     covariance: bool = True,
+    knot_interval_s: float | None = None,
 ) -> LidarAdjustment:
     """Step 5: the G/I problem started at ``previous`` plus the plane observations.
 
     With ``covariance=False`` no posterior sigma is computed (see :func:`add_posterior`).
+    The trajectory has knots about ``knot_interval_s`` apart (default
+    ``processing.trajectory.knot_interval_s``) over ``previous``'s span, IMU windows in the
+    configured proportion to them; ``previous`` on another grid is resampled onto it.
     """
     cfg = nav.config
     lcfg = cfg.processing.lidar
+    tcfg = cfg.processing.trajectory
+    spline = previous.spline
+    if knot_interval_s is not None and knot_interval_s != tcfg.knot_interval_s:
+        tcfg = tcfg.model_copy(update={"knot_interval_s": float(knot_interval_s),
+                                       "imu_window_s": tcfg.imu_window_s * knot_interval_s / tcfg.knot_interval_s})
+    if abs(spline.grid.dt - tcfg.knot_interval_s) > 1e-6 * tcfg.knot_interval_s:
+        spline = spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, tcfg.knot_interval_s))
     # Windows without the previous result's high-frequency motion (up-sampling, §4.6).
     data = without_high_rate(nav.gnss, previous)
-    built = start_imu_errors(
-        build_gnss_imu_problem(data, cfg.imu.errors, cfg.processing.trajectory, previous.spline), previous.imu_errors
-    )
+    built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors)
     P = built.problem
 
     grid = built.grid
@@ -149,7 +159,6 @@ def step_adjust_gil(
     def report(it) -> None:
         progress("G/I/L adjustment", getattr(it, "iteration", 0), cfg.processing.trajectory.max_iterations)
 
-    tcfg = cfg.processing.trajectory
     options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance)
     result = solve_gnss_imu(built, options, progress=report, covariance=False)
     if tcfg.upsampling:
@@ -287,15 +296,27 @@ def _features_and_objects(nav, current: GnssImuResult, strip_files, it: int, tim
     return features, objects, counts
 
 
-def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner) -> IterationOutcome:
+def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner,
+                     knot_interval_s: float | None = None) -> IterationOutcome:
     """Steps 3-5 once from ``current``: features, objects, G/I/L adjustment (no posterior) and record."""
     features, objects, counts = _features_and_objects(nav, current, strip_files, it, timed, progress, runner)
     with timed(f"gil_adjustment_{it}"):
-        gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False)
+        gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False,
+                              knot_interval_s=knot_interval_s)
     d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
     record = OuterIteration(it, len(features), len(objects), gil.features_used, gil.objects_used, d_att, d_pos,
-                            counts.points_outside_trajectory, counts.views)
+                            counts.points_outside_trajectory, counts.views, gil.result.spline.grid.dt)
     return IterationOutcome(gil, record, features, objects)
+
+
+def outer_knot_interval(lcfg, knot_interval_s: float, iteration: int) -> float | None:
+    """The coarser knot interval of outer iteration ``iteration`` (only the first, and only when
+    more may follow), or None for the configured ``knot_interval_s``
+    (``processing.lidar.first_knot_interval_s``)."""
+    fine, coarse = knot_interval_s, lcfg.first_knot_interval_s
+    if iteration == 1 and lcfg.outer_iterations > 1 and coarse is not None and coarse > fine * (1.0 + 1e-6):
+        return float(coarse)
+    return None
 
 
 def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
@@ -360,16 +381,17 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
     for it in range(1, lcfg.outer_iterations + 1):
         key = _lidar_key(nav, inputs.strips, key, it)
         start = current
+        coarse = outer_knot_interval(lcfg, nav.config.processing.trajectory.knot_interval_s, it)
         outcome = steps.cached(
             f"gil_{it}", key, partial(_outer_iteration, nav, start, inputs.strips, it, steps.timed, progress,
-                                      inputs.runner),
+                                      inputs.runner, coarse),
             encode=IterationOutcome.cached_form, decode=IterationOutcome.from_cached,
         )
         if outcome.features is not None:
             steps.keep("gil_features", key, (outcome.features, outcome.objects))
         records.append(outcome.record)
         current = outcome.gil.result
-        if outer_converged(outcome.record, lcfg):
+        if coarse is None and outer_converged(outcome.record, lcfg):  # a coarse start is never the result
             break
     else:
         warn_unconverged(records, lcfg)
