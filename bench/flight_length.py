@@ -6,18 +6,25 @@ simulated with a LiDAR that keeps the planar features representative at a quarte
 points: 25 kHz at 60 lines/s (0.8 m across and 0.9 m along track per view, ~1.4 points/m²)
 with a 2 m feature radius (``processing.planes.radius_m``) holds about the points a 1 m ball
 holds at the default 100 kHz. Then ``georefine run --no-points`` (steps 1-5, default
-configuration otherwise: up-sampling on, two outer iterations at most) runs in a fresh child
-process per case so that its peak memory is its own.
+configuration otherwise: up-sampling on, at most three outer iterations, the first on 0.25 s
+knots) runs in a fresh child process per case so that its peak memory is its own.
 
-Printed per case: flight minutes, knots, features and objects used by the last G/I/L
-adjustment, the initialisation filter's time, the G/I adjustment time (step 2, without the
-filter), the G/I/L adjustment time (all outer iterations, solves only), feature extraction and matching time, the G/I/L posterior, the whole run, peak memory,
-and the time per minute of flight relative to the first case (1.00 = linear); then log-log
-slopes, and a log-log plot (``--plot``).
+``--knots 0.1 0.25`` runs each flight once per knot interval (``processing.trajectory.knot_interval_s``,
+IMU window a fifth of it), each in a folder ``corridor-<N>min-k<knots>`` beside the simulated
+project that links its data and holds its own ``project.yaml``.
+
+Printed per case: flight minutes, knot interval, features and objects used by the last G/I/L
+adjustment, roll/pitch/yaw RMSE of the G/I/L trajectory against the truth over both passes,
+the initialisation filter's time, the G/I adjustment time (step 2, without the filter), the
+G/I/L adjustment time (all outer iterations, each building and solving its problem; feature
+extraction and matching have their own column) with each outer iteration's time and
+trajectory change, the G/I/L posterior, the whole run, peak memory, and the time per minute of
+flight relative to the first case (1.00 = linear); then log-log slopes, and a log-log plot
+(``--plot``).
 
 Usage::
 
-    python bench/flight_length.py WORKDIR [--durations 10 30 60] [--plot flight_length.png]
+    python bench/flight_length.py WORKDIR [--durations 10 30 60] [--knots 0.1 0.25] [--plot flight_length.png]
 
 Projects already in WORKDIR (``corridor-<N>min``) are reused.
 """
@@ -58,6 +65,30 @@ def simulate(workdir: Path, minutes: float) -> Path:
     return project
 
 
+def with_knots(project: Path, knots: float | None) -> Path:
+    """``project`` itself (``knots`` None), or a sibling that links its data with other knots."""
+    if knots is None:
+        return project
+    variant = project.with_name(f"{project.name}-k{knots:g}")
+    variant.mkdir(exist_ok=True)
+    for entry in project.iterdir():
+        if entry.name != "project.yaml" and not (variant / entry.name).exists():
+            (variant / entry.name).symlink_to(entry.resolve())
+    cfg = yaml.safe_load((project / "project.yaml").read_text())
+    cfg.setdefault("processing", {})["trajectory"] = {"knot_interval_s": knots, "imu_window_s": knots / 5.0}
+    (variant / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    return variant
+
+
+def pass_rmse(project: Path, out: Path) -> np.ndarray:
+    """Roll, pitch, yaw RMSE (mdeg) of the G/I/L trajectory over both passes."""
+    from georefine.evaluation.trajectory_files import truth_pass_rmse
+
+    truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
+    per_pass = [truth_pass_rmse(out / "gil" / "trajectory.sbet", project, int(p["strip_id"])) for p in truth["passes"]]
+    return np.sqrt(np.mean(np.square(per_pass), axis=0))
+
+
 def run(project: str, out: str) -> dict:
     """Child process: steps 1-5; the timings of metrics.json and the peak RSS."""
     from georefine.workflows.lidar import run_workflow
@@ -77,48 +108,61 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("workdir", type=Path)
     ap.add_argument("--durations", type=float, nargs="+", default=[10.0, 30.0, 60.0], help="flight minutes")
+    ap.add_argument("--knots", type=float, nargs="+", default=[None],
+                    help="knot intervals (s); default: the project's configuration")
     ap.add_argument("--plot", type=Path, default=None, help="log-log plot (PNG); default WORKDIR/flight_length.png")
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     rows = []
-    for minutes in args.durations:
-        project = simulate(args.workdir, minutes)
-        out = args.workdir / f"run-{minutes:g}min"
+    for minutes, knots in [(m, k) for k in args.knots for m in args.durations]:
+        simulated = simulate(args.workdir, minutes)
+        project = with_knots(simulated, knots)
+        out = args.workdir / ("run-" + project.name.removeprefix("corridor-"))
         with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
             r = pool.submit(run, str(project), str(out)).result()
         m, t = r["metrics"], r["metrics"]["timings_s"]
         truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
+        cfg = yaml.safe_load((project / "project.yaml").read_text())
         last = m["outer_iterations"][-1]
         row = {
-            "minutes": truth["duration_s"] / 60.0, "wall_s": r["wall_s"], "peak_gb": r["peak_rss_gb"],
+            "minutes": truth["duration_s"] / 60.0,
+            "knots": cfg.get("processing", {}).get("trajectory", {}).get("knot_interval_s", 0.1),
+            "rpy": pass_rmse(simulated, out), "wall_s": r["wall_s"], "peak_gb": r["peak_rss_gb"],
             # "gi_adjustment" times steps 1-2 (the cached stage); the G/I adjustment is step 2.
             "filter_s": t.get("filter", np.nan), "gi_s": t.get("gi_adjustment", np.nan) - t.get("filter", 0.0),
             "gil_s": _sum(t, "gil_adjustment_"),
             "features_s": _sum(t, "features_"), "matching_s": _sum(t, "matching_"),
             "posterior_s": t.get("gil_covariance", np.nan), "iterations": len(m["outer_iterations"]),
             "features": last["features_used"], "objects": last["objects_used"],
+            "each": [(t.get(f"gil_adjustment_{it['iteration']}", np.nan), it["attitude_change_mdeg"])
+                     for it in m["outer_iterations"]],
         }
         rows.append(row)
-        print(f"  {row['minutes']:.1f} min: G/I {row['gi_s']:.1f} s, G/I/L {row['gil_s']:.1f} s "
+        print(f"  {row['minutes']:.1f} min, {row['knots']:g} s knots: G/I {row['gi_s']:.1f} s, G/I/L {row['gil_s']:.1f} s "
               f"({row['iterations']} outer iterations, {row['features']:,} features), whole run {row['wall_s']:.0f} s, "
-              f"peak {row['peak_gb']:.2f} GB", flush=True)
+              f"peak {row['peak_gb']:.2f} GB, G/I/L roll/pitch/yaw {np.round(row['rpy'], 2).tolist()} mdeg", flush=True)
 
-    first = rows[0]
-    print("\n| flight | filter (step 1) | G/I adjustment (step 2) | G/I/L adjustments | outer iterations "
-          "| features / objects | features + matching | G/I/L posterior | whole run | peak memory | G/I per min : first | G/I/L per min : first |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("\n| flight | knots | filter (step 1) | G/I adjustment (step 2) | G/I/L adjustments | outer iterations (time each; change each) "
+          "| features / objects | features + matching | G/I/L posterior | whole run | peak memory | G/I per min : first | G/I/L per min : first "
+          "| G/I/L roll | pitch | yaw (mdeg) |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        print(f"| {r['minutes']:.1f} min | {r['filter_s']:.1f} s | {r['gi_s']:.1f} s | {r['gil_s']:.1f} s "
-              f"| {r['iterations']} "
+        first = next(f for f in rows if f["knots"] == r["knots"])
+        print(f"| {r['minutes']:.1f} min | {r['knots']:g} s | {r['filter_s']:.1f} s | {r['gi_s']:.1f} s | {r['gil_s']:.1f} s "
+              f"| {r['iterations']} ({' + '.join(f'{t:.0f}' for t, _ in r['each'])} s; "
+              f"{' / '.join(f'{c:.2f}' for _, c in r['each'])} mdeg) "
               f"| {r['features']:,} / {r['objects']:,} | {r['features_s'] + r['matching_s']:.0f} s | {r['posterior_s']:.1f} s "
               f"| {r['wall_s']:.0f} s | {r['peak_gb']:.2f} GB "
               f"| {r['gi_s'] / r['minutes'] / (first['gi_s'] / first['minutes']):.2f} "
-              f"| {r['gil_s'] / r['minutes'] / (first['gil_s'] / first['minutes']):.2f} |")
-    if len(rows) > 1:
-        d = np.log([r["minutes"] for r in rows])
-        for key in ("gi_s", "gil_s", "peak_gb", "wall_s"):
-            print(f"log-log slope of {key} against flight length: {np.polyfit(d, np.log([r[key] for r in rows]), 1)[0]:.2f}"
-                  " (1 = linear)")
+              f"| {r['gil_s'] / r['minutes'] / (first['gil_s'] / first['minutes']):.2f} "
+              f"| {r['rpy'][0]:.2f} | {r['rpy'][1]:.2f} | {r['rpy'][2]:.2f} |")
+    for knots in dict.fromkeys(r["knots"] for r in rows):
+        same = [r for r in rows if r["knots"] == knots]
+        if len(same) > 1:
+            d = np.log([r["minutes"] for r in same])
+            for key in ("gi_s", "gil_s", "peak_gb", "wall_s"):
+                slope = np.polyfit(d, np.log([r[key] for r in same]), 1)[0]
+                print(f"{knots:g} s knots: log-log slope of {key} against flight length: {slope:.2f} (1 = linear)")
     _plot(rows, args.plot or args.workdir / "flight_length.png")
 
 
@@ -128,20 +172,24 @@ def _plot(rows: list[dict], path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    x = np.array([r["minutes"] for r in rows])
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.6))
-    for key, label in (("gi_s", "G/I adjustment"), ("gil_s", "G/I/L adjustments"), ("wall_s", "whole run (steps 1-5)")):
-        a.loglog(x, [r[key] for r in rows], "o-", label=label)
-    ref = np.array([rows[0]["gil_s"] * xi / x[0] for xi in x])
-    a.loglog(x, ref, "k:", label="linear")
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.8))
+    styles = ("o-", "s--", "^-.", "d:")
+    for i, knots in enumerate(dict.fromkeys(r["knots"] for r in rows)):
+        same = [r for r in rows if r["knots"] == knots]
+        x, style = np.array([r["minutes"] for r in same]), styles[i % len(styles)]
+        for j, (key, label) in enumerate((("gi_s", "G/I"), ("gil_s", "G/I/L"), ("wall_s", "whole run"))):
+            a.loglog(x, [r[key] for r in same], style, color=f"C{j}", label=f"{label}, {knots:g} s knots")
+        b.loglog(x, [r["peak_gb"] for r in same], style, color="C0", label=f"peak memory, {knots:g} s knots")
+    x = np.array(sorted({r["minutes"] for r in rows}))
+    a.loglog(x, 300.0 * x / x[-1], "k:", label="linear (5 min at the longest)")
     a.set_xlabel("flight (min)")
     a.set_ylabel("time (s)")
-    a.legend(fontsize=8)
-    b.loglog(x, [r["peak_gb"] for r in rows], "o-", label="peak memory")
-    b.loglog(x, [rows[0]["peak_gb"] * xi / x[0] for xi in x], "k:", label="linear")
+    a.legend(fontsize=7)
+    first = min(rows, key=lambda r: r["minutes"])
+    b.loglog(x, first["peak_gb"] * x / x[0], "k:", label="linear")
     b.set_xlabel("flight (min)")
     b.set_ylabel("GB")
-    b.legend(fontsize=8)
+    b.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     print(f"plot: {path}")

@@ -215,7 +215,10 @@ class LidarAdjustmentConfig(StrictModel):
     plane_loss_scale: float = Field(2.0, gt=0.0, description="Cauchy c / Huber delta in units of sigma.")
     estimate_boresight: bool = Field(False, description="Estimate the scanner boresight (needs two passes).")
     boresight_prior_deg: float = Field(0.1, gt=0.0, description="Prior sigma of the boresight angles when estimated.")
-    max_features: int = Field(200_000, ge=100, description="Cap on matched features in the adjustment.")
+    max_features: int = Field(
+        200_000, ge=100, description="Cap on matched features in the adjustment: beyond it whole objects are "
+        "taken, the same ones in every outer iteration as far as the re-matching allows.",
+    )
     function_tolerance: float = Field(
         1e-3, gt=0.0,
         description="Stop the G/I/L Levenberg-Marquardt when an iteration lowers the cost by less than this "
