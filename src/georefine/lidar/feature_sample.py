@@ -43,11 +43,13 @@ def stable_object_subset(index: np.ndarray, keys: np.ndarray, feature_object: np
     """Whole objects, at most ``size`` features of ``index`` in all, in increasing order.
 
     Each object is ranked by the smallest key among its members in ``index`` (a min-hash: an
-    object that keeps that member, or gains none with a smaller key, keeps its rank however its
-    other members change), and objects are taken in that order while their members fit in
-    ``size``. Unlike a sample of single features, every object taken keeps all its views: a
-    feature sample of a third of an object's twelve members leaves about four, often one per
-    view or none, and an object with one member adds three unknowns and no redundancy.
+    object that keeps that member, and gains none with a smaller key, keeps its key however its
+    other members change), and objects are taken in that order, a prefix of it, while their
+    members fit in ``size``. Objects with more members tend to rank first (the smallest of more
+    keys is smaller), which favours the well-observed ones. Unlike a sample of single features,
+    every object taken keeps all its views: a feature sample of a third of an object's twelve
+    members leaves about four, often one per view or none, and an object with one member adds
+    three unknowns and no redundancy.
     """
     index = np.asarray(index)
     if index.size <= size:
