@@ -372,21 +372,22 @@ def test_a_local_cluster_writes_the_same_trajectory_and_points_as_one_process(pr
 @pytest.mark.slow
 def test_a_coarse_first_outer_iteration_ends_where_fine_ones_do(project, tmp_path):
     """Outer iterations that start on 0.25 s knots give the trajectory of outer iterations on 0.1 s
-    knots alone: the same accuracy against the truth, and the two within the churn of re-matching."""
+    knots alone: the same accuracy against the truth, and the two within the churn of re-matching.
+    One pass keeps it short (test_run_both_passes_fixes_heading_and_the_point_cloud runs both
+    with the coarse start)."""
     fine = tmp_path / "p"
     shutil.copytree(project, fine)
     cfg = yaml.safe_load((fine / "project.yaml").read_text())
     cfg["processing"] = {"lidar": {"first_knot_interval_s": None}}
     (fine / "project.yaml").write_text(yaml.safe_dump(cfg))
-    a = run_workflow(project, tmp_path / "coarse", points=False, cache_dir=tmp_path / "cache")
-    b = run_workflow(fine, tmp_path / "fine", points=False, cache_dir=tmp_path / "cache")
+    a = run_workflow(project, tmp_path / "coarse", strips=[1], points=False, cache_dir=tmp_path / "cache")
+    b = run_workflow(fine, tmp_path / "fine", strips=[1], points=False, cache_dir=tmp_path / "cache")
     assert b.metrics.resumed == ("gi",)  # the same G/I start
     assert [it.knot_interval_s for it in a.metrics.outer_iterations][0] == pytest.approx(0.25, rel=1e-3)
     assert {round(it.knot_interval_s, 6) for it in b.metrics.outer_iterations} == {0.1}
-    for strip in (1, 2):
-        ra = pass_rmse(a.out / "gil" / "trajectory.sbet", project, strip)
-        rb = pass_rmse(b.out / "gil" / "trajectory.sbet", project, strip)
-        assert np.all(ra <= 1.15 * rb + 0.1), (strip, ra, rb)  # mdeg
+    ra = pass_rmse(a.out / "gil" / "trajectory.sbet", project, 1)
+    rb = pass_rmse(b.out / "gil" / "trajectory.sbet", project, 1)
+    assert np.all(ra <= 1.15 * rb + 0.1), (ra, rb)  # mdeg
     between = compare_sbet_files(a.out / "gil" / "trajectory.sbet", b.out / "gil" / "trajectory.sbet").stats
     assert between["attitude_angle_rmse_mdeg"] < 1.5, between  # processing.lidar.convergence_attitude_mdeg
 
