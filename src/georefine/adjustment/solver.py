@@ -280,7 +280,8 @@ _PCG_STALE_ITERATIONS = _PCG_MAX_ITERATIONS // 2
 """After a step whose conjugate gradients needed more than this, the next step is factorised
 without trying them: the factor ages with every step (other weights, another linearisation
 point), and on the first G/I/L outer iterations of the 60-minute and 10-minute flights every
-step after one of 15 to 25 iterations failed to converge in 25 (four and two wasted attempts)."""
+step after one of 15 to 25 iterations failed to converge in 25 (three such attempts of about
+10 s each on the 60-minute flight, two on the 10-minute one)."""
 
 
 def _pcg_step(normal: _Normal, lam: float, factor) -> tuple[np.ndarray | None, int]:
