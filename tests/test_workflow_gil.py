@@ -378,7 +378,7 @@ def test_a_coarse_first_outer_iteration_ends_where_fine_ones_do(project, tmp_pat
     fine = tmp_path / "p"
     shutil.copytree(project, fine)
     cfg = yaml.safe_load((fine / "project.yaml").read_text())
-    cfg["processing"] = {"lidar": {"first_knot_interval_s": None}}
+    cfg.setdefault("processing", {}).setdefault("lidar", {})["first_knot_interval_s"] = None
     (fine / "project.yaml").write_text(yaml.safe_dump(cfg))
     a = run_workflow(project, tmp_path / "coarse", strips=[1], points=False, cache_dir=tmp_path / "cache")
     b = run_workflow(fine, tmp_path / "fine", strips=[1], points=False, cache_dir=tmp_path / "cache")
