@@ -449,6 +449,20 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
     return Posterior(gil, features, objects, key)
 
 
+def _lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, key: str,
+                  progress: Progress) -> tuple[LidarAdjustment, str, tuple[OuterIteration, ...]]:
+    """Steps 3-5 and the G/I/L products: the adjustment with its posterior, its key, the outer iterations.
+
+    Its own function so that what only steps 3-5 need -- the last problem (with its
+    factorisation), the features and objects -- is freed before step 6 starts: held through the
+    final georeferencing it raised the peak of a 400 kHz run from 4.46 to 5.37 GB.
+    """
+    outer = stage_outer_iterations(steps, inputs, gi, key, progress)
+    posterior = stage_posterior(steps, inputs, outer, progress)
+    stage_gil_products(inputs, posterior)
+    return posterior.gil, posterior.key, outer.records
+
+
 def _adjustment_report(nav: NavigationData, adj: GnssImuResult, boresight: LidarAdjustment | None = None) -> dict:
     """``adjustment.json``: statistics, IMU errors and timings of an adjustment (and the boresight)."""
     report = {"adjustment": adj.solve.to_dict(), "imu_errors": adj.imu_errors.to_dict(), "t0_gps": nav.t0_gps,
@@ -586,10 +600,8 @@ def _run_stages(steps: StepRunner, project_dir, out, strips, lidar: bool, points
     stage_gi_products(inputs, gi)
     final, gil, records = gi, None, ()
     if lidar:
-        outer = stage_outer_iterations(steps, inputs, gi, key, progress)
-        posterior = stage_posterior(steps, inputs, outer, progress)
-        stage_gil_products(inputs, posterior)
-        final, gil, key, records = posterior.gil.result, posterior.gil, posterior.key, outer.records
+        gil, key, records = _lidar_stages(steps, inputs, gi, key, progress)
+        final = gil.result
     with steps.timed("final_georeferencing"):
         written = stage_points(steps, inputs, final, gil, key, progress) if points else ()
     metrics = stage_metrics(steps, inputs, records, written)
