@@ -100,6 +100,36 @@ def test_unknown_imu_grade_names_the_parameter():
         resolve_scenario("corridor-tiny", imu_grade="consumer")
 
 
+def test_scenario_override_changes_only_the_field_it_names(tmp_path):
+    """``--set imu.rate_hz=400`` keeps the default preset's errors; every layer works on top of the last."""
+    from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS
+    from georefine.sim.scenarios import resolve_scenario
+
+    default = IMU_PRESETS[DEFAULT_IMU_GRADE].model_dump()
+    imu = resolve_scenario("corridor-tiny", seed_overrides=["imu.rate_hz=400"]).imu.model_dump()
+    assert imu["rate_hz"] == 400.0
+    assert {k: v for k, v in imu.items() if k != "rate_hz"} == {k: v for k, v in default.items() if k != "rate_hz"}
+    assert imu["gyro_arw_deg_per_sqrt_h"] > 0  # not an ideal IMU
+
+    tactical = IMU_PRESETS["tactical"].model_dump()
+    for kwargs in ({"imu_grade": "tactical", "seed_overrides": ["imu.rate_hz=400"]},
+                   {"seed_overrides": ["imu=tactical", "imu.rate_hz=400"]}):
+        imu = resolve_scenario("corridor-tiny", **kwargs).imu.model_dump()
+        assert imu == {**tactical, "rate_hz": 400.0}, kwargs
+
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text("imu:\n  rate_hz: 250\n")  # a file layer changes the preset's field only
+    assert resolve_scenario("corridor-tiny", config_file=cfg).imu.model_dump() == {**default, "rate_hz": 250.0}
+    cfg.write_text("imu: tactical\n")
+    imu = resolve_scenario("corridor-tiny", config_file=cfg, seed_overrides=["imu.gyro_arw_deg_per_sqrt_h=0.5"])
+    assert imu.imu.model_dump() == {**tactical, "gyro_arw_deg_per_sqrt_h": 0.5}
+    # the other sections keep their scenario defaults under a neighbour's override
+    sc = resolve_scenario("corridor-tiny", seed_overrides=["scanner.line_rate_hz=100"])
+    assert (sc.scanner.pulse_rate_hz, sc.scanner.line_rate_hz) == (100000.0, 100.0)
+    with pytest.raises(ConfigError, match=r"field 'imu': unknown IMU grade .*from --set imu=consumer"):
+        resolve_scenario("corridor-tiny", seed_overrides=["imu=consumer"])
+
+
 # ---------------------------------------------------------------------------- processing.lidargrammetry
 def test_lidargrammetry_defaults_are_the_values_the_block_demo_was_tuned_with():
     from georefine.config import LidargrammetryConfig

@@ -179,24 +179,42 @@ def resolve_scenario(
     imu_grade: str | None = None,
     gnss_grade: str | None = None,
 ) -> ScenarioConfig:
-    """Scenario defaults <- YAML file <- grade options <- ``key=value`` overrides, validated."""
-    data = _scenario_defaults(name)
+    """Scenario defaults <- YAML file <- grade options <- ``key=value`` overrides, validated.
+
+    Each layer changes only the fields it names, on top of what the layers before it chose: the
+    IMU section is always a whole preset (the default grade unless a layer names another, by
+    ``--imu-grade``, ``imu: tactical`` in the file or ``--set imu=tactical``), so
+    ``--set imu.rate_hz=400`` changes the rate of that preset and keeps its errors. Overrides
+    apply in order, so ``--set imu=tactical --set imu.rate_hz=400`` works too.
+    """
+    data = _with_imu_preset(_scenario_defaults(name), "scenario " + name)
     if config_file is not None:
-        data = deep_merge(data, read_yaml(config_file))
+        data = _with_imu_preset(_merge_layer(data, read_yaml(config_file)), str(config_file))
     if imu_grade is not None:
-        if imu_grade not in IMU_PRESETS:
-            raise ConfigError("unknown IMU grade", field="imu_grade", expected="one of " + ", ".join(IMU_PRESETS), found=repr(imu_grade))
-        data["imu"] = IMU_PRESETS[imu_grade].model_dump()
+        data = _with_imu_preset({**data, "imu": imu_grade}, "--imu-grade", field="imu_grade")
     if gnss_grade is not None:
         data = deep_merge(data, {"gnss": {"grade": gnss_grade}})
-    if seed_overrides:
-        data = apply_overrides(data, seed_overrides)
-    if isinstance(data.get("imu"), str):  # `--set imu=tactical` selects a preset by name
-        preset = data["imu"]
-        if preset not in IMU_PRESETS:
-            raise ConfigError("unknown IMU grade", field="imu", expected="one of " + ", ".join(IMU_PRESETS), found=repr(preset))
-        data["imu"] = IMU_PRESETS[preset].model_dump()
+    for item in seed_overrides or ():
+        data = _with_imu_preset(apply_overrides(data, [item]), "--set " + item)
     return validate_model(ScenarioConfig, data, config_file)  # type: ignore[return-value]
+
+
+def _merge_layer(data: dict[str, Any], layer: dict[str, Any]) -> dict[str, Any]:
+    """``layer`` merged onto ``data``; an IMU preset named in ``layer`` replaces the whole section."""
+    if isinstance(layer.get("imu"), str):
+        return {**deep_merge(data, {k: v for k, v in layer.items() if k != "imu"}), "imu": layer["imu"]}
+    return deep_merge(data, layer)
+
+
+def _with_imu_preset(data: dict[str, Any], source: str, field: str = "imu") -> dict[str, Any]:
+    """``data`` with its IMU section a whole preset: the default grade if absent, the named one if a name."""
+    preset = data.get("imu", DEFAULT_IMU_GRADE)
+    if not isinstance(preset, str):
+        return data
+    if preset not in IMU_PRESETS:
+        raise ConfigError("unknown IMU grade", field=field, expected="one of " + ", ".join(IMU_PRESETS),
+                          found=f"{preset!r} (from {source})")
+    return {**data, "imu": IMU_PRESETS[preset].model_dump()}
 
 
 @dataclass(frozen=True)
