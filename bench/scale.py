@@ -16,7 +16,7 @@ output folder. Printed per rate and run:
 Usage::
 
     python bench/scale.py WORKDIR [--rates 100000 400000 1800000] [--scheduler threads]
-                                  [--no-single-pass]
+                                  [--no-single-pass | --single-pass-only] [--single-pass-no-points]
     python bench/scale.py WORKDIR --rates 100000 --schedulers sync threads processes
 
 Projects already in WORKDIR (``corridor-<rate>``) are reused (delete them to re-simulate).
@@ -43,7 +43,7 @@ LINE_RATE = {100_000: 120.0, 400_000: 240.0, 1_800_000: 400.0}
 PER_POINT = ("read", "features", "final_georeferencing")
 
 
-def simulate(workdir: Path, rate: int) -> tuple[Path, float | None, float | None, int]:
+def simulate(workdir: Path, rate: int) -> tuple[Path, float | None, float | None, dict[int, int]]:
     project = workdir / f"corridor-{rate}"
     wall = peak = None
     if not (project / "truth" / "scenario.yaml").is_file():
@@ -53,7 +53,7 @@ def simulate(workdir: Path, rate: int) -> tuple[Path, float | None, float | None
             args += ["--set", f"scanner.pulse_rate_hz={rate}", "--set", f"scanner.line_rate_hz={LINE_RATE[rate]}"]
         wall, peak, _ = run_measured(args)
     truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
-    return project, wall, peak, int(sum(truth["points_per_strip"].values()))
+    return project, wall, peak, {int(k): int(v) for k, v in truth["points_per_strip"].items()}
 
 
 def run(project: Path, out: Path, scheduler: str, extra: list[str]) -> tuple[float, float, dict]:
@@ -76,8 +76,8 @@ def compare_schedulers(workdir: Path, rate: int, schedulers: list[str]) -> None:
     """Both passes on each scheduler: per-point stage seconds, speed-up against the first, memory, same results."""
     from georefine.io.trajectory import read_sbet
 
-    project, _, _, points = simulate(workdir, rate)
-    print(f"{rate / 1e3:.0f} kHz, {points:,} points; schedulers {', '.join(schedulers)}")
+    project, _, _, per_strip = simulate(workdir, rate)
+    print(f"{rate / 1e3:.0f} kHz, {sum(per_strip.values()):,} points; schedulers {', '.join(schedulers)}")
     first = None
     for name in schedulers:
         out = workdir / f"run-{rate}-{name.replace('://', '-').replace(':', '-')}"
@@ -101,7 +101,11 @@ def main() -> None:
     ap.add_argument("workdir", type=Path)
     ap.add_argument("--rates", type=int, nargs="+", default=[100_000, 400_000, 1_800_000])
     ap.add_argument("--scheduler", default="threads")
-    ap.add_argument("--no-single-pass", action="store_true")
+    cases = ap.add_mutually_exclusive_group()
+    cases.add_argument("--no-single-pass", action="store_true", help="Both passes only.")
+    cases.add_argument("--single-pass-only", action="store_true", help="The single pass only.")
+    ap.add_argument("--single-pass-no-points", action="store_true",
+                    help="The single pass without its point cloud (step 6): the trajectory only.")
     ap.add_argument("--schedulers", nargs="+", metavar="NAME",
                     help="Instead: run the lowest rate's project with each scheduler (e.g. sync threads processes) "
                          "and compare the per-point stages, memory and trajectories.")
@@ -112,20 +116,23 @@ def main() -> None:
         return
     rows = []
     for rate in a.rates:
-        project, sim_wall, sim_peak, points = simulate(a.workdir, rate)
+        project, sim_wall, sim_peak, per_strip = simulate(a.workdir, rate)
+        points = sum(per_strip.values())
         sim = "reused" if sim_wall is None else f"{sim_wall:.0f} s, peak {sim_peak:.2f} GB, {points / sim_wall / 1e6:.2f} M points/s"
         print(f"\n{rate / 1e3:.0f} kHz: {points:,} points; simulation {sim}", flush=True)
-        cases = [("both passes", [], (1, 2))] + ([] if a.no_single_pass else [("single pass", ["--strips", "1"], (1,))])
+        single = ["--strips", "1"] + (["--no-points"] if a.single_pass_no_points else [])
+        cases = ([] if a.single_pass_only else [("both passes", [], (1, 2))]) + (
+            [] if a.no_single_pass else [("single pass", single, (1,))])
         for name, extra, strips in cases:
             out = a.workdir / f"run-{rate}-{'full' if not extra else 'single'}"
             wall, peak, m = run(project, out, a.scheduler, extra)
             secs = stage_seconds(m["timings_s"])
             n_iter = len(m["outer_iterations"])
-            pts = sum(p["points"] for p in m["points"])
+            pts = sum(per_strip[s] for s in strips)  # the points read (step 6 may be skipped)
             print(f"  {name:12s} {wall:7.1f} s  peak {peak:5.2f} GB  outer iterations {n_iter}", flush=True)
             print("    " + ", ".join(f"{k} {v:.1f} s" for k, v in secs.items()))
             for k in PER_POINT:
-                if k in secs and secs[k] > 0:
+                if secs.get(k, 0.0) > 0.01:  # a skipped step 6 records ~0 s
                     n = pts * (n_iter if k == "features" else 1)
                     print(f"    {k}: {n / secs[k] / 1e6:.2f} M points/s")
             for s in strips:
