@@ -170,6 +170,12 @@ def _nav_copy(src: Path, dst: Path) -> Path:
     return dst
 
 
+def _project_copy(src: Path, dst: Path) -> Path:
+    """The inputs with the (small) scans, for ``georefine check``; no truth."""
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("truth"))
+    return dst
+
+
 def test_non_overlapping_gnss_and_imu_is_an_error(tiny, tmp_path):
     p = _nav_copy(tiny, tmp_path / "p")
     csv = p / "imu" / "imu.csv"
@@ -184,16 +190,57 @@ def test_non_overlapping_gnss_and_imu_is_an_error(tiny, tmp_path):
     assert "imu.csv" in run.stderr and "do not overlap" in run.stderr
 
 
-def test_imu_rate_gap_is_an_error(tiny, tmp_path):
-    p = _nav_copy(tiny, tmp_path / "p")
+def test_imu_gap_longer_than_max_gap_s_is_an_error_in_check_and_run(tiny, tmp_path):
+    p = _project_copy(tiny, tmp_path / "p")
     csv = p / "imu" / "imu.csv"
     lines = csv.read_text().splitlines()
-    del lines[5001:5101]  # 0.5 s of samples
+    del lines[5001:6201]  # 6 s of samples, more than imu.max_gap_s (5 s) bridges
     csv.write_text("\n".join(lines) + "\n")
-    run = _georefine("trajectory", str(p), "--out", str(tmp_path / "o"))
-    assert run.returncode == 2
-    # The first sample after the gap: file line 5002 (header on line 1, lines 5002-5101 removed).
-    assert "imu.csv" in run.stderr and "gap" in run.stderr and "line 5002" in run.stderr
+    for cmd in (["check", str(p)], ["trajectory", str(p), "--out", str(tmp_path / "o")]):
+        run = _georefine(*cmd)
+        assert run.returncode == 2, (cmd, run.stderr)
+        # The first sample after the gap: file line 5002 (header on line 1, lines 5002-6201 removed).
+        assert "imu.csv" in run.stderr and "gap" in run.stderr and "line 5002" in run.stderr, run.stderr
+        assert "imu.max_gap_s" in run.stderr and "Traceback" not in run.stderr
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_dropped_imu_samples_and_a_short_gap_are_bridged(tiny, tmp_path):
+    """A sample dropped every 10 s and a 0.5 s gap in the first pass: G/I as good as on the whole record."""
+    p = _project_copy(tiny, tmp_path / "p")
+    csv = p / "imu" / "imu.csv"
+    lines = csv.read_text().splitlines()
+    header, body = lines[0], lines[1:]
+    t0, t1 = _pass_span(tiny)
+    start = int(round((0.5 * (t0 + t1)) * 200.0))  # mid-pass (the IMU starts at the dataset epoch, 200 Hz)
+    keep = np.ones(len(body), bool)
+    keep[1000::2000] = False
+    keep[start:start + 100] = False
+    csv.write_text("\n".join([header] + [l for l, k in zip(body, keep) if k]) + "\n")
+
+    check = _georefine("check", str(p))
+    assert check.returncode == 0, check.stderr
+    n_gaps = int(keep[1000::2000].size - keep[1000::2000].sum()) + 1
+    assert f"{n_gaps} IMU sampling gaps bridged" in check.stdout and "the longest 0.505 s" in check.stdout
+    clean = run_trajectory(tiny, tmp_path / "clean")
+    gapped = run_trajectory(p, tmp_path / "gapped")
+    assert gapped.adjustment.solve.converged
+    nav = load_navigation(p)
+    assert nav.imu.time_gps.size == len(body)  # bridged back onto the full grid
+    window = (t0 + 1.0, t1 - 1.0)
+    rms = {}
+    for name in ("clean", "gapped"):
+        cmp, _ = _errors_against_truth(tmp_path / name, tiny)
+        rel = cmp.time_gps - nav.t0_gps
+        sel = (rel > window[0]) & (rel < window[1])
+        rms[name] = np.degrees(np.sqrt(np.mean(cmp.d_rph_rad[sel] ** 2, axis=0))) * 1e3
+        if name == "gapped":  # in and right after the 0.5 s gap: no jump in the attitude
+            near = (rel > start / 200.0 - 1.0) & (rel < start / 200.0 + 2.0)
+            gap_err = np.degrees(np.abs(cmp.d_rph_rad[near]).max(axis=0)) * 1e3
+    assert np.all(rms["gapped"] <= 1.1 * rms["clean"] + 0.1), rms  # roll, pitch, yaw within 10 % (+0.1 mdeg)
+    assert np.all(gap_err < 3.0 * rms["clean"] + 1.0), (gap_err, rms)
+    assert gapped.adjustment.solve.n_observations == clean.adjustment.solve.n_observations
 
 
 def test_pos_without_fix_quality_is_an_error(tiny, tmp_path):

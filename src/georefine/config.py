@@ -86,6 +86,10 @@ class ImuFileConfig(StrictModel):
     gps_week: int | None = Field(
         None, ge=0, description="GPS week of .imr files (their time tags are seconds of week)."
     )
+    max_gap_s: float = Field(
+        5.0, gt=0.0, description="Longest sampling gap bridged (s): the missing samples are interpolated, their "
+        "uncertainty widened by the interpolation error measured around the gap; a longer gap is an error.",
+    )
     errors: ImuErrorSpec
 
 

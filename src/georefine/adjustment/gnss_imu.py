@@ -46,6 +46,9 @@ class GnssImuData:
     imu_time : (N,) s; imu_gyro (N,3) rad/s; imu_acc (N,3) m/s²; imu_rate_hz : float
     gnss_time : (G,) s; gnss_p_w (G,3) m; gnss_cov_w (G,3,3) m²
     p_b_a : (3,) antenna lever arm (m)
+    imu_gyro_sigma, imu_acc_sigma : (N,) or None
+        Interpolation sigma of samples bridged over a sampling gap (rad/s, m/s²; 0 for measured
+        ones; :mod:`georefine.io.imu_gaps`); None when no sample was bridged.
     """
 
     frame: LocalFrame
@@ -58,6 +61,8 @@ class GnssImuData:
     gnss_p_w: np.ndarray
     gnss_cov_w: np.ndarray
     p_b_a: np.ndarray
+    imu_gyro_sigma: np.ndarray | None = None
+    imu_acc_sigma: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -165,10 +170,16 @@ def build_gnss_imu_problem(
         raise InputError("no IMU samples inside the trajectory span", field="time")
     d = _densities(spec, cfg)
     windows = make_imu_windows(
-        data.imu_time[inside], data.imu_gyro[inside], data.imu_acc[inside], data.imu_rate_hz, cfg.imu_window_s
+        data.imu_time[inside], data.imu_gyro[inside], data.imu_acc[inside], data.imu_rate_hz, cfg.imu_window_s,
+        gyro_sigma=None if data.imu_gyro_sigma is None else data.imu_gyro_sigma[inside],
+        acc_sigma=None if data.imu_acc_sigma is None else data.imu_acc_sigma[inside],
     )
     sigma_g = d["gyro_noise"] * np.sqrt(data.imu_rate_hz / windows.n_samples)
     sigma_a = d["acc_noise"] * np.sqrt(data.imu_rate_hz / windows.n_samples)
+    if windows.gyro_bridged_sigma is not None:  # samples bridged over a gap: their interpolation error too
+        sigma_g = np.hypot(sigma_g, windows.gyro_bridged_sigma)
+    if windows.acc_bridged_sigma is not None:
+        sigma_a = np.hypot(sigma_a, windows.acc_bridged_sigma)
     bias_grid = BiasGrid.covering(span[0], span[1], cfg.bias_knot_interval_s)
 
     blocks = TrajectoryBlocks()

@@ -26,11 +26,10 @@ from georefine.adjustment.gnss_imu import (
 )
 from georefine.adjustment.upsampling import adjust_upsampled
 from georefine.config import ProjectConfig, load_project, write_yaml
-from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.files import write_json
 from georefine.io.gnss import gnss_in_w
-from georefine.io.imu import ImuData, check_rate_gaps
+from georefine.io.imu import ImuData
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.trajectory.ekf import FilterResult, run_filter
@@ -43,6 +42,7 @@ from georefine.workflows.products import (
     write_sbet_product,
 )
 from georefine.workflows.project import (
+    bridge_project_imu,
     check_navigation_spans,
     output_folder,
     read_project_gnss,
@@ -70,21 +70,17 @@ def load_navigation(project_dir: str | Path) -> NavigationData:
     Raises
     ------
     InputError
-        No usable GNSS epoch, GNSS and IMU spans that do not overlap, or an IMU sampling gap.
+        No usable GNSS epoch, GNSS and IMU spans that do not overlap, or an IMU sampling gap longer
+        than ``imu.max_gap_s`` (shorter ones are bridged: :func:`bridge_project_imu`).
     """
     root = Path(project_dir)
     cfg = load_project(root)
     gnss = read_project_gnss(root, cfg)
     imu = read_project_imu(root, cfg)
-    gaps = check_rate_gaps(imu)
-    if len(gaps):
-        k = int(np.searchsorted(imu.time_gps, gaps[0, 0]))
-        raise InputError(
-            f"IMU sampling gap of {gaps[0, 1] - gaps[0, 0]:.4f} s ({len(gaps)} gaps in all)",
-            path=root / cfg.imu.file, line=k + 3 if cfg.imu.format == "csv" else k + 2,
-            record_kind="line" if cfg.imu.format == "csv" else "record", field="time",
-            expected=f"samples every {1.0 / imu.rate_hz:.4f} s", found=f"{gaps[0, 0]:.6f} -> {gaps[0, 1]:.6f} GPS s",
-        )
+    bridged = bridge_project_imu(root, cfg, imu)  # the same rule as `georefine check`
+    if bridged.gaps:
+        log.warning("%s: %s", cfg.imu.file, bridged.describe())
+    imu = bridged.data
     usable, _, _ = check_navigation_spans(root, cfg, gnss, imu)
     if cfg.crs.reference_point is not None:
         rp = cfg.crs.reference_point
@@ -99,6 +95,8 @@ def load_navigation(project_dir: str | Path) -> NavigationData:
         frame=frame, t0_gps=t0, imu_time=imu.time_gps - t0, imu_gyro=imu.gyro, imu_acc=imu.acc,
         imu_rate_hz=float(imu.rate_hz), gnss_time=gt, gnss_p_w=gp, gnss_cov_w=gc,
         p_b_a=np.asarray(cfg.gnss.lever_arm_m, dtype=float),
+        imu_gyro_sigma=bridged.gyro_sigma if bridged.gaps else None,
+        imu_acc_sigma=bridged.acc_sigma if bridged.gaps else None,
     )
     return NavigationData(cfg, root, frame, t0, imu, data)
 

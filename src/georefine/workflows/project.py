@@ -17,7 +17,8 @@ import numpy as np
 from georefine.config import ProjectConfig, load_project
 from georefine.errors import InputError
 from georefine.io.gnss import GnssSolution, read_pos
-from georefine.io.imu import ImuData, check_rate_gaps, read_imr, read_imu_csv
+from georefine.io.imu import ImuData, read_imr, read_imu_csv
+from georefine.io.imu_gaps import BridgedImu, bridge_imu_gaps
 from georefine.io.las import iter_las_chunks, read_las_info
 from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces
 
@@ -127,6 +128,28 @@ def check_navigation_spans(
     return usable, g_span, i_span
 
 
+def bridge_project_imu(root: Path, cfg: ProjectConfig, imu: ImuData) -> BridgedImu:
+    """The project's IMU with its sampling gaps bridged (:mod:`georefine.io.imu_gaps`), as check and run see it.
+
+    Raises
+    ------
+    InputError
+        A gap longer than ``imu.max_gap_s``, naming the file and the record after it.
+    """
+    bridged, too_long = bridge_imu_gaps(imu, cfg.imu.max_gap_s)
+    if too_long is not None:
+        k = too_long.index + 1  # the first sample after the gap: CSV line k + 2 (a header line), IMR record k + 1
+        raise InputError(
+            f"IMU sampling gap of {too_long.duration_s:.3f} s ({too_long.missing} samples missing), longer than "
+            "imu.max_gap_s can bridge",
+            path=root / cfg.imu.file, line=k + 2 if cfg.imu.format == "csv" else k + 1,
+            record_kind="line" if cfg.imu.format == "csv" else "record", field="time",
+            expected=f"gaps of at most {cfg.imu.max_gap_s:g} s (imu.max_gap_s)",
+            found=f"{too_long.t_before:.6f} -> {too_long.t_after:.6f} GPS s",
+        )
+    return bridged
+
+
 def inspect_project(
     project_dir: str | Path,
     *,
@@ -149,9 +172,10 @@ def inspect_project(
     gnss = read_project_gnss(root, cfg)
     imu = read_project_imu(root, cfg)
     usable, g_span, i_span = check_navigation_spans(root, cfg, gnss, imu)
-    gaps = check_rate_gaps(imu)
-    if len(gaps):
-        warnings.append(f"IMU has {len(gaps)} sampling gaps, the longest {float(np.max(gaps[:, 1] - gaps[:, 0])):.3f} s")
+    bridged = bridge_project_imu(root, cfg, imu)
+    gaps = np.array([(g.t_before, g.t_after) for g in bridged.gaps]).reshape(-1, 2)
+    if bridged.gaps:
+        warnings.append(bridged.describe())
 
     channels = {c.id for c in cfg.scanner.channels}
     nav = (max(g_span[0], i_span[0]), min(g_span[1], i_span[1]))

@@ -50,6 +50,11 @@ class ImuWindows:
     gyro, acc : (W, 3)
         Mean angular rate (rad/s) and specific force (m/s²), body frame.
     n_samples : (W,) int
+    gyro_bridged_sigma, acc_bridged_sigma : (W,) or None
+        Standard deviation the bridged samples of a sampling gap add to each window mean
+        (:mod:`georefine.io.imu_gaps`): the window's mean of its samples' interpolation sigma,
+        i.e. ``(k / n) sigma`` for ``k`` of ``n`` samples bridged (fully correlated errors).
+        None: every sample was measured.
     """
 
     t_start: np.ndarray
@@ -57,18 +62,22 @@ class ImuWindows:
     gyro: np.ndarray
     acc: np.ndarray
     n_samples: np.ndarray
+    gyro_bridged_sigma: np.ndarray | None = None
+    acc_bridged_sigma: np.ndarray | None = None
 
     def __len__(self) -> int:
         return self.t_start.size
 
 
 def make_imu_windows(
-    time: np.ndarray, gyro: np.ndarray, acc: np.ndarray, rate_hz: float, window_s: float, max_gap_factor: float = 1.5
+    time: np.ndarray, gyro: np.ndarray, acc: np.ndarray, rate_hz: float, window_s: float, max_gap_factor: float = 1.5,
+    gyro_sigma: np.ndarray | None = None, acc_sigma: np.ndarray | None = None,
 ) -> ImuWindows:
     """Average consecutive samples over windows of ``round(window_s * rate_hz)`` samples.
 
     Windows restart after every sampling gap (interval > ``max_gap_factor / rate_hz``) so that
-    no window spans missing data; the last window of a segment may be shorter.
+    no window spans missing data; the last window of a segment may be shorter. ``gyro_sigma``
+    and ``acc_sigma`` (N,) are the interpolation sigma of bridged samples (0 for measured ones).
     """
     time = np.asarray(time, dtype=float)
     n = max(1, int(round(window_s * rate_hz)))
@@ -87,6 +96,10 @@ def make_imu_windows(
         gyro=np.add.reduceat(gyro, starts, axis=0) / counts[:, None],
         acc=np.add.reduceat(acc, starts, axis=0) / counts[:, None],
         n_samples=counts,
+        gyro_bridged_sigma=None if gyro_sigma is None or not np.any(gyro_sigma) else
+        np.add.reduceat(np.asarray(gyro_sigma, float), starts) / counts,
+        acc_bridged_sigma=None if acc_sigma is None or not np.any(acc_sigma) else
+        np.add.reduceat(np.asarray(acc_sigma, float), starts) / counts,
     )
 
 
