@@ -65,6 +65,20 @@ def test_bad_value_names_field(tmp_path):
         load_project(tmp_path)
 
 
+@pytest.mark.parametrize("code, why", [(99999, "not a coordinate reference system PROJ knows"),
+                                       (5773, "not a projected or geographic CRS")])
+def test_unknown_output_epsg_is_refused_when_the_configuration_is_read(tmp_path, code, why):
+    data = minimal_project()
+    data["crs"] = {"output_epsg": code}
+    (tmp_path / "project.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError, match=rf"project.yaml, line \d+, field 'crs.output_epsg': .*EPSG:{code}.*{why}"):
+        load_project(tmp_path)
+    from georefine.sim.scenarios import resolve_scenario
+
+    with pytest.raises(ConfigError, match=rf"field 'output_epsg': .*EPSG:{code}"):
+        resolve_scenario("corridor-tiny", seed_overrides=[f"output_epsg={code}"])
+
+
 def test_missing_project_and_bad_yaml(tmp_path):
     with pytest.raises(ConfigError, match="no project.yaml"):
         load_project(tmp_path)

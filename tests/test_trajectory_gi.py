@@ -243,6 +243,18 @@ def test_dropped_imu_samples_and_a_short_gap_are_bridged(tiny, tmp_path):
     assert gapped.adjustment.solve.n_observations == clean.adjustment.solve.n_observations
 
 
+def test_out_naming_a_file_is_one_line_and_exit_2(tiny, tmp_path):
+    f = tmp_path / "results"
+    f.write_text("keep")
+    for cmd in (["trajectory", str(tiny)], ["run", str(tiny)], ["demo"]):
+        for out in (f, f / "sub"):
+            run = _georefine(*cmd, "--out", str(out))
+            assert run.returncode == 2, (cmd, run.stderr)
+            assert run.stderr.strip().count("\n") == 0 and "Traceback" not in run.stderr, run.stderr
+            assert "output path is not a folder" in run.stderr and f"a file at {f}" in run.stderr
+    assert f.read_text() == "keep"
+
+
 def test_pos_without_fix_quality_is_an_error(tiny, tmp_path):
     p = _nav_copy(tiny, tmp_path / "p")
     pos = p / "gnss" / "rover.pos"

@@ -45,9 +45,36 @@ class ReferencePoint(StrictModel):
     h_m: float
 
 
+def check_output_epsg(code: int) -> int:
+    """``code`` if PROJ knows it as a horizontal (projected or geographic) CRS reachable from WGS84.
+
+    Checked when a configuration is read, so that ``georefine check`` refuses a code that would
+    otherwise fail when the first trajectory or point is written.
+    """
+    from pyproj import CRS, Transformer
+    from pyproj.exceptions import CRSError, ProjError
+
+    try:
+        crs = CRS.from_epsg(int(code))
+    except CRSError:
+        raise ValueError(f"EPSG:{code} is not a coordinate reference system PROJ knows") from None
+    if not (crs.is_projected or crs.is_geographic):
+        raise ValueError(f"EPSG:{code} ({crs.name}) is not a projected or geographic CRS")
+    try:
+        Transformer.from_crs(CRS.from_epsg(4979), crs, always_xy=True)
+    except ProjError as exc:
+        raise ValueError(f"EPSG:{code} ({crs.name}) cannot be reached from WGS84: {exc}") from None
+    return int(code)
+
+
 class CrsConfig(StrictModel):
     output_epsg: int = Field(25832, description="EPSG code of the output CRS; heights stay ellipsoidal.")
     reference_point: ReferencePoint | None = None
+
+    @field_validator("output_epsg")
+    @classmethod
+    def _known_epsg(cls, v: int) -> int:
+        return check_output_epsg(v)
 
 
 class GnssFileConfig(StrictModel):

@@ -33,7 +33,7 @@ from georefine.evaluation.coadjust import (
     plot_cloud_errors,
 )
 from georefine.evaluation.page import CSS, image, table
-from georefine.io.files import atomic_output, write_json
+from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.lidargrammetry.bundle import PointStats
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import simulate_project
@@ -160,7 +160,7 @@ def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | Non
     :mod:`georefine.tasks`).
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_output_folder(out)
     overrides = list(overrides or [])
     project, cache = out / "project", out / ".cache"
     timings: dict[str, float] = {}

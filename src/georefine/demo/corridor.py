@@ -30,7 +30,7 @@ import yaml
 from georefine.demo.lanes import Lanes, QueuedProgress, demo_stamp, reusable_project, simulation_scheduler
 from georefine.evaluation.report import summary_rows, write_report
 from georefine.evaluation.summary import CloudEvaluation, RunEvaluation
-from georefine.io.files import write_json
+from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import simulate_project
@@ -131,7 +131,7 @@ def run_demo(
     lanes' tasks on one cluster).
     """
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    make_output_folder(out)
     overrides = list(overrides or [])
     project = out / "project"
     cache = out / ".cache"

@@ -75,6 +75,32 @@ def check_output_path(path: PathLike, protect: Iterable[PathLike] = ()) -> Path:
     return out
 
 
+def check_output_folder(path: PathLike) -> Path:
+    """``path`` as a Path, refusing one that is, or lies below, an existing file (InputError)."""
+    out = Path(path)
+    blocked = next((p for p in (out, *out.parents) if p.exists() and not p.is_dir()), None)
+    if blocked is not None:
+        raise InputError("the output path is not a folder", path=out, expected="a folder or a path that does not exist",
+                         found=f"a file at {blocked}")
+    return out
+
+
+def make_output_folder(path: PathLike) -> Path:
+    """Create the output folder ``path`` (and its parents) after :func:`check_output_folder`.
+
+    Raises
+    ------
+    InputError
+        ``path`` or one of its parents exists and is not a folder, or the folder cannot be made.
+    """
+    out = check_output_folder(path)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError("cannot create the output folder", path=out, found=exc.strerror or str(exc)) from None
+    return out
+
+
 @contextlib.contextmanager
 def atomic_path(path: PathLike, protect: Iterable[PathLike] = ()) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it to ``path`` on success.

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from georefine.config import (
     ChannelConfig,
@@ -49,6 +49,7 @@ from georefine.config import (
     StrictModel,
     apply_overrides,
     boresight_matrix,
+    check_output_epsg,
     deep_merge,
     read_yaml,
     validate_model,
@@ -91,6 +92,12 @@ class ScenarioConfig(StrictModel):
         description="Origin of the scene (w frame); default in the Eisacktal, South Tyrol.",
     )
     output_epsg: int = Field(25832, description="Output CRS of truth and reference files.")
+
+    @field_validator("output_epsg")
+    @classmethod
+    def _known_epsg(cls, v: int) -> int:
+        return check_output_epsg(v)
+
     scene: SceneConfig = Field(default_factory=SceneConfig)
     flight: FlightConfig = Field(default_factory=FlightConfig)
     imu: ImuGrade = Field(default_factory=lambda: IMU_PRESETS[DEFAULT_IMU_GRADE])

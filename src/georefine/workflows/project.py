@@ -16,6 +16,7 @@ import numpy as np
 
 from georefine.config import ProjectConfig, load_project
 from georefine.errors import InputError
+from georefine.io.files import check_output_folder
 from georefine.io.gnss import GnssSolution, read_pos
 from georefine.io.imu import ImuData, read_imr, read_imu_csv
 from georefine.io.imu_gaps import BridgedImu, bridge_imu_gaps
@@ -228,8 +229,9 @@ def inspect_project(
 
 
 def output_folder(out: str | Path, project_root: Path) -> Path:
-    """``out`` as a Path, refusing the project folder or anything inside it (inputs stay untouched)."""
+    """``out`` as a Path, refusing the project folder or anything inside it (inputs stay untouched),
+    and a path that exists but is not a folder, or lies below a file."""
     out = Path(out)
     if out.resolve() == project_root.resolve() or project_root.resolve() in out.resolve().parents:
         raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
-    return out
+    return check_output_folder(out)
