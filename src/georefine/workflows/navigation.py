@@ -43,6 +43,7 @@ from georefine.workflows.products import (
 )
 from georefine.workflows.project import (
     bridge_project_imu,
+    check_imu_plausible,
     check_navigation_spans,
     output_folder,
     read_project_gnss,
@@ -81,6 +82,7 @@ def load_navigation(project_dir: str | Path) -> NavigationData:
     if bridged.gaps:
         log.warning("%s: %s", cfg.imu.file, bridged.describe())
     imu = bridged.data
+    check_imu_plausible(root, cfg, gnss, imu)
     usable, _, _ = check_navigation_spans(root, cfg, gnss, imu)
     if cfg.crs.reference_point is not None:
         rp = cfg.crs.reference_point

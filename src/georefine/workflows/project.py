@@ -17,11 +17,14 @@ import numpy as np
 from georefine.config import ProjectConfig, load_project
 from georefine.errors import InputError
 from georefine.io.files import check_output_folder
-from georefine.io.gnss import GnssSolution, read_pos
+from georefine.geometry.earth import normal_gravity
+from georefine.geometry.frames import LocalFrame
+from georefine.io.gnss import GnssSolution, gnss_in_w, read_pos
 from georefine.io.imu import ImuData, read_imr, read_imu_csv
 from georefine.io.imu_gaps import BridgedImu, bridge_imu_gaps
 from georefine.io.las import iter_las_chunks, read_las_info
 from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces
+from georefine.trajectory.imu_check import check_imu_frame
 
 
 @dataclass(frozen=True)
@@ -151,6 +154,32 @@ def bridge_project_imu(root: Path, cfg: ProjectConfig, imu: ImuData) -> BridgedI
     return bridged
 
 
+def check_imu_plausible(root: Path, cfg: ProjectConfig, gnss: GnssSolution, imu: ImuData) -> None:
+    """Units, axes and signs of the IMU record against the GNSS trajectory (:mod:`georefine.trajectory.imu_check`).
+
+    The same rule for ``georefine check`` and every workflow, run before any work (about a second).
+
+    Raises
+    ------
+    InputError
+        Naming the IMU file, the fields, what a forward-right-down record in SI units would show
+        and what this one shows.
+    """
+    keep = gnss.quality <= cfg.gnss.min_quality
+    if keep.sum() < 2:
+        return  # check_navigation_spans reports it
+    i = int(np.flatnonzero(keep)[0])
+    lat, lon, h = (np.atleast_1d(a)[i] for a in gnss.geodetic())
+    frame = LocalFrame(float(lat), float(lon), float(h))
+    t0 = float(np.floor(imu.time_gps[0]))
+    g_time, g_p, _ = gnss_in_w(frame, t0, gnss, cfg.gnss.min_quality)
+    finding = check_imu_frame(imu.time_gps - t0, imu.gyro, imu.acc, g_time, g_p,
+                              float(normal_gravity(frame.lat0_rad, frame.h0_m)))
+    if finding is not None:
+        raise InputError(finding.message, path=root / cfg.imu.file, field=finding.field, expected=finding.expected,
+                         found=finding.found)
+
+
 def inspect_project(
     project_dir: str | Path,
     *,
@@ -174,6 +203,7 @@ def inspect_project(
     imu = read_project_imu(root, cfg)
     usable, g_span, i_span = check_navigation_spans(root, cfg, gnss, imu)
     bridged = bridge_project_imu(root, cfg, imu)
+    check_imu_plausible(root, cfg, gnss, bridged.data)
     gaps = np.array([(g.t_before, g.t_after) for g in bridged.gaps]).reshape(-1, 2)
     if bridged.gaps:
         warnings.append(bridged.describe())
