@@ -54,7 +54,10 @@ def test_gaps_are_bridged_on_the_nominal_grid_with_linear_readings():
     # the 0.5 s run is a straight line between its neighbours
     run = bridged.data.gyro[4999:5101]
     np.testing.assert_allclose(run, np.linspace(run[0], run[-1], run.shape[0]), atol=1e-12)
-    assert "6 IMU sampling gaps bridged (105 samples interpolated), the longest 0.505 s" in bridged.describe()
+    text = bridged.describe()
+    assert "6 IMU sampling gaps bridged (105 samples interpolated), the longest 0.505 s" in text
+    longest_sigma = bridged.gyro_sigma[5000]  # the first bridged sample of the 0.5 s run (two gaps before it)
+    assert longest_sigma > 0 and f"gyro sigma {np.degrees(longest_sigma):.3g} deg/s" in text
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])

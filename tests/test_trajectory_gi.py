@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -241,6 +242,14 @@ def test_dropped_imu_samples_and_a_short_gap_are_bridged(tiny, tmp_path):
     assert np.all(rms["gapped"] <= 1.1 * rms["clean"] + 0.1), rms  # roll, pitch, yaw within 10 % (+0.1 mdeg)
     assert np.all(gap_err < 3.0 * rms["clean"] + 1.0), (gap_err, rms)
     assert gapped.adjustment.solve.n_observations == clean.adjustment.solve.n_observations
+
+
+def test_check_lists_a_gnss_outage(tmp_path):
+    project = tmp_path / "outage"
+    simulate_project("corridor-tiny", project, seed=21, overrides=FAST_SCAN + ["gnss.outages=[[100.0, 160.0]]"])
+    run = _georefine("check", str(project))
+    assert run.returncode == 0, run.stderr
+    assert "1 GNSS gaps" in run.stdout and re.search(r"the longest 60\.\d s", run.stdout), run.stdout
 
 
 def test_out_naming_a_file_is_one_line_and_exit_2(tiny, tmp_path):

@@ -79,7 +79,8 @@ class BridgedImu:
         if not self.gaps:
             return "no IMU sampling gaps"
         longest = max(self.gaps, key=lambda g: g.duration_s)
-        k = longest.index + 1
+        # its first bridged sample: behind the samples bridged into the gaps before it
+        k = longest.index + 1 + sum(g.missing for g in self.gaps if g.index < longest.index)
         return (f"{len(self.gaps)} IMU sampling gaps bridged ({self.n_bridged} samples interpolated), the longest "
                 f"{longest.duration_s:.3f} s at {longest.t_before:.3f} GPS s (gyro sigma "
                 f"{np.degrees(self.gyro_sigma[k]):.3g} deg/s, acc sigma {self.acc_sigma[k]:.3g} m/s²)")

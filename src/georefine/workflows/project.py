@@ -154,6 +154,20 @@ def bridge_project_imu(root: Path, cfg: ProjectConfig, imu: ImuData) -> BridgedI
     return bridged
 
 
+def gnss_gaps(gnss: GnssSolution, usable: np.ndarray, factor: float = 3.0) -> np.ndarray:
+    """(K, 2) GPS seconds around each gap between usable GNSS epochs longer than ``factor`` nominal intervals.
+
+    Missing epochs and epochs of a quality worse than ``gnss.min_quality`` both open a gap: the
+    adjustment bridges it on the IMU alone (its sigma grows with the gap).
+    """
+    t = gnss.time_gps[usable]
+    if t.size < 3:
+        return np.empty((0, 2))
+    dt = np.diff(t)
+    idx = np.flatnonzero(dt > factor * float(np.median(dt)))
+    return np.column_stack([t[idx], t[idx + 1]]) if idx.size else np.empty((0, 2))
+
+
 def check_imu_plausible(root: Path, cfg: ProjectConfig, gnss: GnssSolution, imu: ImuData) -> None:
     """Units, axes and signs of the IMU record against the GNSS trajectory (:mod:`georefine.trajectory.imu_check`).
 
@@ -207,6 +221,11 @@ def inspect_project(
     gaps = np.array([(g.t_before, g.t_after) for g in bridged.gaps]).reshape(-1, 2)
     if bridged.gaps:
         warnings.append(bridged.describe())
+    g_gaps = gnss_gaps(gnss, usable)
+    if len(g_gaps):
+        k = int(np.argmax(g_gaps[:, 1] - g_gaps[:, 0]))
+        warnings.append(f"{len(g_gaps)} GNSS gaps (no epoch of quality Q <= {cfg.gnss.min_quality}), the longest "
+                        f"{g_gaps[k, 1] - g_gaps[k, 0]:.1f} s from {g_gaps[k, 0]:.1f} GPS s: bridged on the IMU alone")
 
     channels = {c.id for c in cfg.scanner.channels}
     nav = (max(g_span[0], i_span[0]), min(g_span[1], i_span[1]))
