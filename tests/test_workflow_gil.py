@@ -304,6 +304,23 @@ def test_points_outside_the_trajectory_are_counted_not_extrapolated(project):
     assert features.time.max() <= short.time[-1]
 
 
+def test_a_strip_outside_the_trajectory_is_an_error_not_an_empty_file(sparse_project, tmp_path):
+    from georefine.io.trajectory import write_sbet
+
+    nav = load_navigation(sparse_project)
+    sb = read_sbet(sparse_project / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
+    t_end = float(read_las(sparse_project / "scans" / "strip_1.laz").time_gps.max()) + 5.0  # pass 1 only
+    keep = sb.time_gps <= t_end
+    short = dataclasses.replace(sb, **{f.name: getattr(sb, f.name)[keep] for f in dataclasses.fields(sb)})
+    write_sbet(tmp_path / "pass1.sbet", short)
+    proc = subprocess.run([sys.executable, "-m", "georefine", "georeference", str(sparse_project), "--trajectory",
+                           str(tmp_path / "pass1.sbet"), "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    assert proc.returncode == 2, proc.stderr
+    assert "strip_2.laz" in proc.stderr and "gps_time" in proc.stderr and "inside the trajectory" in proc.stderr
+    assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
 def test_strip_without_configured_scanner_channel_is_rejected(sparse_project, tmp_path):
     bad = tmp_path / "bad"
     shutil.copytree(sparse_project, bad)

@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from georefine.config import PlaneExtractionConfig, ScaleConfig
+from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.las import PointCloud, TimeIndex, read_las_range, time_index
 from georefine.io.las_encode import LAZ_CHUNK_POINTS, EncodedPoints, LasLayout, encode_points
@@ -259,6 +260,20 @@ def georeference_strip(
                                scale_m=scale_m, progress=progress, protect=protect)[0]
 
 
+def refuse_strips_outside(plans: list[StripPlan], span: tuple[float, float], t0_gps: float) -> None:
+    """InputError for the first strip with no point inside the trajectory's time ``span`` (s from the epoch).
+
+    Georeferencing it would write an empty file and call that success.
+    """
+    for plan in plans:
+        if plan.point_count and (plan.t_last < span[0] or plan.t_first > span[1]):
+            raise InputError(
+                "no point of the strip lies inside the trajectory's time span", path=plan.path, field="gps_time",
+                expected=f"times within {span[0] + t0_gps:.3f} .. {span[1] + t0_gps:.3f} GPS s",
+                found=f"{plan.t_first + t0_gps:.3f} .. {plan.t_last + t0_gps:.3f} GPS s",
+            )
+
+
 def georeference_strips(
     plans: list[StripPlan], out_paths: list[str | Path], poses: PoseInterpolator, t0_gps: float,
     p_b_s: np.ndarray, R_b_s: np.ndarray, frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
@@ -297,6 +312,10 @@ def georeference_strips(
             writers[k].write_encoded(points)
             written[k] += len(points)
             if i == last[k]:
+                if not written[k] and outside[k]:  # every point outside the trajectory: not a result
+                    raise InputError("no point of the strip lies inside the trajectory's time span",
+                                     path=plans[k].path, field="gps_time",
+                                     found=f"all {outside[k]:,} points outside it")
                 writers[k].close()
         for k in range(len(plans)):
             writers[k].close()  # a strip without tiles: an empty file

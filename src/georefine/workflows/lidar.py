@@ -52,7 +52,7 @@ from georefine.lidar.correspondences import PlanarObjects, match_features, write
 from georefine.lidar.feature_sample import feature_keys, stable_object_subset
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
-from georefine.lidar.tiles import georeference_strips
+from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.trajectory.spline import KnotGrid
@@ -502,7 +502,9 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
 
     def compute() -> list[dict]:  # stored with each file's stamp, for ``written``
         runner = inputs.runner
-        poses = runner.share(PoseInterpolator(imu_rate_trajectory(nav, final)))
+        interpolator = PoseInterpolator(imu_rate_trajectory(nav, final))
+        refuse_strips_outside([s.plan for s in inputs.strips], interpolator.span, nav.t0_gps)
+        poses = runner.share(interpolator)
         paths = [folder / (s.path.stem + ".laz") for s in inputs.strips]
         results = georeference_strips([s.plan for s in inputs.strips], paths, poses, nav.t0_gps, p_b_s, R_b_s,
                                       nav.frame, inputs.crs, runner=runner, progress=progress, protect=(nav.root,))

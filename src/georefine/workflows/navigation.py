@@ -345,7 +345,7 @@ def run_georeference(
     from georefine.io.las import gps_week_of_strip, time_index
     from georefine.io.trajectory import read_sbet
     from georefine.lidar.georeference import PoseInterpolator
-    from georefine.lidar.tiles import georeference_strips, plan_strip, tile_points
+    from georefine.lidar.tiles import georeference_strips, plan_strip, refuse_strips_outside, tile_points
     from georefine.trajectory.sampled import trajectory_from_sbet
 
     root = Path(project_dir)
@@ -358,11 +358,12 @@ def run_georeference(
     t0 = float(np.floor(sbet.time_gps[0]))
     traj = trajectory_from_sbet(sbet, frame, t0)
     crs = OutputCRS(cfg.crs.output_epsg)
-    out.mkdir(parents=True, exist_ok=True)
     with runner_for(scheduler) as runner:
-        poses = runner.share(PoseInterpolator(traj))
         size = tile_points(cfg.processing.scale, runner.workers)
         plans = [plan_strip(root / rel, 0, t0, size, 0.0, index=time_index(root / rel)) for rel in cfg.scanner.files]
+        refuse_strips_outside(plans, (float(traj.time[0]), float(traj.time[-1])), t0)
+        out.mkdir(parents=True, exist_ok=True)
+        poses = runner.share(PoseInterpolator(traj))
         results = georeference_strips(
             plans, [out / (Path(rel).stem + ".laz") for rel in cfg.scanner.files], poses, t0,
             np.asarray(cfg.scanner.lever_arm_m), boresight_matrix(cfg.scanner.boresight_deg), frame, crs,
