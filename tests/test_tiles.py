@@ -212,6 +212,12 @@ def test_strips_in_one_stream_give_the_files_of_one_strip_at_a_time(strip, poses
     one = georeference_strip(a, tmp_path / "one.laz", poses, T0, np.zeros(3), np.eye(3), frame, crs)
     assert [r.points_written for r in both] == [one.points_written] * 2
     assert both[0].output.read_bytes() == both[1].output.read_bytes() == one.output.read_bytes()
+    import json
+
+    from georefine.io.point_manifest import MANIFEST
+
+    listed = {e["file"]: e["points"] for e in json.loads((tmp_path / MANIFEST).read_text())["files"]}
+    assert listed["a.laz"] == listed["b.laz"] == one.points_written  # the evaluations read what was written
     # The second strip's file vanished: the first file is complete, the second is not written.
     from dataclasses import replace
 
@@ -222,6 +228,7 @@ def test_strips_in_one_stream_give_the_files_of_one_strip_at_a_time(strip, poses
                             frame, crs)
     assert (tmp_path / "x.laz").read_bytes() == one.output.read_bytes()
     assert not (tmp_path / "y.laz").exists() and not list(tmp_path.glob(".*.part"))
+    assert "y.laz" not in (tmp_path / MANIFEST).read_text()
 
 
 def test_equal_tiles_within_the_budget(strip):

@@ -57,6 +57,7 @@ from georefine.evaluation.strip_differences import (
     write_png,
 )
 from georefine.io.files import atomic_output, write_json
+from georefine.io.point_manifest import manifest_files
 from georefine.io.reference import read_reference_surfaces
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
@@ -83,11 +84,16 @@ _LAYER = 256  # layer code = point_source_id * 256 + scanner_channel
 
 
 def point_files(paths: list[Path]) -> list[Path]:
-    """LAS/LAZ files named directly or found in the named folders (sorted)."""
+    """LAS/LAZ files named directly or found in the named folders (sorted).
+
+    A folder Georefine wrote gives the files its manifest lists (:mod:`georefine.io.point_manifest`:
+    others are named in a warning and left out); any other folder, all its LAS/LAZ files.
+    """
     out: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            out += sorted(q for q in p.iterdir() if q.suffix.lower() in (".las", ".laz"))
+            listed = manifest_files(p)
+            out += listed if listed is not None else sorted(q for q in p.iterdir() if q.suffix.lower() in (".las", ".laz"))
         elif p.is_file():
             out.append(p)
         else:

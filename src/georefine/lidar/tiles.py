@@ -42,6 +42,7 @@ from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.las import PointCloud, TimeIndex, read_las_range, time_index
 from georefine.io.las_encode import LAZ_CHUNK_POINTS, EncodedPoints, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter, offset_near
+from georefine.io.point_manifest import record_point_files
 from georefine.lidar.georeference import PoseInterpolator, georeference
 from georefine.lidar.planes import PlanarFeatures, extract_features
 from georefine.progress import Progress, no_progress
@@ -319,6 +320,7 @@ def georeference_strips(
                 writers[k].close()
         for k in range(len(plans)):
             writers[k].close()  # a strip without tiles: an empty file
+    record_point_files([w.path for w in writers], written)  # evaluations read these, not stale neighbours
     out = []
     for plan, w, n, left in zip(plans, writers, written, outside):
         if w.recompressed_points:
