@@ -47,6 +47,8 @@ def main(
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
     )
+    # laspy logs a read error before raising it; the reader turns it into the command's one line
+    logging.getLogger("laspy").setLevel(logging.CRITICAL)
 
 
 _SCHEDULER_HELP = ("Where the per-tile work runs: sync, threads, processes (a local Dask cluster, one worker "
