@@ -1,11 +1,14 @@
 """Georeferencing strips with a trajectory file: accuracy against the truth, no extrapolation."""
 
+import shutil
 from pathlib import Path
 
 import laspy
 import numpy as np
 import pytest
+import yaml
 
+from georefine.errors import InputError
 from georefine.io.trajectory import read_sbet, write_sbet
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows import run_georeference
@@ -47,11 +50,20 @@ def test_points_outside_the_trajectory_are_left_out_and_counted(project, tmp_pat
             "wander_rad", "accel_b", "angular_rate_b")}
     )
     write_sbet(tmp_path / "short.sbet", short, time_scale="gps")
-    res = run_georeference(project, tmp_path / "short.sbet", tmp_path / "pts", gps_week=week)
-    s1, s2 = res.strips
+    # The whole second pass is outside: an error naming it, not an empty file called success.
+    with pytest.raises(InputError, match=r"strip_2.laz, field 'gps_time': no point of the strip lies inside"):
+        run_georeference(project, tmp_path / "short.sbet", tmp_path / "pts", gps_week=week)
+    assert not (tmp_path / "pts").exists()
+    # The first pass alone: the points after the cut are left out and counted.
+    one = tmp_path / "one"
+    shutil.copytree(project, one, ignore=shutil.ignore_patterns("truth"))
+    cfg = yaml.safe_load((one / "project.yaml").read_text())
+    cfg["scanner"]["files"] = ["scans/strip_1.laz"]
+    (one / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    res = run_georeference(one, tmp_path / "short.sbet", tmp_path / "pts", gps_week=week)
+    (s1,) = res.strips
     n1 = laspy.open(project / "scans" / "strip_1.laz").header.point_count
     assert 0.3 * n1 < s1.points_outside < 0.7 * n1 and s1.points_written + s1.points_outside == n1
-    assert s2.points_written == 0  # the whole second pass is outside
     assert "outside the trajectory" in res.summary()
 
 

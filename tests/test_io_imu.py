@@ -10,7 +10,6 @@ from georefine.io.imu import (
     ImuData,
     _imr_header_dtype,
     _imr_record_dtype,
-    check_rate_gaps,
     read_imr,
     read_imr_header,
     read_imu_csv,
@@ -68,14 +67,16 @@ def test_intervals_nominal_first_after_gaps_and_for_tag_rounding():
     np.testing.assert_allclose(back, dth, rtol=1e-12)
 
 
-def test_check_rate_gaps():
+def test_find_imu_gaps():
+    from georefine.io.imu_gaps import find_imu_gaps
+
     data = _imu(0, n=100)
     t = np.delete(data.time_gps, np.arange(40, 45))
     gapped = ImuData(t, np.delete(data.gyro, np.arange(40, 45), 0), np.delete(data.acc, np.arange(40, 45), 0), RATE)
-    gaps = check_rate_gaps(gapped)
-    assert gaps.shape == (1, 2)
-    np.testing.assert_allclose(gaps[0], [data.time_gps[39], data.time_gps[45]])
-    assert check_rate_gaps(data).shape == (0, 2)
+    (gap,) = find_imu_gaps(gapped)
+    np.testing.assert_allclose([gap.t_before, gap.t_after], [data.time_gps[39], data.time_gps[45]])
+    assert gap.index == 39 and gap.missing == 5
+    assert find_imu_gaps(data) == []
 
 
 def _write_csv(tmp_path, body: str, name="imu.csv"):

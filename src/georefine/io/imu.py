@@ -63,7 +63,7 @@ from georefine.io.files import (
 )
 
 __all__ = [
-    "ImuData", "ImrHeader", "sample_intervals", "check_rate_gaps", "read_imu_csv", "write_imu_csv",
+    "ImuData", "ImrHeader", "sample_intervals", "read_imu_csv", "write_imu_csv",
     "read_imr_header", "read_imr", "write_imr", "RATE_COLUMNS", "INCREMENT_COLUMNS",
 ]
 
@@ -155,21 +155,6 @@ class ImuData:
         """Average rates = increment / interval; ``kind="increments"``."""
         dt = sample_intervals(np.asarray(time_gps, float), rate_hz, max_gap_factor)[:, None]
         return cls(time_gps, np.asarray(dtheta) / dt, np.asarray(dv) / dt, rate_hz, "increments")
-
-
-def check_rate_gaps(data: ImuData, max_gap_factor: float = 1.5) -> np.ndarray:
-    """Gaps in the sampling: intervals longer than ``max_gap_factor / rate_hz``.
-
-    Returns
-    -------
-    np.ndarray
-        (K,2) GPS seconds ``[t_before_gap, t_after_gap]`` for each gap (K may be 0).
-    """
-    t = data.time_gps
-    idx = np.flatnonzero(np.diff(t) > max_gap_factor / data.rate_hz)
-    if idx.size:
-        _log.warning("%d gaps in IMU data, longest %.3f s", idx.size, float(np.max(t[idx + 1] - t[idx])))
-    return np.column_stack([t[idx], t[idx + 1]]) if idx.size else np.empty((0, 2))
 
 
 def _check_magnitudes(

@@ -1,8 +1,8 @@
 """Gaps in the IMU sampling: found, bridged with honest uncertainty, or refused (docs/ARCHITECTURE.md §3.2).
 
 Real IMU logs drop samples: a single one now and then, or a run of them when the logger
-stalls. :func:`find_imu_gaps` lists every interval longer than ``1.5 / rate_hz`` (the same
-rule as :func:`georefine.io.imu.check_rate_gaps`); ``georefine check`` and the workflow both
+stalls. :func:`find_imu_gaps` lists every interval longer than ``1.5 / rate_hz`` (the rule of
+:func:`georefine.io.imu.sample_intervals`); ``georefine check`` and the workflow both
 call :func:`bridge_imu_gaps`, so they agree on every gap:
 
 * a gap of at most ``max_gap_s`` (``imu.max_gap_s`` in ``project.yaml``) is **bridged**: the

@@ -16,9 +16,9 @@ import numpy as np
 
 from georefine.config import ProjectConfig, load_project
 from georefine.errors import InputError
-from georefine.io.files import check_output_folder
 from georefine.geometry.earth import normal_gravity
 from georefine.geometry.frames import LocalFrame
+from georefine.io.files import check_output_folder
 from georefine.io.gnss import GnssSolution, gnss_in_w, read_pos
 from georefine.io.imu import ImuData, read_imr, read_imu_csv
 from georefine.io.imu_gaps import BridgedImu, bridge_imu_gaps
