@@ -144,6 +144,23 @@ def test_scenario_override_changes_only_the_field_it_names(tmp_path):
         resolve_scenario("corridor-tiny", seed_overrides=["imu=consumer"])
 
 
+def test_the_resolved_scenario_names_where_each_section_came_from(tmp_path):
+    from georefine.sim.scenarios import resolve_scenario
+
+    assert resolve_scenario("corridor").sources == {
+        "scene": "defaults", "flight": "defaults", "gnss": "defaults", "scanner": "scenario corridor",
+        "imu": "preset mems (the default)"}
+    cfg = tmp_path / "s.yaml"
+    cfg.write_text("imu: tactical\nflight: {passes: 1}\n")
+    src = resolve_scenario("corridor-tiny", config_file=cfg, gnss_grade="ideal",
+                           seed_overrides=["imu.rate_hz=400", "scanner.line_rate_hz=100"]).sources
+    assert src["imu"] == f"preset tactical ({cfg}), --set imu.rate_hz=400"
+    assert src["flight"] == f"scenario corridor-tiny, {cfg}"
+    assert src["gnss"] == "defaults, --gnss-grade ideal"
+    assert src["scanner"] == "scenario corridor-tiny, --set scanner.line_rate_hz=100"
+    assert resolve_scenario("corridor", imu_grade="navigation").sources["imu"] == "preset navigation (--imu-grade)"
+
+
 # ---------------------------------------------------------------------------- processing.lidargrammetry
 def test_lidargrammetry_defaults_are_the_values_the_block_demo_was_tuned_with():
     from georefine.config import LidargrammetryConfig

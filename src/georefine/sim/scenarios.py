@@ -119,6 +119,10 @@ class ScenarioConfig(StrictModel):
     laz: bool = Field(True, description="Compress strips (LAZ) or not (LAS).")
     jamming: JammingConfig | None = Field(None, description="GNSS outage in every pass (the LiDAR's trajectory).")
     photos: PhotoBlockConfig | None = Field(None, description="A photo block over the scene (paper 004).")
+    sources: dict[str, str] = Field(
+        default_factory=dict, description="Where each section's values came from: the scenario's defaults, an IMU "
+        "preset, the --config file, --imu-grade/--gnss-grade, each --set (filled by resolve_scenario).",
+    )
 
 
 
@@ -194,15 +198,38 @@ def resolve_scenario(
     ``--set imu.rate_hz=400`` changes the rate of that preset and keeps its errors. Overrides
     apply in order, so ``--set imu=tactical --set imu.rate_hz=400`` works too.
     """
-    data = _with_imu_preset(_scenario_defaults(name), "scenario " + name)
+    defaults = _scenario_defaults(name)
+    sources = {k: "defaults" for k in ("scene", "flight", "gnss", "scanner")}
+    sources.update({k: f"scenario {name}" for k in defaults if k not in ("name", "description")})
+    sources["imu"] = f"preset {defaults.get('imu', DEFAULT_IMU_GRADE)} (the default)"
+
+    def note(section: str, what: str) -> None:
+        sources[section] = f"{sources[section]}, {what}" if section in sources else what
+
+    data = _with_imu_preset(defaults, "scenario " + name)
     if config_file is not None:
-        data = _with_imu_preset(_merge_layer(data, read_yaml(config_file)), str(config_file))
+        layer = read_yaml(config_file)
+        layer.pop("sources", None)  # a resolved scenario given back as a file: its record is rewritten below
+        for section, value in layer.items():
+            if section == "imu" and isinstance(value, str):
+                sources["imu"] = f"preset {value} ({config_file})"
+            else:
+                note(section, str(config_file))
+        data = _with_imu_preset(_merge_layer(data, layer), str(config_file))
     if imu_grade is not None:
         data = _with_imu_preset({**data, "imu": imu_grade}, "--imu-grade", field="imu_grade")
+        sources["imu"] = f"preset {imu_grade} (--imu-grade)"
     if gnss_grade is not None:
         data = deep_merge(data, {"gnss": {"grade": gnss_grade}})
+        note("gnss", f"--gnss-grade {gnss_grade}")
     for item in seed_overrides or ():
         data = _with_imu_preset(apply_overrides(data, [item]), "--set " + item)
+        key = item.partition("=")[0].strip()
+        if key == "imu" and isinstance(data.get("imu"), dict):
+            sources["imu"] = f"preset {item.partition('=')[2].strip()} (--set)"
+        else:
+            note(key.split(".")[0], f"--set {item}")
+    data["sources"] = sources
     return validate_model(ScenarioConfig, data, config_file)  # type: ignore[return-value]
 
 
