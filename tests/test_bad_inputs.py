@@ -7,10 +7,7 @@ the same rules, so a case ``check`` lets through would be a case the workflow me
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 from typing import Callable
 
@@ -19,6 +16,7 @@ import numpy as np
 import pytest
 import yaml
 
+from cli_helpers import run_georefine as _georefine
 from georefine.sim.scenarios import simulate_project
 
 FAST_SCAN = ["scanner.pulse_rate_hz=2000", "scanner.line_rate_hz=100"]
@@ -198,10 +196,6 @@ CASES: list[tuple[str, Callable[[Path], None], str | Callable[[Path, Path], list
 ]
 
 
-def _georefine(*args: str) -> subprocess.CompletedProcess:
-    exe = shutil.which("georefine")
-    cmd = [exe, *args] if exe else [sys.executable, "-m", "georefine.cli", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"), timeout=600)
 
 
 def test_the_table_has_at_least_forty_cases():

@@ -2,16 +2,14 @@
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from cli_helpers import run_georefine as _georefine
 from georefine.geometry.earth import normal_gravity
 from georefine.geometry.frames import LocalFrame
 from georefine.io.gnss import gnss_in_w
@@ -84,10 +82,6 @@ def test_accelerometer_faults_are_named(record, name, transform, field, words):
     assert field in f.field and words in f.message, f
 
 
-def _georefine(*args: str) -> subprocess.CompletedProcess:
-    exe = shutil.which("georefine")
-    cmd = [exe, *args] if exe else [sys.executable, "-m", "georefine.cli", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"), timeout=600)
 
 
 def test_check_and_trajectory_refuse_a_gyro_in_deg_per_s_in_seconds(tiny, tmp_path):

@@ -7,10 +7,7 @@ depend on the point density, and a fifth of the points keeps the session quick.
 
 from __future__ import annotations
 
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import laspy
@@ -18,6 +15,7 @@ import numpy as np
 import pytest
 import yaml
 
+from cli_helpers import run_georefine as _georefine
 from georefine.geometry import earth
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import log_so3
@@ -155,11 +153,6 @@ def test_same_seed_same_files_on_any_scheduler_and_imr_matches_csv(tmp_path):
 # ------------------------------------------------------------------------------ bad input
 
 
-def _georefine(*args: str) -> subprocess.CompletedProcess:
-    exe = shutil.which("georefine")
-    cmd = [exe, *args] if exe else [sys.executable, "-m", "georefine.cli", *args]
-    env = dict(os.environ, COLUMNS="200")
-    return subprocess.run(cmd, capture_output=True, text=True, env=env, timeout=300)
 
 
 def _copy_project(src: Path, dst: Path, modify: str) -> Path:

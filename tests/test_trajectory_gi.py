@@ -7,17 +7,15 @@ outage, multipath jumps, and bad input. The corridor runs are marked slow (CI ru
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
+from cli_helpers import run_georefine as _georefine
 from georefine.evaluation.trajectory import consistency
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.trajectory import read_sbet, read_trajectory_csv
@@ -160,10 +158,6 @@ def test_multipath_jumps_do_not_move_the_solution_elsewhere(tiny, tmp_path, capl
 # ------------------------------------------------------------------------------ bad input
 
 
-def _georefine(*args: str) -> subprocess.CompletedProcess:
-    exe = shutil.which("georefine")
-    cmd = [exe, *args] if exe else [sys.executable, "-m", "georefine.cli", *args]
-    return subprocess.run(cmd, capture_output=True, text=True, env=dict(os.environ, COLUMNS="200"), timeout=600)
 
 
 def _nav_copy(src: Path, dst: Path) -> Path:

@@ -21,6 +21,7 @@ from georefine.io.files import (
     SECONDS_PER_WEEK,
     PathLike,
     atomic_output,
+    make_output_folder,
     week_from_gps_seconds,
 )
 from georefine.io.trajectory import SBET_RECORD_SIZE, read_sbet
@@ -137,14 +138,7 @@ def _output_folder(out_dir: Path, protect: tuple[PathLike, ...]) -> Path:
         if out == p or p in out.parents:
             raise InputError("refusing to write into an input", path=out,
                              expected="an output folder that is not an input", found=f"input {p}")
-    if out.exists() and not out.is_dir():
-        raise InputError("output path exists and is not a folder", path=out, expected="a folder",
-                         found="a file")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the output folder: {exc.strerror}", path=out) from exc
-    return out
+    return make_output_folder(out)
 
 
 def write_trajectory_evaluation(
