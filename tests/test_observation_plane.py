@@ -45,17 +45,17 @@ def random_axes(rng, n):
     return Q[:, :, 0], Q[:, :, 1]
 
 
-def random_group(rng, grid, n_features=25, n_objects=4, boresight=None, lever_arm=None):
+def random_group(rng, grid, n_features=25, n_objects=4, boresight=None, lever_arm=None, **timing):
     c0, k1, k2, n0 = plane_reference_frames(rng.uniform(0, 200, (n_objects, 3)), rng.normal(size=(n_objects, 3)))
     a1, a2 = random_axes(rng, n_features)
     direction = rng.normal(size=(n_features, 3))
     centre_s = direction / np.linalg.norm(direction, axis=1, keepdims=True) * rng.uniform(30, 150, (n_features, 1))
     return PlaneObservation(
-        grid, np.sort(rng.uniform(0, grid.t_end, n_features)), centre_s, a1, a2,
+        grid, np.sort(rng.uniform(0.05, grid.t_end - 0.05, n_features)), centre_s, a1, a2,
         sigma_d=rng.uniform(0.005, 0.03, n_features), sigma_slope=rng.uniform(5e-4, 3e-3, n_features),
         object_index=rng.integers(0, n_objects, n_features), c0=c0, k1=k1, k2=k2, n0=n0,
         p_b_s=np.array([0.2, -0.1, 0.4]), R_b_s=exp_so3(np.array([0.01, -0.02, 1.5])),
-        boresight=boresight, lever_arm=lever_arm,
+        boresight=boresight, lever_arm=lever_arm, **timing,
     )
 
 
@@ -84,6 +84,36 @@ def test_plane_jacobians(seed, calibration):
     assert chk.max_rel_error < 1e-6, chk
     chk = check_jacobians(group, values, {k: v for k, v in blocks.items() if k not in linear}, eps=1e-5)
     assert chk.max_rel_error < 1e-6, chk
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_time_offset_and_drift_jacobians(seed):
+    """The LiDAR time offset and drift: their columns and the knots' columns at the shifted times."""
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    group = random_group(rng, grid, boresight="R_b_s", lever_arm="p_b_s", time_offset="tau", time_drift="kappa")
+    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
+    values |= {"R_b_s": group.R_b_s[None], "p_b_s": group.p_b_s[None],
+               "tau": np.array([[rng.uniform(-0.02, 0.02)]]), "kappa": np.array([[rng.uniform(-1e-3, 1e-3)]])}
+    blocks = dict(TRAJ_BLOCKS, plane_params="euclidean", R_b_s="so3", p_b_s="euclidean")
+    # The times move the features along 18 m/s and rotate them at ~0.2 rad/s: a step of 1e-6 s
+    # keeps the curvature error of the central difference far below the tolerance.
+    chk = check_jacobians(group, values, {"tau": "euclidean", "kappa": "euclidean"}, eps=1e-6)
+    assert chk.residual_mismatch == 0.0
+    assert chk.max_rel_error < 1e-6, chk
+    linear = {B.position, B.velocity, B.acceleration, "p_b_s"}
+    chk = check_jacobians(group, values, {k: v for k, v in blocks.items() if k in linear}, eps=1e-3)
+    assert chk.max_rel_error < 1e-6, chk
+    chk = check_jacobians(group, values, {k: v for k, v in blocks.items() if k not in linear}, eps=1e-5)
+    assert chk.max_rel_error < 1e-6, chk
+    # Zero offset and drift are the group without time parameters.
+    plain = random_group(np.random.default_rng(seed), grid)
+    zero = values | {"tau": np.zeros((1, 1)), "kappa": np.zeros((1, 1))}
+    timed = random_group(np.random.default_rng(seed), grid, time_offset="tau", time_drift="kappa")
+    np.testing.assert_allclose(timed.linearize(zero, False).residuals, plain.linearize(zero, False).residuals,
+                               rtol=0, atol=1e-9)
 
 
 def test_calibration_blocks_default_to_fixed_values():

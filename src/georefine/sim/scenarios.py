@@ -115,6 +115,11 @@ class ScenarioConfig(StrictModel):
     project_boresight_deg: tuple[float, float, float] | None = Field(
         None, description="Boresight written to project.yaml if it differs from the truth (calibration error)."
     )
+    scanner_time_offset_s: float = Field(
+        0.0, ge=-60.0, le=60.0,
+        description="The strips' gps_time runs this far behind GPS time (an unsynchronised scanner: 18 for time "
+        "stamps in UTC). project.yaml does not know it (scanner.time_offset_s: 0); the truth strips keep GPS time.",
+    )
     reference_survey_sigma_m: float = Field(0.003, ge=0.0, description="RTK survey noise of the reference corners.")
     laz: bool = Field(True, description="Compress strips (LAZ) or not (LAS).")
     jamming: JammingConfig | None = Field(None, description="GNSS outage in every pass (the LiDAR's trajectory).")
@@ -420,7 +425,7 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
         # included); this process only encodes them, in time order.
         records = scan(traj.pose, t0, t1, scene, cfg.scanner, p_b_s, R_b_s, chunk_seed(seed_scan, strip_id),
                        chunk_duration_s=chunk_s, runner=runner, finish=writers.strip_records,
-                       finish_args=(strip_id, traj.t0_gps, frame, crs))
+                       finish_args=(strip_id, traj.t0_gps, frame, crs, cfg.scanner_time_offset_s))
 
         def tick(t_gps_end: float, _t0=traj.t0_gps + t0, _done=done) -> None:
             progress("scanning", _done + (t_gps_end - _t0), total)

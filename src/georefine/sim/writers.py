@@ -89,14 +89,17 @@ def write_reference(
 
 
 def strip_records(chunk: ScanChunk, strip_id: int, t0_gps: float, frame: LocalFrame,
-                  crs: OutputCRS) -> tuple[PointCloud, PointCloud]:
+                  crs: OutputCRS, scan_time_offset_s: float = 0.0) -> tuple[PointCloud, PointCloud]:
     """The scan-file and truth-file records of one chunk (the per-chunk work of :func:`write_strip`,
-    done inside the scan task so that the writer only encodes)."""
+    done inside the scan task so that the writer only encodes).
+
+    The scan file's time stamps run ``scan_time_offset_s`` behind GPS time (a scanner that is not
+    synchronised); the truth file keeps GPS time."""
     m = chunk.time.size
     ones = np.ones(m, dtype=np.uint8)
     sid = np.full(m, strip_id, dtype=np.uint16)
     t_gps = t0_gps + chunk.time
-    scan = PointCloud(t_gps, chunk.xyz_s, chunk.intensity, chunk.channel, sid, ones, ones)
+    scan = PointCloud(t_gps - scan_time_offset_s if scan_time_offset_s else t_gps, chunk.xyz_s, chunk.intensity, chunk.channel, sid, ones, ones)
     # Measured point georeferenced with the true pose: the true hit moved by the range noise
     # along the beam (exactly what the scanner model measured).
     measured_w = chunk.xyz_w_true + chunk.range_error_m[:, None] * chunk.beam_w

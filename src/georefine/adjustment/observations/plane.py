@@ -38,7 +38,14 @@ derivative ``-(R^T a)^T skew(x) = (x x R^T a)^T`` w.r.t. ``delta``):
   ``r_i+1: k_i_s x n_s / sigma_s``; lever arm: ``d r1 / d p_b_s = n_b^T / sigma_d``;
 * object: ``dn/dm = (I - n n^T) / |m|``, ``dm/dalpha = k1_0``, ``dm/dbeta = k2_0``,
   ``dc/dd = n0``: ``r1: [-(n . n0), (c~ - c) . n_alpha, (c~ - c) . n_beta] / sigma_d``,
-  ``r_i+1: [0, k~_i . n_alpha, k~_i . n_beta] / sigma_s``.
+  ``r_i+1: [0, k~_i . n_alpha, k~_i . n_beta] / sigma_s``;
+* LiDAR time offset ``tau`` and drift ``kappa`` (optional blocks): the feature is georeferenced
+  at ``t_f + tau + kappa (t_f - t_ref)`` (its time stamp is that far behind the navigation's
+  time). ``d c~ / dt = v_w_b + R_w_b (omega x x_b)``, ``d k~_i / dt = R_w_b (omega x R_b_s k_i_s)``
+  with the spline's velocity and body rate ``omega`` at that time, so
+  ``d r1 / d tau = (n . v_w_b + (x_b x n_b) . omega) / sigma_d``,
+  ``d r_i+1 / d tau = ((R_b_s k_i_s) x n_b) . omega / sigma_s``, and ``d / d kappa`` is
+  ``(t_f - t_ref)`` times that.
 
 References
 ----------
@@ -253,6 +260,14 @@ class PlaneObservation:
         ``R_b_s Exp(eps)``, scanner frame).
     lever_arm
         Optional Euclidean block ``(1, 3)`` holding ``p_b_s`` (m).
+    time_offset
+        Optional Euclidean block ``(1, 1)``: the LiDAR time offset ``tau`` (s) added to every
+        feature time (module docstring).
+    time_drift
+        Optional Euclidean block ``(1, 1)``: the drift ``kappa`` (s/s) of the LiDAR clock,
+        adding ``kappa (t_f - time_reference)``.
+    time_reference
+        ``t_ref`` of the drift (s); default the middle of the feature times.
     blocks
         Trajectory block names.
     loss
@@ -278,6 +293,9 @@ class PlaneObservation:
     objects: str = "plane_params"
     boresight: str | None = None
     lever_arm: str | None = None
+    time_offset: str | None = None
+    time_drift: str | None = None
+    time_reference: float | None = None
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
     name: str = "planes"
@@ -312,6 +330,8 @@ class PlaneObservation:
         self.R_b_s = np.asarray(self.R_b_s, dtype=float).reshape(3, 3)
         if np.abs(self.R_b_s @ self.R_b_s.T - np.eye(3)).max() > _ORTHONORMAL_TOL or np.linalg.det(self.R_b_s) <= 0:
             raise ValueError("PlaneObservation: R_b_s is not a rotation matrix")
+        if self.time_reference is None:
+            self.time_reference = 0.5 * float(self.time.min() + self.time.max()) if f else 0.0
         self._k, u = self.grid.locate(self.time) if f else (np.zeros(0, np.int64), np.zeros(0))
         self._w0 = position_basis(u, self.grid.dt, 0)
         self._w_d = 1.0 / self.sigma_d
@@ -344,7 +364,7 @@ class PlaneObservation:
         return object_planes(self.c0, self.k1, self.k2, self.n0, self._params(values))
 
     def feature_frames(self, values: Mapping[str, np.ndarray]) -> FeatureFrames:
-        """Features georeferenced with the current trajectory and calibration (``w``)."""
+        """Features georeferenced with the current trajectory, calibration and time offset (``w``)."""
         _, R_w_b, R_b_s, _, centre_w = self._pose(values, jacobians=False)
         R_w_s = R_w_b @ R_b_s
         k1_w = np.einsum("nij,nj->ni", R_w_s, self.axis1_s)
@@ -356,21 +376,48 @@ class PlaneObservation:
         r = self.linearize(values, jacobians=False).residuals.reshape(-1, 3)
         return np.linalg.norm(r, axis=1)
 
+    def feature_times(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Times (F,) the features are georeferenced at: their stamps plus the current time offset and drift."""
+        t = self.time
+        if self.time_offset is not None:
+            t = t + _single_element(values, self.time_offset, (1,))[0]
+        if self.time_drift is not None:
+            t = t + _single_element(values, self.time_drift, (1,))[0] * (self.time - self.time_reference)
+        return t
+
+    def _located(self, values: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """``(t, k, u, w0)``: feature times, their knot intervals, normalised times and position basis.
+
+        Without time parameters the stamps' look-up made at construction; with them the shifted
+        times, clamped to the grid (the caller keeps the features a margin inside it).
+        """
+        if self.time_offset is None and self.time_drift is None:
+            return self.time, self._k, None, self._w0
+        t = np.clip(self.feature_times(values), self.grid.t_start, self.grid.t_end)
+        k, u = self.grid.locate(t)
+        return t, k, u, position_basis(u, self.grid.dt, 0)
+
     def _params(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
         params = np.asarray(values[self.objects], dtype=float)
         if params.shape != (self.n_objects, 3):
             raise ValueError(f"block {self.objects!r} must have shape ({self.n_objects}, 3), found {params.shape}")
         return params
 
-    def _pose(self, values: Mapping[str, np.ndarray], jacobians: bool):
-        """``(ev, R_w_b, R_b_s, x_b, c~)``: spline attitude, calibration, centre in b, centre in w."""
+    def _timed(self) -> bool:
+        return self.time_offset is not None or self.time_drift is not None
+
+    def _pose(self, values: Mapping[str, np.ndarray], jacobians: bool, located=None):
+        """``(ev, R_w_b, R_b_s, x_b, c~)``: spline attitude, calibration, centre in b, centre in w.
+
+        With time parameters and ``jacobians`` the body rate is evaluated too (``ev.omega_wb_b``).
+        """
         P, V, A, R, W = self.blocks.knots(values)
-        k, w0 = self._k, self._w0
+        t, k, _, w0 = located if located is not None else self._located(values)
         p = (
             w0[:, 0:1] * P[k] + w0[:, 1:2] * V[k] + w0[:, 2:3] * A[k]
             + w0[:, 3:4] * P[k + 1] + w0[:, 4:5] * V[k + 1] + w0[:, 5:6] * A[k + 1]
         )
-        ev = eval_orientation(self.grid, R, W, self.time, rate=False, jacobians=jacobians)
+        ev = eval_orientation(self.grid, R, W, t, rate=jacobians and self._timed(), jacobians=jacobians)
         R_b_s, p_b_s = self.calibration(values)
         x_b = p_b_s + self.centre_s @ R_b_s.T  # feature centre relative to the IMU, body frame
         return ev, ev.R_w_b, R_b_s, x_b, p + np.einsum("nij,nj->ni", ev.R_w_b, x_b)
@@ -380,7 +427,8 @@ class PlaneObservation:
         params = self._params(values)
         if self.n_features == 0:
             return Linearization(np.zeros(0), [], np.zeros(0, dtype=np.int64))
-        ev, R_w_b, R_b_s, x_b, c_t = self._pose(values, jacobians)
+        located = self._located(values)
+        ev, R_w_b, R_b_s, x_b, c_t = self._pose(values, jacobians, located)
         R_w_s = R_w_b @ R_b_s
         k1_t = np.einsum("nij,nj->ni", R_w_s, self.axis1_s)
         k2_t = np.einsum("nij,nj->ni", R_w_s, self.axis2_s)
@@ -396,7 +444,8 @@ class PlaneObservation:
 
         rows, f = self._rows, self.n_features
         scale = np.column_stack([w_d, w_s, w_s])[:, :, None]  # (F, 3, 1) row whitening
-        jac = position_jacobians(self.blocks, rows[:, :1], self._k, self._w0, (n * w_d[:, None])[:, None, :])
+        _, k_t, u_t, w0_t = located
+        jac = position_jacobians(self.blocks, rows[:, :1], k_t, w0_t, (n * w_d[:, None])[:, None, :])
         # Attitude of the body: a . (R_w_b x) -> x x (R_w_b^T a) per right tangent.
         n_b = np.einsum("nji,nj->ni", R_w_b, n)
         lever_b = np.stack([x_b, self.axis1_s @ R_b_s.T, self.axis2_s @ R_b_s.T], axis=1)  # (F, 3, 3)
@@ -418,6 +467,22 @@ class PlaneObservation:
             jac.append(JacobianBlock(self.boresight, rows, zeros, np.cross(feat_s, n_s[:, None, :]) * scale))
         if self.lever_arm is not None:
             jac.append(JacobianBlock(self.lever_arm, rows[:, :1], zeros, (n_b * w_d[:, None])[:, None, :]))
+        if self._timed():
+            P, V, A, _, _ = self.blocks.knots(values)
+            w1 = position_basis(u_t, self.grid.dt, 1)
+            v = (
+                w1[:, 0:1] * P[k_t] + w1[:, 1:2] * V[k_t] + w1[:, 2:3] * A[k_t]
+                + w1[:, 3:4] * P[k_t + 1] + w1[:, 4:5] * V[k_t + 1] + w1[:, 5:6] * A[k_t + 1]
+            )
+            # d r / d t: velocity along n for the centre, the body rate turning lever and axes.
+            dr_dt = np.einsum("nri,ni->nr", np.cross(lever_b, n_b[:, None, :]), ev.omega_wb_b)
+            dr_dt[:, 0] += _dot(n, v)
+            dr_dt = dr_dt[:, :, None] * scale  # (F, 3, 1)
+            if self.time_offset is not None:
+                jac.append(JacobianBlock(self.time_offset, rows, zeros, dr_dt))
+            if self.time_drift is not None:
+                jac.append(JacobianBlock(self.time_drift, rows, zeros,
+                                         dr_dt * (self.time - self.time_reference)[:, None, None]))
         return Linearization(r.ravel(), jac, self._obs)
 
 

@@ -1,0 +1,243 @@
+"""The LiDAR's time offset against the navigation: found from the strips' agreement (docs/ARCHITECTURE.md §4.5).
+
+A scanner whose time stamps run ``tau`` behind the navigation's GPS time (a synchronisation
+error of milliseconds, or whole seconds: time stamps in UTC, a missed leap second) georeferences
+every point with the pose ``tau`` too early. On a straight line at speed ``v`` that moves the
+strip by ``v tau`` along the flight; two passes flown in opposite directions then disagree by
+``2 v tau`` -- 120 m for 1 s at 60 m/s -- far beyond what feature matching and the G/I/L
+adjustment (:class:`~georefine.adjustment.observations.plane.PlaneObservation` estimates the
+remaining ``tau``) can bridge. :func:`search_time_offset` finds it first.
+
+**Score.** The planar features (extracted once, in the scanner frame with their times) are
+georeferenced with the trajectory at ``t_f + delta`` for a candidate ``delta``. Each feature
+looks for features of *other* strips (other views of the same strip move with it) whose centre
+lies within ``radius`` and whose normal agrees within ``max_normal_angle_deg``; it scores
+``1 - (d / d_max)²`` for the smallest distance ``d < d_max`` of such a centre to its plane, else
+0. The score of ``delta`` is the mean over the features that stay inside the trajectory's span.
+Only features on tilted planes (roofs, slopes, facades) take part when there are enough of them:
+flat ground agrees with itself at any along-track shift.
+
+**Search.** A shift of ``delta`` moves a feature against its counterpart in another pass by up
+to ``2 v_max delta``, so the score of a candidate reaches ``delta`` within ``d_max / (2 v_max)``.
+A coarse scan over ``[-range_s, range_s]`` (around the configured offset) with ``d_max`` = 8 m
+and that step finds the region; a fine scan over 1.5 coarse steps around the best candidate,
+with ``d_max`` = 0.4 m and half the step that gives, places it to a millisecond or two (a
+parabola through the peak), which the adjustment then refines. On ``corridor-tiny`` a
+candidate costs about 22 ms (3000 features scored against 30,000), the search about 20 s for
+the default ±20 s.
+The candidate is adopted when its fine score clearly beats the configured offset's (by
+``min_gain``): otherwise the configured offset stays, as it does when the strips cannot show a
+shift (passes all flown in one direction, too few features).
+
+Written by hand: no library scores a rigid time shift of a continuous-time pose against
+plane-to-plane agreement; the neighbour search is scipy's cKDTree.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from georefine.lidar.planes import PlanarFeatures
+
+log = logging.getLogger(__name__)
+
+__all__ = ["TimeOffsetSearch", "georeference_features", "search_time_offset", "time_offset_score"]
+
+_MIN_TILT_DEG = 10.0  # features on planes tilted more than this take part ...
+_MIN_TILTED = 200  # ... when there are at least this many of them
+_COARSE_D_MAX_M = 8.0
+_FINE_D_MAX_M = 0.4
+_MIN_INSIDE = 0.5  # a candidate must keep this fraction of the features inside the span
+
+
+@dataclass(frozen=True)
+class TimeOffsetSearch:
+    """Result of :func:`search_time_offset` (offsets in s, to add to the strips' time stamps).
+
+    ``configured_s`` the offset the features were extracted at; ``best_s`` the best candidate;
+    ``score_best``/``score_configured`` their fine scores (mean agreement of the features, 0-1);
+    ``adopted`` whether ``best_s`` replaces ``configured_s``; ``features`` the features scored;
+    ``candidates`` the offsets tried; ``step_s`` the fine step; ``reason`` why nothing was
+    searched or adopted (empty when adopted).
+    """
+
+    configured_s: float
+    best_s: float
+    score_best: float
+    score_configured: float
+    adopted: bool
+    features: int
+    candidates: int
+    step_s: float
+    reason: str = ""
+
+    @property
+    def offset_s(self) -> float:
+        """The offset to use: the best one if adopted, else the configured one."""
+        return self.best_s if self.adopted else self.configured_s
+
+    def describe(self) -> str:
+        """One line for the log and the metrics."""
+        if self.adopted:
+            return (
+                f"the strips agree best with their time stamps shifted by {self.best_s:+.4f} s, not the configured "
+                f"{self.configured_s:+.4f} s (scanner.time_offset_s): {self.score_best:.3f} against "
+                f"{self.score_configured:.3f} agreement over {self.features} features, {self.candidates} offsets "
+                f"tried; the adjustment goes on from {self.best_s:+.4f} s"
+            )
+        return f"the configured time offset {self.configured_s:+.4f} s stays: {self.reason}"
+
+    def to_dict(self) -> dict:
+        return {"configured_s": self.configured_s, "best_s": self.best_s, "score_best": self.score_best,
+                "score_configured": self.score_configured, "adopted": self.adopted, "features": self.features,
+                "candidates": self.candidates, "step_s": self.step_s, "reason": self.reason}
+
+
+def georeference_features(
+    features: PlanarFeatures, poses, p_b_s: np.ndarray, R_b_s: np.ndarray, time: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Feature centres and unit normals in ``w`` (F, 3) each, from the scanner frame with the poses at ``time``.
+
+    ``poses``: ``t -> (p_w_b (N,3), R_w_b (N,3,3))``; ``time`` defaults to the features' times.
+    """
+    t = features.time if time is None else np.asarray(time, dtype=float)
+    p, R = poses(t)
+    x_b = p_b_s + features.centre_s @ R_b_s.T
+    n_b = features.normal_s @ R_b_s.T
+    return p + np.einsum("nij,nj->ni", R, x_b), np.einsum("nij,nj->ni", R, n_b)
+
+
+def _groups(features: PlanarFeatures) -> np.ndarray:
+    """What counts as 'another' feature: another strip; with one strip, another channel."""
+    if np.unique(features.strip).size > 1:
+        return features.strip.astype(np.int64)
+    return features.channel.astype(np.int64)
+
+
+def time_offset_score(
+    features: PlanarFeatures, poses, span: tuple[float, float], p_b_s: np.ndarray, R_b_s: np.ndarray,
+    delta_s: float, *, d_max_m: float, radius_m: float, queries: np.ndarray | None = None,
+    max_normal_angle_deg: float = 5.0, k: int = 8,
+) -> float:
+    """Mean agreement (0-1) of ``features[queries]`` with all ``features`` of other strips when shifted by ``delta_s``.
+
+    Every feature is a possible counterpart (a random subset would lose most of them); ``queries``
+    (default all) are the features scored. NaN when fewer than half of them stay inside ``span``.
+    """
+    t = features.time + delta_s
+    inside = (t >= span[0]) & (t <= span[1])
+    q = np.arange(len(features)) if queries is None else np.asarray(queries)
+    q = q[inside[q]]
+    total = len(features) if queries is None else np.size(queries)
+    if q.size < max(10, _MIN_INSIDE * total):
+        return float("nan")
+    keep = np.flatnonzero(inside)
+    c, n = georeference_features(features.select(keep), poses, p_b_s, R_b_s, t[keep])
+    group = _groups(features)[keep]
+    row = np.searchsorted(keep, q)  # the queries' rows among the kept features
+    dist, idx = cKDTree(c).query(c[row], k=min(k + 1, keep.size), distance_upper_bound=radius_m)
+    idx = np.where(np.isfinite(dist), idx, keep.size)
+    c_ext = np.vstack([c, np.full((1, 3), np.inf)])
+    n_ext = np.vstack([n, np.zeros((1, 3))])
+    g_ext = np.append(group, -1)
+    cq, nq = c[row], n[row]
+    other = (g_ext[idx] != group[row][:, None]) & (g_ext[idx] >= 0)
+    cos_ok = np.abs(np.einsum("nkj,nj->nk", n_ext[idx], nq)) > np.cos(np.radians(max_normal_angle_deg))
+    with np.errstate(invalid="ignore"):
+        d = np.abs(np.einsum("nkj,nj->nk", c_ext[idx] - cq[:, None, :], nq))
+    d = np.where(other & cos_ok & np.isfinite(d), d, np.inf)
+    best = d.min(axis=1)
+    return float(np.mean(np.clip(1.0 - (best / d_max_m) ** 2, 0.0, 1.0)))
+
+
+def _scan(features, queries, poses, span, p_b_s, R_b_s, deltas, d_max_m, radius_m) -> np.ndarray:
+    return np.array([time_offset_score(features, poses, span, p_b_s, R_b_s, float(d), d_max_m=d_max_m,
+                                       radius_m=radius_m, queries=queries) for d in deltas])
+
+
+def _pool(features: PlanarFeatures, max_pool: int, rng: np.random.Generator) -> PlanarFeatures:
+    """The features on tilted planes (all if too few), at most ``max_pool`` of them."""
+    normal_w = features.normal_w / np.linalg.norm(features.normal_w, axis=1, keepdims=True)
+    tilted = np.flatnonzero(np.abs(normal_w[:, 2]) < np.cos(np.radians(_MIN_TILT_DEG)))
+    pool = tilted if tilted.size >= _MIN_TILTED else np.arange(len(features))
+    if pool.size > max_pool:
+        pool = np.sort(rng.choice(pool, max_pool, replace=False))
+    return features.select(pool)
+
+
+def search_time_offset(
+    features: PlanarFeatures, poses, span: tuple[float, float], p_b_s: np.ndarray, R_b_s: np.ndarray,
+    *, speed_max_m_s: float, configured_s: float = 0.0, range_s: float = 20.0, max_features: int = 3000,
+    max_pool: int = 30_000, min_gain: float = 0.2, seed: int = 0,
+) -> TimeOffsetSearch:
+    """Search the LiDAR time offset that makes the strips agree best (module docstring).
+
+    Parameters
+    ----------
+    features
+        Planar features of all views; their ``time`` is relative to the epoch with ``configured_s``
+        already applied, their ``normal_w`` picks the tilted ones.
+    poses, span
+        The trajectory (``t -> (p_w_b, R_w_b)``, e.g. a
+        :class:`~georefine.lidar.georeference.PoseInterpolator`) and its time span (s).
+    p_b_s, R_b_s
+        Scanner lever arm (m) and boresight.
+    speed_max_m_s
+        The highest speed of the flight (sets the steps).
+    configured_s
+        The offset the features' times include.
+    range_s
+        Candidates lie within ``configured_s ± range_s``.
+    max_features, max_pool
+        At most ``max_features`` (tilted) features are scored (a seeded random subset), against
+        at most ``max_pool`` possible counterparts in the coarse scan and five times as many in
+        the fine one (a thinned pool flattens the fine peak: it loses most counterparts).
+    min_gain
+        The best candidate is adopted when its fine score exceeds the configured offset's by
+        this fraction of it and by 0.02 in absolute terms.
+    """
+    rng = np.random.default_rng(seed)
+    if len(features) == 0 or np.unique(_groups(features)).size < 2:
+        return TimeOffsetSearch(configured_s, configured_s, float("nan"), float("nan"), False, len(features), 0,
+                                0.0, "one view only: nothing to compare")
+    full = _pool(features, 5 * max_pool, rng)  # the fine scan's counterparts
+    in_coarse = np.sort(rng.permutation(len(full))[:max_pool])
+    sub = full.select(in_coarse)  # the coarse scan's
+    queries = np.sort(rng.choice(len(sub), min(max_features, len(sub)), replace=False))
+    fine_queries = in_coarse[queries]
+    speed = max(float(speed_max_m_s), 1.0)
+    coarse_step = _COARSE_D_MAX_M / (2.0 * speed)
+    fine_step = _FINE_D_MAX_M / (2.0 * speed) / 2.0
+    n = int(np.ceil(range_s / coarse_step))
+    coarse = coarse_step * np.arange(-n, n + 1)
+    scores = _scan(sub, queries, poses, span, p_b_s, R_b_s, coarse, _COARSE_D_MAX_M, 2.0 * _COARSE_D_MAX_M)
+    if not np.any(np.isfinite(scores)):
+        return TimeOffsetSearch(configured_s, configured_s, float("nan"), float("nan"), False, queries.size, coarse.size,
+                                fine_step, "no candidate keeps the features inside the trajectory")
+    centre = coarse[int(np.nanargmax(scores))]
+    half = int(np.ceil(1.5 * coarse_step / fine_step))
+    fine = centre + fine_step * np.arange(-half, half + 1)
+    fine_scores = _scan(full, fine_queries, poses, span, p_b_s, R_b_s, fine, _FINE_D_MAX_M, 4.0 * _FINE_D_MAX_M)
+    j = int(np.nanargmax(fine_scores))
+    best, score_best = float(fine[j]), float(fine_scores[j])
+    if 0 < j < fine.size - 1 and np.all(np.isfinite(fine_scores[j - 1:j + 2])):  # parabola through the peak
+        a, b, c = fine_scores[j - 1:j + 2]
+        curv = a - 2 * b + c
+        if curv < 0:
+            best += 0.5 * (a - c) / curv * fine_step
+    score_cfg = time_offset_score(full, poses, span, p_b_s, R_b_s, 0.0, d_max_m=_FINE_D_MAX_M,
+                                  radius_m=4.0 * _FINE_D_MAX_M, queries=fine_queries)
+    tried = coarse.size + fine.size + 1
+    adopted = bool(np.isfinite(score_best) and abs(best) > fine_step
+                   and (not np.isfinite(score_cfg)
+                        or score_best > score_cfg * (1.0 + min_gain) and score_best > score_cfg + 0.02))
+    reason = "" if adopted else (
+        f"no shift within ±{range_s:g} s agrees clearly better ({score_best:.3f} at {configured_s + best:+.4f} s, "
+        f"{score_cfg:.3f} at the configured offset, {queries.size} features)"
+    )
+    return TimeOffsetSearch(configured_s, configured_s + best, score_best, score_cfg, adopted, queries.size, tried,
+                            fine_step, reason)
