@@ -142,6 +142,12 @@ class ScannerFileConfig(StrictModel):
     )
     range_sigma_m: float = Field(0.005, gt=0.0)
     channels: list[ChannelConfig] = Field(default_factory=default_channels)
+    time_offset_s: float = Field(
+        0.0, ge=-86400.0, le=86400.0,
+        description="Added to the strips' gps_time to give the navigation's GPS time (s): 18 for time stamps in UTC "
+        "(GPS - UTC since 2017). processing.lidar.time_offset searches and estimates a correction; the output strips "
+        "carry the corrected times.",
+    )
 
     @field_validator("channels")
     @classmethod
@@ -223,6 +229,26 @@ class MatchingConfig(StrictModel):
     )
 
 
+class TimeOffsetConfig(StrictModel):
+    """The LiDAR's time offset against the navigation (docs/ARCHITECTURE.md §4.5)."""
+
+    search: bool = Field(
+        True, description="Before the first G/I/L adjustment, search the offset at which the strips agree best "
+        "(whole seconds included: UTC time stamps, leap seconds) and go on from it if it is clearly better than "
+        "scanner.time_offset_s, with a warning. Needs strips flown in different directions.",
+    )
+    search_range_s: float = Field(20.0, gt=0.0, le=120.0, description="Candidates within scanner.time_offset_s ± this.")
+    estimate: bool = Field(True, description="Estimate the offset in the G/I/L adjustment (one parameter).")
+    prior_sigma_s: float = Field(
+        0.005, gt=0.0, description="Prior sigma of the estimated offset around scanner.time_offset_s (or the "
+        "search's result).",
+    )
+    warn_ms: float = Field(
+        0.5, gt=0.0, description="Warn when the estimate differs from scanner.time_offset_s by more than this and "
+        "five of its sigmas: the configuration should state it.",
+    )
+
+
 class LidarAdjustmentConfig(StrictModel):
     """GNSS/IMU/LiDAR adjustment and its outer iterations (docs/ARCHITECTURE.md §4.5 steps 3-6)."""
 
@@ -246,6 +272,7 @@ class LidarAdjustmentConfig(StrictModel):
     plane_loss_scale: float = Field(2.0, gt=0.0, description="Cauchy c / Huber delta in units of sigma.")
     estimate_boresight: bool = Field(False, description="Estimate the scanner boresight (needs two passes).")
     boresight_prior_deg: float = Field(0.1, gt=0.0, description="Prior sigma of the boresight angles when estimated.")
+    time_offset: TimeOffsetConfig = Field(default_factory=TimeOffsetConfig)
     max_features: int = Field(
         200_000, ge=100, description="Cap on matched features in the adjustment: beyond it whole objects are "
         "taken, the same ones in every outer iteration as far as the re-matching allows.",

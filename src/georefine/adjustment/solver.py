@@ -52,6 +52,7 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
+import scipy.stats
 
 from georefine.adjustment.blocks import (
     ColumnLayout,
@@ -146,6 +147,7 @@ class _GroupEvaluation:
     sum_r2: float
     sum_wr2: float
     n_downweighted: int
+    median_s: float = math.nan  # median squared norm of the observations' whitened residuals
 
 
 @dataclass
@@ -180,7 +182,8 @@ def _evaluate(
         w = irls_weights(loss, lin.observation, r)
         name = None if loss is None else getattr(loss, "name", type(loss).__name__)
         n_down = int(np.count_nonzero(w.weight < 0.5))
-        out.append(_GroupEvaluation(lin, w.row_sqrt_weight, name, w.s.size, w.cost, w.sum_s, w.sum_ws, n_down))
+        median_s = float(np.median(w.s)) if w.s.size else math.nan
+        out.append(_GroupEvaluation(lin, w.row_sqrt_weight, name, w.s.size, w.cost, w.sum_s, w.sum_ws, n_down, median_s))
         total += w.cost
     return _Evaluation(out, total, finite and math.isfinite(total), jacobians, time.perf_counter() - t0)
 
@@ -550,6 +553,13 @@ def _report(progress, iteration, cost, change, gain, step, g_max, lam, accepted,
         )
 
 
+def robust_sigma0(median_s: float, dof: float) -> float:
+    """``sqrt(median s / median chi2(dof))``: sigma0 from the median squared norm ``s`` of
+    observations with ``dof`` rows each; about 1 when the model and the sigmas fit, whatever a
+    minority of outliers does."""
+    return math.sqrt(median_s / scipy.stats.chi2.ppf(0.5, dof)) if math.isfinite(median_s) else math.nan
+
+
 def _statistics(
     groups, evaluation: _Evaluation, layout: ColumnLayout, termination, iterations, accepted, initial_cost,
     history, lam, timings: Timings, backend: str, factorisations: int = 0, iterative_steps: int = 0,
@@ -569,6 +579,7 @@ def _statistics(
                 cost_share=ge.cost / total_cost if total_cost > 0 else math.nan,
                 variance_factor=ge.sum_wr2 / m if m else math.nan,
                 n_downweighted=ge.n_downweighted,
+                robust_sigma0=robust_sigma0(ge.median_s, m / ge.n_observations) if ge.n_observations else math.nan,
             )
         )
         n_obs += ge.n_observations

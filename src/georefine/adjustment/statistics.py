@@ -56,6 +56,10 @@ class GroupStatistics:
         so it is biased low by about ``unknowns / rows``).
     n_downweighted
         Observations whose robust weight ``rho'(s)`` is below 0.5.
+    robust_sigma0
+        ``sqrt(median s / median chi2(k))`` over the observations' squared norms ``s`` (``k``
+        rows each): about 1 when the model fits, whatever a minority of outliers does; NaN in
+        results stored before it was recorded.
     """
 
     name: str
@@ -67,6 +71,7 @@ class GroupStatistics:
     cost_share: float
     variance_factor: float
     n_downweighted: int
+    robust_sigma0: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -165,7 +170,8 @@ class SolveResult:
         for g in self.groups:
             lines.append(
                 f"  {g.name}: {g.n_observations} obs, {g.n_residuals} rows, rms {g.rms:.4g}, "
-                f"cost share {g.cost_share:.1%}, s0^2~{g.variance_factor:.4g}, downweighted {g.n_downweighted}"
+                f"cost share {g.cost_share:.1%}, s0^2~{g.variance_factor:.4g}, robust s0 {g.robust_sigma0:.3g}, "
+                f"downweighted {g.n_downweighted}"
             )
         return "\n".join(lines)
 

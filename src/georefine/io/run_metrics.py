@@ -45,6 +45,13 @@ class OuterIteration:
     knot_interval_s
         Knot interval of the iteration's trajectory (coarser in a first iteration with
         ``processing.lidar.first_knot_interval_s``); None in files written before it was recorded.
+    time_offset_start_s, time_offset_prior_s, time_offset_s
+        LiDAR time offset (s, added to the strips' time stamps) that the iteration's features
+        used, the centre of its prior (``scanner.time_offset_s`` or the search's result) and the
+        iteration's estimate (the start value when not estimated); None in older files.
+    time_offset_search
+        The first iteration's search for the offset (:class:`~georefine.lidar.time_offset.TimeOffsetSearch`
+        as a dict), None when not searched.
     """
 
     iteration: int
@@ -57,6 +64,10 @@ class OuterIteration:
     points_outside_trajectory: int
     views: dict[str, int] = field(default_factory=dict)
     knot_interval_s: float | None = None
+    time_offset_start_s: float | None = None
+    time_offset_prior_s: float | None = None
+    time_offset_s: float | None = None
+    time_offset_search: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -64,7 +75,9 @@ class OuterIteration:
             "features_used": self.features_used, "objects_used": self.objects_used,
             "attitude_change_mdeg": self.attitude_change_mdeg, "position_change_m": self.position_change_m,
             "points_outside_trajectory": self.points_outside_trajectory, "views": dict(self.views),
-            "knot_interval_s": self.knot_interval_s,
+            "knot_interval_s": self.knot_interval_s, "time_offset_start_s": self.time_offset_start_s,
+            "time_offset_prior_s": self.time_offset_prior_s, "time_offset_s": self.time_offset_s,
+            "time_offset_search": self.time_offset_search,
         }
 
     @classmethod
@@ -74,6 +87,9 @@ class OuterIteration:
             int(d["objects_used"]), float(d["attitude_change_mdeg"]), float(d["position_change_m"]),
             int(d["points_outside_trajectory"]), {str(k): int(v) for k, v in d["views"].items()},
             None if d.get("knot_interval_s") is None else float(d["knot_interval_s"]),
+            *(None if d.get(k) is None else float(d[k])
+              for k in ("time_offset_start_s", "time_offset_prior_s", "time_offset_s")),
+            d.get("time_offset_search"),
         )
 
 

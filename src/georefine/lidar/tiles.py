@@ -31,7 +31,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -153,6 +153,15 @@ def plan_strip(
     return StripPlan(path, strip_id, n, t_first, t_last, True, tuple(tiles))
 
 
+def shift_plan(plan: StripPlan, delta_s: float) -> StripPlan:
+    """``plan`` with every time (span, tiles' own intervals) ``delta_s`` later: the same records
+    seen through a changed time offset of the scanner (the tiles' record ranges stay)."""
+    if delta_s == 0.0:
+        return plan
+    tiles = tuple(replace(t, own_t0=t.own_t0 + delta_s, own_t1=t.own_t1 + delta_s) for t in plan.tiles)
+    return replace(plan, t_first=plan.t_first + delta_s, t_last=plan.t_last + delta_s, tiles=tiles)
+
+
 def read_tile_points(tile: Tile, *, margins: bool, extra_dims=()) -> PointCloud:
     """The tile's records: its own, or with the margins of the feature tasks."""
     if margins:
@@ -175,6 +184,9 @@ def tile_features(
     channels: tuple[int, ...], cfg: PlaneExtractionConfig, frame_poses=None,
 ) -> TileFeatures:
     """Steps 3-4a on one tile: georeference with ``poses`` and extract each view's features.
+
+    ``t0_gps`` is the epoch in the strip's time scale: the navigation's epoch minus the
+    scanner's time offset, so that ``gps_time - t0_gps`` is navigation time.
 
     Only the features whose seed time lies in the tile's own times are returned; the points
     outside the trajectory are counted over the own records only (each point once).
@@ -210,20 +222,24 @@ def tile_features(
 
 def tile_georeference(
     tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
-    frame: LocalFrame, crs: OutputCRS,
+    frame: LocalFrame, crs: OutputCRS, time_offset_s: float = 0.0,
 ) -> tuple[PointCloud | None, int]:
     """Step 6 on one tile's own records: the points in the output CRS (``None`` if all are
-    outside the trajectory), and the number left out because they are outside it."""
+    outside the trajectory), and the number left out because they are outside it.
+
+    ``t0_gps``: the navigation's epoch; the points are georeferenced, and written, at their
+    ``gps_time + time_offset_s``."""
     parts, outside = [], 0
     for a in range(tile.start, tile.stop, GEOREFERENCE_CHUNK):
         pc = read_las_range(tile.path, a, min(a + GEOREFERENCE_CHUNK, tile.stop), ())
-        t = pc.time_gps - t0_gps
+        time_gps = pc.time_gps + time_offset_s if time_offset_s else pc.time_gps
+        t = time_gps - t0_gps
         keep = poses.inside(t)
         outside += int(np.count_nonzero(~keep))
         if not np.any(keep):
             continue
         x_w = georeference(t[keep], pc.xyz[keep], poses, p_b_s, R_b_s)
-        parts.append(PointCloud(pc.time_gps[keep], crs.from_w(frame, x_w), pc.intensity[keep],
+        parts.append(PointCloud(time_gps[keep], crs.from_w(frame, x_w), pc.intensity[keep],
                                 pc.scanner_channel[keep], pc.point_source_id[keep], pc.return_number[keep],
                                 pc.number_of_returns[keep]))
     if not parts:
@@ -233,11 +249,11 @@ def tile_georeference(
 
 def tile_georeference_encoded(
     tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
-    frame: LocalFrame, crs: OutputCRS, layout: LasLayout,
+    frame: LocalFrame, crs: OutputCRS, layout: LasLayout, time_offset_s: float = 0.0,
 ) -> tuple[EncodedPoints, int]:
     """:func:`tile_georeference`, the points encoded for the output file of ``layout`` (LAZ
     chunks compressed here, :mod:`georefine.io.las_encode`)."""
-    cloud, outside = tile_georeference(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs)
+    cloud, outside = tile_georeference(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, time_offset_s)
     return encode_points(PointCloud.empty() if cloud is None else cloud, layout), outside
 
 
@@ -278,9 +294,13 @@ def refuse_strips_outside(plans: list[StripPlan], span: tuple[float, float], t0_
 def georeference_strips(
     plans: list[StripPlan], out_paths: list[str | Path], poses: PoseInterpolator, t0_gps: float,
     p_b_s: np.ndarray, R_b_s: np.ndarray, frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
-    scale_m: float = 0.001, progress: Progress = no_progress, protect: tuple = (),
+    scale_m: float = 0.001, progress: Progress = no_progress, protect: tuple = (), time_offset_s: float = 0.0,
 ) -> list[StripGeoreferenceResult]:
     """Georeference scanner-frame strips into output-CRS LAZ files (LAS 1.4, PF 6), tile by tile.
+
+    ``t0_gps`` is the navigation's epoch; ``time_offset_s`` the scanner's time offset
+    (``scanner.time_offset_s``, or its estimate): points are georeferenced at, and written with,
+    ``gps_time + time_offset_s``, and the plans' times must include it (:func:`shift_plan`).
 
     The tiles of all strips run as one stream of tasks on ``runner`` (default: this process), so
     a worker that finishes a strip's last tile goes on with the next strip's first. Each task
@@ -297,7 +317,7 @@ def georeference_strips(
     runner = runner or TaskRunner("sync")
     offset = tuple(offset_near(crs.from_w(frame, np.zeros((1, 3)))[0]))
     writers = [LasWriter(Path(o), scale=scale_m, offset=offset, crs=crs.crs, protect=protect) for o in out_paths]
-    tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, w.layout_for())
+    tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, w.layout_for(), time_offset_s)
              for plan, w in zip(plans, writers) for tile in plan.tiles]
     owner = [k for k, plan in enumerate(plans) for _ in plan.tiles]
     last = {k: i for i, k in enumerate(owner)}  # a file is complete after its strip's last tile

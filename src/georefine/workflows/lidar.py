@@ -67,6 +67,14 @@ from georefine.workflows.navigation import (
 )
 from georefine.workflows.project import output_folder
 from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
+from georefine.workflows.time_offset import (
+    EDGE_MARGIN_S,
+    OFFSET_BLOCK,
+    TimeOffsetStart,
+    add_time_offset,
+    search_and_shift,
+    warn_time_offset,
+)
 
 log = logging.getLogger(__name__)
 
@@ -78,7 +86,11 @@ __all__ = [  # steps 3-4 live in georefine.workflows.strips; named here as the w
 
 @dataclass(frozen=True)
 class LidarAdjustment:
-    """Result of one G/I/L adjustment (``built``: the problem, for :func:`add_posterior`)."""
+    """Result of one G/I/L adjustment (``built``: the problem, for :func:`add_posterior`).
+
+    ``time_offset_s`` is the LiDAR time offset the adjustment ends with (estimated, or the one its
+    features used); ``time_offset_start`` where it started; the sigmas come with the posterior.
+    """
 
     result: GnssImuResult
     features_used: int
@@ -86,17 +98,24 @@ class LidarAdjustment:
     boresight_deg: np.ndarray | None
     boresight_sigma_mdeg: np.ndarray | None
     built: GnssImuProblem | None = None
+    time_offset_s: float = 0.0
+    time_offset_start: TimeOffsetStart | None = None
+    time_offset_sigma_s: float | None = None
 
 
 def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
-    """``adj`` with posterior sigma (trajectory, IMU errors, boresight) if it has none yet."""
+    """``adj`` with posterior sigma (trajectory, IMU errors, boresight, time offset) if it has none yet."""
     if adj.result.sigma_time.size or adj.built is None:
         return adj
     result = with_posterior(adj.built, adj.result)
+    problem = adj.built.problem
     bs_sig = None
     if adj.boresight_deg is not None:
-        bs_sig = np.degrees(np.sqrt(np.diag(adj.built.problem.covariance("boresight")[0]))) * 1e3
-    return LidarAdjustment(result, adj.features_used, adj.objects_used, adj.boresight_deg, bs_sig, adj.built)
+        bs_sig = np.degrees(np.sqrt(np.diag(problem.covariance("boresight")[0]))) * 1e3
+    extra = {}
+    if OFFSET_BLOCK in problem.blocks:
+        extra["time_offset_sigma_s"] = float(np.sqrt(problem.covariance(OFFSET_BLOCK)[0, 0, 0]))
+    return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
 
 
 def step_adjust_gil(
@@ -107,10 +126,15 @@ def step_adjust_gil(
     progress: Progress = no_progress,
     covariance: bool = True,
     knot_interval_s: float | None = None,
+    time_offset: TimeOffsetStart | None = None,
 ) -> LidarAdjustment:
     """Step 5: the G/I problem started at ``previous`` plus the plane observations.
 
     With ``covariance=False`` no posterior sigma is computed (see :func:`add_posterior`).
+    ``time_offset``: the LiDAR time offset the features' times include and the centre of its
+    prior (default ``scanner.time_offset_s`` for both); with
+    ``processing.lidar.time_offset.estimate`` the adjustment estimates it
+    (:mod:`georefine.workflows.time_offset`).
     The trajectory has knots about ``knot_interval_s`` apart (default
     ``processing.trajectory.knot_interval_s``) over ``previous``'s span, IMU windows in the
     configured proportion to them; ``previous`` on another grid is resampled onto it.
@@ -130,7 +154,12 @@ def step_adjust_gil(
     P = built.problem
 
     grid = built.grid
-    sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end))
+    if time_offset is None:
+        time_offset = TimeOffsetStart(cfg.scanner.time_offset_s, cfg.scanner.time_offset_s)
+    timing = add_time_offset(P, cfg, time_offset)
+    margin = EDGE_MARGIN_S if timing["time_offset"] else 0.0  # an estimated offset moves the feature times
+    sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start + margin)
+                         & (features.time <= grid.t_end - margin))
     if sel.size > lcfg.max_features:
         # Whole objects, the same ones in every outer iteration as far as the re-matching allows
         # (ranked by a min-hash of keys fixed by strip, channel and seed voxel), not a fresh random
@@ -152,7 +181,7 @@ def step_adjust_gil(
             grid, f.time, f.centre_s, f.axis1_s, f.axis2_s, f.sigma_d_m, f.sigma_slope_rad, obj_index,
             objects.c0[used_objects], objects.k1[used_objects], objects.k2[used_objects], objects.n0[used_objects],
             np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight,
-            blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale),
+            blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale), **timing,
         )
     )
 
@@ -168,7 +197,11 @@ def step_adjust_gil(
         R = P.values("boresight")[0]
         bs_deg = np.degrees(rph_from_R_n_b(R))
         bs_deg[2] = (bs_deg[2] + 180.0) % 360.0 - 180.0
-    adj = LidarAdjustment(result, int(sel.size), int(used_objects.size), bs_deg, None, built)
+    offset = time_offset.features_s
+    if timing["time_offset"]:
+        offset += float(P.values(OFFSET_BLOCK)[0, 0])
+    adj = LidarAdjustment(result, int(sel.size), int(used_objects.size), bs_deg, None, built,
+                          time_offset_s=offset, time_offset_start=time_offset)
     return add_posterior(adj) if covariance else adj
 
 
@@ -213,6 +246,8 @@ class WorkflowResult:
         if self.gil is not None and self.gil.boresight_deg is not None:
             b = self.gil.boresight_deg
             lines.append(f"  boresight roll/pitch/yaw: {b[0]:.4f} {b[1]:.4f} {b[2]:.4f} deg")
+        if self.gil is not None and self.gil.time_offset_sigma_s is not None:
+            lines.append(f"  LiDAR time offset: {self.gil.time_offset_s:+.5f} s ± {self.gil.time_offset_sigma_s * 1e3:.3f} ms")
         if m.resumed:
             lines.append("  resumed from the cache: " + ", ".join(m.resumed))
         lines.append("  timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in m.timings_s.items()))
@@ -286,26 +321,50 @@ def _untimed(name: str) -> Iterator[None]:
     yield
 
 
-def _features_and_objects(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner):
-    """Steps 3-4 from ``current``: planar features per view and their matching into objects."""
+def _features_and_objects(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner,
+                          search: bool = False):
+    """Steps 3-4 from ``current``: planar features per view and their matching into objects.
+
+    With ``search`` the LiDAR time offset is searched between extraction and matching
+    (:func:`~georefine.workflows.time_offset.search_and_shift`); the search's result (or None)
+    is returned last, and the features are at its offset.
+    """
+    found = None
     with timed(f"features_{it}"):
         traj = imu_rate_trajectory(nav, current)
         features, counts = step_features(nav, traj, strip_files, progress, runner, frame_poses=current.spline.pose)
+    if search:
+        with timed("time_offset_search"):
+            found, features = search_and_shift(nav, traj, current.spline.pose, features, strip_files[0].time_offset_s)
     with timed(f"matching_{it}"):
         objects = match_features(features, nav.config.processing.matching)
-    return features, objects, counts
+    return features, objects, counts, found
+
+
+def _searches(nav, it: int) -> bool:
+    """Whether outer iteration ``it`` searches the time offset (the first, when configured)."""
+    return it == 1 and nav.config.processing.lidar.time_offset.search
 
 
 def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner,
-                     knot_interval_s: float | None = None) -> IterationOutcome:
-    """Steps 3-5 once from ``current``: features, objects, G/I/L adjustment (no posterior) and record."""
-    features, objects, counts = _features_and_objects(nav, current, strip_files, it, timed, progress, runner)
+                     knot_interval_s: float | None = None, prior_s: float | None = None) -> IterationOutcome:
+    """Steps 3-5 once from ``current``: features, objects, G/I/L adjustment (no posterior) and record.
+
+    ``strip_files`` are at the offset the features are extracted at; ``prior_s`` centres the
+    offset's prior (default: the search's result in the first iteration, else that offset).
+    """
+    features, objects, counts, found = _features_and_objects(nav, current, strip_files, it, timed, progress, runner,
+                                                             search=_searches(nav, it))
+    start_s = found.offset_s if found is not None else strip_files[0].time_offset_s
+    start = TimeOffsetStart(start_s, start_s if prior_s is None else prior_s)
     with timed(f"gil_adjustment_{it}"):
         gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False,
-                              knot_interval_s=knot_interval_s)
+                              knot_interval_s=knot_interval_s, time_offset=start)
     d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
     record = OuterIteration(it, len(features), len(objects), gil.features_used, gil.objects_used, d_att, d_pos,
-                            counts.points_outside_trajectory, counts.views, gil.result.spline.grid.dt)
+                            counts.points_outside_trajectory, counts.views, gil.result.spline.grid.dt,
+                            start.features_s, start.prior_s, gil.time_offset_s,
+                            None if found is None else found.to_dict())
     return IterationOutcome(gil, record, features, objects)
 
 
@@ -377,20 +436,23 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
     iteration's features and objects are kept too (the last only), for the posterior.
     """
     nav, lcfg = inputs.nav, inputs.nav.config.processing.lidar
-    current, records = gi, []
+    current, records, strips, prior = gi, [], inputs.strips, None
     for it in range(1, lcfg.outer_iterations + 1):
         key = _lidar_key(nav, inputs.strips, key, it)
         start = current
         coarse = outer_knot_interval(lcfg, nav.config.processing.trajectory.knot_interval_s, it)
         outcome = steps.cached(
-            f"gil_{it}", key, partial(_outer_iteration, nav, start, inputs.strips, it, steps.timed, progress,
-                                      inputs.runner, coarse),
+            f"gil_{it}", key, partial(_outer_iteration, nav, start, strips, it, steps.timed, progress,
+                                      inputs.runner, coarse, prior),
             encode=IterationOutcome.cached_form, decode=IterationOutcome.from_cached,
         )
         if outcome.features is not None:
             steps.keep("gil_features", key, (outcome.features, outcome.objects))
         records.append(outcome.record)
         current = outcome.gil.result
+        # The next iteration extracts its features at this one's estimate of the time offset.
+        prior = outcome.record.time_offset_prior_s
+        strips = [s.shifted(outcome.gil.time_offset_s) for s in inputs.strips]
         if coarse is None and outer_converged(outcome.record, lcfg):  # a coarse start is never the result
             break
     else:
@@ -420,6 +482,33 @@ def warn_unconverged(records: list[OuterIteration], lcfg) -> None:
     )
 
 
+GNSS_PULL_RATIO = 2.0
+"""Warn when the G/I/L adjustment's GNSS residuals (RMS in sigmas) exceed the G/I adjustment's by
+this factor: the planes pull the trajectory off the GNSS, so LiDAR and navigation disagree about
+something the model does not hold. Measured on ``corridor-tiny``: 1.04 in a clean run and with a
+3 s time offset found and estimated; 6.1 with that offset left uncorrected, where the robust
+sigma0 of the planes hardly moved (0.89 to 1.05: the matching keeps only the features that
+agree locally, and the adjustment bends the trajectory to them)."""
+
+
+def warn_plane_misfit(gi: GnssImuResult, adj: LidarAdjustment, records: tuple[OuterIteration, ...]) -> None:
+    """Warn, with the figures, when the planes pull the trajectory off the GNSS (:data:`GNSS_PULL_RATIO`)."""
+    try:
+        before, after, planes = gi.solve.group("gnss"), adj.result.solve.group("gnss"), adj.result.solve.group("planes")
+    except KeyError:
+        return
+    if not after.rms > GNSS_PULL_RATIO * before.rms:
+        return
+    log.warning(
+        "the LiDAR planes pull the trajectory off the GNSS: GNSS residuals %.2f sigma RMS with the planes against "
+        "%.2f without (warning above %.1fx); planes RMS %.1f sigma, %d of %d features down-weighted; outer "
+        "iterations changed the trajectory by %s. The model does not fit: check scanner.time_offset_s "
+        "(processing.lidar.time_offset), the boresight, the lever arms and the scanner channels",
+        after.rms, before.rms, GNSS_PULL_RATIO, planes.rms, planes.n_downweighted, planes.n_observations,
+        ", ".join(f"{r.attitude_change_mdeg:.2f}" for r in records) + " mdeg",
+    )
+
+
 def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterIterations,
                     progress: Progress = no_progress) -> Posterior:
     """The posterior sigma of the last outer iteration (cached), and that iteration's features and objects.
@@ -428,20 +517,24 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
     recomputed from the trajectory it started at (deterministic); and its problem is solved
     once more (from the same start, a short solve) for the covariance.
     """
-    nav, it = inputs.nav, outer.records[-1].iteration
+    nav, last = inputs.nav, outer.records[-1]
+    it = last.iteration
     with steps.timed("gil_covariance"):
         features, objects = outer.last.features, outer.last.objects
-        if features is None:
-            features, objects, _ = steps.cached(
+        if features is None:  # extracted as the iteration did: at its start offset, or searched from the configured
+            strips = inputs.strips if _searches(nav, it) else [s.shifted(last.time_offset_start_s) for s in inputs.strips]
+            features, objects, _, _ = steps.cached(
                 "gil_features", outer.key,
-                lambda: _features_and_objects(nav, outer.start, inputs.strips, it, _untimed, progress, inputs.runner),
-                decode=lambda fo: (*fo, None), store=False,
+                lambda: _features_and_objects(nav, outer.start, strips, it, _untimed, progress, inputs.runner,
+                                              search=_searches(nav, it)),
+                decode=lambda fo: (*fo, None, None), store=False,
             )
 
         def compute() -> LidarAdjustment:
             gil = outer.last.gil
             if gil.built is None:  # the last iteration came from the cache: one more (short) solve
-                gil = step_adjust_gil(nav, outer.start, features, objects, progress, covariance=False)
+                gil = step_adjust_gil(nav, outer.start, features, objects, progress, covariance=False,
+                                      time_offset=TimeOffsetStart(last.time_offset_start_s, last.time_offset_prior_s))
             return replace(add_posterior(gil), built=None)
 
         key = StepCache.key("gil_posterior", outer.key)
@@ -459,6 +552,8 @@ def _lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, 
     """
     outer = stage_outer_iterations(steps, inputs, gi, key, progress)
     posterior = stage_posterior(steps, inputs, outer, progress)
+    warn_time_offset(inputs.nav.config, posterior.gil.time_offset_s, posterior.gil.time_offset_sigma_s)
+    warn_plane_misfit(gi, posterior.gil, outer.records)
     stage_gil_products(inputs, posterior)
     return posterior.gil, posterior.key, outer.records
 
@@ -470,6 +565,13 @@ def _adjustment_report(nav: NavigationData, adj: GnssImuResult, boresight: Lidar
     if boresight is not None and boresight.boresight_deg is not None:
         report["boresight_deg"] = boresight.boresight_deg.tolist()
         report["boresight_sigma_mdeg"] = boresight.boresight_sigma_mdeg.tolist()
+    if boresight is not None:
+        sigma = boresight.time_offset_sigma_s
+        report["lidar_time_offset"] = {
+            "configured_s": nav.config.scanner.time_offset_s, "estimate_s": boresight.time_offset_s,
+            "sigma_ms": None if sigma is None else sigma * 1e3,
+            "prior_s": None if boresight.time_offset_start is None else boresight.time_offset_start.prior_s,
+        }
     return report
 
 
@@ -500,14 +602,18 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
             (folder / r["file"]).is_file() and file_stamp(folder / r["file"])[1:] == r["stamp"] for r in records
         )
 
+    offset = nav.config.scanner.time_offset_s if gil is None else gil.time_offset_s
+    strips = [s.shifted(offset) for s in inputs.strips]
+
     def compute() -> list[dict]:  # stored with each file's stamp, for ``written``
         runner = inputs.runner
         interpolator = PoseInterpolator(imu_rate_trajectory(nav, final))
-        refuse_strips_outside([s.plan for s in inputs.strips], interpolator.span, nav.t0_gps)
+        refuse_strips_outside([s.plan for s in strips], interpolator.span, nav.t0_gps)
         poses = runner.share(interpolator)
-        paths = [folder / (s.path.stem + ".laz") for s in inputs.strips]
-        results = georeference_strips([s.plan for s in inputs.strips], paths, poses, nav.t0_gps, p_b_s, R_b_s,
-                                      nav.frame, inputs.crs, runner=runner, progress=progress, protect=(nav.root,))
+        paths = [folder / (s.path.stem + ".laz") for s in strips]
+        results = georeference_strips([s.plan for s in strips], paths, poses, nav.t0_gps, p_b_s, R_b_s,
+                                      nav.frame, inputs.crs, runner=runner, progress=progress, protect=(nav.root,),
+                                      time_offset_s=offset)
         return [{"strip": s.strip_id, "file": path.name, "points": r.points_written,
                  "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]}
                 for s, path, r in zip(inputs.strips, paths, results)]

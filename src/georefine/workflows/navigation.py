@@ -339,7 +339,8 @@ def run_georeference(
     """Georeference every strip of a project with a trajectory SBET into ``out/*.laz``.
 
     The strips are cut into time tiles (:mod:`georefine.lidar.tiles`) that run on ``scheduler``
-    (:mod:`georefine.tasks`); memory holds a few tiles whatever the number of points.
+    (:mod:`georefine.tasks`); memory holds a few tiles whatever the number of points. The points
+    are georeferenced at, and written with, ``gps_time + scanner.time_offset_s``.
     """
     from georefine.config import boresight_matrix
     from georefine.io.las import gps_week_of_strip, time_index
@@ -360,13 +361,15 @@ def run_georeference(
     crs = OutputCRS(cfg.crs.output_epsg)
     with runner_for(scheduler) as runner:
         size = tile_points(cfg.processing.scale, runner.workers)
-        plans = [plan_strip(root / rel, 0, t0, size, 0.0, index=time_index(root / rel)) for rel in cfg.scanner.files]
+        offset = cfg.scanner.time_offset_s
+        plans = [plan_strip(root / rel, 0, t0 - offset, size, 0.0, index=time_index(root / rel))
+                 for rel in cfg.scanner.files]
         refuse_strips_outside(plans, (float(traj.time[0]), float(traj.time[-1])), t0)
         out.mkdir(parents=True, exist_ok=True)
         poses = runner.share(PoseInterpolator(traj))
         results = georeference_strips(
             plans, [out / (Path(rel).stem + ".laz") for rel in cfg.scanner.files], poses, t0,
             np.asarray(cfg.scanner.lever_arm_m), boresight_matrix(cfg.scanner.boresight_deg), frame, crs,
-            runner=runner, progress=progress, protect=(root,),
+            runner=runner, progress=progress, protect=(root,), time_offset_s=offset,
         )
     return GeoreferenceRunResult(out, tuple(results))

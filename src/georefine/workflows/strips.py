@@ -16,7 +16,7 @@ the whole views, in an order that depends on neither the tiles nor the scheduler
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,7 @@ from georefine.errors import InputError
 from georefine.io.las import read_las_info, read_las_range, time_index
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import PlanarFeatures
-from georefine.lidar.tiles import StripPlan, Tile, plan_strip, tile_features, tile_points
+from georefine.lidar.tiles import StripPlan, Tile, plan_strip, shift_plan, tile_features, tile_points
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
 from georefine.trajectory.sampled import Trajectory
@@ -39,11 +39,25 @@ __all__ = ["FeatureCounts", "StripFile", "read_strips", "step_features", "sort_f
 
 @dataclass(frozen=True)
 class StripFile:
-    """One strip of the project: its file, id, time span (s from the epoch) and time tiles."""
+    """One strip of the project: its file, id, time span (s from the epoch) and time tiles.
+
+    ``time_offset_s`` is the scanner's time offset the plan's times include: they are the
+    points' ``gps_time + time_offset_s`` relative to the navigation's epoch.
+    """
 
     path: Path
     strip_id: int
     plan: StripPlan
+    time_offset_s: float = 0.0
+
+    def shifted(self, time_offset_s: float) -> StripFile:
+        """The strip seen through another time offset (the same records and tiles)."""
+        return replace(self, plan=shift_plan(self.plan, time_offset_s - self.time_offset_s),
+                       time_offset_s=float(time_offset_s))
+
+    def epoch(self, t0_gps: float) -> float:
+        """The navigation's epoch ``t0_gps`` in the strip's time scale: ``gps_time - epoch`` is navigation time."""
+        return t0_gps - self.time_offset_s
 
     @property
     def t_first(self) -> float:
@@ -94,7 +108,8 @@ def read_strips(nav: NavigationData, strips: list[int] | None = None, *, slots: 
             )
         rate = ti.point_count / max(float(ti.time_gps[-1] - ti.time_gps[0]), 1e-3)
         size = tile_points(cfg.processing.scale, slots, int(rate * margin_s))
-        out.append(StripFile(path, sid, plan_strip(path, sid, nav.t0_gps, size, margin_s, index=ti)))
+        offset = cfg.scanner.time_offset_s
+        out.append(StripFile(path, sid, plan_strip(path, sid, nav.t0_gps - offset, size, margin_s, index=ti), offset))
     if strips is not None:
         missing = set(strips) - {s.strip_id for s in out}
         if missing:
@@ -134,7 +149,7 @@ def step_features(
     channels = tuple(c.id for c in cfg.scanner.channels)
     if frame_poses is not None:
         frame_poses = runner.share(frame_poses)
-    tasks = [(tile, poses, nav.t0_gps, p_b_s, R_b_s, channels, cfg.processing.planes, frame_poses)
+    tasks = [(tile, poses, s.epoch(nav.t0_gps), p_b_s, R_b_s, channels, cfg.processing.planes, frame_poses)
              for s in strips for tile in s.tiles]
     parts, outside = [], 0
     per_view: dict[tuple[int, int], int] = {}

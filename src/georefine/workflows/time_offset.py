@@ -1,0 +1,105 @@
+"""The LiDAR's time offset in the workflow: search before the first G/I/L adjustment, estimate in each.
+
+``scanner.time_offset_s`` is added to the strips' time stamps to give navigation time. With
+``processing.lidar.time_offset.search`` the first outer iteration scores the planar features
+it extracted at that offset against shifted ones (:mod:`georefine.lidar.time_offset`) and,
+when another offset makes the strips agree clearly better, goes on from it with a warning that
+states the figures. With ``estimate`` every G/I/L adjustment carries the offset as a parameter of the plane
+observations, with a prior around the configured or searched value; the next outer iteration
+extracts its features at the estimate, and the final georeferencing uses the last one.
+docs/ARCHITECTURE.md §4.5.
+
+A clock drift is modelled by the plane observations (``time_drift``) but not offered here: the
+tiles, the feature extraction and the final georeferencing shift times by a constant, and an
+estimated drift they did not apply would make the products disagree with the adjustment.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from georefine.adjustment.observations.prior import EuclideanPrior
+from georefine.adjustment.problem import Problem
+from georefine.config import boresight_matrix
+from georefine.lidar.georeference import PoseInterpolator
+from georefine.lidar.planes import PlanarFeatures
+from georefine.lidar.time_offset import TimeOffsetSearch, georeference_features, search_time_offset
+from georefine.trajectory.sampled import Trajectory
+
+log = logging.getLogger(__name__)
+
+__all__ = ["OFFSET_BLOCK", "TimeOffsetStart", "add_time_offset", "search_and_shift",
+           "warn_time_offset"]
+
+OFFSET_BLOCK = "lidar_time_offset"
+EDGE_MARGIN_S = 0.5
+"""Features closer than this to the trajectory's ends stay out of an adjustment that moves their times."""
+
+
+@dataclass(frozen=True)
+class TimeOffsetStart:
+    """Where an adjustment starts: the offset its features' times include, and the prior's centre (s)."""
+
+    features_s: float
+    prior_s: float
+
+
+def search_and_shift(nav, trajectory: Trajectory, frame_poses, features: PlanarFeatures, configured_s: float
+                     ) -> tuple[TimeOffsetSearch, PlanarFeatures]:
+    """Search the offset (module docstring); the features at the adopted one (times and ``w`` geometry).
+
+    ``trajectory``: the IMU-rate trajectory the features were extracted with; ``frame_poses``
+    the poses their scanner-frame geometry refers to.
+    """
+    cfg = nav.config
+    tcfg = cfg.processing.lidar.time_offset
+    poses = PoseInterpolator(trajectory)
+    p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
+    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
+    speed = np.linalg.norm(np.diff(trajectory.p_w_b, axis=0), axis=1) / np.diff(trajectory.time)
+    result = search_time_offset(features, poses, poses.span, p_b_s, R_b_s,
+                                speed_max_m_s=float(np.percentile(speed, 99.5)), configured_s=configured_s,
+                                range_s=tcfg.search_range_s)
+    if not result.adopted:
+        log.info("LiDAR time offset search: %s", result.describe())
+        return result, features
+    log.warning("LiDAR time offset: %s", result.describe())
+    delta = result.best_s - configured_s
+    t = features.time + delta
+    inside = (t >= poses.span[0]) & (t <= poses.span[1])
+    shifted = features.select(np.flatnonzero(inside))
+    t = t[inside]
+    centre_w, normal_w = georeference_features(shifted, frame_poses, p_b_s, R_b_s, t)
+    return result, replace(shifted, time=t, centre_w=centre_w, normal_w=normal_w)
+
+
+def add_time_offset(problem: Problem, cfg, start: TimeOffsetStart) -> dict[str, str | None]:
+    """The offset's block and prior in ``problem``; the PlaneObservation's block names.
+
+    The offset block holds the correction to ``start.features_s`` (0 to begin with); its prior
+    centres the total on ``start.prior_s``.
+    """
+    tcfg = cfg.processing.lidar.time_offset
+    if not tcfg.estimate:
+        return {"time_offset": None}
+    problem.add_block(OFFSET_BLOCK, np.zeros((1, 1)))
+    problem.add_group(EuclideanPrior("lidar_time_offset_prior", OFFSET_BLOCK, [0],
+                                     [[start.prior_s - start.features_s]], [[tcfg.prior_sigma_s]]))
+    return {"time_offset": OFFSET_BLOCK}
+
+
+def warn_time_offset(cfg, offset_s: float, sigma_s: float | None) -> None:
+    """Warn when the estimated offset differs clearly from ``scanner.time_offset_s`` (figures included)."""
+    tcfg = cfg.processing.lidar.time_offset
+    configured = cfg.scanner.time_offset_s
+    diff = offset_s - configured
+    if sigma_s is None or abs(diff) * 1e3 <= tcfg.warn_ms or abs(diff) <= 5.0 * sigma_s:
+        return
+    log.warning(
+        "the LiDAR time stamps are %+.2f ms (± %.2f ms) off the navigation: the adjustment estimated a time offset "
+        "of %.4f s against scanner.time_offset_s = %.4f s; state it in project.yaml (scanner.time_offset_s: %.4f) "
+        "or fix the synchronisation", diff * 1e3, sigma_s * 1e3, offset_s, configured, offset_s,
+    )
