@@ -187,6 +187,12 @@ CASES: list[tuple[str, Callable[[Path], None], str | Callable[[Path, Path], list
     ("las truncated", _truncate("scans/strip_2.laz", 0.4), "run", ("strip_2.laz",)),
     ("las not a las file", lambda p: (p / "scans/strip_2.laz").write_text("x,y,z\n1,2,3\n"), "run", ("strip_2.laz",)),
     ("las empty", _las(lambda las: las.points.__setattr__("array", las.points.array[:0])), "run", ("strip_2.laz",)),
+    ("las a day late", _las(lambda las: setattr(las, "gps_time", las.gps_time + 86400.0)), "run",
+     ("strip_2.laz", "gps_time", "inside the trajectory")),
+    ("yaml time offset a day", _yaml(lambda d: d["scanner"].__setitem__("time_offset_s", 86400.0)), "run",
+     ("gps_time", "scanner.time_offset_s 86400 s applied")),
+    ("yaml time offset text", _yaml(lambda d: d["scanner"].__setitem__("time_offset_s", "utc")), "run",
+     (YAML, "scanner.time_offset_s")),
     # reference surfaces
     ("ref missing column", lambda p: _write(p / "reference/surfaces.csv", [
         ",".join(line.split(",")[:4]) for line in _lines(p / "reference/surfaces.csv")]), _planes, (REF,)),

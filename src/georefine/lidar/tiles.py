@@ -277,17 +277,20 @@ def georeference_strip(
                                scale_m=scale_m, progress=progress, protect=protect)[0]
 
 
-def refuse_strips_outside(plans: list[StripPlan], span: tuple[float, float], t0_gps: float) -> None:
+def refuse_strips_outside(plans: list[StripPlan], span: tuple[float, float], t0_gps: float,
+                          time_offset_s: float = 0.0) -> None:
     """InputError for the first strip with no point inside the trajectory's time ``span`` (s from the epoch).
 
-    Georeferencing it would write an empty file and call that success.
+    Georeferencing it would write an empty file and call that success. The plans' times include
+    the scanner's time offset; the message states the file's own time stamps.
     """
     for plan in plans:
         if plan.point_count and (plan.t_last < span[0] or plan.t_first > span[1]):
             raise InputError(
                 "no point of the strip lies inside the trajectory's time span", path=plan.path, field="gps_time",
-                expected=f"times within {span[0] + t0_gps:.3f} .. {span[1] + t0_gps:.3f} GPS s",
-                found=f"{plan.t_first + t0_gps:.3f} .. {plan.t_last + t0_gps:.3f} GPS s",
+                expected=f"times within {span[0] + t0_gps - time_offset_s:.3f} .. {span[1] + t0_gps - time_offset_s:.3f} "
+                "GPS s" + (f" (scanner.time_offset_s {time_offset_s:g} s applied)" if time_offset_s else ""),
+                found=f"{plan.t_first + t0_gps - time_offset_s:.3f} .. {plan.t_last + t0_gps - time_offset_s:.3f} GPS s",
             )
 
 

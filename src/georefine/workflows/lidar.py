@@ -410,6 +410,11 @@ def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Pat
         nav = load_navigation(project_dir)
         out = output_folder(out, nav.root)
         strip_files = read_strips(nav, strips, slots=runner.workers)
+        # A strip entirely outside the navigation is refused now, as `georefine check` does, not
+        # after the adjustments (the time offset search looks ±20 s around scanner.time_offset_s).
+        g, i = nav.gnss.gnss_time, nav.gnss.imu_time
+        span = (max(float(g[0]), float(i[0])), min(float(g[-1]), float(i[-1])))
+        refuse_strips_outside([s.plan for s in strip_files], span, nav.t0_gps, nav.config.scanner.time_offset_s)
     for sub in ("gi", "gil", "points", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     return WorkflowInputs(nav, strip_files, out, OutputCRS(nav.config.crs.output_epsg), runner)
@@ -608,7 +613,7 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
     def compute() -> list[dict]:  # stored with each file's stamp, for ``written``
         runner = inputs.runner
         interpolator = PoseInterpolator(imu_rate_trajectory(nav, final))
-        refuse_strips_outside([s.plan for s in strips], interpolator.span, nav.t0_gps)
+        refuse_strips_outside([s.plan for s in strips], interpolator.span, nav.t0_gps, offset)
         poses = runner.share(interpolator)
         paths = [folder / (s.path.stem + ".laz") for s in strips]
         results = georeference_strips([s.plan for s in strips], paths, poses, nav.t0_gps, p_b_s, R_b_s,

@@ -364,7 +364,7 @@ def run_georeference(
         offset = cfg.scanner.time_offset_s
         plans = [plan_strip(root / rel, 0, t0 - offset, size, 0.0, index=time_index(root / rel))
                  for rel in cfg.scanner.files]
-        refuse_strips_outside(plans, (float(traj.time[0]), float(traj.time[-1])), t0)
+        refuse_strips_outside(plans, (float(traj.time[0]), float(traj.time[-1])), t0, offset)
         out.mkdir(parents=True, exist_ok=True)
         poses = runner.share(PoseInterpolator(traj))
         results = georeference_strips(

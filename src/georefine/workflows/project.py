@@ -229,6 +229,7 @@ def inspect_project(
 
     channels = {c.id for c in cfg.scanner.channels}
     nav = (max(g_span[0], i_span[0]), min(g_span[1], i_span[1]))
+    shift = cfg.scanner.time_offset_s  # the strips' time stamps plus this are navigation time
     strips = []
     for rel in cfg.scanner.files:
         path = root / rel
@@ -252,12 +253,20 @@ def inspect_project(
             if len(chunk):
                 t_min = min(t_min, float(chunk.time_gps.min()))
                 t_max = max(t_max, float(chunk.time_gps.max()))
-                outside += int(np.count_nonzero((chunk.time_gps < nav[0]) | (chunk.time_gps > nav[1])))
+                t = chunk.time_gps + shift
+                outside += int(np.count_nonzero((t < nav[0]) | (t > nav[1])))
             done += len(chunk)
             if progress is not None:
                 progress(f"check {path.name}", done, info.point_count)
         if done == 0:
             raise InputError("strip has no points", path=path)
+        if outside == done:  # as the workflow refuses it (lidar.tiles.refuse_strips_outside)
+            raise InputError(
+                "no point of the strip lies inside the trajectory's time span", path=path, field="gps_time",
+                expected=f"times within {nav[0] - shift:.3f} .. {nav[1] - shift:.3f} GPS s"
+                + (f" (scanner.time_offset_s {shift:g} s applied)" if shift else ""),
+                found=f"{t_min:.3f} .. {t_max:.3f} GPS s",
+            )
         if outside:
             warnings.append(f"{path.name}: {outside:,} points outside the GNSS/IMU time span (they will be left out)")
         missing = channels - set(per)
