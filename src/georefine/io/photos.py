@@ -31,8 +31,9 @@ Files (all optional parts of a project; names are configurable)
     ``image_points.csv``: ``image,id,col,row`` (pixels, top-left pixel centre at (0.5, 0.5)).
 
 Every reader names the file, line and field of what is wrong; :func:`check_photo_block` checks
-the files against each other (a missing image file, a measurement outside its image, a point
-measured in no image, unknown names).
+the files against each other (a missing image file, a measurement outside its image, a check
+point measured in fewer than two images, unknown names), and :func:`read_photo` each image
+(it decodes, it is complete, its size is its camera's).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 import yaml
 
@@ -55,7 +57,8 @@ _log = logging.getLogger(__name__)
 
 __all__ = [
     "ExteriorOrientation", "ControlPoints", "ImagePoints", "PhotoBlock",
-    "read_cameras", "write_cameras", "read_eop", "write_eop", "read_gcps", "write_gcps",
+    "read_cameras", "write_cameras", "read_eop", "write_eop", "read_gcps", "write_gcps", "read_photo",
+    "check_photo_images",
     "read_image_points", "write_image_points", "check_photo_block", "poses_in_w", "eop_from_w",
     "EOP_COLUMNS", "EOP_SIGMA_COLUMNS", "GCP_COLUMNS", "IMAGE_POINT_COLUMNS",
 ]
@@ -318,21 +321,73 @@ def write_image_points(path: PathLike, points: ImagePoints, protect=()) -> None:
 
 
 # ---------------------------------------------------------------------------- consistency
+_JPEG_SOI, _JPEG_EOI = b"\xff\xd8\xff", b"\xff\xd9"
+_PNG_SIGNATURE, _PNG_IEND = b"\x89PNG\r\n\x1a\n", b"IEND\xaeB`\x82"
+_TAIL_BYTES = 4096  # a JPEG's end-of-image marker must lie this close to the end (padding, trailers)
+
+
+def read_photo(path: PathLike, camera: Camera | None = None, *, grey: bool = True) -> np.ndarray:
+    """An image file decoded (8-bit grey or as stored), refused if it is incomplete or not its camera's size.
+
+    A JPEG cut short still decodes -- OpenCV fills the missing rows with grey and says so only on
+    stderr -- so a JPEG must end with its end-of-image marker and a PNG with its ``IEND`` chunk;
+    any other format must decode. ``camera``: the image must be ``width_px x height_px``.
+
+    Raises
+    ------
+    InputError
+        The file is missing, incomplete, does not decode, or has another size than its camera.
+    """
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"image does not open: {exc.strerror or exc}", path=path) from None
+    if data.startswith(_JPEG_SOI) and _JPEG_EOI not in data[-_TAIL_BYTES:]:
+        raise InputError("image file is incomplete", path=path, expected="a JPEG that ends with its end-of-image "
+                         "marker (FF D9)", found=f"{len(data):,} bytes without it: the file was cut short")
+    if data.startswith(_PNG_SIGNATURE) and _PNG_IEND not in data[-16:]:
+        raise InputError("image file is incomplete", path=path, expected="a PNG that ends with its IEND chunk",
+                         found=f"{len(data):,} bytes without it: the file was cut short")
+    image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE if grey else cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise InputError("image does not decode", path=path, expected="an image file OpenCV reads (JPEG, PNG, TIFF)")
+    if camera is not None and image.shape[:2] != (camera.height_px, camera.width_px):
+        raise InputError("image size is not its camera's", path=path, expected=f"{camera.width_px} x "
+                         f"{camera.height_px} px (camera {camera.name!r})", found=f"{image.shape[1]} x {image.shape[0]} px")
+    return image
+
+
+def check_photo_images(block: PhotoBlock) -> None:
+    """:func:`read_photo` on every image of ``block`` (with its camera): each decodes, is complete and fits.
+
+    Decodes every image once (about 10 ms per 10-megapixel JPEG); nothing is kept.
+    """
+    if block.image_folder is None:
+        return
+    for name, cam in zip(block.eop.images, block.eop.cameras):
+        read_photo(Path(block.image_folder) / name, block.cameras.get(cam))
+
+
 def check_photo_block(
     block: PhotoBlock,
     *,
     eop_path: PathLike = "eop.csv",
     gcp_path: PathLike = "gcp.csv",
     image_points_path: PathLike = "image_points.csv",
-) -> None:
-    """Check the files of a block against each other.
+) -> list[str]:
+    """Check the files of a block against each other; the warnings.
+
+    A control point measured in a single image is a warning (it still ties that image to the
+    ground, but no second ray checks the measurement).
 
     Raises
     ------
     InputError
         An image of ``eop.csv`` without its file in ``block.image_folder``; a measurement of an
-        image or point that the other files do not have, or outside its image; a control or
-        check point measured in no image.
+        image or point that the other files do not have, or outside its image; a control
+        point measured in no image; a check point measured in fewer than two (it cannot be
+        intersected).
     """
     eop = block.eop
     if block.image_folder is not None:
@@ -345,7 +400,7 @@ def check_photo_block(
         if block.gcps is not None and len(block.gcps):
             raise InputError("control points but no image measurements", path=gcp_path, field="id",
                              expected="image_points.csv with the points' image coordinates")
-        return
+        return []
     ip = block.image_points
     index = eop.index()
     gcp_ids = set(block.gcps.ids) if block.gcps is not None else set()
@@ -363,12 +418,23 @@ def check_photo_block(
                     raise InputError("measurement outside the image", path=image_points_path, line=n, field=name,
                                      expected=f"0 <= {name} <= {size} (image {img!r}, camera {cam.name!r})",
                                      found=f"{value:g}")
-    measured = set(ip.ids)
+    rays: dict[str, set[str]] = {}
+    for img, pid in zip(ip.images, ip.ids):
+        rays.setdefault(pid, set()).add(img)
+    warnings = []
     if block.gcps is not None:
-        for i, pid in enumerate(block.gcps.ids):
-            if pid not in measured:
-                raise InputError("point measured in no image", path=gcp_path, line=i + 2, field="id",
-                                 expected=f"at least one measurement in {Path(image_points_path).name}", found=repr(pid))
+        for i, (pid, role) in enumerate(zip(block.gcps.ids, block.gcps.role)):
+            n = len(rays.get(pid, ()))
+            if n == 0 or (role == "check" and n < 2):
+                need = "one image or more" if role == "control" else "two images or more (a check point is intersected)"
+                raise InputError(
+                    f"{role} point measured in {'no image' if n == 0 else 'one image only'}", path=gcp_path,
+                    line=i + 2, field="id", expected=f"measurements in {need} in {Path(image_points_path).name}",
+                    found=repr(pid))
+            if n == 1:
+                warnings.append(f"{Path(gcp_path).name}: control point {pid!r} is measured in one image only "
+                                f"({next(iter(rays[pid]))}): no second ray checks it")
+    return warnings
 
 
 # ---------------------------------------------------------------------------- frames

@@ -29,6 +29,7 @@ import numpy as np
 from pydantic import Field
 
 from georefine.config import StrictModel
+from georefine.errors import InputError
 from georefine.geometry.camera import FLIP, Camera, project_points
 from georefine.geometry.rotation import exp_so3, rot_z
 from georefine.io.files import atomic_output
@@ -190,8 +191,13 @@ def control_points(scene, camera: Camera, block: PhotoBlock, cfg: PhotoBlockConf
             k = len(xyz)
             xyz.append(X)
             meas.extend((k, i, float(p[0]), float(p[1])) for i, p in seen)
-    if len(xyz) < n_wanted:
-        raise RuntimeError(f"found only {len(xyz)} of {n_wanted} visible control/check points on open ground")
+    if len(xyz) < n_wanted:  # a scene too small or too built-up for the points asked for
+        raise InputError(
+            "too few places for control and check points", field="photos.control_points",
+            expected=f"{n_wanted} points (photos.control_points + photos.check_points) on open ground, 30 m apart "
+            "and seen in two photos: ask for fewer, or a longer scene (scene.length_m)",
+            found=f"{len(xyz)} after {tries} tries",
+        )
     is_control = np.zeros(len(xyz), dtype=bool)
     is_control[rng.permutation(len(xyz))[: cfg.control_points]] = True
     return np.array(xyz), is_control, meas

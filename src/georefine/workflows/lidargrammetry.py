@@ -310,6 +310,11 @@ def _open(project_dir, out, overrides: Mapping[str, Any] | None, matcher=None, *
     if matcher is None and matching:
         matcher = _settings_matcher(st, root)
     pp = load_photo_project(root, cfg)
+    for warning in pp.warnings:
+        log.warning(warning)
+    if matching:  # every photo decodes, is complete and has its camera's size, before any work
+        for i, name in enumerate(pp.eop.images):
+            pio.read_photo(pp.folder / name, pp.camera(i))
     return _Opened(cfg, st, matcher, pp, output_folder(out, pp.root))
 
 
@@ -324,10 +329,8 @@ def _block_images(pp: PhotoProject, cloud: CloudIndex, st: LidargrammetryConfig,
                   runner: TaskRunner) -> _Block:
     lgs = render_lidargrams(pp, cloud, st, progress=progress, runner=runner)
     n = len(pp.eop)
-    photos = [cv2.imread(str(pp.folder / name), cv2.IMREAD_GRAYSCALE) for name in pp.eop.images]
-    for name, img in zip(pp.eop.images, photos):
-        if img is None:
-            raise InputError("image does not open", path=pp.folder / name, expected="an image file OpenCV reads")
+    # Complete and of their cameras' size: a JPEG cut short decodes with a grey lower half.
+    photos = [pio.read_photo(pp.folder / name, pp.camera(i)) for i, name in enumerate(pp.eop.images)]
     station = np.array(list(range(n)) + [i for _, i, _ in lgs], dtype=np.int64)
     names = tuple(pp.eop.images) + tuple(_lidargram_name(cloud, s, pp.eop.images[i]) for _, i, s in lgs)
     return _Block(lgs, n, [pp.camera(i) for i in range(n)] + [lg.camera for lg, _, _ in lgs], station,

@@ -58,6 +58,7 @@ class PhotoProject:
     folder: Path
     R_w_c: np.ndarray
     p_w_c: np.ndarray
+    warnings: tuple[str, ...] = ()
 
     def camera(self, i: int) -> Camera:
         return self.cameras[self.eop.cameras[i]]
@@ -78,6 +79,9 @@ def load_photo_project(project_dir: str | Path, config: ProjectConfig | None = N
     """Read and check the photo files of a project (:func:`georefine.io.photos.check_photo_block`).
 
     ``config``: the project's configuration if already loaded (else ``project.yaml`` is read).
+    The images themselves are read where they are used (:func:`georefine.io.photos.read_photo`)
+    or by ``georefine check`` (:func:`georefine.io.photos.check_photo_images`); the block's
+    warnings are in ``warnings``.
     """
     root = Path(project_dir)
     cfg = load_project(root) if config is None else config
@@ -90,8 +94,8 @@ def load_photo_project(project_dir: str | Path, config: ProjectConfig | None = N
     gcps = pio.read_gcps(root / ph.gcp) if ph.gcp else None
     pts = pio.read_image_points(root / ph.image_points) if ph.image_points else None
     block = pio.PhotoBlock(cameras, eop, gcps, pts, root / ph.folder)
-    pio.check_photo_block(block, eop_path=root / ph.eop, gcp_path=root / (ph.gcp or "gcp.csv"),
-                          image_points_path=root / (ph.image_points or "image_points.csv"))
+    warnings = pio.check_photo_block(block, eop_path=root / ph.eop, gcp_path=root / (ph.gcp or "gcp.csv"),
+                                     image_points_path=root / (ph.image_points or "image_points.csv"))
     crs = OutputCRS(cfg.crs.output_epsg)
     lat, lon, _ = crs.to_geodetic(eop.xyz.mean(axis=0))
     h0 = float(np.median(gcps.xyz[:, 2])) if gcps is not None and len(gcps) else 0.0
@@ -99,7 +103,7 @@ def load_photo_project(project_dir: str | Path, config: ProjectConfig | None = N
     R, p = pio.poses_in_w(eop, frame, crs)
     empty = pio.ImagePoints((), (), np.zeros((0, 2)), np.zeros(0, np.int64))
     gc = gcps if gcps is not None else pio.ControlPoints((), np.zeros((0, 3)), np.zeros((0, 3)), ())
-    return PhotoProject(root, frame, crs, cameras, eop, gc, pts or empty, root / ph.folder, R, p)
+    return PhotoProject(root, frame, crs, cameras, eop, gc, pts or empty, root / ph.folder, R, p, tuple(warnings))
 
 
 def read_cloud(paths: list[Path], pp: PhotoProject, *, runner: TaskRunner | None = None,

@@ -55,6 +55,8 @@ class ProjectSummary:
     strips: tuple[StripSummary, ...]
     reference_surfaces: int = 0
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    photos: tuple[int, int, int, int, int] | None = None
+    """Images, cameras, control points, check points, image measurements (None: no photos section)."""
 
     def summary(self) -> str:
         g0, g1 = self.gnss_span_gps
@@ -71,6 +73,10 @@ class ProjectSummary:
             )
         if self.reference_surfaces:
             lines.append(f"  reference surfaces: {self.reference_surfaces}")
+        if self.photos is not None:
+            n, cams, control, check, measured = self.photos
+            lines.append(f"  photos: {n} images ({cams} camera{'s' if cams != 1 else ''}), {control} control and "
+                         f"{check} check points, {measured} image measurements")
         lines += [f"  warning: {w}" for w in self.warnings]
         return "\n".join(lines)
 
@@ -279,10 +285,25 @@ def inspect_project(
         surfaces: ReferenceSurfaces = read_reference_surfaces(root / cfg.reference.surfaces)
         n_ref = len(surfaces.surface_ids())
 
+    photos = None
+    if cfg.photos is not None:  # the same reading as the co-adjustment's, and every image decoded
+        from georefine.io.photos import read_photo
+        from georefine.workflows.photo_block import load_photo_project
+
+        pp = load_photo_project(root, cfg)
+        for i, name in enumerate(pp.eop.images):
+            read_photo(pp.folder / name, pp.camera(i))
+            if progress is not None:
+                progress("check photos", i + 1, len(pp.eop))
+        warnings.extend(pp.warnings)
+        control = int(pp.gcps.is_control.sum())
+        photos = (len(pp.eop), len(pp.cameras), control, len(pp.gcps) - control, len(pp.image_points))
+
     return ProjectSummary(
         root=root, config=cfg, gnss_epochs=int(gnss.time_gps.size), gnss_usable_epochs=int(usable.sum()),
         gnss_span_gps=g_span, imu_samples=int(imu.time_gps.size), imu_rate_hz=float(imu.rate_hz),
         imu_span_gps=i_span, imu_gaps=gaps, strips=tuple(strips), reference_surfaces=n_ref, warnings=tuple(warnings),
+        photos=photos,
     )
 
 
