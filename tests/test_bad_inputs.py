@@ -302,11 +302,21 @@ def _a_file(folder: Path) -> Path:
     return folder / "results"
 
 
+def _foreign(folder: Path) -> Path:
+    (folder / "f").mkdir()
+    (folder / "f" / "survey.laz").write_text("theirs")
+    return folder / "f"
+
+
 OPTION_CASES = [
     ("out inside the project", lambda p, t: ["trajectory", str(p), "--out", str(p / "out")], ("project folder",)),
     ("out is a file", lambda p, t: ["run", str(p), "--out", str(_a_file(t))], ("not a folder",)),
     ("unknown strip", lambda p, t: ["run", str(p), "--out", str(t / "o"), "--strips", "9"], ("--strips",)),
     ("no project", lambda p, t: ["check", str(t / "nowhere")], ("nowhere",)),
+    ("out holds other files", lambda p, t: ["run", str(p), "--out", str(_foreign(t))],
+     ("did not write", "--force", "survey.laz")),
+    ("evaluation into other files", lambda p, t: ["evaluate", "strip-differences", str(p / "scans"), "--out",
+                                                  str(_foreign(t))], ("did not write", "--force")),
 ]
 
 
@@ -318,3 +328,13 @@ def test_a_bad_option_is_one_line_and_exit_2(clean, tmp_path, name, args, words)
     assert run.returncode == 2 and "Traceback" not in run.stderr and err.count("\n") == 0, (name, run.stderr[-2000:])
     assert all(w in err for w in words), (name, err)
     assert sorted(q.name for q in clean.rglob("*")) == before and not (tmp_path / "o").exists()
+
+
+def test_force_writes_into_a_folder_of_other_files_and_marks_it_as_georefines(clean, tmp_path):
+    out = _foreign(tmp_path)
+    run = _georefine("trajectory", str(clean), "--out", str(out), "--filter-only", "--force")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert (out / "survey.laz").read_text() == "theirs" and (out / "trajectory.sbet").is_file()
+    assert (out / ".georefine-output").is_file()
+    again = _georefine("trajectory", str(clean), "--out", str(out), "--filter-only")  # now Georefine's folder
+    assert again.returncode == 0, again.stderr[-2000:]

@@ -62,6 +62,19 @@ def _scheduler_option(default: str = "threads"):
                         help=f"{_SCHEDULER_HELP} Default {default}: the fastest here on 2 cores.")
 
 
+def _force_option():
+    return typer.Option(False, "--force", help="Write into an output folder that holds files Georefine did not write "
+                        "(its files of the same names are replaced).")
+
+
+def _output_ok(out: Optional[Path], force: bool) -> None:
+    """Refuse an output folder that holds files Georefine did not write, unless --force (io.files.refuse_foreign_output)."""
+    if out is not None:
+        from georefine.io.files import refuse_foreign_output
+
+        refuse_foreign_output(out, force)
+
+
 @contextmanager
 def _user_errors() -> Iterator[None]:
     """Turn library errors into one message and exit code 2."""
@@ -153,6 +166,7 @@ def trajectory(
     project: Path = typer.Argument(..., help="Project folder with project.yaml."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
     filter_only: bool = typer.Option(False, "--filter-only", help="Stop after the initialisation filter (step 1)."),
+    force: bool = _force_option(),
 ) -> None:
     """Estimate the trajectory from GNSS and IMU (workflow steps 1-2).
 
@@ -161,6 +175,7 @@ def trajectory(
     configuration.
     """
     with _user_errors():
+        _output_ok(out, force)
         from georefine.workflows import run_trajectory
 
         with _progress() as report:
@@ -178,6 +193,7 @@ def run(
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every step instead of resuming from OUT/.cache."),
     no_points: bool = typer.Option(False, "--no-points", help="Skip the final point clouds (step 6)."),
     scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
 ) -> None:
     """Run the whole workflow: filter, G/I adjustment, planar features, G/I/L adjustment, point clouds.
 
@@ -186,6 +202,7 @@ def run(
     step's result is cached in OUT/.cache: a rerun resumes what its inputs have not changed.
     """
     with _user_errors():
+        _output_ok(out, force)
         from georefine.errors import InputError
         from georefine.workflows.lidar import run_workflow
 
@@ -214,9 +231,11 @@ def georeference(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the LAZ strips."),
     gps_week: Optional[int] = typer.Option(None, "--gps-week", help="GPS week of an SBET in seconds of week."),
     scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
 ) -> None:
     """Georeference the project's strips with a trajectory (LAZ 1.4 in the output CRS)."""
     with _user_errors():
+        _output_ok(out, force)
         from georefine.workflows import run_georeference
 
         with _progress() as report:
@@ -236,6 +255,7 @@ def demo(
     single_pass: bool = typer.Option(True, "--single-pass/--no-single-pass", help="Also run the single-pass case."),
     method: str = typer.Option("sift", "--method", help="block: matcher, sift or xfeat."),
     scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
 ) -> None:
     """Simulate a scenario, run the whole method on it, evaluate it as the paper does and write
     OUT/report.html and OUT/metrics.json.
@@ -245,11 +265,12 @@ def demo(
     """
     if scenario == "block":
         _block_demo(out or Path("georefine-demo-block"), 3 if seed is None else seed, overrides or [], method,
-                    scheduler)
+                    scheduler, force)
         return
     out = out or Path("georefine-demo")
     seed = 42 if seed is None else seed
     with _user_errors():
+        _output_ok(out, force)
         from georefine.demo.corridor import run_demo
 
         with _progress() as report:
@@ -268,8 +289,9 @@ def demo(
     stdout.print(f"report: {result.report.resolve()}")
 
 
-def _block_demo(out: Path, seed: int, overrides: list[str], method: str, scheduler: str) -> None:
+def _block_demo(out: Path, seed: int, overrides: list[str], method: str, scheduler: str, force: bool) -> None:
     with _user_errors():
+        _output_ok(out, force)
         if method not in ("sift", "xfeat"):
             from georefine.errors import InputError
 
@@ -313,12 +335,14 @@ def lidargrams(
         None, "--scale", help=f"Lidargram resolution relative to the photos. {_FROM_CONFIG} 0.5."),
     merged: bool = typer.Option(False, "--merged", help="One lidargram per photo of all strips together."),
     scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
 ) -> None:
     """Render lidargrams at the photos' approximate orientation: OUT/NAME.png and NAME.npz (ULPI raster).
 
     Also writes the resolved configuration (config.resolved.yaml).
     """
     with _user_errors():
+        _output_ok(out, force)
         from georefine.workflows.lidargrammetry import run_lidargrams
 
         with _progress() as report:
@@ -355,6 +379,7 @@ def match(
     extractor_weights: Optional[Path] = typer.Option(None, "--extractor-weights", help="DISK/ALIKED weights (.pth)."),
     lightglue_weights: Optional[Path] = typer.Option(None, "--lightglue-weights", help="LightGlue weights (.pth)."),
     scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
 ) -> None:
     """Render lidargrams and match photos and lidargrams (verified matches, tracks, pictures).
 
@@ -363,6 +388,7 @@ def match(
     processing.lidargrammetry of project.yaml.
     """
     with _user_errors():
+        _output_ok(out, force)
         from georefine.workflows.lidargrammetry import run_match
 
         kinds = None if pairs is None else [k.strip() for k in pairs.split(",") if k.strip()]
@@ -395,6 +421,7 @@ def coadjust(
         help=f"A-priori sigma of lidargram rotations about the camera x,y,z axes [deg], one or three "
         f"comma-separated. {_FROM_CONFIG} 0.01,0.01,0.1."),
     scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
 ) -> None:
     """Co-match photos and lidargrams and co-adjust them (paper 004, cases 1-3).
 
@@ -404,6 +431,7 @@ def coadjust(
     processing.lidargrammetry of project.yaml.
     """
     with _user_errors():
+        _output_ok(out, force)
         from georefine.workflows.lidargrammetry import run_coadjust
 
         sig_r = None if sigma_rotation is None else [v.strip() for v in sigma_rotation.split(",")]
@@ -451,6 +479,7 @@ def evaluate_trajectory(
         None, "--span", metavar="START END",
         help="Only compare inside this time window: seconds of week (< 604800) or GPS seconds.",
     ),
+    force: bool = _force_option(),
 ) -> None:
     """Roll/pitch/yaw and position differences of ESTIMATE minus a reference (paper 000, Fig. 9).
 
@@ -458,6 +487,7 @@ def evaluate_trajectory(
     Differences are estimate minus reference; angle differences are wrapped to (-180, 180] deg.
     """
     with _user_errors():
+        _output_ok(out, force)
         from georefine.evaluation.trajectory_files import (
             compare_sbet_files,
             write_trajectory_evaluation,
@@ -492,6 +522,7 @@ def evaluate_reference_planes_cmd(
     inset: float = typer.Option(0.25, "--inset", help="Margin inside each surveyed outline (m)."),
     max_distance: float = typer.Option(0.3, "--max-distance", help="Points farther from the plane are ignored (m)."),
     scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
 ) -> None:
     """Distances of the points to surveyed reference planes per strip x channel (paper 000, Table 1).
 
@@ -500,6 +531,7 @@ def evaluate_reference_planes_cmd(
     surface's observations.
     """
     with _user_errors():
+        _output_ok(out, force)
         from georefine.evaluation.clouds import evaluate_reference_planes, point_files
         from georefine.evaluation.summary import ReferencePlaneFigures
         from georefine.tasks import TaskRunner
@@ -531,10 +563,12 @@ def evaluate_strip_differences_cmd(
     cell: float = typer.Option(1.0, "--cell", help="Raster cell size (m)."),
     max_roughness: float = typer.Option(0.03, "--max-roughness", help="Planar cells only: RMS plane residual (m)."),
     scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
 ) -> None:
     """Strip differences on a raster (paper 000, Fig. 7): per cell max - min of the plane heights
     of the layers strip x channel that are planar there."""
     with _user_errors():
+        _output_ok(out, force)
         from georefine.evaluation.clouds import evaluate_strip_differences, point_files
         from georefine.tasks import TaskRunner
 

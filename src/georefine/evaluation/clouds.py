@@ -56,7 +56,7 @@ from georefine.evaluation.strip_differences import (
     write_geotiff,
     write_png,
 )
-from georefine.io.files import atomic_output, write_json
+from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.io.point_manifest import manifest_files
 from georefine.io.reference import read_reference_surfaces
 from georefine.progress import Progress, no_progress
@@ -330,7 +330,7 @@ def evaluate_reference_planes(
     obs.sort(key=lambda o: (o.surface_id, o.strip, o.channel))
     summary = summarise_observations(obs)
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+        make_output_folder(out)
         write_json(out / "reference_planes.json", {
             **summary.to_dict(), "inset_m": inset_m, "max_distance_m": max_distance_m,
             "observations": [o.__dict__ for o in obs], "files": [str(f) for f in files],
@@ -367,7 +367,7 @@ def evaluate_strip_differences(
                          f"not {wanted}")
     m = scan.strip_differences
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+        make_output_folder(out)
         epsg = epsg_of(files[0])
         write_json(out / "strip_differences.json", {
             **m.summary(), "cell_size_m": cell_size_m, "min_points": min_points, "max_roughness_m": max_roughness_m,

@@ -85,8 +85,32 @@ def check_output_folder(path: PathLike) -> Path:
     return out
 
 
+OUTPUT_MARK = ".georefine-output"
+"""The file by which an output folder says that Georefine made it (:func:`make_output_folder`)."""
+
+
+def refuse_foreign_output(path: PathLike, force: bool = False) -> Path:
+    """Refuse an output folder that holds files Georefine did not write (InputError), unless ``force``.
+
+    A folder is Georefine's when :func:`make_output_folder` made it (it holds :data:`OUTPUT_MARK`);
+    a new or empty folder (hidden entries aside) is fine too. Writing into anyone else's folder
+    could replace their files, and an evaluation that reads a folder would take them for ours.
+    """
+    out = check_output_folder(path)
+    if force or not out.is_dir() or (out / OUTPUT_MARK).is_file():
+        return out
+    entries = sorted(e.name for e in out.iterdir() if not e.name.startswith("."))
+    if entries:
+        shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+        raise InputError("the output folder holds files Georefine did not write", path=out,
+                         expected="a new or empty folder, one Georefine made, or --force",
+                         found=f"{len(entries)} entries ({shown})")
+    return out
+
+
 def make_output_folder(path: PathLike) -> Path:
-    """Create the output folder ``path`` (and its parents) after :func:`check_output_folder`.
+    """Create the output folder ``path`` (and its parents) after :func:`check_output_folder`, and mark it as
+    Georefine's (:data:`OUTPUT_MARK`, see :func:`refuse_foreign_output`).
 
     Raises
     ------
@@ -96,6 +120,11 @@ def make_output_folder(path: PathLike) -> Path:
     out = check_output_folder(path)
     try:
         out.mkdir(parents=True, exist_ok=True)
+        mark = out / OUTPUT_MARK
+        if not mark.is_file():
+            from georefine import __version__
+
+            mark.write_text(f"Georefine {__version__} writes into this folder.\n")
     except OSError as exc:
         raise InputError("cannot create the output folder", path=out, found=exc.strerror or str(exc)) from None
     return out

@@ -46,7 +46,7 @@ from georefine.config import ProjectConfig, boresight_matrix, load_project, writ
 from georefine.errors import InputError
 from georefine.geometry.frames import OutputCRS
 from georefine.geometry.rotation import log_so3, rph_from_R_n_b
-from georefine.io.files import write_json
+from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
 from georefine.lidar.feature_sample import feature_keys, stable_object_subset
@@ -415,6 +415,7 @@ def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Pat
         g, i = nav.gnss.gnss_time, nav.gnss.imu_time
         span = (max(float(g[0]), float(i[0])), min(float(g[-1]), float(i[-1])))
         refuse_strips_outside([s.plan for s in strip_files], span, nav.t0_gps, nav.config.scanner.time_offset_s)
+    make_output_folder(out)
     for sub in ("gi", "gil", "points", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
     return WorkflowInputs(nav, strip_files, out, OutputCRS(nav.config.crs.output_epsg), runner)

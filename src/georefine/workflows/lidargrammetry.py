@@ -43,7 +43,7 @@ from georefine.geometry.camera import Camera
 from georefine.io import metashape
 from georefine.io import photos as pio
 from georefine.io.colmap import to_reconstruction, write_model
-from georefine.io.files import atomic_output, write_json
+from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.lidargrammetry.bundle import (
     CASES,
     BlockImages,
@@ -293,7 +293,7 @@ class _Opened:
         """The cloud indexed on ``runner`` (every file checked); then the output folder is created,
         with the resolved configuration."""
         cloud = read_cloud([Path(p) for p in points], self.pp, runner=runner, progress=progress)
-        self.out.mkdir(parents=True, exist_ok=True)
+        make_output_folder(self.out)
         proc = self.config.processing
         write_yaml(self.out / "config.resolved.yaml",
                    self.config.model_copy(update={"processing": proc.model_copy(update={"lidargrammetry":

@@ -27,7 +27,7 @@ from georefine.adjustment.gnss_imu import (
 from georefine.adjustment.upsampling import adjust_upsampled
 from georefine.config import ProjectConfig, load_project, write_yaml
 from georefine.geometry.frames import LocalFrame, OutputCRS
-from georefine.io.files import write_json
+from georefine.io.files import make_output_folder, write_json
 from georefine.io.gnss import gnss_in_w
 from georefine.io.imu import ImuData
 from georefine.progress import Progress, no_progress
@@ -260,8 +260,7 @@ def run_trajectory(
     t = _time.perf_counter()
     nav = load_navigation(project_dir)
     timings["read"] = _time.perf_counter() - t
-    out = output_folder(out, nav.root)
-    out.mkdir(parents=True, exist_ok=True)
+    out = make_output_folder(output_folder(out, nav.root))
     crs = OutputCRS(nav.config.crs.output_epsg)
 
     progress("initialisation filter", 0, 1)
@@ -365,7 +364,7 @@ def run_georeference(
         plans = [plan_strip(root / rel, 0, t0 - offset, size, 0.0, index=time_index(root / rel))
                  for rel in cfg.scanner.files]
         refuse_strips_outside(plans, (float(traj.time[0]), float(traj.time[-1])), t0, offset)
-        out.mkdir(parents=True, exist_ok=True)
+        make_output_folder(out)
         poses = runner.share(PoseInterpolator(traj))
         results = georeference_strips(
             plans, [out / (Path(rel).stem + ".laz") for rel in cfg.scanner.files], poses, t0,
