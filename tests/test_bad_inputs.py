@@ -317,7 +317,34 @@ OPTION_CASES = [
      ("did not write", "--force", "survey.laz")),
     ("evaluation into other files", lambda p, t: ["evaluate", "strip-differences", str(p / "scans"), "--out",
                                                   str(_foreign(t))], ("did not write", "--force")),
+    # simulate, demo, evaluate, coadjust: bad options and inputs without a project edit
+    ("simulate unknown scenario", lambda p, t: ["simulate", "nothing", "--out", str(t / "o")], ("SCENARIO", "nothing")),
+    ("simulate negative pulse rate", lambda p, t: ["simulate", "corridor-tiny", "--out", str(t / "o"), "--set",
+                                                   "scanner.pulse_rate_hz=-5"], ("scanner.pulse_rate_hz",)),
+    ("simulate unknown imu grade", lambda p, t: ["simulate", "corridor-tiny", "--out", str(t / "o"), "--imu-grade",
+                                                 "best"], ("imu_grade", "best")),
+    ("simulate into a full folder", lambda p, t: ["simulate", "corridor-tiny", "--out", str(_foreign(t))],
+     ("not empty",)),
+    ("demo unknown key", lambda p, t: ["demo", "--out", str(t / "o"), "--set", "flight.speed=abc"], ("flight.speed",)),
+    ("demo block bad value", lambda p, t: ["demo", "--scenario", "block", "--out", str(t / "o"), "--set",
+                                           "photos.strips=0"], ("photos.strips",)),
+    ("demo unknown method", lambda p, t: ["demo", "--scenario", "block", "--method", "orb", "--out", str(t / "o")],
+     ("--method", "orb")),
+    ("evaluate missing trajectory", lambda p, t: ["evaluate", "trajectory", str(t / "none.sbet"), "--reference",
+                                                  str(t / "none.sbet"), "--out", str(t / "o")], ("none.sbet", "not found")),
+    ("evaluate cut trajectory", lambda p, t: ["evaluate", "trajectory", str(_cut_sbet(t)), "--reference",
+                                              str(_cut_sbet(t)), "--out", str(t / "o")], ("cut.sbet", "record 1")),
+    ("evaluate no strips", lambda p, t: ["evaluate", "strip-differences", str(p / "gnss"), "--out", str(t / "o")],
+     ("gnss", "no LAS/LAZ")),
+    ("coadjust without photos", lambda p, t: ["coadjust", str(p), "--points", str(p / "scans"), "--out", str(t / "o"),
+                                              "--case", "1"], ("project.yaml", "photos")),
 ]
+
+
+def _cut_sbet(folder: Path) -> Path:
+    (folder / "cut.sbet").write_bytes(bytes(100))  # shorter than one 136-byte record
+    return folder / "cut.sbet"
+
 
 
 @pytest.mark.parametrize("name, args, words", OPTION_CASES, ids=[c[0] for c in OPTION_CASES])

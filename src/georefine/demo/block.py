@@ -36,7 +36,7 @@ from georefine.evaluation.page import CSS, image, table
 from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.lidargrammetry.bundle import PointStats
 from georefine.progress import Progress, no_progress
-from georefine.sim.scenarios import simulate_project
+from georefine.sim.scenarios import resolve_scenario, simulate_project
 from georefine.tasks import DEFAULT_SCHEDULER
 from georefine.workflows.lidar import run_workflow
 from georefine.workflows.lidargrammetry import run_coadjust
@@ -160,8 +160,9 @@ def run_block_demo(out: str | Path, *, seed: int = 3, overrides: list[str] | Non
     :mod:`georefine.tasks`).
     """
     out = Path(out)
-    make_output_folder(out)
     overrides = list(overrides or [])
+    resolve_scenario("block", seed_overrides=overrides)  # a bad scenario or override leaves no folder behind
+    make_output_folder(out)
     project, cache = out / "project", out / ".cache"
     timings: dict[str, float] = {}
     start = _time.perf_counter()

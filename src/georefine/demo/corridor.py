@@ -33,7 +33,7 @@ from georefine.evaluation.summary import CloudEvaluation, RunEvaluation
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.progress import Progress, no_progress
-from georefine.sim.scenarios import simulate_project
+from georefine.sim.scenarios import resolve_scenario, simulate_project
 from georefine.tasks import DEFAULT_SCHEDULER
 from georefine.workflows.evaluate import evaluate_cloud, evaluate_run
 from georefine.workflows.lidar import precompute_gnss_imu, run_workflow
@@ -131,8 +131,9 @@ def run_demo(
     lanes' tasks on one cluster).
     """
     out = Path(out)
-    make_output_folder(out)
     overrides = list(overrides or [])
+    resolve_scenario(scenario, seed_overrides=overrides)  # a bad scenario or override leaves no folder behind
+    make_output_folder(out)
     project = out / "project"
     cache = out / ".cache"
     timings: dict[str, float] = {}

@@ -80,6 +80,9 @@ def compare_sbet_files(
     """
     paths = {"estimate": Path(estimate_path), "reference": Path(reference_path)}
     first = {k: _first_time(p) for k, p in paths.items()}
+    for p, t in zip(paths.values(), first.values()):
+        if t is None:  # missing, or shorter than one record: the reader says which
+            read_sbet(p, gps_week=gps_week if gps_week is not None else 0)
     sow = {k: v is not None and v < SECONDS_PER_WEEK for k, v in first.items()}
     notes: list[str] = []
     weeks: dict[str, int | None] = {}
