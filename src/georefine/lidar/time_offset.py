@@ -112,10 +112,8 @@ def georeference_features(
 
 
 def _groups(features: PlanarFeatures) -> np.ndarray:
-    """What counts as 'another' feature: another strip; with one strip, another channel."""
-    if np.unique(features.strip).size > 1:
-        return features.strip.astype(np.int64)
-    return features.channel.astype(np.int64)
+    """What counts as 'another' feature: one of another strip (the views of one strip move alike)."""
+    return features.strip.astype(np.int64)
 
 
 def time_offset_score(
@@ -201,9 +199,9 @@ def search_time_offset(
         this fraction of it and by 0.02 in absolute terms.
     """
     rng = np.random.default_rng(seed)
-    if len(features) == 0 or np.unique(_groups(features)).size < 2:
+    if len(features) == 0 or np.unique(features.strip).size < 2:  # the views of one strip move alike
         return TimeOffsetSearch(configured_s, configured_s, float("nan"), float("nan"), False, len(features), 0,
-                                0.0, "one view only: nothing to compare")
+                                0.0, "one strip only: a time offset moves all its views alike")
     full = _pool(features, 5 * max_pool, rng)  # the fine scan's counterparts
     in_coarse = np.sort(rng.permutation(len(full))[:max_pool])
     sub = full.select(in_coarse)  # the coarse scan's
