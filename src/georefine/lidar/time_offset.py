@@ -170,7 +170,7 @@ def _pool(features: PlanarFeatures, max_pool: int, rng: np.random.Generator) -> 
 def search_time_offset(
     features: PlanarFeatures, poses, span: tuple[float, float], p_b_s: np.ndarray, R_b_s: np.ndarray,
     *, speed_max_m_s: float, configured_s: float = 0.0, range_s: float = 20.0, max_features: int = 3000,
-    max_pool: int = 30_000, min_gain: float = 0.2, seed: int = 0,
+    max_pool: int = 30_000, min_gain: float = 0.05, seed: int = 0,
 ) -> TimeOffsetSearch:
     """Search the LiDAR time offset that makes the strips agree best (module docstring).
 
@@ -196,7 +196,9 @@ def search_time_offset(
         the fine one (a thinned pool flattens the fine peak: it loses most counterparts).
     min_gain
         The best candidate is adopted when its fine score exceeds the configured offset's by
-        this fraction of it and by 0.02 in absolute terms.
+        this fraction of it and by 0.02 in absolute terms, and lies more than a fine step from
+        it. On ``corridor`` the configured offset scores as well as the best candidate when it is
+        right (0.962 against 0.962), and 0.846 against 0.961 when it is 50 ms off.
     """
     rng = np.random.default_rng(seed)
     if len(features) == 0 or np.unique(features.strip).size < 2:  # the views of one strip move alike
