@@ -141,13 +141,15 @@ def _cfg(configured=0.0, warn_ms=0.5):
 def test_an_estimated_offset_off_the_configuration_is_a_warning_with_its_figures(caplog):
     with caplog.at_level(logging.WARNING, logger="georefine.workflows.time_offset"):
         warn_time_offset(_cfg(), 0.0003, 0.00004)  # 0.3 ms: under the 0.5 ms threshold
-        warn_time_offset(_cfg(), 0.002, 0.001)  # 2 ms but only 2 sigma
+        warn_time_offset(_cfg(), 0.002, 0.0008)  # 2 ms but only 2.5 sigma
         warn_time_offset(_cfg(), 0.002, None)  # no sigma
+        warn_time_offset(_cfg(), -0.00064, 0.00002, 0.00071)  # corridor's clean run: GNSS errors, 0.9 sigma
         assert not caplog.records
-        warn_time_offset(_cfg(18.0), 18.0021, 0.0001)
+        warn_time_offset(_cfg(18.0), 18.0021, 0.0001, 0.0002)
     assert len(caplog.records) == 1
     msg = caplog.records[0].getMessage()
-    assert "+2.10 ms" in msg and "scanner.time_offset_s: 18.0021" in msg
+    assert "+2.10 ms (± 0.22 ms: 0.10 from the adjustment, 0.20 from GNSS" in msg
+    assert "scanner.time_offset_s: 18.0021" in msg
 
 
 def _solve(groups):
@@ -185,6 +187,7 @@ def test_strips_stamped_three_seconds_late_are_found_estimated_and_written_corre
     search = first["time_offset_search"]
     assert search["adopted"] and abs(search["best_s"] - 3.0) < search["step_s"]  # the fine step: 4.4 ms at 18 m/s
     report = json.loads((out / "gil" / "adjustment.json").read_text())["lidar_time_offset"]
+    assert 0.5 < report["gnss_sigma_ms"] < 1.0  # 1.8 cm GNSS sigma at 18 m/s: 0.71 ms
     # The GNSS errors, correlated in time, move the passes apart along the track by a few mm, which
     # the offset cannot tell from its own (0.81 ms at 18 m/s for this seed): within 0.2 ms of that.
     implied = truth_gnss_time_offset(project)

@@ -245,7 +245,7 @@ class TimeOffsetConfig(StrictModel):
     )
     warn_ms: float = Field(
         0.5, gt=0.0, description="Warn when the estimate differs from scanner.time_offset_s by more than this and "
-        "five of its sigmas: the configuration should state it.",
+        "three sigmas (the adjustment's and what GNSS errors lasting a pass add): the configuration should state it.",
     )
 
 

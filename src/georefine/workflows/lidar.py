@@ -72,6 +72,7 @@ from georefine.workflows.time_offset import (
     OFFSET_BLOCK,
     TimeOffsetStart,
     add_time_offset,
+    gnss_offset_sigma,
     search_and_shift,
     warn_time_offset,
 )
@@ -101,6 +102,7 @@ class LidarAdjustment:
     time_offset_s: float = 0.0
     time_offset_start: TimeOffsetStart | None = None
     time_offset_sigma_s: float | None = None
+    time_offset_gnss_sigma_s: float | None = None  # what GNSS errors lasting a pass add (gnss_offset_sigma)
 
 
 def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
@@ -247,7 +249,9 @@ class WorkflowResult:
             b = self.gil.boresight_deg
             lines.append(f"  boresight roll/pitch/yaw: {b[0]:.4f} {b[1]:.4f} {b[2]:.4f} deg")
         if self.gil is not None and self.gil.time_offset_sigma_s is not None:
-            lines.append(f"  LiDAR time offset: {self.gil.time_offset_s:+.5f} s ± {self.gil.time_offset_sigma_s * 1e3:.3f} ms")
+            gnss = self.gil.time_offset_gnss_sigma_s
+            lines.append(f"  LiDAR time offset: {self.gil.time_offset_s:+.5f} s ± {self.gil.time_offset_sigma_s * 1e3:.3f} ms"
+                         + (f" (± {gnss * 1e3:.2f} ms from GNSS errors that last a pass)" if gnss else ""))
         if m.resumed:
             lines.append("  resumed from the cache: " + ", ".join(m.resumed))
         lines.append("  timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in m.timings_s.items()))
@@ -558,7 +562,10 @@ def _lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, 
     """
     outer = stage_outer_iterations(steps, inputs, gi, key, progress)
     posterior = stage_posterior(steps, inputs, outer, progress)
-    warn_time_offset(inputs.nav.config, posterior.gil.time_offset_s, posterior.gil.time_offset_sigma_s)
+    if posterior.gil.time_offset_sigma_s is not None:
+        posterior = replace(posterior, gil=replace(posterior.gil, time_offset_gnss_sigma_s=gnss_offset_sigma(inputs.nav, gi)))
+    warn_time_offset(inputs.nav.config, posterior.gil.time_offset_s, posterior.gil.time_offset_sigma_s,
+                     posterior.gil.time_offset_gnss_sigma_s or 0.0)
     warn_plane_misfit(gi, posterior.gil, outer.records)
     stage_gil_products(inputs, posterior)
     return posterior.gil, posterior.key, outer.records
@@ -573,9 +580,11 @@ def _adjustment_report(nav: NavigationData, adj: GnssImuResult, boresight: Lidar
         report["boresight_sigma_mdeg"] = boresight.boresight_sigma_mdeg.tolist()
     if boresight is not None:
         sigma = boresight.time_offset_sigma_s
+        gnss = boresight.time_offset_gnss_sigma_s
         report["lidar_time_offset"] = {
             "configured_s": nav.config.scanner.time_offset_s, "estimate_s": boresight.time_offset_s,
             "sigma_ms": None if sigma is None else sigma * 1e3,
+            "gnss_sigma_ms": None if gnss is None or not np.isfinite(gnss) else gnss * 1e3,
             "prior_s": None if boresight.time_offset_start is None else boresight.time_offset_start.prior_s,
         }
     return report
