@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import time
@@ -52,9 +53,13 @@ def uncorrected_copy(project: Path, out: Path) -> Path:
 
 
 def run(project: Path, out: Path, scheduler: str) -> dict:
+    if out.exists():
+        shutil.rmtree(out)  # a run from scratch
     t = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(project), "--out", str(out), "--fresh",
-                           "--no-points", "--scheduler", scheduler], check=True, capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(project), "--out", str(out),
+                           "--no-points", "--scheduler", scheduler], capture_output=True, text=True)
+    if proc.returncode:
+        sys.exit(f"georefine run {project} failed:\n{proc.stderr[-3000:]}")
     wall = time.perf_counter() - t
     metrics = json.loads((out / "metrics.json").read_text())
     report = json.loads((out / "gil" / "adjustment.json").read_text()).get("lidar_time_offset", {})
