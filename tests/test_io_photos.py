@@ -33,6 +33,7 @@ POINTS = """image,id,col,row
 a.jpg,g1,3100.2,2500.7
 b.jpg,g1,900.4,2510.1
 b.jpg,c1,2000.0,1000.0
+a.jpg,c1,3900.0,1100.0
 """
 
 
@@ -87,14 +88,55 @@ def test_image_point_outside_the_image(tmp_path):
 
 def test_control_point_measured_in_no_image(tmp_path):
     gcp = GCP + "g9,500250.0,5300000.0,301.0,0.01,0.01,0.02,control\n"
-    with pytest.raises(InputError, match=r"gcp.csv, line 4, field 'id': point measured in no image.*'g9'"):
+    with pytest.raises(InputError, match=r"gcp.csv, line 4, field 'id': control point measured in no image.*'g9'"):
         _block(tmp_path, gcp=gcp)
 
 
+def test_a_check_point_needs_two_images_and_a_control_point_seen_once_is_a_warning(tmp_path):
+    once = POINTS.replace("a.jpg,c1,3900.0,1100.0\n", "")
+    with pytest.raises(InputError, match=r"gcp.csv, line 3, field 'id': check point measured in one image only "
+                                         r"\(expected measurements in two images or more.*'c1'"):
+        _block(tmp_path, points=once)
+    (tmp_path / "b").mkdir()
+    _block(tmp_path / "b", points=POINTS.replace("b.jpg,g1,900.4,2510.1\n", ""))
+    cams = photos.read_cameras(tmp_path / "b" / "cameras.yaml")
+    block = photos.PhotoBlock(cams, photos.read_eop(tmp_path / "b" / "eop.csv", cams),
+                              photos.read_gcps(tmp_path / "b" / "gcp.csv"),
+                              photos.read_image_points(tmp_path / "b" / "image_points.csv"), tmp_path / "b" / "img")
+    warnings = photos.check_photo_block(block, gcp_path=tmp_path / "b" / "gcp.csv")
+    assert warnings == ["gcp.csv: control point 'g1' is measured in one image only (a.jpg): no second ray checks it"]
+
+
+def test_a_photo_cut_short_or_of_another_size_is_refused(tmp_path):
+    import cv2
+
+    image = (np.arange(120 * 80) % 251).astype(np.uint8).reshape(80, 120)
+    cv2.imwrite(str(tmp_path / "ok.jpg"), image)
+    cv2.imwrite(str(tmp_path / "ok.png"), image)
+    assert photos.read_photo(tmp_path / "ok.jpg").shape == (80, 120)
+    assert photos.read_photo(tmp_path / "ok.png").shape == (80, 120)
+    for name in ("ok.jpg", "ok.png"):
+        data = (tmp_path / name).read_bytes()
+        (tmp_path / f"cut-{name}").write_bytes(data[: len(data) * 2 // 3])
+        with pytest.raises(InputError, match=rf"cut-{name}: image file is incomplete"):
+            photos.read_photo(tmp_path / f"cut-{name}")
+    (tmp_path / "text.jpg").write_text("no picture")
+    with pytest.raises(InputError, match="text.jpg: image does not decode"):
+        photos.read_photo(tmp_path / "text.jpg")
+    with pytest.raises(InputError, match="image does not open"):
+        photos.read_photo(tmp_path / "none.jpg")
+    fits = Camera(name="c", width_px=120, height_px=80, fx_px=100.0, fy_px=100.0, cx_px=60.0, cy_px=40.0)
+    assert photos.read_photo(tmp_path / "ok.jpg", fits).shape == (80, 120)
+    other = Camera(name="c", width_px=80, height_px=120, fx_px=100.0, fy_px=100.0, cx_px=40.0, cy_px=60.0)
+    with pytest.raises(InputError, match=r"ok.jpg: image size is not its camera's \(expected 80 x 120 px \(camera 'c'\), "
+                                         r"found 120 x 80 px\)"):
+        photos.read_photo(tmp_path / "ok.jpg", other)
+
+
 @pytest.mark.parametrize("points, message", [
-    (POINTS + "x.jpg,g1,10,10\n", r"line 5, field 'image': image not in the exterior orientation"),
-    (POINTS + "a.jpg,zz,10,10\n", r"line 5, field 'id': point not in the control points"),
-    (POINTS + "a.jpg,g1,10,10\n", r"line 5, field 'id': point 'g1' measured twice in image 'a.jpg' \(first on line 2\)"),
+    (POINTS + "x.jpg,g1,10,10\n", r"line 6, field 'image': image not in the exterior orientation"),
+    (POINTS + "a.jpg,zz,10,10\n", r"line 6, field 'id': point not in the control points"),
+    (POINTS + "a.jpg,g1,10,10\n", r"line 6, field 'id': point 'g1' measured twice in image 'a.jpg' \(first on line 2\)"),
 ])
 def test_inconsistent_measurements(tmp_path, points, message):
     with pytest.raises(InputError, match=message):

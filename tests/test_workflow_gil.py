@@ -25,6 +25,7 @@ from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.summary import RunEvaluation
 from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.io.files import make_output_folder
 from georefine.io.las import read_las
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.io.trajectory import read_sbet
@@ -134,7 +135,7 @@ def test_demo_single_pass_and_report(project, tmp_path):
     from georefine.demo.lanes import demo_stamp
     from georefine.evaluation.report import summary_rows
 
-    out = tmp_path / "demo"
+    out = make_output_folder(tmp_path / "demo")  # the demo folder an earlier demo made, with its project
     shutil.copytree(project, out / "project")
     (out / "project" / "truth" / "demo.json").write_text(json.dumps(demo_stamp("corridor-tiny", 7, SCAN)))
     args = ["demo", "--out", str(out), "--scenario", "corridor-tiny", "--seed", "7"]

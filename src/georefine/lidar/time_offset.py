@@ -92,9 +92,14 @@ class TimeOffsetSearch:
         return f"the configured time offset {self.configured_s:+.4f} s stays: {self.reason}"
 
     def to_dict(self) -> dict:
-        return {"configured_s": self.configured_s, "best_s": self.best_s, "score_best": self.score_best,
-                "score_configured": self.score_configured, "adopted": self.adopted, "features": self.features,
-                "candidates": self.candidates, "step_s": self.step_s, "reason": self.reason}
+        """Plain JSON values (a score that could not be computed is None, not NaN)."""
+        def number(v: float) -> float | None:
+            return float(v) if np.isfinite(v) else None
+
+        return {"configured_s": float(self.configured_s), "best_s": float(self.best_s),
+                "score_best": number(self.score_best), "score_configured": number(self.score_configured),
+                "adopted": bool(self.adopted), "features": int(self.features), "candidates": int(self.candidates),
+                "step_s": float(self.step_s), "reason": self.reason}
 
 
 def georeference_features(
