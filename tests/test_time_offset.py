@@ -174,7 +174,8 @@ def test_planes_that_pull_the_trajectory_off_the_gnss_are_a_warning(caplog):
 @pytest.mark.slow
 def test_strips_stamped_three_seconds_late_are_found_estimated_and_written_corrected(tmp_path):
     project = tmp_path / "p"
-    simulate_project("corridor-tiny", project, seed=11, overrides=["scanner_time_offset_s=3.0"])
+    # Half the corridor (300 m): passes long enough to adjust, half the points of the default.
+    simulate_project("corridor-tiny", project, seed=11, overrides=["scanner_time_offset_s=3.0", "scene.length_m=300"])
     out = tmp_path / "run"
     proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(project), "--out", str(out)],
                           capture_output=True, text=True)
