@@ -23,7 +23,7 @@ A coarse scan over ``[-range_s, range_s]`` (around the configured offset) with `
 and that step finds the region; a fine scan over 1.5 coarse steps around the best candidate,
 with ``d_max`` = 0.4 m and half the step that gives, places it to a millisecond or two (a
 parabola through the peak), which the adjustment then refines. On ``corridor-tiny`` a
-candidate costs about 22 ms (3000 features scored against 30,000), the search about 20 s for
+candidate costs about 22 ms (3000 features scored against 30,000), the search 12-20 s for
 the default ±20 s.
 The candidate is adopted when its fine score clearly beats the configured offset's (by
 ``min_gain``): otherwise the configured offset stays, as it does when the strips cannot show a
