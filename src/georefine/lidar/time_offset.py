@@ -110,10 +110,14 @@ def georeference_features(
     ``poses``: ``t -> (p_w_b (N,3), R_w_b (N,3,3))``; ``time`` defaults to the features' times.
     """
     t = features.time if time is None else np.asarray(time, dtype=float)
+    return _centres_normals_w(poses, t, features.centre_s, features.normal_s, p_b_s, R_b_s)
+
+
+def _centres_normals_w(poses, t, centre_s, normal_s, p_b_s, R_b_s) -> tuple[np.ndarray, np.ndarray]:
+    """Scanner-frame centres and normals (N, 3) in ``w`` with the poses at ``t`` (N,)."""
     p, R = poses(t)
-    x_b = p_b_s + features.centre_s @ R_b_s.T
-    n_b = features.normal_s @ R_b_s.T
-    return p + np.einsum("nij,nj->ni", R, x_b), np.einsum("nij,nj->ni", R, n_b)
+    return (p + np.einsum("nij,nj->ni", R, p_b_s + centre_s @ R_b_s.T),
+            np.einsum("nij,nj->ni", R, normal_s @ R_b_s.T))
 
 
 def _groups(features: PlanarFeatures) -> np.ndarray:
@@ -140,9 +144,7 @@ def time_offset_score(
         return float("nan")
     keep = np.flatnonzero(inside)
     # The two arrays it needs, not a copy of every field (a third of the time of a candidate).
-    p, R = poses(t[keep])
-    c = p + np.einsum("nij,nj->ni", R, p_b_s + features.centre_s[keep] @ R_b_s.T)
-    n = np.einsum("nij,nj->ni", R, features.normal_s[keep] @ R_b_s.T)
+    c, n = _centres_normals_w(poses, t[keep], features.centre_s[keep], features.normal_s[keep], p_b_s, R_b_s)
     group = _groups(features)[keep]
     row = np.searchsorted(keep, q)  # the queries' rows among the kept features
     # An unbalanced tree builds about twice as fast and answers the same (exact) queries.
