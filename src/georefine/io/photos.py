@@ -58,7 +58,6 @@ _log = logging.getLogger(__name__)
 __all__ = [
     "ExteriorOrientation", "ControlPoints", "ImagePoints", "PhotoBlock",
     "read_cameras", "write_cameras", "read_eop", "write_eop", "read_gcps", "write_gcps", "read_photo",
-    "check_photo_images",
     "read_image_points", "write_image_points", "check_photo_block", "poses_in_w", "eop_from_w",
     "EOP_COLUMNS", "EOP_SIGMA_COLUMNS", "GCP_COLUMNS", "IMAGE_POINT_COLUMNS",
 ]
@@ -356,17 +355,6 @@ def read_photo(path: PathLike, camera: Camera | None = None, *, grey: bool = Tru
         raise InputError("image size is not its camera's", path=path, expected=f"{camera.width_px} x "
                          f"{camera.height_px} px (camera {camera.name!r})", found=f"{image.shape[1]} x {image.shape[0]} px")
     return image
-
-
-def check_photo_images(block: PhotoBlock) -> None:
-    """:func:`read_photo` on every image of ``block`` (with its camera): each decodes, is complete and fits.
-
-    Decodes every image once (about 10 ms per 10-megapixel JPEG); nothing is kept.
-    """
-    if block.image_folder is None:
-        return
-    for name, cam in zip(block.eop.images, block.eop.cameras):
-        read_photo(Path(block.image_folder) / name, block.cameras.get(cam))
 
 
 def check_photo_block(

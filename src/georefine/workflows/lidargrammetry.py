@@ -313,8 +313,7 @@ def _open(project_dir, out, overrides: Mapping[str, Any] | None, matcher=None, *
     for warning in pp.warnings:
         log.warning(warning)
     if matching:  # every photo decodes, is complete and has its camera's size, before any work
-        for i, name in enumerate(pp.eop.images):
-            pio.read_photo(pp.folder / name, pp.camera(i))
+        pp.read_photos()
     return _Opened(cfg, st, matcher, pp, output_folder(out, pp.root))
 
 
@@ -330,7 +329,7 @@ def _block_images(pp: PhotoProject, cloud: CloudIndex, st: LidargrammetryConfig,
     lgs = render_lidargrams(pp, cloud, st, progress=progress, runner=runner)
     n = len(pp.eop)
     # Complete and of their cameras' size: a JPEG cut short decodes with a grey lower half.
-    photos = [pio.read_photo(pp.folder / name, pp.camera(i)) for i, name in enumerate(pp.eop.images)]
+    photos = pp.read_photos()
     station = np.array(list(range(n)) + [i for _, i, _ in lgs], dtype=np.int64)
     names = tuple(pp.eop.images) + tuple(_lidargram_name(cloud, s, pp.eop.images[i]) for _, i, s in lgs)
     return _Block(lgs, n, [pp.camera(i) for i in range(n)] + [lg.camera for lg, _, _ in lgs], station,

@@ -24,6 +24,7 @@ from georefine.io.imu import ImuData, read_imr, read_imu_csv
 from georefine.io.imu_gaps import BridgedImu, bridge_imu_gaps
 from georefine.io.las import iter_las_chunks, read_las_info
 from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces
+from georefine.progress import no_progress
 from georefine.trajectory.imu_check import check_imu_frame
 
 
@@ -287,14 +288,10 @@ def inspect_project(
 
     photos = None
     if cfg.photos is not None:  # the same reading as the co-adjustment's, and every image decoded
-        from georefine.io.photos import read_photo
         from georefine.workflows.photo_block import load_photo_project
 
         pp = load_photo_project(root, cfg)
-        for i, name in enumerate(pp.eop.images):
-            read_photo(pp.folder / name, pp.camera(i))
-            if progress is not None:
-                progress("check photos", i + 1, len(pp.eop))
+        pp.read_photos(progress if progress is not None else no_progress)
         warnings.extend(pp.warnings)
         control = int(pp.gcps.is_control.sum())
         photos = (len(pp.eop), len(pp.cameras), control, len(pp.gcps) - control, len(pp.image_points))
