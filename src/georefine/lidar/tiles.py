@@ -284,14 +284,23 @@ def refuse_strips_outside(plans: list[StripPlan], span: tuple[float, float], t0_
     Georeferencing it would write an empty file and call that success. The plans' times include
     the scanner's time offset; the message states the file's own time stamps.
     """
+    shift = t0_gps - time_offset_s  # plan times to the file's own time stamps
     for plan in plans:
         if plan.point_count and (plan.t_last < span[0] or plan.t_first > span[1]):
-            raise InputError(
-                "no point of the strip lies inside the trajectory's time span", path=plan.path, field="gps_time",
-                expected=f"times within {span[0] + t0_gps - time_offset_s:.3f} .. {span[1] + t0_gps - time_offset_s:.3f} "
-                "GPS s" + (f" (scanner.time_offset_s {time_offset_s:g} s applied)" if time_offset_s else ""),
-                found=f"{plan.t_first + t0_gps - time_offset_s:.3f} .. {plan.t_last + t0_gps - time_offset_s:.3f} GPS s",
-            )
+            raise strip_outside_error(plan.path, (span[0] + shift, span[1] + shift),
+                                      (plan.t_first + shift, plan.t_last + shift), time_offset_s)
+
+
+def strip_outside_error(path, span_gps: tuple[float, float], found_gps: tuple[float, float],
+                        time_offset_s: float = 0.0) -> InputError:
+    """The error for a strip whose time stamps ``found_gps`` miss the navigation's ``span_gps``
+    (both GPS s in the file's time scale); ``georefine check`` raises the same."""
+    return InputError(
+        "no point of the strip lies inside the trajectory's time span", path=path, field="gps_time",
+        expected=f"times within {span_gps[0]:.3f} .. {span_gps[1]:.3f} GPS s"
+        + (f" (scanner.time_offset_s {time_offset_s:g} s applied)" if time_offset_s else ""),
+        found=f"{found_gps[0]:.3f} .. {found_gps[1]:.3f} GPS s",
+    )
 
 
 def georeference_strips(

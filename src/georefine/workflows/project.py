@@ -24,6 +24,7 @@ from georefine.io.imu import ImuData, read_imr, read_imu_csv
 from georefine.io.imu_gaps import BridgedImu, bridge_imu_gaps
 from georefine.io.las import iter_las_chunks, read_las_info
 from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces
+from georefine.lidar.tiles import strip_outside_error
 from georefine.progress import no_progress
 from georefine.trajectory.imu_check import check_imu_frame
 
@@ -268,12 +269,7 @@ def inspect_project(
         if done == 0:
             raise InputError("strip has no points", path=path)
         if outside == done:  # as the workflow refuses it (lidar.tiles.refuse_strips_outside)
-            raise InputError(
-                "no point of the strip lies inside the trajectory's time span", path=path, field="gps_time",
-                expected=f"times within {nav[0] - shift:.3f} .. {nav[1] - shift:.3f} GPS s"
-                + (f" (scanner.time_offset_s {shift:g} s applied)" if shift else ""),
-                found=f"{t_min:.3f} .. {t_max:.3f} GPS s",
-            )
+            raise strip_outside_error(path, (nav[0] - shift, nav[1] - shift), (t_min, t_max), shift)
         if outside:
             warnings.append(f"{path.name}: {outside:,} points outside the GNSS/IMU time span (they will be left out)")
         missing = channels - set(per)
