@@ -11,7 +11,7 @@ returns the :class:`~georefine.adjustment.problem.Problem` for further groups.
 from __future__ import annotations
 
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -98,17 +98,26 @@ class ImuErrorEstimate:
 
 @dataclass(frozen=True)
 class GnssImuResult:
-    """The adjusted trajectory, IMU errors, statistics and posterior attitude sigma."""
+    """The adjusted trajectory, IMU errors, statistics and posterior attitude sigma.
+
+    Also the result of an adjustment on a delivered trajectory
+    (:mod:`georefine.adjustment.trajectory_prior`): then ``imu_errors`` is None and
+    ``sbet_errors`` holds the estimated error of the delivered trajectory.
+    """
 
     spline: SplineTrajectory
-    imu_errors: ImuErrorEstimate
+    imu_errors: ImuErrorEstimate | None
     solve: SolveResult
     sigma_time: np.ndarray
     sigma_rph_rad: np.ndarray
     sigma_position_m: np.ndarray
     timings_s: dict = field(default_factory=dict)
     high_rate: HighRateMotion | None = None
-    """Motion faster than the knots, rebuilt from the IMU (:mod:`georefine.adjustment.upsampling`)."""
+    """Motion faster than the knots, rebuilt from the IMU (:mod:`georefine.adjustment.upsampling`),
+    or the delivered trajectory's (:mod:`georefine.adjustment.trajectory_prior`)."""
+    sbet_errors: object | None = None
+    """Without raw GNSS/IMU (``imu_errors`` None): the delivered trajectory's estimated error,
+    a :class:`~georefine.adjustment.trajectory_prior.SbetErrorEstimate`."""
 
 
 @dataclass
@@ -267,41 +276,52 @@ def solve_gnss_imu(
     return with_posterior(built, out) if covariance else out
 
 
+def trajectory_sigma(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid, cfg: TrajectoryAdjustmentConfig,
+                     frame: LocalFrame, spline: SplineTrajectory, scale: float | None = None,
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Posterior roll/pitch/heading and position sigma of a solved trajectory, at every
+    ``covariance_interval_s`` (at most ``max_covariance_knots`` knots): ``(times, sigma_rph, sigma_p)``.
+
+    The covariance is scaled by the a-posteriori variance factor, or by ``scale`` when given."""
+    step = max(1, int(round(cfg.covariance_interval_s / grid.dt)), int(np.ceil(grid.n_knots / cfg.max_covariance_knots)))
+    knots = np.arange(0, grid.n_knots, step)
+    if knots[-1] != grid.n_knots - 1:
+        knots = np.append(knots, grid.n_knots - 1)
+    by_vf = scale is None
+    cov_R = problem.covariance(blocks.attitude, knots, scale_by_variance_factor=by_vf) * (1.0 if by_vf else scale)
+    cov_p = problem.covariance(blocks.position, knots, scale_by_variance_factor=by_vf) * (1.0 if by_vf else scale)
+    tk = grid.knot_times[knots]
+    p_w, R_w_b = spline.pose(tk)
+    rph = rph_from_R_n_b(np.swapaxes(frame.R_w_n_at(p_w), 1, 2) @ R_w_b)
+    Einv = euler_rate_inverse(rph)
+    cov_rph = Einv @ cov_R @ np.swapaxes(Einv, 1, 2)
+    sigma_rph = np.sqrt(np.clip(np.diagonal(cov_rph, axis1=1, axis2=2), 0.0, None))
+    sigma_p = np.sqrt(np.clip(np.diagonal(cov_p, axis1=1, axis2=2), 0.0, None))
+    return tk, sigma_rph, sigma_p
+
+
+def block_sigma(problem: Problem, name: str, scale: float | None = None) -> np.ndarray:
+    """Posterior sigma (n, d) of every element of a Euclidean block (``scale``: as :func:`trajectory_sigma`)."""
+    c = problem.covariance(name) if scale is None else problem.covariance(name, scale_by_variance_factor=False) * scale
+    return np.sqrt(np.clip(np.diagonal(c, axis1=1, axis2=2), 0.0, None))
+
+
 def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResult:
     """``result`` with posterior sigma of attitude (roll/pitch/yaw), position and IMU errors.
 
     ``built`` must be the problem whose last solve gave ``result``. Attitude and position sigma
     are computed at knots every ``covariance_interval_s`` (at most ``max_covariance_knots``).
     """
-    cfg = built.cfg
     t = _time.perf_counter()
     p = built.problem
-    grid = built.grid
-    step = max(1, int(round(cfg.covariance_interval_s / grid.dt)), int(np.ceil(grid.n_knots / cfg.max_covariance_knots)))
-    knots = np.arange(0, grid.n_knots, step)
-    if knots[-1] != grid.n_knots - 1:
-        knots = np.append(knots, grid.n_knots - 1)
-    cov_R = p.covariance(built.blocks.attitude, knots)
-    cov_p = p.covariance(built.blocks.position, knots)
-    spline = result.spline
-    tk = grid.knot_times[knots]
-    p_w, R_w_b = spline.pose(tk)
-    rph = rph_from_R_n_b(np.swapaxes(built.data.frame.R_w_n_at(p_w), 1, 2) @ R_w_b)
-    Einv = euler_rate_inverse(rph)
-    cov_rph = Einv @ cov_R @ np.swapaxes(Einv, 1, 2)
-    sigma_rph = np.sqrt(np.clip(np.diagonal(cov_rph, axis1=1, axis2=2), 0.0, None))
-    sigma_p = np.sqrt(np.clip(np.diagonal(cov_p, axis1=1, axis2=2), 0.0, None))
-
-    def sig(name):
-        c = p.covariance(name)
-        return np.sqrt(np.clip(np.diagonal(c, axis1=1, axis2=2), 0.0, None))
-
+    tk, sigma_rph, sigma_p = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame, result.spline)
     e = result.imu_errors
     errors = ImuErrorEstimate(
         e.bias_grid, e.acc_bias, e.gyro_bias, e.acc_scale, e.gyro_scale,
-        acc_bias_sigma=sig("acc_bias"), gyro_bias_sigma=sig("gyro_bias"),
-        acc_scale_sigma=sig("acc_scale")[0] if built.estimate_scale else None,
-        gyro_scale_sigma=sig("gyro_scale")[0] if built.estimate_scale else None,
+        acc_bias_sigma=block_sigma(p, "acc_bias"), gyro_bias_sigma=block_sigma(p, "gyro_bias"),
+        acc_scale_sigma=block_sigma(p, "acc_scale")[0] if built.estimate_scale else None,
+        gyro_scale_sigma=block_sigma(p, "gyro_scale")[0] if built.estimate_scale else None,
     )
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
-    return GnssImuResult(spline, errors, result.solve, tk, sigma_rph, sigma_p, timings, result.high_rate)
+    return replace(result, imu_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph, sigma_position_m=sigma_p,
+                   timings_s=timings)
