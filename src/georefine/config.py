@@ -158,6 +158,30 @@ class ScannerFileConfig(StrictModel):
         return v
 
 
+class TrajectoryPriorConfig(StrictModel):
+    """A delivered trajectory instead of raw GNSS and IMU (docs/ARCHITECTURE.md §4.9).
+
+    The SBET a GNSS/IMU post-processor wrote (POSPac, Inertial Explorer) and its ``smrmsg``
+    accuracy file; ``georefine import-strips`` writes this section. The SBET's error is modelled
+    as a first-order Gauss-Markov process with the ``smrmsg`` sigmas
+    (:mod:`georefine.adjustment.trajectory_prior`).
+    """
+
+    sbet: str = Field(description="SBET file relative to the project folder (times: seconds of the GPS week).")
+    smrmsg: str | None = Field(None, description="Its smrmsg accuracy file; without it the default sigmas below.")
+    gps_week: int = Field(ge=0, description="GPS week of the SBET's first record.")
+    correlation_time_s: float = Field(
+        300.0, gt=0.0, description="Correlation time of the SBET's error (an INS/GNSS heading error lasts minutes).")
+    error_knot_interval_s: float = Field(1.0, gt=0.0, description="Knot spacing of the piecewise-linear error.")
+    sigma_scale: float = Field(1.0, gt=0.0, description="Factor on the smrmsg (or default) sigmas.")
+    default_sigma_position_m: float = Field(0.05, gt=0.0, description="Position sigma without smrmsg.")
+    default_sigma_roll_pitch_deg: float = Field(0.005, gt=0.0, description="Roll and pitch sigma without smrmsg.")
+    default_sigma_heading_deg: float = Field(0.01, gt=0.0, description="Heading sigma without smrmsg.")
+    white_sigma_position_m: float = Field(
+        0.002, gt=0.0, description="Sigma of the SBET's short-term noise about the spline plus error.")
+    white_sigma_attitude_mdeg: float = Field(0.5, gt=0.0, description="The same for the attitude.")
+
+
 class ReferenceConfig(StrictModel):
     surfaces: str | None = Field(None, description="Reference surfaces CSV (evaluation only).")
 
@@ -498,12 +522,31 @@ class ProjectConfig(StrictModel):
 
     name: str = "project"
     crs: CrsConfig = Field(default_factory=CrsConfig)
-    gnss: GnssFileConfig
-    imu: ImuFileConfig
+    gnss: GnssFileConfig | None = None
+    imu: ImuFileConfig | None = None
+    trajectory: TrajectoryPriorConfig | None = None
     scanner: ScannerFileConfig
     reference: ReferenceConfig = Field(default_factory=ReferenceConfig)
     photos: PhotosFileConfig | None = None
     processing: ProcessingConfig = Field(default_factory=ProcessingConfig)
+
+    @model_validator(mode="after")
+    def _navigation_source(self) -> "ProjectConfig":
+        """Raw GNSS and IMU, or a delivered trajectory (docs/ARCHITECTURE.md §3, §4.9)."""
+        raw = (self.gnss is not None, self.imu is not None)
+        if self.trajectory is None and not all(raw):
+            missing = " and ".join(k for k, have in zip(("gnss", "imu"), raw) if not have)
+            raise ValueError(f"section {missing} missing: a project needs gnss and imu, or a delivered trajectory "
+                             "(section trajectory: sbet, smrmsg, gps_week)")
+        if self.trajectory is not None and any(raw) and not all(raw):
+            raise ValueError("a delivered trajectory with only one of gnss and imu is not supported: give both raw "
+                             "sensors (the trajectory section is then not used) or neither")
+        return self
+
+    @property
+    def delivered_trajectory(self) -> bool:
+        """True when the project has no raw GNSS/IMU and adjusts the delivered SBET (§4.9)."""
+        return self.gnss is None
 
 
 def boresight_matrix(boresight_deg: Vector3) -> np.ndarray:

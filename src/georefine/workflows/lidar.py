@@ -37,6 +37,7 @@ from georefine.adjustment.gnss_imu import (
     start_imu_errors,
     with_posterior,
 )
+from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_trajectory_prior, with_prior_posterior
 from georefine.adjustment.upsampling import rebuild_high_rate, without_high_rate
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.observations.prior import RotationPrior
@@ -57,6 +58,7 @@ from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.trajectory.spline import KnotGrid
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
+from georefine.workflows.delivered import build_delivered_problem, step_delivered, warn_delivered_pull
 from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
@@ -109,7 +111,10 @@ def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
     """``adj`` with posterior sigma (trajectory, IMU errors, boresight, time offset) if it has none yet."""
     if adj.result.sigma_time.size or adj.built is None:
         return adj
-    result = with_posterior(adj.built, adj.result)
+    if isinstance(adj.built, TrajectoryPriorProblem):
+        result = with_prior_posterior(adj.built, adj.result)
+    else:
+        result = with_posterior(adj.built, adj.result)
     problem = adj.built.problem
     bs_sig = None
     if adj.boresight_deg is not None:
@@ -150,9 +155,12 @@ def step_adjust_gil(
                                        "imu_window_s": tcfg.imu_window_s * knot_interval_s / tcfg.knot_interval_s})
     if abs(spline.grid.dt - tcfg.knot_interval_s) > 1e-6 * tcfg.knot_interval_s:
         spline = spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, tcfg.knot_interval_s))
-    # Windows without the previous result's high-frequency motion (up-sampling, §4.6).
-    data = without_high_rate(nav.gnss, previous)
-    built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors)
+    high_rate = None
+    if nav.prior is not None:  # a delivered trajectory (§4.9): its problem, its faster motion
+        built, high_rate = build_delivered_problem(nav, tcfg, spline, previous)
+    else:  # windows without the previous result's high-frequency motion (up-sampling, §4.6)
+        data = without_high_rate(nav.gnss, previous)
+        built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors)
     P = built.problem
 
     grid = built.grid
@@ -191,9 +199,12 @@ def step_adjust_gil(
         progress("G/I/L adjustment", getattr(it, "iteration", 0), cfg.processing.trajectory.max_iterations)
 
     options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance)
-    result = solve_gnss_imu(built, options, progress=report, covariance=False)
-    if tcfg.upsampling:
-        result = replace(result, high_rate=rebuild_high_rate(nav.gnss, result))
+    if nav.prior is not None:
+        result = solve_trajectory_prior(built, options, progress=report, covariance=False, high_rate=high_rate)
+    else:
+        result = solve_gnss_imu(built, options, progress=report, covariance=False)
+        if tcfg.upsampling:
+            result = replace(result, high_rate=rebuild_high_rate(nav.gnss, result))
     bs_deg = None
     if boresight:
         R = P.values("boresight")[0]
@@ -383,7 +394,12 @@ def outer_knot_interval(lcfg, knot_interval_s: float, iteration: int) -> float |
 
 
 def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
-    """Key of steps 1-2: the GNSS and IMU files and their configuration (no data read)."""
+    """Key of steps 1-2: the GNSS and IMU files and their configuration (no data read); or the delivered trajectory's."""
+    if cfg.delivered_trajectory:
+        tc = cfg.trajectory
+        files = [file_stamp(root / f, root) for f in (tc.sbet, tc.smrmsg) if f]
+        return StepCache.key("delivered", files, cfg.crs.model_dump(), tc.model_dump(),
+                             cfg.processing.trajectory.model_dump())
     files = [file_stamp(root / f, root) for f in [*cfg.gnss.files, cfg.imu.file]]
     return StepCache.key(
         "gi", files, cfg.crs.model_dump(), cfg.gnss.model_dump(), cfg.imu.model_dump(),
@@ -416,9 +432,7 @@ def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Pat
         strip_files = read_strips(nav, strips, slots=runner.workers)
         # A strip entirely outside the navigation is refused now, as `georefine check` does, not
         # after the adjustments (the time offset search looks ±20 s around scanner.time_offset_s).
-        g, i = nav.gnss.gnss_time, nav.gnss.imu_time
-        span = (max(float(g[0]), float(i[0])), min(float(g[-1]), float(i[-1])))
-        refuse_strips_outside([s.plan for s in strip_files], span, nav.t0_gps, nav.config.scanner.time_offset_s)
+        refuse_strips_outside([s.plan for s in strip_files], nav.span, nav.t0_gps, nav.config.scanner.time_offset_s)
     make_output_folder(out)
     for sub in ("gi", "gil", "points", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
@@ -429,6 +443,8 @@ def stage_gnss_imu(steps: StepRunner, nav: NavigationData, progress: Progress = 
     """Steps 1-2 (filter, G/I adjustment), or their cached result; and the cache key."""
 
     def compute() -> GnssImuResult:
+        if nav.prior is not None:
+            return step_delivered(nav, progress)
         progress("initialisation filter", 0, 1)
         with steps.timed("filter"):
             filt = step_initialise(nav)
@@ -501,8 +517,14 @@ sigma0 of the planes hardly moved (0.89 to 1.05: the matching keeps only the fea
 agree locally, and the adjustment bends the trajectory to them)."""
 
 
-def warn_plane_misfit(gi: GnssImuResult, adj: LidarAdjustment, records: tuple[OuterIteration, ...]) -> None:
-    """Warn, with the figures, when the planes pull the trajectory off the GNSS (:data:`GNSS_PULL_RATIO`)."""
+def warn_plane_misfit(gi: GnssImuResult, adj: LidarAdjustment, records: tuple[OuterIteration, ...],
+                      nav: NavigationData | None = None) -> None:
+    """Warn, with the figures, when the planes pull the trajectory off the GNSS (:data:`GNSS_PULL_RATIO`),
+    or a delivered trajectory beyond its stated accuracy (:func:`~georefine.workflows.delivered.warn_delivered_pull`)."""
+    if adj.result.sbet_errors is not None:
+        if nav is not None:
+            warn_delivered_pull(nav, adj.result, records)
+        return
     try:
         before, after, planes = gi.solve.group("gnss"), adj.result.solve.group("gnss"), adj.result.solve.group("planes")
     except KeyError:
@@ -566,15 +588,18 @@ def _lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, 
         posterior = replace(posterior, gil=replace(posterior.gil, time_offset_gnss_sigma_s=gnss_offset_sigma(inputs.nav, gi)))
     warn_time_offset(inputs.nav.config, posterior.gil.time_offset_s, posterior.gil.time_offset_sigma_s,
                      posterior.gil.time_offset_gnss_sigma_s or 0.0)
-    warn_plane_misfit(gi, posterior.gil, outer.records)
+    warn_plane_misfit(gi, posterior.gil, outer.records, inputs.nav)
     stage_gil_products(inputs, posterior)
     return posterior.gil, posterior.key, outer.records
 
 
 def _adjustment_report(nav: NavigationData, adj: GnssImuResult, boresight: LidarAdjustment | None = None) -> dict:
     """``adjustment.json``: statistics, IMU errors and timings of an adjustment (and the boresight)."""
-    report = {"adjustment": adj.solve.to_dict(), "imu_errors": adj.imu_errors.to_dict(), "t0_gps": nav.t0_gps,
-              "timings_s": adj.timings_s}
+    report = {"adjustment": adj.solve.to_dict(), "t0_gps": nav.t0_gps, "timings_s": adj.timings_s}
+    if adj.imu_errors is not None:
+        report["imu_errors"] = adj.imu_errors.to_dict()
+    if adj.sbet_errors is not None:  # a delivered trajectory: its estimated error (§4.9)
+        report["sbet_errors"] = adj.sbet_errors.to_dict()
     if boresight is not None and boresight.boresight_deg is not None:
         report["boresight_deg"] = boresight.boresight_deg.tolist()
         report["boresight_sigma_mdeg"] = boresight.boresight_sigma_mdeg.tolist()

@@ -24,8 +24,10 @@ from georefine.adjustment.gnss_imu import (
     start_imu_errors,
     with_posterior,
 )
+from georefine.adjustment.trajectory_prior import TrajectoryPriorData
 from georefine.adjustment.upsampling import adjust_upsampled
 from georefine.config import ProjectConfig, load_project, write_yaml
+from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.gnss import gnss_in_w
@@ -36,6 +38,7 @@ from georefine.trajectory.ekf import FilterResult, run_filter
 from georefine.trajectory.sampled import Trajectory
 from georefine.trajectory.spline import KnotGrid
 from georefine.trajectory.spline_fit import fit_spline
+from georefine.workflows.delivered import read_delivered
 from georefine.workflows.products import (
     body_kinematics,
     write_csv_product,
@@ -55,14 +58,32 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class NavigationData:
-    """GNSS and IMU of a project in the mapping frame, validated."""
+    """GNSS and IMU of a project in the mapping frame, validated; or its delivered trajectory.
+
+    A project with raw sensors has ``imu`` and ``gnss``; one with a delivered trajectory
+    (``config.delivered_trajectory``, docs/ARCHITECTURE.md §4.9) has ``prior`` instead.
+    """
 
     config: ProjectConfig
     root: Path
     frame: LocalFrame
     t0_gps: float
-    imu: ImuData
-    gnss: GnssImuData
+    imu: ImuData | None
+    gnss: GnssImuData | None
+    prior: TrajectoryPriorData | None = None
+
+    @property
+    def sample_time(self) -> np.ndarray:
+        """The times of the trajectory products: the IMU samples, or the delivered SBET's records (s)."""
+        return self.prior.time if self.prior is not None else self.gnss.imu_time
+
+    @property
+    def span(self) -> tuple[float, float]:
+        """Where the navigation data define the trajectory (s): GNSS and IMU overlap, or the SBET."""
+        if self.prior is not None:
+            return float(self.prior.time[0]), float(self.prior.time[-1])
+        g, i = self.gnss.gnss_time, self.gnss.imu_time
+        return max(float(g[0]), float(i[0])), min(float(g[-1]), float(i[-1]))
 
 
 def load_navigation(project_dir: str | Path) -> NavigationData:
@@ -76,6 +97,9 @@ def load_navigation(project_dir: str | Path) -> NavigationData:
     """
     root = Path(project_dir)
     cfg = load_project(root)
+    if cfg.delivered_trajectory:
+        frame, t0, prior = read_delivered(root, cfg)
+        return NavigationData(cfg, root, frame, t0, None, None, prior)
     gnss = read_project_gnss(root, cfg)
     imu = read_project_imu(root, cfg)
     bridged = bridge_project_imu(root, cfg, imu)  # the same rule as `georefine check`
@@ -219,7 +243,7 @@ def _filter_sigma_rph(nav: NavigationData, filt: FilterResult) -> np.ndarray:
 def write_trajectory_products(out: Path, nav: NavigationData, adj: GnssImuResult, crs: OutputCRS) -> None:
     """``trajectory.sbet`` at the IMU samples inside the spline, ``trajectory.csv`` at the knots."""
     spline = adj.spline
-    t_imu = nav.gnss.imu_time
+    t_imu = nav.sample_time
     t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
     p, v, R, f, w = body_kinematics(nav.frame, spline, t_imu)
     if adj.high_rate is not None:  # up-sampled: the spline plus the rebuilt high-frequency motion (§4.6)
@@ -243,7 +267,7 @@ def imu_rate_trajectory(nav: NavigationData, adj: GnssImuResult) -> Trajectory:
     if adj.high_rate is not None:
         return adj.high_rate.trajectory(adj.spline)
     spline = adj.spline
-    t_imu = nav.gnss.imu_time
+    t_imu = nav.sample_time
     t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
     return spline.to_sampled(t_imu)
 
@@ -260,6 +284,10 @@ def run_trajectory(
     t = _time.perf_counter()
     nav = load_navigation(project_dir)
     timings["read"] = _time.perf_counter() - t
+    if nav.prior is not None:
+        raise InputError("steps 1-2 need raw GNSS and IMU; this project has a delivered trajectory "
+                         "(section trajectory), which `georefine run` adjusts with the LiDAR",
+                         path=nav.root / "project.yaml", field="gnss, imu")
     out = make_output_folder(output_folder(out, nav.root))
     crs = OutputCRS(nav.config.crs.output_epsg)
 

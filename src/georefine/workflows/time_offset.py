@@ -102,10 +102,14 @@ def gnss_offset_sigma(nav, gi) -> float:
     a sigma of 0.02 ms from the adjustment and 0.71 ms from this (18 m/s, 1.8 cm). ``nav``: the navigation data
     (GNSS covariances in ``w``); ``gi``: a trajectory result (the speed at its knots).
     """
-    cov = nav.gnss.gnss_cov_w
-    if cov.size == 0:
-        return float("nan")
-    sigma_h = float(np.median(np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))))
+    if nav.prior is not None:  # a delivered trajectory: its stated horizontal position sigma (§4.9)
+        sp = nav.prior.sigma_p_w
+        sigma_h = float(np.median(np.sqrt(0.5 * (sp[:, 0] ** 2 + sp[:, 1] ** 2))))
+    else:
+        cov = nav.gnss.gnss_cov_w
+        if cov.size == 0:
+            return float("nan")
+        sigma_h = float(np.median(np.sqrt(0.5 * (cov[:, 0, 0] + cov[:, 1, 1]))))
     speed = np.linalg.norm(gi.spline.v_w_b[:, :2], axis=1)
     moving = speed[speed > 5.0]
     return sigma_h / (np.sqrt(2.0) * float(np.median(moving))) if moving.size else float("nan")
