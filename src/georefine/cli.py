@@ -244,6 +244,48 @@ def georeference(
     stdout.print(result.summary())
 
 
+def _vector3(text: str, option: str) -> tuple[float, float, float]:
+    """``"x,y,z"`` as three floats (an InputError naming ``option`` otherwise)."""
+    from georefine.errors import InputError
+
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != 3:
+        raise InputError("three comma-separated numbers expected", field=option, expected="x,y,z", found=repr(text))
+    return v  # type: ignore[return-value]
+
+
+@app.command("import-strips")
+def import_strips_cmd(
+    strips: list[Path] = typer.Argument(..., help="Georeferenced LAS/LAZ strips (projected CRS, GPS time)."),
+    sbet: Path = typer.Option(..., "--sbet", help="The trajectory they were georeferenced with (SBET)."),
+    out: Path = typer.Option(..., "--out", "-o", help="Project folder to write."),
+    lever_arm: str = typer.Option(..., "--lever-arm", help="Scanner origin in the IMU body frame, x,y,z (m, FRD)."),
+    boresight: str = typer.Option("0,0,0", "--boresight", help="Boresight roll,pitch,yaw (deg) of R_b_s."),
+    smrmsg: Optional[Path] = typer.Option(None, "--smrmsg", help="The SBET's smrmsg accuracy file."),
+    gps_week: Optional[int] = typer.Option(
+        None, "--gps-week", help="GPS week of the SBET (default: the first strip's, from its adjusted GPS time)."),
+    scheduler: str = _scheduler_option(),
+    force: bool = _force_option(),
+) -> None:
+    """Make a project from delivered data: georeferenced strips and their SBET (+ smrmsg).
+
+    Every point goes back into the scanner frame with the SBET, the lever arm and the boresight;
+    `georefine run PROJECT --out RUN` then adjusts the SBET with the LiDAR planes.
+    """
+    with _user_errors():
+        _output_ok(out, force)
+        from georefine.workflows.import_strips import import_strips
+
+        arm, bs = _vector3(lever_arm, "--lever-arm"), _vector3(boresight, "--boresight")
+        with _progress() as report:
+            result = import_strips(strips, sbet, out, lever_arm_m=arm, boresight_deg=bs, smrmsg=smrmsg,
+                                   gps_week=gps_week, progress=report, scheduler=scheduler)
+    stdout.print(result.summary())
+
+
 @app.command()
 def demo(
     out: Optional[Path] = typer.Option(None, "--out", "-o",
