@@ -1,10 +1,15 @@
 """Point-cloud metrics against hand-computed values: surface distance and strip discrepancy."""
 
+import json
+import shutil
+import subprocess
+
 import numpy as np
 import pytest
 
 from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
 from georefine.evaluation.strip_differences import (
+    BAND_DESCRIPTION,
     cell_planes,
     crop,
     strip_differences,
@@ -80,3 +85,39 @@ def test_strip_difference_raster_png_and_geotiff(tmp_path):
         assert page.tags["ModelTiepointTag"].value[3:5] == (1000.0, 5020.0)
         keys = page.tags["GeoKeyDirectoryTag"].value
         assert 3072 in keys[4::4] and keys[keys.index(3072) + 3] == 25832
+        assert page.tags["GDAL_NODATA"].value == "nan"
+        xml = page.tags["GDAL_METADATA"].value
+        assert 'role="description"' in xml and 'role="unittype">metre<' in xml
+
+
+@pytest.mark.skipif(shutil.which("gdalinfo") is None or shutil.which("gdalsrsinfo") is None,
+                    reason="GDAL command-line tools not installed")
+def test_gdal_reads_the_geotiff_description_unit_nodata_crs_and_values(tmp_path):
+    rng = np.random.default_rng(6)
+    a = _tilted(rng, 20000, (0.1, 0.0), 0.0) + [700_000.0, 5_170_000.0, 0.0]
+    b = a + [0.0, 0.0, 0.01]
+    b[b[:, 1] >= 5_170_012.0, 2] += 0.03
+    m = strip_differences([a, b], 1.0)
+    tif = write_geotiff(tmp_path / "map.tif", m, 25832)
+    info = json.loads(_run("gdalinfo", "-json", "-stats", str(tif)))
+    band = info["bands"][0]
+    assert band["description"] == BAND_DESCRIPTION
+    assert band.get("unit") in ("metre", "m")
+    assert band["type"] == "Float32" and band["noDataValue"] == "NaN"
+    assert info["geoTransform"] == [m.x0, 1.0, 0.0, m.y1, 0.0, -1.0]
+    v = m.spread_m.astype(np.float32).astype(float)
+    stats = {k.removeprefix("STATISTICS_"): float(x) for k, x in band["metadata"][""].items()}
+    assert stats["MINIMUM"] == pytest.approx(np.nanmin(v), rel=1e-6)
+    assert stats["MAXIMUM"] == pytest.approx(np.nanmax(v), rel=1e-6)
+    assert stats["MEAN"] == pytest.approx(np.nanmean(v), rel=1e-6)
+    assert stats["STDDEV"] == pytest.approx(np.nanstd(v), rel=1e-5)
+    assert stats["VALID_PERCENT"] == pytest.approx(100.0 * np.mean(np.isfinite(v)), abs=0.01)
+    assert _run("gdalsrsinfo", "-e", str(tif)).split()[0] == "EPSG:25832"
+    if shutil.which("projinfo"):
+        wkt = tmp_path / "crs.wkt"
+        wkt.write_text(_run("gdalsrsinfo", "-o", "wkt2", str(tif)))
+        assert "EPSG:25832: 100 %" in _run("projinfo", "--identify", "-o", "PROJ", f"@{wkt}")
+
+
+def _run(*args: str) -> str:
+    return subprocess.run(args, capture_output=True, text=True, check=True).stdout

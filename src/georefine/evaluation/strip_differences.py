@@ -23,8 +23,9 @@ closing, in memory that grows with the cells of all layers). Closing changes not
 results but the order of floating-point sums.
 
 Outputs: the raster (NaN where undefined), its summary (median, P95 over the defined cells), a
-PNG map (0-0.1 m, green to red, colour bar, easting/northing axes) and a GeoTIFF (float32,
-NaN as no-data, model tie point and pixel scale, the EPSG code as ``ProjectedCSTypeGeoKey``),
+PNG map (0-0.1 m, green to red, colour bar, easting/northing axes) and a GeoTIFF (float32
+metres, Deflate; NaN as no-data; model tie point and pixel scale, the EPSG code as
+``ProjectedCSTypeGeoKey``; band description and unit ``metre`` in the GDAL_METADATA tag),
 written with tifffile.
 """
 
@@ -48,6 +49,7 @@ from georefine.io.files import atomic_path
 __all__ = [
     "CellMoments", "cell_moments", "CellPlanes", "cell_planes", "CellSpread", "Reopened", "StripDifferenceStream",
     "StripDifferenceMap", "strip_difference_map", "strip_differences", "crop", "write_png", "write_geotiff",
+    "BAND_DESCRIPTION",
 ]
 
 _MERGE_ROWS = 500_000
@@ -300,9 +302,31 @@ def write_png(path: str | Path, m: StripDifferenceMap, *, title: str = "", vmax_
     return path
 
 
+BAND_DESCRIPTION = "strip difference: max - min of the planar strip x channel planes' heights at the cell centre"
+"""The GeoTIFF band's description (GDAL's band description)."""
+
+
+def _gdal_metadata(description: str, unit: str) -> str:
+    """The GDAL_METADATA TIFF tag (42112): band 1's description and unit type, as GDAL writes them."""
+    from xml.sax.saxutils import escape
+
+    return ("<GDALMetadata>\n"
+            f'  <Item name="DESCRIPTION" sample="0" role="description">{escape(description)}</Item>\n'
+            f'  <Item name="UNITTYPE" sample="0" role="unittype">{escape(unit)}</Item>\n'
+            "</GDALMetadata>\n")
+
+
 def write_geotiff(path: str | Path, m: StripDifferenceMap, epsg: int) -> Path:
-    """GeoTIFF of the spread (metres, float32, NaN no-data) in the projected CRS ``epsg``."""
+    """GeoTIFF of the map (float32 metres) in the projected CRS ``epsg``, Deflate-compressed.
+
+    GeoKeys: projected model, pixel is area, ``ProjectedCSTypeGeoKey = epsg`` (GDAL and PROJ
+    identify the EPSG code from it); model tie point at the north-west corner and pixel scale.
+    Band description and unit type (``metre``) in the GDAL_METADATA tag (42112), no-data NaN in
+    GDAL_NODATA (42113): the tags GDAL itself writes for them.
+    """
     import tifffile
+
+    from georefine import __version__
 
     geokeys = [
         1, 1, 0, 3,  # GeoKeyDirectory version 1.1.0, 3 keys
@@ -314,9 +338,11 @@ def write_geotiff(path: str | Path, m: StripDifferenceMap, epsg: int) -> Path:
         (33550, "d", 3, (m.cell_size_m, m.cell_size_m, 0.0), False),  # ModelPixelScaleTag
         (33922, "d", 6, (0.0, 0.0, 0.0, m.x0, m.y1, 0.0), False),  # ModelTiepointTag: pixel (0,0) corner
         (34735, "H", len(geokeys), tuple(geokeys), False),  # GeoKeyDirectoryTag
+        (42112, "s", 0, _gdal_metadata(BAND_DESCRIPTION, "metre"), False),  # GDAL_METADATA
         (42113, "s", 0, "nan", False),  # GDAL_NODATA
     ]
     path = Path(path)
     with atomic_path(path) as tmp:
-        tifffile.imwrite(tmp, m.spread_m.astype(np.float32), extratags=extratags, photometric="minisblack")
+        tifffile.imwrite(tmp, m.spread_m.astype(np.float32), extratags=extratags, photometric="minisblack",
+                         compression="zlib", metadata=None, software=f"georefine {__version__}")
     return path
