@@ -40,12 +40,14 @@ def test_strip_discrepancy_is_the_offset_between_tilted_strips():
     b = _tilted(rng, 20000, (0.1, 0.02), 0.02)
     c = _tilted(rng, 20000, (0.1, 0.02), -0.01)
     out = strip_discrepancy([a, b, c], 1.0)
-    assert out["cells"] == 400
-    assert out["median_m"] == pytest.approx(0.03, abs=1e-9) and out["p95_m"] == pytest.approx(0.03, abs=1e-9)
-    # Rough cells (here: one layer with 5 cm noise) are left out, the other two still count.
+    assert out["cells"] == 18 * 18  # the cells on the edge of the strips' coverage are gated
+    along_normal = 0.03 / np.sqrt(1.0 + 0.1**2 + 0.02**2)  # parallel planes 3 cm apart in height
+    assert out["median_m"] == pytest.approx(along_normal, abs=1e-9) and out["p95_m"] == pytest.approx(along_normal, abs=1e-9)
+    # A layer that does not fit a plane (5 cm noise) where the others do: not a planar surface in
+    # every view, so the cells are gated; two layers without it give the map again.
     noisy = a + np.column_stack([np.zeros((20000, 2)), rng.normal(0, 0.05, 20000)])
-    out = strip_discrepancy([noisy, b, c], 1.0)
-    assert out["median_m"] == pytest.approx(0.03, abs=1e-9)
+    assert strip_discrepancy([noisy, b, c], 1.0)["cells"] == 0
+    assert strip_discrepancy([b, c], 1.0)["median_m"] == pytest.approx(along_normal, abs=1e-9)
 
 
 def test_surface_distance_is_the_offset_along_the_normal():
@@ -67,13 +69,19 @@ def test_strip_difference_raster_png_and_geotiff(tmp_path):
     b[b[:, 0] >= 10.0, 2] += 0.05  # the eastern half of strip b lies 5 cm high
     m = strip_differences([a + [1000.0, 5000.0, 0.0], b + [1000.0, 5000.0, 0.0]], 1.0)
     assert m.spread_m.shape == (20, 20) and m.x0 == 1000.0 and m.y1 == 5020.0
-    np.testing.assert_allclose(m.spread_m[:, :10], 0.0, atol=1e-9)
-    np.testing.assert_allclose(m.spread_m[:, 10:], 0.05, atol=1e-9)
+    step = 0.05 / np.sqrt(1.0 + 0.1**2)  # along the normal of planes of slope 0.1
+    inner = m.spread_m[1:-1, 1:-1]  # the outer ring is the edge of the strips' coverage: gated
+    np.testing.assert_allclose(inner[:, :9], 0.0, atol=1e-9)
+    np.testing.assert_allclose(inner[:, 9:], step, atol=1e-9)
+    assert np.all(np.isnan(m.spread_m[[0, -1], :])) and np.all(np.isnan(m.spread_m[:, [0, -1]]))
+    assert m.gating() == {"candidates": 400, "kept": 324, "rough": 0, "steep": 0, "edge": 76, "normals": 0}
+    np.testing.assert_allclose(m.ungated_m[:, 10:], 0.05, atol=1e-9)  # the map before gating: vertical, all cells
     s = m.summary()
-    assert s["cells"] == 400 and s["p95_m"] == pytest.approx(0.05)
+    assert s["cells"] == 324 and s["p95_m"] == pytest.approx(step)
     part = crop(m, (1012.0, 1015.5, 5001.0, 5003.0))  # whole cells covering the window
     assert part.spread_m.shape == (2, 4) and (part.x0, part.y1) == (1012.0, 5003.0)
-    np.testing.assert_allclose(part.spread_m, 0.05, atol=1e-9)
+    np.testing.assert_allclose(part.spread_m, step, atol=1e-9)
+    assert part.gate.shape == part.ungated_m.shape == (2, 4)
     with pytest.raises(ValueError):
         crop(m, (0.0, 10.0, 0.0, 10.0))
     png = write_png(tmp_path / "map.png", m, epsg=25832)
