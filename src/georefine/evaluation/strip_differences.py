@@ -150,9 +150,14 @@ def _figures(a: np.ndarray) -> dict[str, float]:
 
 
 def _union(parts: Iterable[np.ndarray | None]) -> np.ndarray:
-    """Sorted unique cell keys of ``parts``."""
+    """Sorted unique cell keys of ``parts`` (a sort and a comparison: ``np.unique`` hashes, slower here)."""
     parts = [p for p in parts if p is not None]
-    return np.unique(np.concatenate(parts)) if parts else np.zeros(0, dtype=np.int64)
+    if not parts:
+        return np.zeros(0, dtype=np.int64)
+    keys = np.sort(np.concatenate(parts))
+    new = np.ones(keys.size, dtype=bool)
+    new[1:] = keys[1:] != keys[:-1]
+    return keys[new]
 
 
 _NEIGHBOURS = np.array([di * (1 << 32) + dj for di in (-1, 0, 1) for dj in (-1, 0, 1) if di or dj], dtype=np.int64)
@@ -167,6 +172,12 @@ def _interior(keys: np.ndarray, covered: np.ndarray) -> np.ndarray:
     at = np.minimum(np.searchsorted(covered, nk), covered.size - 1)
     return np.all(covered[at] == nk, axis=1)
 
+
+_DTYPES = {"high_m": float, "low_m": float, "ungated_high_m": float, "ungated_low_m": float,
+           "normal_sum": float, "normal_min": np.float32, "normal_max": np.float32}
+"""Data types of :class:`CellSpread`'s fields: heights and the normals' sum (whose rounding would
+depend on the order of the rows) in float64, the normals' bounds in float32 (1e-7, ample for a
+5 degree test), counts (the others) in int32."""
 
 _FIELDS = {  # CellSpread's per-row fields and how rows of one key merge
     "high_m": np.maximum, "low_m": np.minimum, "layers": np.add,
@@ -188,28 +199,27 @@ class CellSpread:
     """
 
     cell_ij: np.ndarray  # (K, 2) int64
-    strip: np.ndarray  # (K,) int64
+    strip: np.ndarray  # (K,) int32
     high_m: np.ndarray  # (K,) -inf where no layer is planar
     low_m: np.ndarray  # (K,) +inf where no layer is planar
-    layers: np.ndarray  # (K,) int64 planar layers
+    layers: np.ndarray  # (K,) int32 planar layers
     normal_sum: np.ndarray  # (K, 3)
-    normal_min: np.ndarray  # (K, 3)
-    normal_max: np.ndarray  # (K, 3)
+    normal_min: np.ndarray  # (K, 3) float32
+    normal_max: np.ndarray  # (K, 3) float32
     ungated_high_m: np.ndarray  # (K,)
     ungated_low_m: np.ndarray  # (K,)
-    ungated_layers: np.ndarray  # (K,) int64 layers within max_roughness_m (any slope)
-    rough: np.ndarray  # (K,) int64 layers whose plane is rougher than max_roughness_m
-    steep: np.ndarray  # (K,) int64 layers within max_roughness_m but steeper than max_slope_deg
+    ungated_layers: np.ndarray  # (K,) int32 layers within max_roughness_m (any slope)
+    rough: np.ndarray  # (K,) int32 layers whose plane is rougher than max_roughness_m
+    steep: np.ndarray  # (K,) int32 layers within max_roughness_m but steeper than max_slope_deg
 
     def __len__(self) -> int:
         return int(self.cell_ij.shape[0])
 
     @classmethod
     def empty(cls) -> CellSpread:
-        return cls(np.zeros((0, 2), np.int64), np.zeros(0, np.int64),
-                   **{f: np.zeros((0, 3) if f.startswith("normal") else 0,
-                                  np.int64 if op is np.add and not f.startswith("normal") else float)
-                      for f, op in _FIELDS.items()})
+        return cls(np.zeros((0, 2), np.int64), np.zeros(0, np.int32),
+                   **{f: np.zeros((0, 3) if f.startswith("normal") else 0, _DTYPES.get(f, np.int32))
+                      for f in _FIELDS})
 
     @classmethod
     def of_planes(cls, planes: CellPlanes, max_roughness_m: float = MAX_ROUGHNESS_M,
@@ -221,13 +231,15 @@ class CellSpread:
         planar = smooth & flat
         h = planes.height_m
         normals = planes.normals()
+        bounds = normals.astype(np.float32)
         inf = np.full(k, np.inf)
-        strip = (np.zeros(k, np.int64) if planes.layer is None else planes.layer // LAYER_CODE).astype(np.int64)
-        part = cls(planes.cell_ij, strip, np.where(planar, h, -inf), np.where(planar, h, inf), planar.astype(np.int64),
-                   np.where(planar[:, None], normals, 0.0), np.where(planar[:, None], normals, np.inf),
-                   np.where(planar[:, None], normals, -np.inf),
-                   np.where(smooth, h, -inf), np.where(smooth, h, inf), smooth.astype(np.int64),
-                   (~smooth).astype(np.int64), (smooth & ~flat).astype(np.int64))
+        strip = (np.zeros(k, np.int32) if planes.layer is None else planes.layer // LAYER_CODE).astype(np.int32)
+        part = cls(planes.cell_ij, strip, np.where(planar, h, -inf), np.where(planar, h, inf), planar.astype(np.int32),
+                   np.where(planar[:, None], normals, 0.0),
+                   np.where(planar[:, None], bounds, np.float32(np.inf)),
+                   np.where(planar[:, None], bounds, np.float32(-np.inf)),
+                   np.where(smooth, h, -inf), np.where(smooth, h, inf), smooth.astype(np.int32),
+                   (~smooth).astype(np.int32), (smooth & ~flat).astype(np.int32))
         return cls.merge([part])
 
     @classmethod
