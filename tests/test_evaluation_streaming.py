@@ -86,13 +86,26 @@ def _old_map(layers, cell_size_m=1.0, min_points=6, max_roughness_m=0.03):
     return spread, nlay, float(i0 * cell_size_m), float((j1 + 1) * cell_size_m)
 
 
-def _assert_same_map(m, old):
+def _assert_same_map(m, old, gated=None):
+    """``m`` before gating is the old map; gated, it is ``gated`` (the same layers' sums in one part)."""
     spread, nlay, x0, y1 = old
-    assert (m.x0, m.y1) == (x0, y1) and m.spread_m.shape == spread.shape
+    assert (m.x0, m.y1) == (x0, y1) and m.ungated_m.shape == spread.shape
     np.testing.assert_array_equal(m.layers_m, nlay)
-    np.testing.assert_array_equal(np.isnan(m.spread_m), np.isnan(spread))
-    np.testing.assert_allclose(m.spread_m, spread, rtol=0, atol=1e-9, equal_nan=True)
+    np.testing.assert_array_equal(np.isnan(m.ungated_m), np.isnan(spread))
+    np.testing.assert_allclose(m.ungated_m, spread, rtol=0, atol=1e-9, equal_nan=True)
     assert np.count_nonzero(np.isfinite(spread)) > 500
+    if gated is not None:
+        np.testing.assert_array_equal(m.gate, gated.gate)
+        np.testing.assert_allclose(m.spread_m, gated.spread_m, rtol=0, atol=1e-9, equal_nan=True)
+        g = m.gating()
+        assert g["kept"] > 500 and g["rough"] > 0 and g["edge"] > 0  # the vegetation and the strips' borders
+
+
+def _gated_map(layers):
+    """The gated map of ``{code: points}`` with every layer's sums added at once, nothing closed."""
+    stream = StripDifferenceStream(1.0)
+    stream.add([cell_moments(xyz, 1.0, code) for code, xyz in layers.items()], sum(map(len, layers.values())))
+    return stream.result()
 
 
 # -- a scene scanned line by line ---------------------------------------------------------------
@@ -202,7 +215,7 @@ def test_the_stream_closes_the_cells_the_scanner_has_left(strips):
             total += len(m)
             peak = max(peak, stream.open_rows())
         stream.close_layer(k)
-    _assert_same_map(stream.result(), old)
+    _assert_same_map(stream.result(), old, _gated_map(dict(enumerate(layers.values()))))
     assert peak < total / 4  # only the cells near the scanner are open
 
     stream = StripDifferenceStream(1.0, close_after=3000)
@@ -226,12 +239,13 @@ def test_the_map_of_files_does_not_depend_on_chunks_closing_or_scheduler(strips,
     assert "again" not in caplog.text  # the cells were closed behind the scanner, never reopened
     out = tmp_path if scheduler == "processes" else None  # the files once (the PNG takes time)
     m = evaluate_strip_differences(files, out, scan=scan)
-    _assert_same_map(m, _old_map(list(layers.values())))
+    _assert_same_map(m, _old_map(list(layers.values())), _gated_map({s * 256 + c: x for (s, c), x in layers.items()}))
     assert scan.layers == tuple((s, c, len(x)) for (s, c), x in layers.items())
     if out is not None:
         written = json.loads((tmp_path / "strip_differences.json").read_text())
         assert written["layers"] == [{"strip": s, "channel": c, "points": len(x)} for (s, c), x in layers.items()]
         assert written["cells"] == m.summary()["cells"] and (tmp_path / "strip_differences.png").is_file()
+        assert written["gated"] == m.gating() and written["ungated"]["cells"] == m.gating()["candidates"]
 
 
 def test_a_strip_split_over_two_files_is_read_again_with_every_cell_open(strips, tmp_path, caplog):
@@ -244,7 +258,7 @@ def test_a_strip_split_over_two_files_is_read_again_with_every_cell_open(strips,
     with caplog.at_level(logging.WARNING, logger="georefine.evaluation.clouds"):
         m = evaluate_strip_differences(parts, chunk_points=50_000)
     assert "reading the point clouds again" in caplog.text
-    _assert_same_map(m, _old_map(list(layers.values())))
+    _assert_same_map(m, _old_map(list(layers.values())), _gated_map({s * 256 + c: x for (s, c), x in layers.items()}))
 
 
 def test_per_surface_boxes_keep_the_points_near_every_surface_and_drop_the_rest(tmp_path):

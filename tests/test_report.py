@@ -53,8 +53,9 @@ def _records(seed: int) -> tuple[WorkflowMetrics, RunEvaluation]:
              SurfaceFigures("road_b", 1, 0.002, math.nan, 0.002)))  # seen once: no SD
         for label in ("G/I", "G/I/L")
     }
+    gated = {"candidates": 4100, "kept": 4000, "rough": 60, "steep": 20, "edge": 15, "normals": 5}
     diffs = {"G/I": StripDifferenceFigures(4000, 0.03, 0.08, 0.035, "gi/strip_differences.png",
-                                           "gi/strip_differences_zoom.png"),
+                                           "gi/strip_differences_zoom.png", gated),
              "G/I/L": StripDifferenceFigures(0, math.nan, math.nan, math.nan, "gil/strip_differences.png")}
     evaluation = RunEvaluation("truth", sol, EvaluationPlots("attitude_differences.png", "position_differences.png"),
                                planes, diffs)
@@ -83,6 +84,8 @@ def test_records_read_back_to_what_was_written(tmp_path, seed):
     # Undefined figures are null in the file and None when read; the optional zoom map is left out.
     assert e["reference_planes"]["G/I"]["surfaces"][1]["sd_m"] is None and back.reference_planes["G/I"].surfaces[1].sd_m is None
     assert "zoom_map" not in e["strip_differences"]["G/I/L"] and back.strip_differences["G/I/L"].median_m is None
+    assert back.strip_differences["G/I"].gated == e["strip_differences"]["G/I"]["gated"]
+    assert e["strip_differences"]["G/I"]["gated"]["rough"] == 60 and "gated" not in e["strip_differences"]["G/I/L"]
     assert back.single_pass == evaluation.trajectory["G/I/L single pass (strip 1)"]
     assert back.trajectory["G/I"].strips[2] == evaluation.trajectory["G/I"].strips[2]
 
@@ -129,6 +132,7 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     assert f"<td>roof_a</td><td>6</td><td>{g.mean_m * 1e3:.1f}</td><td>{g.sd_m * 1e3:.1f}</td>" in page
     assert "<td>road_b</td><td>1</td><td>2.0</td><td>–</td>" in page  # no SD of a surface seen once
     assert "G/I/L: median – mm, P95 – mm over 0 planar 1 m cells" in page
+    assert "over 4,000 planar 1 m cells; 100 gated (grey): rough 60, steep 20, edge 15, normals 5" in page
     # A run without an evaluation still gets its report.
     (run / "evaluation" / "summary.json").unlink()
     page = html.unescape(write_report(run).read_text())

@@ -603,12 +603,18 @@ def evaluate_strip_differences_cmd(
     points: list[Path] = typer.Argument(..., help="Georeferenced LAS/LAZ strips or folders of them (output CRS)."),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="Folder for the map (PNG, GeoTIFF) and JSON."),
     cell: float = typer.Option(1.0, "--cell", help="Raster cell size (m)."),
-    max_roughness: float = typer.Option(0.03, "--max-roughness", help="Planar cells only: RMS plane residual (m)."),
+    max_roughness: float = typer.Option(0.03, "--max-roughness", min=0.0,
+                                        help="Planar cells only: RMS plane residual (m)."),
+    max_slope: float = typer.Option(60.0, "--max-slope", min=0.0, max=90.0,
+                                    help="Planar cells only: steepest plane (degrees)."),
+    max_normal_angle: float = typer.Option(5.0, "--max-normal-angle", min=0.0,
+                                           help="Largest angle between the planes' normals in a cell (degrees)."),
     scheduler: str = _scheduler_option(),
     force: bool = _force_option(),
 ) -> None:
     """Strip differences on a raster (paper 000, Fig. 7): per cell max - min of the plane heights
-    of the layers strip x channel that are planar there."""
+    of the layers strip x channel that are planar there, along their normal; cells that are not
+    a planar surface in every view (wires, vegetation, edges) are gated."""
     with _user_errors():
         _output_ok(out, force)
         from georefine.evaluation.clouds import evaluate_strip_differences, point_files
@@ -616,10 +622,13 @@ def evaluate_strip_differences_cmd(
 
         files = point_files(points)
         with TaskRunner(scheduler) as runner:
-            m = evaluate_strip_differences(files, out, cell_size_m=cell, max_roughness_m=max_roughness, runner=runner)
-    s = m.summary()
+            m = evaluate_strip_differences(files, out, cell_size_m=cell, max_roughness_m=max_roughness,
+                                           max_slope_deg=max_slope, max_normal_angle_deg=max_normal_angle, runner=runner)
+    s, g = m.summary(), m.gating()
     stdout.print(f"strip differences on {s['cells']:,} planar cells of {cell:g} m: median {s['median_m'] * 1e3:.1f} mm, "
                  f"P95 {s['p95_m'] * 1e3:.1f} mm")
+    stdout.print(f"gated {g['candidates'] - g['kept']:,} of {g['candidates']:,} cells: " + ", ".join(
+        f"{k} {g[k]:,}" for k in ("rough", "steep", "edge", "normals")))
     if out is not None:
         stdout.print(f"wrote {out / 'strip_differences.png'}, .tif and .json")
 

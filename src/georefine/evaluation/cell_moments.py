@@ -54,13 +54,19 @@ the cell size in every horizontal direction; merging prefers the reference plane
 
 @dataclass(frozen=True)
 class CellPlanes:
-    """Least-squares planes of point layers on a raster: ``z = height + slope . (x - centre)``."""
+    """Least-squares planes of point layers on a raster: ``z = height + gradient . (x - centre)``."""
 
     cell_ij: np.ndarray  # (C, 2) int64 cell indices (floor(x / size), floor(y / size))
     height_m: np.ndarray  # (C,) plane height at the cell centre
     roughness_m: np.ndarray  # (C,) RMS residual of the plane
     n_points: np.ndarray  # (C,) int64
+    gradient: np.ndarray  # (C, 2) dz/dx, dz/dy
     layer: np.ndarray | None = None  # (C,) int64 layer of each plane (None: one layer)
+
+    def normals(self) -> np.ndarray:
+        """``(C, 3)`` unit normals of the planes, pointing up."""
+        n = np.column_stack([-self.gradient, np.ones(self.gradient.shape[0])])
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
 
 
 def cell_keys(ij: np.ndarray) -> np.ndarray:
@@ -228,7 +234,8 @@ class CellMoments:
             rough = np.sqrt(rss / n)
             height = self.reference[:, 0] + mean_r - s1 * (sx / n) - s2 * (sy / n)
         keep = ok & np.isfinite(rough) & np.isfinite(height)
-        return CellPlanes(self.cell_ij[keep], height[keep], rough[keep], n[keep].astype(np.int64), self.layer[keep])
+        return CellPlanes(self.cell_ij[keep], height[keep], rough[keep], n[keep].astype(np.int64),
+                          self.reference[keep, 1:] + np.column_stack([s1[keep], s2[keep]]), self.layer[keep])
 
 
 def _onto(sums: np.ndarray, ref: np.ndarray, target: np.ndarray, centroid: np.ndarray) -> np.ndarray:

@@ -47,6 +47,11 @@ from georefine.evaluation.reference_planes import (
     summarise_observations,
 )
 from georefine.evaluation.strip_differences import (
+    LAYER_CODE,
+    MAX_NORMAL_ANGLE_DEG,
+    MAX_ROUGHNESS_M,
+    MAX_SLOPE_DEG,
+    MIN_POINTS,
     CellMoments,
     Reopened,
     StripDifferenceMap,
@@ -80,7 +85,7 @@ CLOSE_AFTER_POINTS = 4_000_000
 """Records after which a strip x channel that got no points in a cell is done with it (files in
 time order: the scanner has passed it); checked, not assumed (:func:`scan_clouds`)."""
 
-_LAYER = 256  # layer code = point_source_id * 256 + scanner_channel
+_LAYER = LAYER_CODE  # layer code = point_source_id * 256 + scanner_channel
 
 
 def point_files(paths: list[Path]) -> list[Path]:
@@ -237,7 +242,7 @@ class CloudScan:
     files: tuple[Path, ...]
     layers: tuple[tuple[int, int, int], ...]  # (strip, channel, points), sorted
     strip_differences: StripDifferenceMap | None
-    settings: tuple[float, int, float] | None  # its cell_size_m, min_points, max_roughness_m
+    settings: tuple[float, int, float, float, float] | None  # cell size, min points, roughness, slope, normal angle
     boxes: np.ndarray | None
     near_xyz: np.ndarray  # (K, 3) the points in the boxes, by layer, in file order within a layer
     near_strip: np.ndarray  # (K,)
@@ -245,8 +250,9 @@ class CloudScan:
 
 
 def scan_clouds(
-    files: list[Path], *, cell_size_m: float | None = None, min_points: int = 6, max_roughness_m: float = 0.03,
-    boxes: np.ndarray | None = None, runner: TaskRunner | None = None, chunk_points: int = DEFAULT_CHUNK_POINTS,
+    files: list[Path], *, cell_size_m: float | None = None, min_points: int = MIN_POINTS,
+    max_roughness_m: float = MAX_ROUGHNESS_M, max_slope_deg: float = MAX_SLOPE_DEG,
+    max_normal_angle_deg: float = MAX_NORMAL_ANGLE_DEG, boxes: np.ndarray | None = None, runner: TaskRunner | None = None, chunk_points: int = DEFAULT_CHUNK_POINTS,
     close_after: int | None = CLOSE_AFTER_POINTS, progress: Progress = no_progress,
     label: str = "point cloud evaluation",
 ) -> CloudScan:
@@ -254,7 +260,8 @@ def scan_clouds(
     this process), the results taken in the order of the ranges.
 
     ``cell_size_m``: the strip-difference map on that raster (with ``min_points``,
-    ``max_roughness_m``); ``boxes`` (:func:`plane_boxes`): keep the points inside them.
+    ``max_roughness_m``, ``max_slope_deg``, ``max_normal_angle_deg``: the gate of
+    :mod:`georefine.evaluation.strip_differences`); ``boxes`` (:func:`plane_boxes`): keep the points inside them.
     The layers' cell sums are closed (:class:`~georefine.evaluation.strip_differences.StripDifferenceStream`)
     when a file ends and when a cell got no points for ``close_after`` records; if a file brings
     points to a closed layer x cell (a strip split over files, a file not in time order), the
@@ -266,19 +273,21 @@ def scan_clouds(
     settings = ScanSettings(None if cell_size_m is None else float(cell_size_m),
                             None if boxes is None else np.asarray(boxes, dtype=float).reshape(-1, 2, 3))
     tasks = [(f, a, b, settings) for f, a, b in record_ranges(files, chunk_points)]
+    gate = (int(min_points), float(max_roughness_m), float(max_slope_deg), float(max_normal_angle_deg))
     try:
-        return _scan(files, tasks, settings, min_points, max_roughness_m, runner, close_after, True, progress, label)
+        return _scan(files, tasks, settings, gate, runner, close_after, True, progress, label)
     except Reopened as exc:
         log.warning("%s: reading the point clouds again with every cell kept to the end (memory grows with "
                     "the cells of all layers)", exc)
-    return _scan(files, tasks, settings, min_points, max_roughness_m, runner, None, False, progress, label)
+    return _scan(files, tasks, settings, gate, runner, None, False, progress, label)
 
 
-def _scan(files, tasks, settings, min_points, max_roughness_m, runner, close_after, close_files, progress,
-          label) -> CloudScan:
+def _scan(files, tasks, settings, gate, runner, close_after, close_files, progress, label) -> CloudScan:
+    min_points, max_roughness_m, max_slope_deg, max_normal_angle_deg = gate
     stream = None
     if settings.cell_size_m is not None:
-        stream = StripDifferenceStream(settings.cell_size_m, min_points, max_roughness_m, close_after=close_after)
+        stream = StripDifferenceStream(settings.cell_size_m, min_points, max_roughness_m, max_slope_deg=max_slope_deg,
+                                       max_normal_angle_deg=max_normal_angle_deg, close_after=close_after)
     last = {f: k for k, (f, *_) in enumerate(tasks)}  # the last task of every file
     counts: dict[int, int] = {}
     in_file: set[int] = set()
@@ -303,7 +312,7 @@ def _scan(files, tasks, settings, min_points, max_roughness_m, runner, close_aft
     xyz, code = xyz[order], code[order]
     layers = tuple((c // _LAYER, c % _LAYER, counts[c]) for c in sorted(counts))
     return CloudScan(tuple(files), layers, None if stream is None else stream.result(),
-                     None if stream is None else (settings.cell_size_m, int(min_points), float(max_roughness_m)),
+                     None if stream is None else (settings.cell_size_m, *gate),
                      settings.boxes, xyz, code // _LAYER, code % _LAYER)
 
 
@@ -346,31 +355,40 @@ def evaluate_reference_planes(
 
 
 def evaluate_strip_differences(
-    files: list[Path], out: Path | None = None, *, cell_size_m: float = 1.0, min_points: int = 6,
-    max_roughness_m: float = 0.03, title: str = "", zoom: tuple[float, float, float, float] | None = None,
+    files: list[Path], out: Path | None = None, *, cell_size_m: float = 1.0, min_points: int = MIN_POINTS,
+    max_roughness_m: float = MAX_ROUGHNESS_M, max_slope_deg: float = MAX_SLOPE_DEG,
+    max_normal_angle_deg: float = MAX_NORMAL_ANGLE_DEG, title: str = "", zoom: tuple[float, float, float, float] | None = None,
     scan: CloudScan | None = None, runner: TaskRunner | None = None, chunk_points: int = DEFAULT_CHUNK_POINTS,
     progress: Progress = no_progress,
 ) -> StripDifferenceMap:
     """The strip-difference raster over all strip x channel layers (files written to ``out``).
 
     ``files`` are read in chunks on ``runner`` (:func:`scan_clouds`), keeping per-cell sums;
-    ``scan``: a scan of ``files`` already made with ``cell_size_m``. ``zoom``: ``(xmin, xmax,
+    ``scan``: a scan of ``files`` already made with the same settings. ``min_points``,
+    ``max_roughness_m``, ``max_slope_deg``, ``max_normal_angle_deg``: the gate
+    (:mod:`georefine.evaluation.strip_differences`, "Gating"); ``strip_differences.json`` holds
+    the figures of the gated map, the cells gated per reason (``gated``) and the figures of the
+    map without the gate (``ungated``). ``zoom``: ``(xmin, xmax,
     ymin, ymax)`` of an additional detail map, ``strip_differences_zoom.png`` (as paper 000's
     Fig. 7 shows a semi-urban area).
     """
-    wanted = (float(cell_size_m), int(min_points), float(max_roughness_m))
+    wanted = (float(cell_size_m), int(min_points), float(max_roughness_m), float(max_slope_deg),
+              float(max_normal_angle_deg))
     if scan is None:
         scan = scan_clouds(files, cell_size_m=cell_size_m, min_points=min_points, max_roughness_m=max_roughness_m,
+                           max_slope_deg=max_slope_deg, max_normal_angle_deg=max_normal_angle_deg,
                            runner=runner, chunk_points=chunk_points, progress=progress)
     elif scan.settings != wanted:
-        raise ValueError(f"the scan made the map with (cell_size_m, min_points, max_roughness_m) = {scan.settings}, "
-                         f"not {wanted}")
+        raise ValueError(f"the scan made the map with (cell_size_m, min_points, max_roughness_m, max_slope_deg, "
+                         f"max_normal_angle_deg) = {scan.settings}, not {wanted}")
     m = scan.strip_differences
     if out is not None:
         make_output_folder(out)
         epsg = epsg_of(files[0])
         write_json(out / "strip_differences.json", {
             **m.summary(), "cell_size_m": cell_size_m, "min_points": min_points, "max_roughness_m": max_roughness_m,
+            "max_slope_deg": max_slope_deg, "max_normal_angle_deg": max_normal_angle_deg,
+            "gated": m.gating(), "ungated": m.ungated_summary(),
             "layers": [{"strip": s, "channel": c, "points": n} for s, c, n in scan.layers],
             "x0": m.x0, "y1": m.y1, "epsg": epsg,
         })

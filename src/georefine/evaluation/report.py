@@ -159,6 +159,9 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         for label, v in sd.items():
             cap = (f"{label}: median {_f(v.median_m, 1e3)} mm, P95 {_f(v.p95_m, 1e3)} mm "
                    f"over {v.cells:,} planar 1 m cells")
+            if v.gated:
+                cap += (f"; {v.gated['candidates'] - v.gated['kept']:,} gated (grey): " + ", ".join(
+                    f"{k} {v.gated.get(k, 0):,}" for k in ("rough", "steep", "edge", "normals")))
             figs.append(f"<figure>{image(ev / v.map, label)}<figcaption>{html.escape(cap)}</figcaption></figure>")
         parts.append('<div class="maps">' + "".join(figs) + "</div>")
 

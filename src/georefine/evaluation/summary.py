@@ -143,23 +143,27 @@ class StripDifferenceFigures:
     mean_m: float | None
     map: str
     zoom_map: str | None = None
+    gated: dict[str, int] | None = None  # StripDifferenceMap.gating(): candidates, kept, cells gated per reason
 
     @classmethod
     def from_map(cls, m: StripDifferenceMap, map: str, zoom_map: str | None = None) -> StripDifferenceFigures:
         s = m.summary()
-        return cls(s["cells"], s["median_m"], s["p95_m"], s["mean_m"], map, zoom_map)
+        return cls(s["cells"], s["median_m"], s["p95_m"], s["mean_m"], map, zoom_map, m.gating())
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"cells": self.cells, "median_m": self.median_m, "p95_m": self.p95_m,
                              "mean_m": self.mean_m, "map": self.map}
         if self.zoom_map is not None:
             d["zoom_map"] = self.zoom_map
+        if self.gated is not None:
+            d["gated"] = dict(self.gated)
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> StripDifferenceFigures:
+        gated = d.get("gated")
         return cls(int(d["cells"]), _num(d["median_m"]), _num(d["p95_m"]), _num(d["mean_m"]), str(d["map"]),
-                   d.get("zoom_map"))
+                   d.get("zoom_map"), None if gated is None else {str(k): int(v) for k, v in gated.items()})
 
 
 @dataclass(frozen=True)
