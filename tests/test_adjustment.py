@@ -366,6 +366,12 @@ def test_selected_inverse_solves_for_entries_off_the_factor_pattern(backend, mon
         np.testing.assert_allclose(blocks[k], inv[s : s + 3, s : s + 3], atol=1e-14)
     assert abs(inv[0, 1]) > 1e-6  # non-zero although A's leaves 0 and 1 do not touch
     assert solved and solved[0][1] == 3
+    # Only the variances: read from the pattern, nothing solved, the same diagonal.
+    solved.clear()
+    diag = si.blocks(starts, 3, diagonal=True)
+    assert not solved
+    for k, s in enumerate(starts):
+        np.testing.assert_allclose(diag[k], np.diag(np.diag(inv[s : s + 3, s : s + 3])), atol=1e-14)
 
 
 def test_selected_inverse_is_none_without_access_to_the_factor():

@@ -289,7 +289,8 @@ def trajectory_sigma(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid,
         knots = np.append(knots, grid.n_knots - 1)
     by_vf = scale is None
     cov_R = problem.covariance(blocks.attitude, knots, scale_by_variance_factor=by_vf) * (1.0 if by_vf else scale)
-    cov_p = problem.covariance(blocks.position, knots, scale_by_variance_factor=by_vf) * (1.0 if by_vf else scale)
+    cov_p = problem.covariance(blocks.position, knots, scale_by_variance_factor=by_vf,
+                               diagonal=True) * (1.0 if by_vf else scale)
     tk = grid.knot_times[knots]
     p_w, R_w_b = spline.pose(tk)
     rph = rph_from_R_n_b(np.swapaxes(frame.R_w_n_at(p_w), 1, 2) @ R_w_b)
@@ -302,7 +303,10 @@ def trajectory_sigma(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid,
 
 def block_sigma(problem: Problem, name: str, scale: float | None = None) -> np.ndarray:
     """Posterior sigma (n, d) of every element of a Euclidean block (``scale``: as :func:`trajectory_sigma`)."""
-    c = problem.covariance(name) if scale is None else problem.covariance(name, scale_by_variance_factor=False) * scale
+    if scale is None:
+        c = problem.covariance(name, diagonal=True)
+    else:
+        c = problem.covariance(name, scale_by_variance_factor=False, diagonal=True) * scale
     return np.sqrt(np.clip(np.diagonal(c, axis1=1, axis2=2), 0.0, None))
 
 

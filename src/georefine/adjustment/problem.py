@@ -195,6 +195,7 @@ class Problem:
         block: str,
         elements: np.ndarray | None = None,
         scale_by_variance_factor: bool = True,
+        diagonal: bool = False,
     ) -> np.ndarray:
         """Marginal posterior covariances of chosen elements (tangent space), from the last solve.
 
@@ -219,6 +220,10 @@ class Problem:
             ``(K,)`` element indices; all elements when ``None``.
         scale_by_variance_factor
             Multiply by ``sigma0^2`` (needs redundancy > 0).
+        diagonal
+            Only the variances are wanted: the off-diagonal entries may be left zero (they are
+            where the selected inverse holds the factor, which skips solving for entries off
+            its pattern).
 
         Returns
         -------
@@ -250,7 +255,7 @@ class Problem:
             post.inverse, post.factor = selected_inverse(post.normal(), backend=post.backend, solver=post.factorizer)
             post.factorizer = None
         if post.inverse is not None:
-            cov = post.inverse.blocks(starts[idx], dim)
+            cov = post.inverse.blocks(starts[idx], dim, diagonal=diagonal)
         else:
             cov = marginal_covariance_blocks(post.factor, starts[idx], dim)
         if scale_by_variance_factor:
