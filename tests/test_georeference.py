@@ -33,6 +33,14 @@ def test_georeferencing_with_the_true_trajectory_reproduces_the_truth(project, t
         np.testing.assert_array_equal(est.scanner_channel, truth.scanner_channel)
         d = np.column_stack([est.x - truth.x, est.y - truth.y, est.z - truth.z])
         assert np.abs(d).max() < 1.5e-3  # 1 mm output resolution
+        # scan angles with the roll, as the simulator's true beams give them, to a 0.006 deg step
+        assert np.abs(est.scan_angle.astype(int) - truth.scan_angle).max() <= 1
+        assert est.scan_angle.min() * 0.006 < -45 and est.scan_angle.max() * 0.006 > 45
+        # one strip per file: its id is the file source ID, in the scan file as well
+        sid = int(s.output.stem.split("_")[1])
+        assert est.header.file_source_id == truth.header.file_source_id == sid
+        with laspy.open(project / "scans" / s.output.name) as scan:
+            assert scan.header.file_source_id == sid
 
 
 def test_points_outside_the_trajectory_are_left_out_and_counted(project, tmp_path):
@@ -88,3 +96,46 @@ def test_fused_kernel_matches_exact_slerp_and_the_numpy_blend():
     np.testing.assert_allclose(fast, georeference(t, x_s, traj, p_b_s, R_b_s), rtol=0, atol=1e-6)
     with pytest.raises(ValueError, match="outside the trajectory span"):
         georeference(np.array([tt[-1] + 1.0]), x_s[:1], interp, p_b_s, R_b_s)
+
+
+def test_scan_angle_left_negative_right_positive_with_the_roll():
+    """LAS scan angle on a constructed flight: heading 30 deg, roll and pitch, beams of a nadir and
+    a forward-tilted view; the angle from the local vertical across the track, positive right."""
+    from georefine.geometry.frames import LocalFrame
+    from georefine.lidar.georeference import PoseInterpolator, georeference, scan_angles_deg
+    from georefine.trajectory.sampled import Trajectory
+
+    frame = LocalFrame.from_degrees(48.2, 11.3, 500.0)
+    heading = np.radians(30.0)
+    tt = np.linspace(0.0, 1.0, 201)
+    for roll_deg, pitch_deg in ((0.0, 0.0), (4.0, 0.0), (-6.0, 0.0), (5.0, 3.0)):
+        roll, pitch = np.radians(roll_deg), np.radians(pitch_deg)
+        p = np.column_stack([np.sin(heading) * 50 * tt, np.cos(heading) * 50 * tt, np.full(tt.size, 300.0)])
+        R = frame.R_w_b_from_rph(p, np.tile([roll, pitch, heading], (tt.size, 1)))
+        traj = Trajectory(tt, p, R)
+        alpha = np.radians(np.linspace(-50.0, 50.0, 41))
+        t = np.full(alpha.size, 0.5)
+        for tau in (0.0, np.radians(10.0)):
+            x_s = 300.0 * np.column_stack([np.full(alpha.size, np.sin(tau)), np.cos(tau) * np.sin(alpha),
+                                           np.cos(tau) * np.cos(alpha)])
+            x_w = georeference(t, x_s, traj, np.zeros(3), np.eye(3))
+            lat, lon, _ = frame.to_geodetic(x_w)
+            up = frame.up_w(lat, lon)
+            got = scan_angles_deg(t, x_s, PoseInterpolator(traj), np.eye(3), up)
+            np.testing.assert_allclose(got, scan_angles_deg(t, x_s, traj, np.eye(3), up), atol=1e-6)
+            # body frame -> level frame along the heading: right = cos(tau) sin(alpha - roll),
+            # down = -sin(pitch) sin(tau) + cos(pitch) cos(tau) cos(alpha - roll)
+            want = np.degrees(np.arctan2(np.cos(tau) * np.sin(alpha - roll),
+                                         -np.sin(pitch) * np.sin(tau) + np.cos(pitch) * np.cos(tau) * np.cos(alpha - roll)))
+            # the local vertical at the point, 300 m off the body, tilts by < 0.003 deg
+            np.testing.assert_allclose(got, want, atol=0.004, err_msg=f"roll {roll_deg}, pitch {pitch_deg}, tau {tau}")
+            if pitch == 0.0:  # the level case: alpha - roll exactly
+                np.testing.assert_allclose(got, np.degrees(alpha - roll), atol=0.004)
+                # a right-wing-down roll turns the nadir beam to the left: negative
+                assert got[alpha.size // 2] == pytest.approx(-roll_deg, abs=0.004)
+            # the sign is the side of the track the point lies on (right of a 30 deg heading: east-south-east)
+            p_w = traj.interpolate(t)[0]
+            right_w = np.array([np.cos(heading), -np.sin(heading), 0.0])
+            side = (x_w - p_w) @ right_w
+            off = np.abs(side) > 1.0
+            np.testing.assert_array_equal(np.sign(got[off]), np.sign(side[off]))

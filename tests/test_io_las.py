@@ -31,6 +31,7 @@ def _cloud(seed: int, n: int = 5000, t0: float = T0, centre=(0.0, 0.0, 0.0), ext
         return_number=np.ones(n, int),
         number_of_returns=rng.integers(1, 4, n),
         extra={"range_error_m": rng.normal(scale=0.01, size=n)},
+        scan_angle_deg=rng.uniform(-75.0, 75.0, n),
     )
 
 
@@ -44,6 +45,7 @@ def _assert_same_points(a: PointCloud, b: PointCloud, xyz_atol: float) -> None:
     assert set(a.extra) == set(b.extra)
     for k in a.extra:
         np.testing.assert_allclose(a.extra[k], b.extra[k], rtol=1e-7, atol=1e-9)  # float32 storage
+    np.testing.assert_allclose(a.scan_angle_deg, b.scan_angle_deg, rtol=0, atol=0.003 + 1e-9)  # half a 0.006 deg step
 
 
 @pytest.mark.parametrize("suffix", [".las", ".laz"])
@@ -75,7 +77,7 @@ def test_chunked_write_equals_one_shot(tmp_path, suffix):
             sl = slice(lo, lo + 3000)
             writer.write(PointCloud(cloud.time_gps[sl], cloud.xyz[sl], cloud.intensity[sl], cloud.scanner_channel[sl],
                                     cloud.point_source_id[sl], cloud.return_number[sl], cloud.number_of_returns[sl],
-                                    {"range_error_m": cloud.extra["range_error_m"][sl]}))
+                                    {"range_error_m": cloud.extra["range_error_m"][sl]}, cloud.scan_angle_deg[sl]))
     a, b = read_las(one), read_las(writer.path)
     _assert_same_points(a, b, xyz_atol=0.0)
     chunks = list(iter_las_chunks(writer.path, chunk_size=2500))
@@ -178,7 +180,8 @@ def test_missing_extra_dimension(tmp_path):
 def _part(c: PointCloud, a: int, b: int) -> PointCloud:
     s = slice(a, b)
     return PointCloud(c.time_gps[s], c.xyz[s], c.intensity[s], c.scanner_channel[s], c.point_source_id[s],
-                      c.return_number[s], c.number_of_returns[s], {k: v[s] for k, v in c.extra.items()})
+                      c.return_number[s], c.number_of_returns[s], {k: v[s] for k, v in c.extra.items()},
+                      c.scan_angle_deg[s])
 
 
 @pytest.mark.parametrize("suffix", [".laz", ".las"])

@@ -74,6 +74,13 @@ class LocalFrame:
         """Rotation from the local NED frame at ``(lat, lon)`` to ``w``: ``R_e_w^T R_e_n``."""
         return self.R_e_w.T @ earth.R_e_n(lat, lon)
 
+    def up_w(self, lat: np.ndarray, lon: np.ndarray) -> np.ndarray:
+        """Unit ellipsoid normals (local up) in ``w`` at geodetic ``(lat, lon)`` (rad), ``(..., 3)``."""
+        lat, lon = np.asarray(lat, dtype=float), np.asarray(lon, dtype=float)
+        cl = np.cos(lat)
+        up_e = np.stack([cl * np.cos(lon), cl * np.sin(lon), np.sin(lat)], axis=-1)
+        return np.einsum("ji,...j->...i", self.R_e_w, up_e)
+
     def R_w_n_at(self, p_w: np.ndarray) -> np.ndarray:
         """Rotation from the local NED frame at ``w`` positions ``(..., 3)`` to ``w``."""
         lat, lon, _ = self.to_geodetic(p_w)

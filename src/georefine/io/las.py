@@ -8,9 +8,21 @@ Conventions (docs/ARCHITECTURE.md §3):
 * ``x, y, z``: scanner frame ``s`` coordinates (metres) for raw strips, output
   CRS coordinates for georeferenced clouds.
 * ``scanner_channel`` = view direction (0 nadir, 1 forward, 2 backward),
-  ``point_source_id`` = strip id.
-* Point format 6 or higher (LAS 1.4). Extra float dimensions (LAS extra bytes)
-  are read and written by name, e.g. ``range_error_m``.
+  ``point_source_id`` = strip id; the header's file source ID is the strip id too when the
+  file holds one strip (0 when it mixes strips).
+* ``scan_angle`` (int16, steps of 0.006 degrees; in memory ``scan_angle_deg``): as LAS 1.4
+  defines it, the angle of the beam from "down" in the coordinate system of the data, in the
+  plane across the flight direction, positive to the right of the flight direction (counter-
+  clockwise seen from behind). In georeferenced clouds "down" is the local vertical, so the
+  angle includes the aircraft's roll (:func:`georefine.lidar.georeference.scan_angles_deg`); in
+  scanner-frame strips it is the scanner's +z axis, so the angle is the mirror's angle in the
+  scan line, without the roll.
+* Point format 6 or higher (LAS 1.4). Extra dimensions (LAS extra bytes) are read by name, as
+  float64, e.g. ``range_error_m``; they are written with a type, a description and a no-data
+  value (:class:`georefine.io.las_encode.ExtraDim`).
+* The CRS is a WKT VLR in the form GDAL, PDAL and LAStools read
+  (:func:`georefine.io.las_writer.las_crs_wkt`); files written by earlier versions, with the
+  3-D CRS in WKT2, read as well.
 
 Files can be larger than memory: :func:`iter_las_chunks` streams them with
 ``laspy.open(...).chunk_iterator(n)``; :class:`georefine.io.las_writer.LasWriter`
@@ -32,12 +44,15 @@ from georefine.errors import InputError
 from georefine.io.files import PathLike
 
 __all__ = ["PointCloud", "ScanChunk", "LasInfo", "TimeIndex", "read_las_info", "iter_las_chunks",
-           "read_las", "read_las_range", "time_index", "GPS_TIME_OFFSET_S"]
+           "read_las", "read_las_range", "time_index", "GPS_TIME_OFFSET_S", "SCAN_ANGLE_UNIT_DEG"]
 
 _log = logging.getLogger(__name__)
 
 GPS_TIME_OFFSET_S = 1.0e9
 """Adjusted standard GPS time = GPS seconds − this offset."""
+
+SCAN_ANGLE_UNIT_DEG = 0.006
+"""One step of the LAS 1.4 ``scan_angle`` (point formats 6-10), degrees."""
 
 _MIN_POINT_FORMAT = 6
 
@@ -62,6 +77,8 @@ class PointCloud:
         (N,) uint8, 0..15.
     extra
         Extra float dimensions by name, each (N,) float64.
+    scan_angle_deg
+        (N,) float64 LAS scan angle in degrees (module docstring); default 0 for every point.
     """
 
     time_gps: np.ndarray
@@ -72,6 +89,7 @@ class PointCloud:
     return_number: np.ndarray
     number_of_returns: np.ndarray
     extra: dict[str, np.ndarray] = field(default_factory=dict)
+    scan_angle_deg: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = np.ascontiguousarray(self.time_gps, dtype=np.float64)
@@ -101,6 +119,10 @@ class PointCloud:
                 raise ValueError(f"extra dimension {name!r} must have shape {(n,)}, got {a.shape}")
             extra[name] = a
         object.__setattr__(self, "extra", extra)
+        angle = np.zeros(n) if self.scan_angle_deg is None else np.ascontiguousarray(self.scan_angle_deg, np.float64)
+        if angle.shape != (n,):
+            raise ValueError(f"scan_angle_deg must have shape {(n,)}, got {angle.shape}")
+        object.__setattr__(self, "scan_angle_deg", angle)
 
     def __len__(self) -> int:
         return self.time_gps.shape[0]
@@ -126,6 +148,7 @@ class PointCloud:
             return_number=np.concatenate([c.return_number for c in chunks]),
             number_of_returns=np.concatenate([c.number_of_returns for c in chunks]),
             extra={k: np.concatenate([c.extra[k] for c in chunks]) for k in names},
+            scan_angle_deg=np.concatenate([c.scan_angle_deg for c in chunks]),
         )
 
 
@@ -226,6 +249,7 @@ def _chunk_from_record(rec, extra_names: Sequence[str]) -> PointCloud:
         point_source_id=np.asarray(rec.point_source_id), return_number=np.asarray(rec.return_number),
         number_of_returns=np.asarray(rec.number_of_returns),
         extra={k: np.asarray(rec[k], dtype=np.float64) for k in extra_names},
+        scan_angle_deg=np.asarray(rec.scan_angle, dtype=np.float64) * SCAN_ANGLE_UNIT_DEG,
     )
 
 

@@ -15,6 +15,13 @@ way.
 The chunks keep LASzip's fixed chunk size. Variable-size chunks would free the tiles from the
 chunk grid, but lazrs 0.8's parallel decoder (laspy's default) reads wrong points after a
 ``seek`` in such files, and LASzip crashes on a truncated one.
+
+The records hold the point's ``scan_angle`` (LAS 1.4: int16 in steps of
+:data:`SCAN_ANGLE_UNIT_DEG`, from :attr:`~georefine.io.las.PointCloud.scan_angle_deg`) and each
+extra dimension as its :class:`ExtraDim` says: type, description and no-data value go into the
+extra-bytes VLR, and the range the header states leaves the no-data values out (LAS 1.4 R15,
+"Extra Bytes"). :class:`EncodedPoints` also carries the smallest and largest
+``point_source_id``, from which the writer sets the header's file source ID.
 """
 
 from __future__ import annotations
@@ -24,29 +31,79 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from georefine.io.las import GPS_TIME_OFFSET_S
+from georefine.io.las import GPS_TIME_OFFSET_S, SCAN_ANGLE_UNIT_DEG
 
-__all__ = ["LAZ_CHUNK_POINTS", "EncodedPoints", "LasLayout", "compress_chunks",
-           "decompress_chunks", "encode_points"]
+__all__ = ["LAZ_CHUNK_POINTS", "SCAN_ANGLE_UNIT_DEG", "EncodedPoints", "ExtraDim", "LasLayout",
+           "compress_chunks", "decompress_chunks", "encode_points", "scan_angle_counts"]
 
 LAZ_CHUNK_POINTS = 50_000
 """Points per LAZ chunk (LASzip's default); a tile's last chunk holds the rest."""
 
+_SCAN_ANGLE_MAX = 30_000
+"""LAS 1.4 scan angle limit in steps (+-180 degrees, both straight up)."""
+
+
+@dataclass(frozen=True)
+class ExtraDim:
+    """One extra dimension of a LAS 1.4 file (an extra-bytes descriptor).
+
+    ``name`` and ``description`` (ASCII, at most 32 characters each) are what LAS readers show;
+    ``dtype`` a numpy scalar type of 1 to 8 bytes; ``no_data`` the value that means "no value
+    for this point" (options bit 0 set), or ``None`` for a dimension every point has. A name
+    alone (``ExtraDim("x")``) is a float32 without description or no-data value.
+    """
+
+    name: str
+    dtype: str = "<f4"
+    description: str = ""
+    no_data: float | None = None
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "dtype", np.dtype(self.dtype).str)
+        for field, text in (("name", self.name), ("description", self.description)):
+            if len(text) > 32 or not text.isascii():
+                raise ValueError(f"extra dimension {field} must be ASCII of at most 32 characters, found {text!r}")
+        if np.dtype(self.dtype).kind not in "iuf":
+            raise ValueError(f"extra dimension {self.name!r}: numeric type expected, found {self.dtype}")
+        if self.no_data is not None:
+            value = float(self.no_data)
+            if not np.isfinite(value) or np.dtype(self.dtype).type(value) != value:
+                raise ValueError(f"extra dimension {self.name!r}: no-data value {self.no_data!r} is not a finite "
+                                 f"{np.dtype(self.dtype).name}")
+            object.__setattr__(self, "no_data", value)
+
+    @classmethod
+    def of(cls, spec) -> ExtraDim:
+        """An :class:`ExtraDim` from itself, a name, or a ``(name, dtype)`` pair."""
+        if isinstance(spec, ExtraDim):
+            return spec
+        if isinstance(spec, str):
+            return cls(spec)
+        name, dtype = spec
+        return cls(str(name), np.dtype(dtype).str)
+
+    def params(self):
+        """The ``laspy.ExtraBytesParams`` of this dimension."""
+        import laspy
+
+        return laspy.ExtraBytesParams(name=self.name, type=np.dtype(self.dtype), description=self.description,
+                                      no_data=None if self.no_data is None else [self.no_data])
 
 
 @dataclass(frozen=True)
 class LasLayout:
-    """What fixes a file's point records: scale and offset (m or CRS units), extra dimensions, compression."""
+    """What fixes a file's point records: scale and offset (m or CRS units), extra dimensions
+    (:class:`ExtraDim`; names or ``(name, dtype)`` pairs are accepted), compression."""
 
     scale: tuple[float, float, float]
     offset: tuple[float, float, float]
-    extra: tuple[tuple[str, str], ...] = ()
+    extra: tuple[ExtraDim, ...] = ()
     compress: bool = True
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scale", tuple(float(v) for v in np.broadcast_to(self.scale, (3,))))
         object.__setattr__(self, "offset", tuple(float(v) for v in np.broadcast_to(self.offset, (3,))))
-        object.__setattr__(self, "extra", tuple((str(k), np.dtype(t).str) for k, t in self.extra))
+        object.__setattr__(self, "extra", tuple(ExtraDim.of(e) for e in self.extra))
         if not all(s > 0 for s in self.scale):
             raise ValueError(f"scale must be > 0, found {self.scale}")
 
@@ -56,7 +113,7 @@ class LasLayout:
 
         header = laspy.LasHeader(version="1.4", point_format=6)
         if self.extra:
-            header.add_extra_dims([laspy.ExtraBytesParams(name=k, type=np.dtype(t)) for k, t in self.extra])
+            header.add_extra_dims([e.params() for e in self.extra])
         header.scales = np.asarray(self.scale)
         header.offsets = np.asarray(self.offset)
         return header
@@ -79,7 +136,10 @@ class EncodedPoints:
     size of each; ``records``: the raw point records that follow them (all points for LAS, or
     when not compressed here). ``mins``/``maxs``: bounds of the quantised coordinates;
     ``returns``: points by return number 1-15; ``extremes``: two raw records holding the
-    smallest and the largest value of every extra dimension (for the extra-bytes VLR).
+    smallest and the largest value of every extra dimension, no-data values left out (for the
+    extra-bytes VLR; a dimension with only no-data values holds its type's largest value in the
+    first and its smallest in the second); ``source_ids``: the smallest and the largest
+    ``point_source_id`` (``(65535, 0)`` without points).
     """
 
     layout: LasLayout
@@ -91,16 +151,24 @@ class EncodedPoints:
     maxs: np.ndarray
     returns: np.ndarray
     extremes: bytes = b""
+    source_ids: tuple[int, int] = (65535, 0)
 
     def __len__(self) -> int:
         return self.count
+
+
+def scan_angle_counts(scan_angle_deg: np.ndarray) -> np.ndarray:
+    """LAS 1.4 scan angles (int16, steps of :data:`SCAN_ANGLE_UNIT_DEG`) of angles in degrees
+    (wrapped to -180..180, rounded to the nearest step)."""
+    a = np.remainder(np.asarray(scan_angle_deg, dtype=np.float64) + 180.0, 360.0) - 180.0
+    return np.clip(np.rint(a / SCAN_ANGLE_UNIT_DEG), -_SCAN_ANGLE_MAX, _SCAN_ANGLE_MAX).astype(np.int16)
 
 
 def _records(cloud, layout: LasLayout):
     """The point records of ``cloud`` (a ``laspy.ScaleAwarePointRecord``) in ``layout``."""
     import laspy
 
-    missing = [k for k, _ in layout.extra if k not in cloud.extra]
+    missing = [e.name for e in layout.extra if e.name not in cloud.extra]
     if missing:
         raise ValueError(f"chunk lacks extra dimensions {missing}")
     counts = (cloud.xyz - np.asarray(layout.offset)) / np.asarray(layout.scale)
@@ -114,8 +182,10 @@ def _records(cloud, layout: LasLayout):
     rec.point_source_id = cloud.point_source_id
     rec.return_number = cloud.return_number
     rec.number_of_returns = cloud.number_of_returns
-    for k, _ in layout.extra:
-        rec[k] = cloud.extra[k]
+    rec.scan_angle = scan_angle_counts(cloud.scan_angle_deg)
+    for e in layout.extra:
+        values = cloud.extra[e.name]
+        rec[e.name] = np.rint(values) if np.dtype(e.dtype).kind in "iu" else values
     return rec
 
 
@@ -158,9 +228,15 @@ def encode_points(cloud, layout: LasLayout, *, compress: bool = True) -> Encoded
     extremes = b""
     if layout.extra:
         ext = np.zeros(2, dtype=rec.array.dtype)
-        for k, _ in layout.extra:
-            values = rec.array[k]
-            ext[k][0], ext[k][1] = values.min(axis=0), values.max(axis=0)
+        for e in layout.extra:
+            values = rec.array[e.name]
+            if e.no_data is not None:
+                values = values[values != values.dtype.type(e.no_data)]
+            if values.size:
+                ext[e.name][0], ext[e.name][1] = values.min(axis=0), values.max(axis=0)
+            else:  # only no-data values: extremes that widen nothing
+                info = np.finfo(values.dtype) if values.dtype.kind == "f" else np.iinfo(values.dtype)
+                ext[e.name][0], ext[e.name][1] = info.max, info.min
         extremes = ext.tobytes()
     raw = memoryview(np.frombuffer(rec.array, np.uint8))
     data, sizes, cut = b"", (), 0
@@ -170,5 +246,6 @@ def encode_points(cloud, layout: LasLayout, *, compress: bool = True) -> Encoded
     ixyz = np.stack([rec.X, rec.Y, rec.Z], axis=1)
     scale, offset = np.asarray(layout.scale), np.asarray(layout.offset)
     returns = np.bincount(np.asarray(rec.return_number, dtype=np.int64), minlength=16)[1:16].astype(np.uint64)
+    ids = rec.point_source_id
     return EncodedPoints(layout, data, sizes, bytes(raw[cut:]), n, ixyz.min(axis=0) * scale + offset,
-                         ixyz.max(axis=0) * scale + offset, returns, extremes)
+                         ixyz.max(axis=0) * scale + offset, returns, extremes, (int(ids.min()), int(ids.max())))

@@ -3,7 +3,36 @@
 :class:`LasWriter` takes point chunks (:class:`~georefine.io.las.PointCloud`) or points encoded
 elsewhere (:mod:`georefine.io.las_encode`), writes them under a temporary name and renames the
 file when it is complete; :func:`write_las` writes one cloud in one go. Conventions as
-:mod:`georefine.io.las`.
+:mod:`georefine.io.las`. The header as LAS readers expect it:
+
+* **CRS** (:func:`las_crs_wkt`). LAS 1.4 asks for OGC WKT (OGC 01-009, "WKT1", as GDAL, PDAL
+  and LAStools read it) in the ``LASF_Projection`` 2112 VLR, with the global-encoding WKT bit
+  set. Georefine's coordinates are a projected CRS with *ellipsoidal* heights, a 3-D CRS that
+  has no EPSG code (EPSG gives codes to 2-D projected CRSs and to compounds with
+  gravity-related heights only). WKT1 cannot state it in a way that keeps the EPSG code: tried
+  with GDAL 3.6 / PROJ 9.1 (``gdalsrsinfo -e``, ``projinfo --identify``) and PROJ 9.5
+  (pyproj), for EPSG:25832,
+
+  - the 3-D CRS in WKT2:2019 (the former writer): identified as EPSG:25832 at 50 %, and
+    ``projinfo -o WKT1_GDAL`` refuses it;
+  - ``COMPD_CS[PROJCS[... AUTHORITY["EPSG","25832"]], VERT_CS["ellipsoidal height",
+    VERT_DATUM["Ellipsoid",2002], ...]]`` (what GDAL writes for LAS with the option
+    ``ALLOW_ELLIPSOIDAL_HEIGHT_AS_VERTICAL_CRS``): PROJ turns it back into the 3-D CRS,
+    50 % again;
+  - a ``VERT_CS`` of another datum type (2000, 2005): kept as a compound, and identified only
+    as compounds with gravity-related heights (EPSG:5555 "+ DHHN92 height", ...) at 25 %.
+
+  So the WKT is the horizontal CRS alone in WKT1 (``PROJCS[... AUTHORITY["EPSG","25832"]]``),
+  identified at 100 % by GDAL, PROJ and pyproj (``CRS.to_epsg()``), and the heights are stated
+  where LAS 1.4 puts free text, a Text Area Description VLR (``LASF_Spec`` 3): they are
+  ellipsoidal heights above the CRS's ellipsoid, with the ``VERT_CS`` above that, appended to
+  the ``PROJCS`` in a ``COMPD_CS``, gives the 3-D CRS. A 2-D CRS or a compound one (which
+  states its vertical part) is written as WKT1 as it is.
+* **File source ID** = the strip id (``point_source_id``) when every point of the file has the
+  same one, else 0 (LAS 1.4: 0 = no id assigned); ``file_source_id=`` sets it.
+* **Extra dimensions** (:class:`~georefine.io.las_encode.ExtraDim`) with description and no-data
+  value; their minimum and maximum leave the no-data values out.
+* ``scan_angle`` from :attr:`~georefine.io.las.PointCloud.scan_angle_deg`.
 """
 
 from __future__ import annotations
@@ -21,15 +50,55 @@ from georefine.io.las import PointCloud
 from georefine.io.las_encode import (
     LAZ_CHUNK_POINTS,
     EncodedPoints,
+    ExtraDim,
     LasLayout,
     compress_chunks,
     decompress_chunks,
     encode_points,
 )
 
-__all__ = ["LasWriter", "offset_near", "write_las"]
+__all__ = ["LasWriter", "ELLIPSOIDAL_VERT_CS", "las_crs_wkt", "offset_near", "write_las"]
 
 _log = logging.getLogger(__name__)
+
+ELLIPSOIDAL_VERT_CS = ('VERT_CS["ellipsoidal height",VERT_DATUM["Ellipsoid",2002],'
+                       'UNIT["metre",1,AUTHORITY["EPSG","9001"]],AXIS["Ellipsoidal height",UP]]')
+"""OGC 01-009 vertical CRS of ellipsoidal heights (datum type 2002), as GDAL writes it for LAS."""
+
+
+def las_crs_wkt(crs) -> tuple[str, str | None]:
+    """The OGC WKT of ``crs`` for a LAS 1.4 file, and what to say of its heights (module docstring).
+
+    ``crs``: a ``pyproj.CRS`` or anything ``pyproj.CRS.from_user_input`` takes. A 3-D projected
+    or geographic CRS (ellipsoidal heights) gives the WKT1 of its horizontal CRS -- the EPSG
+    definition when PROJ identifies it at 100 % -- and a sentence stating the ellipsoidal heights
+    (ASCII, for a Text Area Description VLR); any other CRS its WKT1 and ``None``. A CRS that WKT1
+    cannot express is written as WKT2:2019 (with a warning in the log).
+    """
+    import pyproj
+    from pyproj.exceptions import CRSError
+
+    crs = pyproj.CRS.from_user_input(crs)
+    heights = None
+    if not crs.is_compound and len(crs.axis_info) == 3 and (crs.is_projected or crs.is_geographic):
+        horizontal = crs.to_2d()
+        code = horizontal.to_epsg(min_confidence=100)
+        if code is not None:
+            horizontal = pyproj.CRS.from_epsg(code)
+        datum = crs.geodetic_crs.name if crs.geodetic_crs is not None else crs.name
+        ellipsoid = crs.ellipsoid.name if crs.ellipsoid is not None else "the datum's"
+        text = (f"Heights (z) are ellipsoidal heights in metres above the {ellipsoid} ellipsoid of {datum}, not "
+                f"gravity-related heights. The CRS record holds the horizontal CRS "
+                f"({horizontal.name}{f', EPSG:{code}' if code else ''}); with this vertical CRS appended in a "
+                f"COMPD_CS it gives the 3-D CRS: {ELLIPSOIDAL_VERT_CS}")
+        heights = text.encode("ascii", "replace").decode("ascii")
+        crs = horizontal
+    try:
+        return crs.to_wkt("WKT1_GDAL"), heights
+    except CRSError:
+        _log.warning("%s cannot be written as WKT1; the LAS file gets WKT2:2019, which not every reader takes",
+                     crs.name)
+        return crs.to_wkt("WKT2_2019"), heights
 
 
 def offset_near(centre) -> np.ndarray:
@@ -52,9 +121,13 @@ class LasWriter:
         a multiple of 1000 m (0 for scanner-frame data near the origin).
     crs
         Optional coordinate reference system (``pyproj.CRS``, WKT, EPSG code or
-        "EPSG:xxxx"); written as a WKT VLR.
+        "EPSG:xxxx"); written as a WKT VLR (:func:`las_crs_wkt`).
     extra_dims
-        Extra float dimensions to write: names (float32) or ``{name: dtype}``.
+        Extra dimensions to write: :class:`~georefine.io.las_encode.ExtraDim` (type,
+        description, no-data value), names (float32) or ``{name: dtype}``.
+    file_source_id
+        The header's file source ID; default the ``point_source_id`` of the points when they all
+        have the same one, else 0.
     system_identifier, generating_software
         Header texts; both default to Georefine.
     protect
@@ -76,8 +149,9 @@ class LasWriter:
         scale: float | Sequence[float] = 1e-4,
         offset: Sequence[float] | None = None,
         crs=None,
-        extra_dims: Sequence[str] | Mapping[str, type] = (),
+        extra_dims: Sequence[str | ExtraDim] | Mapping[str, type] = (),
         compress: bool | None = None,
+        file_source_id: int | None = None,
         system_identifier: str = "Georefine",
         generating_software: str | None = None,
         protect: Sequence[PathLike] = (),
@@ -87,7 +161,12 @@ class LasWriter:
         self._scale = np.broadcast_to(np.asarray(scale, dtype=np.float64), (3,)).copy()
         self._offset = None if offset is None else np.asarray(offset, dtype=np.float64).reshape(3)
         self._crs = crs
-        self._extra = dict(extra_dims) if isinstance(extra_dims, Mapping) else {k: np.float32 for k in extra_dims}
+        specs = extra_dims.items() if isinstance(extra_dims, Mapping) else extra_dims
+        self._extra = tuple(ExtraDim.of(e) for e in specs)
+        if file_source_id is not None and not 0 <= int(file_source_id) <= 65535:
+            raise ValueError(f"file_source_id must be in 0..65535, found {file_source_id}")
+        self._file_source_id = None if file_source_id is None else int(file_source_id)
+        self._source_ids = (65535, 0)  # smallest and largest point_source_id written
         self._system_identifier = system_identifier
         if generating_software is None:
             from georefine import __version__
@@ -125,22 +204,24 @@ class LasWriter:
                     raise ValueError("the offset is fixed by the first chunk: pass offset= to encode points elsewhere")
                 centre = 0.5 * (first.xyz.min(axis=0) + first.xyz.max(axis=0)) if len(first) else np.zeros(3)
                 self._offset = offset_near(centre)
-            self._layout = LasLayout(tuple(self._scale), tuple(self._offset),
-                                     tuple((k, np.dtype(t).str) for k, t in self._extra.items()), self._compress)
+            self._layout = LasLayout(tuple(self._scale), tuple(self._offset), self._extra, self._compress)
         return self._layout
 
     def _open(self) -> None:
         """Write the header and VLRs (counts and bounds follow on close) to the temporary file."""
+        import laspy
         from laspy.header import GpsTimeType
-        from laspy.vlrs.known import LasZipVlr
+        from laspy.vlrs.known import LasZipVlr, WktCoordinateSystemVlr
 
         layout = self.layout_for()
         header = layout.point_header()
         header.global_encoding.gps_time_type = GpsTimeType.STANDARD
         if self._crs is not None:
-            import pyproj
-
-            header.add_crs(pyproj.CRS.from_user_input(self._crs))
+            wkt, heights = las_crs_wkt(self._crs)
+            header.vlrs.append(WktCoordinateSystemVlr(wkt))
+            if heights is not None:
+                header.vlrs.append(laspy.VLR("LASF_Spec", 3, "Text Area Description",
+                                             heights.encode("ascii") + b"\0"))
             header.global_encoding.wkt = True
         header.system_identifier = self._system_identifier[:32]
         header.generating_software = self._software[:32]
@@ -198,6 +279,8 @@ class LasWriter:
             h.point_count += points.count
             if points.extremes:
                 _grow_extra_ranges(h, points.extremes)
+            self._source_ids = (min(self._source_ids[0], points.source_ids[0]),
+                                max(self._source_ids[1], points.source_ids[1]))
         self.point_count += points.count
 
     def _flush(self, final: bool) -> None:
@@ -234,6 +317,8 @@ class LasWriter:
                 fh.write(table_at.to_bytes(8, "little", signed=True))
             if h.point_count == 0:
                 h.mins, h.maxs = np.zeros(3), np.zeros(3)
+            h.file_source_id = self.file_source_id
+            _close_extra_ranges(h)
             fh.seek(0)
             h.write_to(fh, ensure_same_size=True)
             fh.flush()
@@ -247,6 +332,14 @@ class LasWriter:
         self._closed = True
         _log.info("wrote %d points to %s", self.point_count, self.path)
         return self.path
+
+    @property
+    def file_source_id(self) -> int:
+        """The header's file source ID: as given, else the one strip id of the points so far, or 0."""
+        if self._file_source_id is not None:
+            return self._file_source_id
+        lo, hi = self._source_ids
+        return lo if lo == hi else 0
 
     def abort(self) -> None:
         """Discard the temporary file; ``path`` is left untouched."""
@@ -281,6 +374,18 @@ def _grow_extra_ranges(header, extremes: bytes) -> None:
             raw_min[:] = np.minimum(raw_min, lo)
         if raw_max is not None:
             raw_max[:] = np.maximum(raw_max, hi)
+
+
+def _close_extra_ranges(header) -> None:
+    """Clear the minimum and maximum of extra dimensions that got no value (no points, or only
+    no-data values): LAS 1.4 wants the options bits off and the fields zero then."""
+    vlrs = header.vlrs.get("ExtraBytesVlr")
+    for struct in vlrs[0].extra_bytes_structs if vlrs else ():
+        raw_min, raw_max = struct._raw_min(), struct._raw_max()
+        if raw_min is not None and raw_max is not None and np.any(raw_min > raw_max):
+            raw_min[:] = 0
+            raw_max[:] = 0
+            struct.options &= ~(struct.MIN_BIT_MASK | struct.MAX_BIT_MASK)
 
 
 def write_las(path: PathLike, cloud: PointCloud, **kwargs) -> Path:

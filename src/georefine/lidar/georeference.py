@@ -11,6 +11,16 @@ this fused, and the loop runs several times faster (``bench/lidar_throughput.py`
 Whole strips are georeferenced tile by tile (:func:`georefine.lidar.tiles.georeference_strips`);
 points whose time lies outside the trajectory are counted, reported and left out, never
 extrapolated.
+
+**Scan angle** (:func:`scan_angles_deg`, LAS 1.4 ``scan_angle`` of the georeferenced points,
+docs/ARCHITECTURE.md §4.5 step 6): the angle of the beam from the local vertical "down", in the
+plane across the flight direction, so including the aircraft's roll; positive to the right of
+the flight direction ("counter-clockwise, as viewed from the rear of the sensor, facing in the
+along-track direction", LAS 1.4 R15). With the beam ``b = R_w_b R_b_s x_s`` (scanner origin to
+the point, in ``w``), the body's x axis ``f = R_w_b e_x``, the local up ``u`` (ellipsoid normal
+at the point) and ``r = (f x u) / |f x u|`` (horizontal, to the right of the heading): ``angle =
+atan2(b . r, -b . u)``. The forward or backward tilt of a view does not enter it (the beam's
+component along ``f x r`` is dropped), nor does the pitch.
 """
 
 from __future__ import annotations
@@ -82,6 +92,75 @@ def _georeference_points(t, k, time, p, q, x_b, out):  # pragma: no cover - comp
                      + (1.0 - 2.0 * (qx * qx + qz * qz)) * y + 2.0 * (qy * qz - qx * qw) * z)
         out[n, 2] = (p[i, 2] + u * (p[i + 1, 2] - p[i, 2]) + 2.0 * (qx * qz - qy * qw) * x
                      + 2.0 * (qy * qz + qx * qw) * y + (1.0 - 2.0 * (qx * qx + qy * qy)) * z)
+
+
+@numba.njit(cache=True, nogil=True)
+def _scan_angles(t, k, time, q, x_s, R_b_s, up, out):  # pragma: no cover - compiled
+    """``out = atan2(b . r, -b . u)`` (rad) with ``b = R(q(t)) R_b_s x_s``, ``f = R(q(t)) e_x``,
+    ``r = f x u / |f x u|`` (module docstring); the attitude blended as in :func:`_georeference_points`."""
+    for n in range(t.shape[0]):
+        xs, ys, zs = x_s[n, 0], x_s[n, 1], x_s[n, 2]
+        x = R_b_s[0, 0] * xs + R_b_s[0, 1] * ys + R_b_s[0, 2] * zs
+        y = R_b_s[1, 0] * xs + R_b_s[1, 1] * ys + R_b_s[1, 2] * zs
+        z = R_b_s[2, 0] * xs + R_b_s[2, 1] * ys + R_b_s[2, 2] * zs
+        i = k[n]
+        a = (t[n] - time[i]) / (time[i + 1] - time[i])
+        qx = q[i, 0] + a * (q[i + 1, 0] - q[i, 0])
+        qy = q[i, 1] + a * (q[i + 1, 1] - q[i, 1])
+        qz = q[i, 2] + a * (q[i + 1, 2] - q[i, 2])
+        qw = q[i, 3] + a * (q[i + 1, 3] - q[i, 3])
+        s = 1.0 / np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        qx, qy, qz, qw = qx * s, qy * s, qz * s, qw * s
+        r00, r01, r02 = 1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qz * qw), 2.0 * (qx * qz + qy * qw)
+        r10, r11, r12 = 2.0 * (qx * qy + qz * qw), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qx * qw)
+        r20, r21, r22 = 2.0 * (qx * qz - qy * qw), 2.0 * (qy * qz + qx * qw), 1.0 - 2.0 * (qx * qx + qy * qy)
+        b0, b1, b2 = r00 * x + r01 * y + r02 * z, r10 * x + r11 * y + r12 * z, r20 * x + r21 * y + r22 * z
+        u0, u1, u2 = up[n, 0], up[n, 1], up[n, 2]
+        c0, c1, c2 = r10 * u2 - r20 * u1, r20 * u0 - r00 * u2, r00 * u1 - r10 * u0  # f x u
+        out[n] = np.arctan2((b0 * c0 + b1 * c1 + b2 * c2) / np.sqrt(c0 * c0 + c1 * c1 + c2 * c2),
+                            -(b0 * u0 + b1 * u1 + b2 * u2))
+
+
+def beam_scan_angles_deg(beam_w: np.ndarray, forward_w: np.ndarray, up_w: np.ndarray) -> np.ndarray:
+    """LAS scan angles (degrees) of beams ``beam_w`` (N, 3) given the body's x axis ``forward_w``
+    and the unit local up ``up_w`` (both (N, 3), in the same frame): ``atan2(b . r, -b . u)``
+    with ``r = f x u / |f x u|`` (module docstring)."""
+    b, u = np.asarray(beam_w, dtype=float), np.asarray(up_w, dtype=float)
+    c = np.cross(np.asarray(forward_w, dtype=float), u)
+    right = np.einsum("ni,ni->n", b, c) / np.linalg.norm(c, axis=1)
+    return np.degrees(np.arctan2(right, -np.einsum("ni,ni->n", b, u)))
+
+
+def scan_angles_deg(
+    time: np.ndarray,
+    xyz_s: np.ndarray,
+    trajectory: Trajectory | PoseInterpolator,
+    R_b_s: np.ndarray,
+    up_w: np.ndarray,
+) -> np.ndarray:
+    """LAS scan angles (degrees) of scanner-frame points: the beam from the local vertical, across
+    the flight direction, with the roll, positive to the right (module docstring).
+
+    ``time``, ``xyz_s``, ``trajectory``, ``R_b_s`` as :func:`georeference`; ``up_w`` (N, 3): the
+    unit local up in ``w`` at each point (e.g. :meth:`georefine.geometry.frames.LocalFrame.up_w`
+    of the georeferenced point). The lever arm does not enter: the beam runs from the scanner's
+    origin to the point, ``R_w_b R_b_s x_s``.
+    """
+    x_s = np.ascontiguousarray(xyz_s, dtype=np.float64)
+    R_b_s = np.ascontiguousarray(R_b_s, dtype=np.float64)
+    up = np.ascontiguousarray(up_w, dtype=np.float64)
+    t = np.ascontiguousarray(time, dtype=np.float64)
+    if up.shape != x_s.shape:
+        raise ValueError(f"up_w must have shape {x_s.shape}, got {up.shape}")
+    if not isinstance(trajectory, PoseInterpolator):
+        _, R_w_b = trajectory.interpolate(t)
+        return beam_scan_angles_deg(np.einsum("nij,nj->ni", R_w_b @ R_b_s, x_s), R_w_b[:, :, 0], up)
+    if not np.all(trajectory.inside(t)):
+        raise ValueError("point times outside the trajectory span")
+    k = np.clip(np.searchsorted(trajectory.time, t, side="right") - 1, 0, trajectory.time.size - 2)
+    out = np.empty(t.shape[0])
+    _scan_angles(t, k, trajectory.time, trajectory.q, x_s, R_b_s, up, out)
+    return np.degrees(out)
 
 
 def georeference(

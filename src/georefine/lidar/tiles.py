@@ -43,7 +43,7 @@ from georefine.io.las import PointCloud, TimeIndex, read_las_range, time_index
 from georefine.io.las_encode import LAZ_CHUNK_POINTS, EncodedPoints, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter, offset_near
 from georefine.io.point_manifest import record_point_files
-from georefine.lidar.georeference import PoseInterpolator, georeference
+from georefine.lidar.georeference import PoseInterpolator, georeference, scan_angles_deg
 from georefine.lidar.planes import PlanarFeatures, extract_features
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
@@ -224,8 +224,9 @@ def tile_georeference(
     tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
     frame: LocalFrame, crs: OutputCRS, time_offset_s: float = 0.0,
 ) -> tuple[PointCloud | None, int]:
-    """Step 6 on one tile's own records: the points in the output CRS (``None`` if all are
-    outside the trajectory), and the number left out because they are outside it.
+    """Step 6 on one tile's own records: the points in the output CRS with their LAS scan angles
+    (:func:`~georefine.lidar.georeference.scan_angles_deg`; ``None`` if all are outside the
+    trajectory), and the number left out because they are outside it.
 
     ``t0_gps``: the navigation's epoch; the points are georeferenced, and written, at their
     ``gps_time + time_offset_s``."""
@@ -239,9 +240,11 @@ def tile_georeference(
         if not np.any(keep):
             continue
         x_w = georeference(t[keep], pc.xyz[keep], poses, p_b_s, R_b_s)
-        parts.append(PointCloud(time_gps[keep], crs.from_w(frame, x_w), pc.intensity[keep],
+        lat, lon, h = frame.to_geodetic(x_w)
+        angle = scan_angles_deg(t[keep], pc.xyz[keep], poses, R_b_s, frame.up_w(lat, lon))
+        parts.append(PointCloud(time_gps[keep], crs.from_geodetic(lat, lon, h), pc.intensity[keep],
                                 pc.scanner_channel[keep], pc.point_source_id[keep], pc.return_number[keep],
-                                pc.number_of_returns[keep]))
+                                pc.number_of_returns[keep], scan_angle_deg=angle))
     if not parts:
         return None, outside
     return (parts[0] if len(parts) == 1 else PointCloud.concatenate(parts)), outside
@@ -320,9 +323,11 @@ def georeference_strips(
     the order of the input records as they arrive, one file open at a time, so memory holds a
     few tiles whatever the strips' sizes. The files' offset is fixed before the tasks start:
     the local frame's origin in the output CRS, rounded to 1000 units. Keeps gps_time,
-    intensity, ``scanner_channel``, ``point_source_id`` and return numbers; the CRS is written
-    as WKT; heights are ellipsoidal. Points outside the trajectory's time span are left out and
-    counted (a warning is logged). ``poses`` may be a value that ``runner.share`` returned.
+    intensity, ``scanner_channel``, ``point_source_id`` and return numbers, sets the scan angle
+    from the beam and the body's heading, and the header's file source ID to the strip id; the
+    CRS is written as WKT (:func:`georefine.io.las_writer.las_crs_wkt`); heights are
+    ellipsoidal. Points outside the trajectory's time span are left out and counted (a warning
+    is logged). ``poses`` may be a value that ``runner.share`` returned.
     """
     if len(plans) != len(out_paths):
         raise ValueError(f"{len(plans)} strips but {len(out_paths)} output paths")

@@ -115,6 +115,9 @@ class ScanChunk:
     beam_w : ndarray (N, 3)
         Unit beam direction in ``w``; the measured point in ``w`` is
         ``xyz_w_true + range_error_m * beam_w``.
+    forward_w : ndarray (N, 3)
+        The body's x axis (forward) in ``w`` at the pulse time (for the LAS scan angle of the
+        georeferenced truth, :func:`georefine.lidar.georeference.scan_angles_deg`).
     pulses : int
         Pulses emitted in the chunk's field of view (returns and misses).
     """
@@ -128,6 +131,7 @@ class ScanChunk:
     face_id: np.ndarray
     xyz_w_true: np.ndarray
     beam_w: np.ndarray
+    forward_w: np.ndarray
     pulses: int = 0
 
     def __post_init__(self):
@@ -135,7 +139,7 @@ class ScanChunk:
         for name in ("channel", "scan_angle_rad", "intensity", "range_error_m", "face_id"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"ScanChunk.{name} must have shape ({n},)")
-        for name in ("xyz_s", "xyz_w_true", "beam_w"):
+        for name in ("xyz_s", "xyz_w_true", "beam_w", "forward_w"):
             if getattr(self, name).shape != (n, 3):
                 raise ValueError(f"ScanChunk.{name} must have shape ({n}, 3)")
 
@@ -294,7 +298,7 @@ def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> Sc
     if len(hit) == 0:
         z = np.zeros(0)
         return ScanChunk(z, np.zeros((0, 3)), np.zeros(0, np.uint8), z, np.zeros(0, np.uint16),
-                         z, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))
+                         z, np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
     r, face, d_w, d_s = range_m[hit], face_id[hit], d_w[hit], d_s[hit]
     d_w = d_w / np.linalg.norm(d_w, axis=1, keepdims=True)  # as used by the ray cast
     xyz_w_true = p_w_s[hit] + r[:, None] * d_w
@@ -305,4 +309,5 @@ def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> Sc
     inten = (cfg.intensity_at_reference * rho * cos_inc * (cfg.intensity_reference_range_m / r) ** 2
              * (1.0 + cfg.intensity_noise_rel * rng.standard_normal(len(hit))))
     inten = np.clip(np.rint(inten), 1, 65535).astype(np.uint16)
-    return ScanChunk(t[hit], xyz_s, channel[hit], alpha[hit], inten, err, face, xyz_w_true, d_w)
+    return ScanChunk(t[hit], xyz_s, channel[hit], alpha[hit], inten, err, face, xyz_w_true, d_w,
+                     np.ascontiguousarray(R_w_b[hit, :, 0]))

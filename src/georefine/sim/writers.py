@@ -17,9 +17,11 @@ from georefine.io.files import week_from_gps_seconds
 from georefine.io.gnss import GnssSolution, write_pos
 from georefine.io.imu import ImuData, write_imr, write_imu_csv
 from georefine.io.las import PointCloud
+from georefine.io.las_encode import ExtraDim
 from georefine.io.las_writer import LasWriter
 from georefine.io.reference import ReferenceSurfaces, write_reference_surfaces
 from georefine.io.trajectory import SbetData, write_sbet
+from georefine.lidar.georeference import beam_scan_angles_deg
 from georefine.sim.flight import TrueTrajectory
 from georefine.sim.gnss import SimulatedGnss
 from georefine.sim.imu import SimulatedImu
@@ -27,6 +29,9 @@ from georefine.sim.scanner import ScanChunk
 
 LAS_SCALE_M = 1e-4
 """Coordinate resolution of scan and truth strips (0.1 mm, far below the ranging noise)."""
+
+RANGE_ERROR_DIM = ExtraDim("range_error_m", "f4", "simulated range noise (m)", no_data=-9999.0)
+"""Extra dimension of the truth strips: the range noise of each return (every return has one)."""
 
 
 def write_gnss(path: Path, gnss: SimulatedGnss) -> None:
@@ -94,17 +99,27 @@ def strip_records(chunk: ScanChunk, strip_id: int, t0_gps: float, frame: LocalFr
     done inside the scan task so that the writer only encodes).
 
     The scan file's time stamps run ``scan_time_offset_s`` behind GPS time (a scanner that is not
-    synchronised); the truth file keeps GPS time."""
+    synchronised); the truth file keeps GPS time.
+
+    Scan angles (LAS ``scan_angle``, :mod:`georefine.io.las`): in the scan file, whose coordinates
+    are the scanner frame, the angle the mirror fired at, ``alpha`` (from the scanner's +z axis,
+    positive towards +y, the right; a view's forward tilt does not enter it), which is the LAS
+    angle with the scanner frame as the data's frame; in the truth file, the angle of the true
+    beam from the local vertical, with the roll (:func:`~georefine.lidar.georeference.scan_angles_deg`'s
+    definition), as a georeferencing with the true trajectory computes it."""
     m = chunk.time.size
     ones = np.ones(m, dtype=np.uint8)
     sid = np.full(m, strip_id, dtype=np.uint16)
     t_gps = t0_gps + chunk.time
-    scan = PointCloud(t_gps - scan_time_offset_s if scan_time_offset_s else t_gps, chunk.xyz_s, chunk.intensity, chunk.channel, sid, ones, ones)
+    scan = PointCloud(t_gps - scan_time_offset_s if scan_time_offset_s else t_gps, chunk.xyz_s, chunk.intensity,
+                      chunk.channel, sid, ones, ones, scan_angle_deg=np.degrees(chunk.scan_angle_rad))
     # Measured point georeferenced with the true pose: the true hit moved by the range noise
     # along the beam (exactly what the scanner model measured).
     measured_w = chunk.xyz_w_true + chunk.range_error_m[:, None] * chunk.beam_w
-    truth = PointCloud(t_gps, crs.from_w(frame, measured_w), chunk.intensity, chunk.channel, sid, ones, ones,
-                       extra={"range_error_m": chunk.range_error_m})
+    lat, lon, h = frame.to_geodetic(measured_w)
+    truth = PointCloud(t_gps, crs.from_geodetic(lat, lon, h), chunk.intensity, chunk.channel, sid, ones, ones,
+                       extra={"range_error_m": chunk.range_error_m},
+                       scan_angle_deg=beam_scan_angles_deg(chunk.beam_w, chunk.forward_w, frame.up_w(lat, lon)))
     return scan, truth
 
 
@@ -125,7 +140,7 @@ def write_strip(
     """
     n = 0
     with LasWriter(scan_path, scale=LAS_SCALE_M, offset=(0.0, 0.0, 0.0)) as scans, LasWriter(
-        truth_path, scale=LAS_SCALE_M, crs=None if crs is None else crs.crs, extra_dims={"range_error_m": np.float32}
+        truth_path, scale=LAS_SCALE_M, crs=None if crs is None else crs.crs, extra_dims=[RANGE_ERROR_DIM]
     ) as truth:
         for scan_records, truth_records in records:
             if len(scan_records) == 0:

@@ -29,7 +29,7 @@ from georefine.geometry.camera import Camera
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io import photos as pio
 from georefine.io.las import PointCloud, read_las_range
-from georefine.io.las_encode import EncodedPoints, LasLayout, encode_points
+from georefine.io.las_encode import EncodedPoints, ExtraDim, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter, offset_near
 from georefine.lidargrammetry.reintersect import Reintersector
 from georefine.lidargrammetry.render import MAX_SPLAT_PX, NEAR_M, Lidargram, LidargramCanvas, max_normalised_radius2
@@ -37,11 +37,14 @@ from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
 from georefine.workflows.cloud_index import INDEX_RANGE_POINTS, RENDER_PART_POINTS, CloudIndex, index_cloud
 
-__all__ = ["SECTION", "PhotoProject", "CloudIndex", "lidargrammetry_settings", "load_photo_project", "read_cloud",
+__all__ = ["SECTION", "LIDARGRAMS_DIM", "PhotoProject", "CloudIndex", "lidargrammetry_settings", "load_photo_project", "read_cloud",
            "render_lidargrams", "render_in_cloud", "write_cloud"]
 
 SECTION = "processing.lidargrammetry"
 """Where the settings are in ``project.yaml`` (errors name ``SECTION.field``)."""
+
+LIDARGRAMS_DIM = ExtraDim("lidargrams", "i2", "lidargrams that showed the point", no_data=-1)
+"""Extra dimension of the refined cloud: 1, 2, ... lidargrams, 0 interpolated, -1 (no data) unchanged."""
 
 
 @dataclass(frozen=True)
@@ -178,8 +181,10 @@ def write_cloud(cloud: CloudIndex, refine: Reintersector, folder: Path, *, prote
     Every point is moved by ``refine`` (:class:`~georefine.lidargrammetry.reintersect.Reintersector`)
     in tasks of :data:`~georefine.workflows.cloud_index.INDEX_RANGE_POINTS` records that read their
     range, move it and compress it (:func:`georefine.io.las_encode.encode_points`); this process
-    writes the chunks in order. Extra dimension ``lidargrams``: how many lidargrams showed the
-    point (0: interpolated from its neighbours, -1: outside every lidargram, unchanged).
+    writes the chunks in order. Extra dimension ``lidargrams`` (:data:`LIDARGRAMS_DIM`): how
+    many lidargrams showed the point (0: interpolated from its neighbours, -1, the no-data value:
+    outside every lidargram, unchanged). The scan angles are the input's (a move of centimetres
+    turns a beam by far less than the LAS step of 0.006 degrees), and so is each file's source ID.
     Returns how many points were moved which way (as :meth:`Reintersection.summary`).
     """
     folder.mkdir(parents=True, exist_ok=True)
@@ -188,7 +193,7 @@ def write_cloud(cloud: CloudIndex, refine: Reintersector, folder: Path, *, prote
     counts = np.zeros(4, np.int64)
     for k, f in enumerate(cloud.files):
         with LasWriter(folder / (f.stem + ".laz"), scale=0.001, offset=offset_near(cloud.file_centre[k]),
-                       crs=cloud.crs.crs, protect=[*protect, f], extra_dims=["lidargrams"]) as w:
+                       crs=cloud.crs.crs, protect=[*protect, f], extra_dims=[LIDARGRAMS_DIM]) as w:
             layout = w.layout_for()
             n = int(cloud.file_start[k + 1] - cloud.file_start[k])
             tasks = [(shared, k, a, min(a + INDEX_RANGE_POINTS, n), layout) for a in range(0, n, INDEX_RANGE_POINTS)]
@@ -209,7 +214,7 @@ def _refine_range(shared: tuple[CloudIndex, Reintersector], strip: int, start: i
     xyz_w, n = refine.refine(cloud.crs.to_w(cloud.frame, c.xyz), ids, np.full(len(ids), strip))
     out = PointCloud(c.time_gps, cloud.crs.from_w(cloud.frame, xyz_w), c.intensity, c.scanner_channel,
                      c.point_source_id, c.return_number, c.number_of_returns,
-                     {"lidargrams": n.astype(np.float64)})
+                     {"lidargrams": n.astype(np.float64)}, scan_angle_deg=c.scan_angle_deg)
     counts = np.array([np.count_nonzero(n == 0), np.count_nonzero(n == 1), np.count_nonzero(n >= 2),
                        np.count_nonzero(n < 0)], np.int64)
     return encode_points(out, layout), counts
