@@ -170,7 +170,8 @@ def trajectory(
 ) -> None:
     """Estimate the trajectory from GNSS and IMU (workflow steps 1-2).
 
-    Writes trajectory.sbet (IMU rate), trajectory.csv (output CRS, roll/pitch/heading and
+    Writes trajectory.sbet (IMU rate, seconds of the GPS week; the week in trajectory.sbet.json, the
+    posterior sigma in smrmsg_trajectory.out), trajectory.csv (output CRS, roll/pitch/heading and
     posterior sigma), adjustment.json (statistics, IMU errors, timings) and the resolved
     configuration.
     """
@@ -197,7 +198,8 @@ def run(
 ) -> None:
     """Run the whole workflow: filter, G/I adjustment, planar features, G/I/L adjustment, point clouds.
 
-    Writes gi/ and gil/ (trajectory.sbet, trajectory.csv, adjustment.json), points/*.laz,
+    Writes gi/ and gil/ (trajectory.sbet with trajectory.sbet.json and smrmsg_trajectory.out,
+    trajectory.csv, adjustment.json), points/*.laz,
     features/ (features.csv, objects.csv), metrics.json and the resolved configuration. Each
     step's result is cached in OUT/.cache: a rerun resumes what its inputs have not changed.
     """
@@ -229,7 +231,8 @@ def georeference(
     project: Path = typer.Argument(..., help="Project folder with project.yaml."),
     trajectory_file: Path = typer.Option(..., "--trajectory", help="Trajectory SBET (IMU, WGS84)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the LAZ strips."),
-    gps_week: Optional[int] = typer.Option(None, "--gps-week", help="GPS week of an SBET in seconds of week."),
+    gps_week: Optional[int] = typer.Option(None, "--gps-week", help="GPS week of an SBET in seconds of week without "
+                                           "a companion file (default: the week of the strips' GPS time)."),
     scheduler: str = _scheduler_option(),
     force: bool = _force_option(),
 ) -> None:
@@ -472,8 +475,9 @@ def evaluate_trajectory(
     ),
     gps_week: Optional[int] = typer.Option(
         None, "--gps-week",
-        help="GPS week of SBETs that store seconds of week. Without it such a file is assumed to be in the "
-        "same week as the other file (both seconds of week: compared as seconds of week).",
+        help="GPS week of SBETs that store seconds of week. Without it such a file takes the week of its companion "
+        "file (NAME.json, beside Georefine's SBETs) or is assumed to be in the same week as the other file (both "
+        "seconds of week: compared as seconds of week).",
     ),
     span: Optional[tuple[float, float]] = typer.Option(
         None, "--span", metavar="START END",

@@ -109,6 +109,8 @@ class GnssImuResult:
     timings_s: dict = field(default_factory=dict)
     high_rate: HighRateMotion | None = None
     """Motion faster than the knots, rebuilt from the IMU (:mod:`georefine.adjustment.upsampling`)."""
+    sigma_velocity_m_s: np.ndarray | None = None
+    """Posterior velocity sigma in ``w`` at ``sigma_time``, m/s (the knot velocities are the spline's)."""
 
 
 @dataclass
@@ -268,7 +270,7 @@ def solve_gnss_imu(
 
 
 def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResult:
-    """``result`` with posterior sigma of attitude (roll/pitch/yaw), position and IMU errors.
+    """``result`` with posterior sigma of attitude (roll/pitch/yaw), position, velocity and IMU errors.
 
     ``built`` must be the problem whose last solve gave ``result``. Attitude and position sigma
     are computed at knots every ``covariance_interval_s`` (at most ``max_covariance_knots``).
@@ -283,6 +285,7 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
         knots = np.append(knots, grid.n_knots - 1)
     cov_R = p.covariance(built.blocks.attitude, knots)
     cov_p = p.covariance(built.blocks.position, knots)
+    cov_v = p.covariance(built.blocks.velocity, knots)
     spline = result.spline
     tk = grid.knot_times[knots]
     p_w, R_w_b = spline.pose(tk)
@@ -291,6 +294,7 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
     cov_rph = Einv @ cov_R @ np.swapaxes(Einv, 1, 2)
     sigma_rph = np.sqrt(np.clip(np.diagonal(cov_rph, axis1=1, axis2=2), 0.0, None))
     sigma_p = np.sqrt(np.clip(np.diagonal(cov_p, axis1=1, axis2=2), 0.0, None))
+    sigma_v = np.sqrt(np.clip(np.diagonal(cov_v, axis1=1, axis2=2), 0.0, None))
 
     def sig(name):
         c = p.covariance(name)
@@ -304,4 +308,4 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
         gyro_scale_sigma=sig("gyro_scale")[0] if built.estimate_scale else None,
     )
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
-    return GnssImuResult(spline, errors, result.solve, tk, sigma_rph, sigma_p, timings, result.high_rate)
+    return GnssImuResult(spline, errors, result.solve, tk, sigma_rph, sigma_p, timings, result.high_rate, sigma_v)

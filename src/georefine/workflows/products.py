@@ -1,24 +1,37 @@
-"""Trajectory products: SBET at IMU rate, trajectory CSV in the output CRS, JSON statistics.
+"""Trajectory products: SBET at IMU rate with its companion and accuracy files, trajectory CSV
+in the output CRS (docs/ARCHITECTURE.md §4.5 step 6).
 
-The pipeline's trajectory product (docs/ARCHITECTURE.md §4.5 step 6) is an SBET (WGS84, wander angle 0,
-NED velocity, roll/pitch/true heading, body specific force and angular rate) at the IMU's
-sample times, so that any downstream tool can georeference with it; the CSV carries the
-position in the output CRS, the attitude in degrees and the posterior 1-sigma.
+The pipeline's trajectory product is an SBET (WGS84, wander angle 0, NED velocity,
+roll/pitch/true heading, body specific force and angular rate) at the IMU's sample times, in
+seconds of the GPS week as POSPac and Inertial Explorer write it, so that any downstream tool
+can georeference with it. Beside it: the companion ``<name>.json`` stating the GPS week and
+the output CRS, and the POSPac-style accuracy file ``smrmsg_<stem>.out`` with the posterior
+1-sigma (formats in :mod:`georefine.io.trajectory`). The CSV carries the position in the
+output CRS, the attitude in degrees and the posterior 1-sigma.
 """
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
 
 from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.io.files import week_from_gps_seconds
 from georefine.io.trajectory import (
+    SbetCompanion,
     SbetData,
+    SmrmsgData,
     TrajectoryTable,
+    smrmsg_path,
     write_sbet,
+    write_sbet_companion,
+    write_smrmsg,
     write_trajectory_csv,
 )
+
+log = logging.getLogger(__name__)
 
 
 def sbet_from_states(
@@ -58,8 +71,37 @@ def body_kinematics(frame: LocalFrame, spline, time: np.ndarray) -> tuple[np.nda
     return p, v, R, f, omega_ib
 
 
-def write_sbet_product(path: Path, frame: LocalFrame, t0_gps: float, time, p, v, R, f=None, w=None) -> None:
-    write_sbet(path, sbet_from_states(frame, t0_gps, time, p, v, R, f, w), time_scale="gps")
+def accuracy_from_sigmas(
+    frame: LocalFrame, t0_gps: float, time: np.ndarray, p_w_b: np.ndarray, sigma_p_w: np.ndarray,
+    sigma_v_w: np.ndarray, sigma_rph_rad: np.ndarray,
+) -> SmrmsgData:
+    """Accuracy records (``smrmsg``) of posterior sigmas at ``time`` (s relative to ``t0_gps``).
+
+    Position and velocity sigmas are per ``w`` axis (east, north, up at the reference point);
+    their diagonal covariance is rotated into the local north-east-down frame at ``p_w_b``
+    (correlations between the axes are not in the sigmas and not in the file).
+    """
+    R_n_w = np.swapaxes(frame.R_w_n_at(p_w_b), 1, 2)
+
+    def ned(sigma_w: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.einsum("nij,nj->ni", R_n_w**2, np.asarray(sigma_w, dtype=float) ** 2))
+
+    return SmrmsgData(t0_gps + np.asarray(time, dtype=float), ned(sigma_p_w), ned(sigma_v_w), sigma_rph_rad)
+
+
+def write_sbet_product(
+    path: Path, frame: LocalFrame, t0_gps: float, time, p, v, R, f=None, w=None, *,
+    output_epsg: int | None = None, accuracy: SmrmsgData | None = None,
+) -> None:
+    """``path`` (SBET, seconds of the GPS week), its companion ``path.json`` and, with
+    ``accuracy``, the accuracy file ``smrmsg_<stem>.out`` beside it (same week)."""
+    sbet = sbet_from_states(frame, t0_gps, time, p, v, R, f, w)
+    week = int(week_from_gps_seconds(sbet.time_gps[0])[0])
+    write_sbet(path, sbet, time_scale="week")
+    accuracy_file = None
+    if accuracy is not None:
+        accuracy_file = write_smrmsg(smrmsg_path(path), accuracy, gps_week=week).name
+    write_sbet_companion(path, SbetCompanion(week, output_epsg, accuracy_file))
 
 
 def write_csv_product(
@@ -82,3 +124,4 @@ def write_csv_product(
     table = TrajectoryTable(t0_gps + time, xyz, rph, sigma_xyz_m=sig_xyz, sigma_rpy_rad=sigma_rph_rad,
                             crs=f"EPSG:{crs.epsg}")
     write_trajectory_csv(path, table)
+
