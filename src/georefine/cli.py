@@ -455,6 +455,42 @@ def coadjust(
 
 
 # ---------------------------------------------------------------------------
+# georefine export ...
+# ---------------------------------------------------------------------------
+
+export_app = typer.Typer(
+    help="Write results in the formats of other tools (trajectories for evo and trajectopy, ...).",
+    no_args_is_help=True,
+)
+app.add_typer(export_app, name="export")
+
+
+@export_app.command("trajectory")
+def export_trajectory_cmd(
+    source: Path = typer.Argument(..., help="Trajectory SBET, or a trajectory CSV (.csv) of Georefine."),
+    fmt: str = typer.Option(..., "--format", "-f", help="tum (evo: timestamp tx ty tz qx qy qz qw, GPS seconds) or "
+                            "trajectopy (.traj: #epsg, #fields, seconds of the GPS week)."),
+    out: Path = typer.Option(..., "--out", "-o", help="File to write (its folder must exist)."),
+    epsg: Optional[int] = typer.Option(
+        None, "--epsg", help="CRS of the positions: projected (grid east-north-up axes) or geocentric, e.g. 4978. "
+        "Default: the output CRS the SBET's companion file or the CSV states."),
+    gps_week: Optional[int] = typer.Option(
+        None, "--gps-week", help="GPS week of an SBET in seconds of week that has no companion file."),
+) -> None:
+    """Write a trajectory as TUM (evo) or trajectopy's format: one pose per IMU record or CSV row.
+
+    Positions of the IMU in the CRS; the quaternion is the body attitude (x forward, y right, z down) in
+    the CRS's axes (grid east-north-up, meridian convergence included), so that evo_ape and trajectopy's
+    ATE without alignment give Georefine's own figures.
+    """
+    with _user_errors():
+        from georefine.workflows.products import export_trajectory
+
+        result = export_trajectory(source, out, fmt, epsg=epsg, gps_week=gps_week)
+    stdout.print(result.summary())
+
+
+# ---------------------------------------------------------------------------
 # georefine evaluate ...
 # ---------------------------------------------------------------------------
 
