@@ -1,7 +1,8 @@
-"""Tests of georefine.io.trajectory (SBET and trajectory CSV)."""
+"""Tests of georefine.io.trajectory (SBET with its companion file, smrmsg accuracy file, trajectory CSV)."""
 
 from __future__ import annotations
 
+import json
 import struct
 
 import numpy as np
@@ -10,11 +11,20 @@ import pytest
 from georefine.errors import InputError
 from georefine.io.trajectory import (
     SBET_RECORD_SIZE,
+    SMRMSG_RECORD_SIZE,
+    SbetCompanion,
     SbetData,
+    SmrmsgData,
     TrajectoryTable,
     read_sbet,
+    read_sbet_companion,
+    read_smrmsg,
     read_trajectory_csv,
+    sbet_companion_path,
+    smrmsg_path,
     write_sbet,
+    write_sbet_companion,
+    write_smrmsg,
     write_trajectory_csv,
 )
 
@@ -108,6 +118,120 @@ def test_sbet_non_finite(tmp_path):
         read_sbet(tmp_path / "n.out")
 
 
+# --- SBET companion file (GPS week) ------------------------------------------------
+
+
+def test_sbet_week_from_companion_file(tmp_path):
+    data = _sbet(2, n=20)
+    path = write_sbet(tmp_path / "trajectory.sbet", data, "week")
+    assert np.fromfile(path, "<f8", count=1)[0] < 604800.0  # seconds of week, as POSPac writes them
+    companion = write_sbet_companion(path, SbetCompanion(WEEK, 25832, "smrmsg_trajectory.out"))
+    assert companion == sbet_companion_path(path) == tmp_path / "trajectory.sbet.json"
+    stated = json.loads(companion.read_text())
+    assert stated["gps_week"] == WEEK and stated["time"] == "GPS seconds of week"
+    assert stated["output_crs"] == "EPSG:25832" and stated["accuracy_file"] == "smrmsg_trajectory.out"
+    assert read_sbet_companion(path) == SbetCompanion(WEEK, 25832, "smrmsg_trajectory.out")
+    _assert_sbet_equal(data, read_sbet(path))  # the week found without being given
+    _assert_sbet_equal(data, read_sbet(path, gps_week=WEEK))  # given and agreeing
+    with pytest.raises(InputError) as info:
+        read_sbet(path, gps_week=WEEK - 1)
+    msg = str(info.value)
+    assert "trajectory.sbet.json" in msg and "contradicts" in msg and str(WEEK - 1) in msg and str(WEEK) in msg
+    # A week file with only the week is enough; no companion at all keeps the clear error.
+    companion.write_text(json.dumps({"gps_week": WEEK + 1}))
+    assert read_sbet(path).time_gps[0] == pytest.approx(data.time_gps[0] + 604800.0, abs=1e-6)
+    companion.unlink()
+    assert read_sbet_companion(path) is None
+    with pytest.raises(InputError, match=r"trajectory\.sbet, record 1, field 'time'.*GPS week is needed.*trajectory\.sbet\.json"):
+        read_sbet(path)
+
+
+@pytest.mark.parametrize("content, field, found", [
+    ('{"gps_week": "2314"}', "gps_week", "'2314'"),
+    ('{"gps_week": -1}', "gps_week", "-1"),
+    ('{"gps_week": 2314.5}', "gps_week", "2314.5"),
+    ('{"time": "GPS seconds", "gps_week": 2314}', "time", "'GPS seconds'"),
+    ('{"gps_week": 2314, "output_crs": "UTM32"}', "output_crs", "'UTM32'"),
+    ('{"gps_week": 2314, "accuracy_file": "../x.out"}', "accuracy_file", "'../x.out'"),
+    ('[2314]', None, "list"),
+    ('{"gps_week": 2314', None, "Expecting"),
+])
+def test_sbet_bad_companion_file(tmp_path, content, field, found):
+    path = write_sbet(tmp_path / "t.sbet", _sbet(0, n=3), "week")
+    sbet_companion_path(path).write_text(content)
+    with pytest.raises(InputError) as info:
+        read_sbet(path)
+    msg = str(info.value)
+    assert "t.sbet.json" in msg and found in msg and (field is None or f"field '{field}'" in msg), msg
+
+
+# --- smrmsg accuracy file ------------------------------------------------------------
+
+
+def _smrmsg(seed: int, n: int = 50, t0: float = T0) -> SmrmsgData:
+    rng = np.random.default_rng(seed)
+    return SmrmsgData(t0 + np.arange(n) * 1.0, rng.uniform(0.01, 0.05, (n, 3)), rng.uniform(0.001, 0.01, (n, 3)),
+                      np.radians(rng.uniform(1, 30, (n, 3)) / 1000.0))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_smrmsg_round_trip(tmp_path, seed):
+    data = _smrmsg(seed)
+    path = write_smrmsg(tmp_path / "smrmsg_t.out", data, gps_week=WEEK)
+    assert path.stat().st_size == len(data) * SMRMSG_RECORD_SIZE == len(data) * 80
+    raw = np.fromfile(path, "<f8").reshape(-1, 10)
+    assert raw[0, 0] == T0 - WEEK * 604800.0  # seconds of week
+    np.testing.assert_allclose(raw[:, 7:10], np.degrees(data.sigma_rph_rad) * 60.0, rtol=1e-14)  # arc minutes
+    back = read_smrmsg(path, gps_week=WEEK)
+    np.testing.assert_array_equal(back.time_gps, data.time_gps)
+    np.testing.assert_array_equal(back.sigma_ned_m, data.sigma_ned_m)
+    np.testing.assert_array_equal(back.sigma_velocity_ned_m_s, data.sigma_velocity_ned_m_s)
+    np.testing.assert_allclose(back.sigma_rph_rad, data.sigma_rph_rad, rtol=1e-14, atol=0)
+
+
+def test_smrmsg_field_order(tmp_path):
+    # POSPac's record: time (s of week), N/E/D position RMS (m), N/E/D velocity RMS (m/s),
+    # roll/pitch/heading RMS (arc minutes).
+    path = tmp_path / "smrmsg_one.out"
+    path.write_bytes(struct.pack("<10d", 492800.5, 0.01, 0.02, 0.03, 0.004, 0.005, 0.006, 0.5, 0.75, 3.0))
+    a = read_smrmsg(path, gps_week=WEEK)
+    assert a.time_gps[0] == WEEK * 604800.0 + 492800.5
+    np.testing.assert_array_equal(a.sigma_ned_m[0], [0.01, 0.02, 0.03])
+    np.testing.assert_array_equal(a.sigma_velocity_ned_m_s[0], [0.004, 0.005, 0.006])
+    np.testing.assert_allclose(np.degrees(a.sigma_rph_rad[0]) * 60.0, [0.5, 0.75, 3.0], rtol=1e-14)
+
+
+def test_smrmsg_path_is_named_the_pospac_way(tmp_path):
+    assert smrmsg_path(tmp_path / "trajectory.sbet") == tmp_path / "smrmsg_trajectory.out"
+    assert smrmsg_path(tmp_path / "sbet_Mission1.out") == tmp_path / "smrmsg_Mission1.out"
+
+
+def _damaged_smrmsg(tmp_path, edit) -> str:
+    path = write_smrmsg(tmp_path / "smrmsg_d.out", _smrmsg(3, n=6), gps_week=WEEK)
+    raw = np.fromfile(path, "<f8").reshape(-1, 10)
+    data = edit(raw)
+    path.write_bytes(data if isinstance(data, bytes) else raw.tobytes())
+    with pytest.raises(InputError) as info:
+        read_smrmsg(path, gps_week=WEEK)
+    return str(info.value)
+
+
+def test_smrmsg_bad_files(tmp_path):
+    msg = _damaged_smrmsg(tmp_path, lambda r: r.tobytes()[:-8])
+    assert "smrmsg_d.out" in msg and "record 6" in msg and "incomplete record" in msg and "72 bytes" in msg
+    msg = _damaged_smrmsg(tmp_path, lambda r: b"")
+    assert "no accuracy records" in msg
+    msg = _damaged_smrmsg(tmp_path, lambda r: r.__setitem__((2, 5), np.inf))
+    assert "record 3, field 'east_velocity_rms': non-finite value" in msg
+    msg = _damaged_smrmsg(tmp_path, lambda r: r.__setitem__((4, 9), -1.0))
+    assert "record 5, field 'heading_rms': negative RMS" in msg
+    msg = _damaged_smrmsg(tmp_path, lambda r: r.__setitem__((3, 0), r[2, 0]))
+    assert "record 4, field 'time': time repeats" in msg
+    path = write_smrmsg(tmp_path / "smrmsg_w.out", _smrmsg(3, n=2), gps_week=WEEK)
+    with pytest.raises(InputError, match=r"record 1, field 'time'.*GPS week is needed"):
+        read_smrmsg(path)
+
+
 # --- trajectory CSV ---------------------------------------------------------------
 
 
@@ -129,7 +253,9 @@ def _table(seed: int, n: int = 100, pos_sigma=True, att_sigma=True) -> Trajector
 @pytest.mark.parametrize("att_sigma", [False, True])
 def test_trajectory_csv_round_trip(tmp_path, pos_sigma, att_sigma):
     table = _table(0, pos_sigma=pos_sigma, att_sigma=att_sigma)
-    back = read_trajectory_csv(write_trajectory_csv(tmp_path / "traj.csv", table))
+    path = write_trajectory_csv(tmp_path / "traj.csv", table)
+    assert f"# gps_week: {int(T0 // 604800)}" in path.read_text().splitlines()  # the week of the SBET beside it
+    back = read_trajectory_csv(path)
     assert back.crs == "EPSG:25832"
     np.testing.assert_allclose(back.time_gps, table.time_gps, atol=1e-6)
     np.testing.assert_allclose(back.xyz, table.xyz, atol=5e-5 + 1e-9)

@@ -20,7 +20,7 @@ from georefine.geometry import earth
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import log_so3
 from georefine.io.imu import read_imr, read_imu_csv
-from georefine.io.trajectory import read_sbet
+from georefine.io.trajectory import read_sbet, read_sbet_companion
 from georefine.sim.scenarios import simulate_project
 from georefine.sim.verify import verify_project
 from georefine.trajectory.sampled import trajectory_from_sbet
@@ -123,6 +123,9 @@ def test_sbet_is_17_doubles_per_record(ideal_project):
     assert rec.shape[0] == imu.time_gps.size  # at IMU rate
     np.testing.assert_allclose(rec[:, 11:14], imu.acc, atol=1e-9)  # body specific force
     np.testing.assert_allclose(rec[:, 14:17], imu.gyro, atol=1e-12)  # body angular rate
+    companion = read_sbet_companion(path)  # truth/trajectory.sbet.json: the week, as beside a run's SBETs
+    assert companion.gps_week == int(imu.time_gps[0] // 604800) and companion.output_epsg == 25832
+    np.testing.assert_allclose(read_sbet(path).time_gps, imu.time_gps, rtol=0, atol=1e-6)
 
 
 def test_scans_georeferenced_with_true_trajectory_reproduce_truth(ideal_project):

@@ -18,7 +18,7 @@ import yaml
 from cli_helpers import run_georefine as _georefine
 from georefine.evaluation.trajectory import consistency
 from georefine.evaluation.trajectory_files import compare_sbet_files
-from georefine.io.trajectory import read_sbet, read_trajectory_csv
+from georefine.io.trajectory import read_sbet, read_sbet_companion, read_smrmsg, read_trajectory_csv
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows import load_navigation, run_trajectory
 
@@ -290,5 +290,21 @@ def test_trajectory_cli_writes_products(tiny, tmp_path):
     dw = est.angular_rate_b[ie] - tru.angular_rate_b[it]
     assert np.sqrt(np.mean(df**2)) < 0.05 and np.abs(np.mean(df, axis=0)).max() < 2e-3  # m/s^2
     assert np.sqrt(np.mean(dw**2)) < 2e-3 and np.abs(np.mean(dw, axis=0)).max() < 2e-5  # rad/s
+    # Seconds of the GPS week, the week in trajectory.sbet.json; the filter's sigma in the smrmsg file.
+    assert np.fromfile(tmp_path / "o" / "trajectory.sbet", "<f8", count=1)[0] < 604800.0
+    companion = read_sbet_companion(tmp_path / "o" / "trajectory.sbet")
+    assert companion.gps_week == int(est.time_gps[0] // 604800) and companion.output_epsg == 25832
+    acc = read_smrmsg(tmp_path / "o" / companion.accuracy_file, gps_week=companion.gps_week)
+    table = read_trajectory_csv(tmp_path / "o" / "trajectory.csv")
+    np.testing.assert_allclose(acc.time_gps, table.time_gps, rtol=0, atol=1e-6)
+    # north, east, down against the CSV's x (east), y (north), z: equal up to the angle the flight spans at
+    # the Earth's centre (w's axes are those of its reference point) and the CSV's rounding
+    np.testing.assert_allclose(acc.sigma_ned_m[:, [1, 0, 2]], table.sigma_xyz_m, rtol=1e-3, atol=1e-5)
+    np.testing.assert_allclose(acc.sigma_rph_rad, table.sigma_rpy_rad, rtol=1e-4, atol=1e-9)
+    common, ie, it = np.intersect1d(np.round(est.time_gps, 4), np.round(acc.time_gps, 4), return_indices=True)
+    _, je, jt = np.intersect1d(np.round(est.time_gps[ie], 4), np.round(tru.time_gps, 4), return_indices=True)
+    dv = est.velocity_ned()[ie][je] - tru.velocity_ned()[jt]
+    z = np.sqrt(np.mean((dv / acc.sigma_velocity_ned_m_s[it][je]) ** 2, axis=0))
+    assert np.all((z > 0.5) & (z < 2.0)), z  # the velocity sigma describe the velocity errors (measured 0.95-0.98)
     run = _georefine("trajectory", str(tiny), "--out", str(tiny / "inside"))
     assert run.returncode == 2 and "project folder" in run.stderr

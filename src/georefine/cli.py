@@ -170,7 +170,8 @@ def trajectory(
 ) -> None:
     """Estimate the trajectory from GNSS and IMU (workflow steps 1-2).
 
-    Writes trajectory.sbet (IMU rate), trajectory.csv (output CRS, roll/pitch/heading and
+    Writes trajectory.sbet (IMU rate, seconds of the GPS week; the week in trajectory.sbet.json, the
+    posterior sigma in smrmsg_trajectory.out), trajectory.csv (output CRS, roll/pitch/heading and
     posterior sigma), adjustment.json (statistics, IMU errors, timings) and the resolved
     configuration.
     """
@@ -197,7 +198,8 @@ def run(
 ) -> None:
     """Run the whole workflow: filter, G/I adjustment, planar features, G/I/L adjustment, point clouds.
 
-    Writes gi/ and gil/ (trajectory.sbet, trajectory.csv, adjustment.json), points/*.laz,
+    Writes gi/ and gil/ (trajectory.sbet with trajectory.sbet.json and smrmsg_trajectory.out,
+    trajectory.csv, adjustment.json), points/*.laz,
     features/ (features.csv, objects.csv), metrics.json and the resolved configuration. Each
     step's result is cached in OUT/.cache: a rerun resumes what its inputs have not changed.
     """
@@ -229,7 +231,8 @@ def georeference(
     project: Path = typer.Argument(..., help="Project folder with project.yaml."),
     trajectory_file: Path = typer.Option(..., "--trajectory", help="Trajectory SBET (IMU, WGS84)."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder for the LAZ strips."),
-    gps_week: Optional[int] = typer.Option(None, "--gps-week", help="GPS week of an SBET in seconds of week."),
+    gps_week: Optional[int] = typer.Option(None, "--gps-week", help="GPS week of an SBET in seconds of week without "
+                                           "a companion file (default: the week of the strips' GPS time)."),
     scheduler: str = _scheduler_option(),
     force: bool = _force_option(),
 ) -> None:
@@ -494,6 +497,42 @@ def coadjust(
 
 
 # ---------------------------------------------------------------------------
+# georefine export ...
+# ---------------------------------------------------------------------------
+
+export_app = typer.Typer(
+    help="Write results in the formats of other tools (trajectories for evo and trajectopy, ...).",
+    no_args_is_help=True,
+)
+app.add_typer(export_app, name="export")
+
+
+@export_app.command("trajectory")
+def export_trajectory_cmd(
+    source: Path = typer.Argument(..., help="Trajectory SBET, or a trajectory CSV (.csv) of Georefine."),
+    fmt: str = typer.Option(..., "--format", "-f", help="tum (evo: timestamp tx ty tz qx qy qz qw, GPS seconds) or "
+                            "trajectopy (.traj: #epsg, #fields, seconds of the GPS week)."),
+    out: Path = typer.Option(..., "--out", "-o", help="File to write (its folder must exist)."),
+    epsg: Optional[int] = typer.Option(
+        None, "--epsg", help="CRS of the positions: projected (grid east-north-up axes) or geocentric, e.g. 4978. "
+        "Default: the output CRS the SBET's companion file or the CSV states."),
+    gps_week: Optional[int] = typer.Option(
+        None, "--gps-week", help="GPS week of an SBET in seconds of week that has no companion file."),
+) -> None:
+    """Write a trajectory as TUM (evo) or trajectopy's format: one pose per IMU record or CSV row.
+
+    Positions of the IMU in the CRS; the quaternion is the body attitude (x forward, y right, z down) in
+    the CRS's axes (grid east-north-up, meridian convergence included), so that evo_ape and trajectopy's
+    ATE without alignment give Georefine's own figures.
+    """
+    with _user_errors():
+        from georefine.workflows.products import export_trajectory
+
+        result = export_trajectory(source, out, fmt, epsg=epsg, gps_week=gps_week)
+    stdout.print(result.summary())
+
+
+# ---------------------------------------------------------------------------
 # georefine evaluate ...
 # ---------------------------------------------------------------------------
 
@@ -514,8 +553,9 @@ def evaluate_trajectory(
     ),
     gps_week: Optional[int] = typer.Option(
         None, "--gps-week",
-        help="GPS week of SBETs that store seconds of week. Without it such a file is assumed to be in the "
-        "same week as the other file (both seconds of week: compared as seconds of week).",
+        help="GPS week of SBETs that store seconds of week. Without it such a file takes the week of its companion "
+        "file (NAME.json, beside Georefine's SBETs) or is assumed to be in the same week as the other file (both "
+        "seconds of week: compared as seconds of week).",
     ),
     span: Optional[tuple[float, float]] = typer.Option(
         None, "--span", metavar="START END",

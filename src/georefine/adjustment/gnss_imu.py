@@ -115,6 +115,8 @@ class GnssImuResult:
     high_rate: HighRateMotion | None = None
     """Motion faster than the knots, rebuilt from the IMU (:mod:`georefine.adjustment.upsampling`),
     or the delivered trajectory's (:mod:`georefine.adjustment.trajectory_prior`)."""
+    sigma_velocity_m_s: np.ndarray | None = None
+    """Posterior velocity sigma in ``w`` at ``sigma_time``, m/s (the knot velocities are the spline's)."""
     sbet_errors: object | None = None
     """Without raw GNSS/IMU (``imu_errors`` None): the delivered trajectory's estimated error,
     a :class:`~georefine.adjustment.trajectory_prior.SbetErrorEstimate`."""
@@ -278,9 +280,9 @@ def solve_gnss_imu(
 
 def trajectory_sigma(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid, cfg: TrajectoryAdjustmentConfig,
                      frame: LocalFrame, spline: SplineTrajectory, scale: float | None = None,
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Posterior roll/pitch/heading and position sigma of a solved trajectory, at every
-    ``covariance_interval_s`` (at most ``max_covariance_knots`` knots): ``(times, sigma_rph, sigma_p)``.
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Posterior roll/pitch/heading, position and velocity sigma of a solved trajectory, at every
+    ``covariance_interval_s`` (at most ``max_covariance_knots`` knots): ``(times, sigma_rph, sigma_p, sigma_v)``.
 
     The covariance is scaled by the a-posteriori variance factor, or by ``scale`` when given."""
     step = max(1, int(round(cfg.covariance_interval_s / grid.dt)), int(np.ceil(grid.n_knots / cfg.max_covariance_knots)))
@@ -291,6 +293,8 @@ def trajectory_sigma(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid,
     cov_R = problem.covariance(blocks.attitude, knots, scale_by_variance_factor=by_vf) * (1.0 if by_vf else scale)
     cov_p = problem.covariance(blocks.position, knots, scale_by_variance_factor=by_vf,
                                diagonal=True) * (1.0 if by_vf else scale)
+    cov_v = problem.covariance(blocks.velocity, knots, scale_by_variance_factor=by_vf,
+                               diagonal=True) * (1.0 if by_vf else scale)
     tk = grid.knot_times[knots]
     p_w, R_w_b = spline.pose(tk)
     rph = rph_from_R_n_b(np.swapaxes(frame.R_w_n_at(p_w), 1, 2) @ R_w_b)
@@ -298,7 +302,8 @@ def trajectory_sigma(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid,
     cov_rph = Einv @ cov_R @ np.swapaxes(Einv, 1, 2)
     sigma_rph = np.sqrt(np.clip(np.diagonal(cov_rph, axis1=1, axis2=2), 0.0, None))
     sigma_p = np.sqrt(np.clip(np.diagonal(cov_p, axis1=1, axis2=2), 0.0, None))
-    return tk, sigma_rph, sigma_p
+    sigma_v = np.sqrt(np.clip(np.diagonal(cov_v, axis1=1, axis2=2), 0.0, None))
+    return tk, sigma_rph, sigma_p, sigma_v
 
 
 def block_sigma(problem: Problem, name: str, scale: float | None = None) -> np.ndarray:
@@ -311,14 +316,15 @@ def block_sigma(problem: Problem, name: str, scale: float | None = None) -> np.n
 
 
 def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResult:
-    """``result`` with posterior sigma of attitude (roll/pitch/yaw), position and IMU errors.
+    """``result`` with posterior sigma of attitude (roll/pitch/yaw), position, velocity and IMU errors.
 
     ``built`` must be the problem whose last solve gave ``result``. Attitude and position sigma
     are computed at knots every ``covariance_interval_s`` (at most ``max_covariance_knots``).
     """
     t = _time.perf_counter()
     p = built.problem
-    tk, sigma_rph, sigma_p = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame, result.spline)
+    tk, sigma_rph, sigma_p, sigma_v = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame,
+                                                       result.spline)
     e = result.imu_errors
     errors = ImuErrorEstimate(
         e.bias_grid, e.acc_bias, e.gyro_bias, e.acc_scale, e.gyro_scale,
@@ -328,4 +334,4 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
     )
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
     return replace(result, imu_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph, sigma_position_m=sigma_p,
-                   timings_s=timings)
+                   sigma_velocity_m_s=sigma_v, timings_s=timings)

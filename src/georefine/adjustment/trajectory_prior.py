@@ -237,11 +237,11 @@ def with_prior_posterior(built: TrajectoryPriorProblem, result: GnssImuResult) -
     # fit the reference they are fitted to, so without other observations the factor is 0 and
     # says nothing; the stated accuracy is the floor.
     vf = max(1.0, float(result.solve.sigma0) ** 2)
-    tk, sigma_rph, sigma_p = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame, result.spline,
-                                              scale=vf)
+    tk, sigma_rph, sigma_p, sigma_v = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame,
+                                                       result.spline, scale=vf)
     e = result.sbet_errors
     errors = replace(e, position_sigma_m=block_sigma(p, POSITION_ERROR, vf),
                      attitude_sigma_rad=block_sigma(p, ATTITUDE_ERROR, vf))
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
     return replace(result, sbet_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph, sigma_position_m=sigma_p,
-                   timings_s=timings)
+                   sigma_velocity_m_s=sigma_v, timings_s=timings)

@@ -38,9 +38,12 @@ Statistics
     ``roll_rmse_mdeg``, ``yaw_max_abs_mdeg``, ``horizontal_rmse_m``, ``3d_rmse_m``.
 SBET time scales (``compare_sbet_files`` in :mod:`.trajectory_files`)
     SBET times are absolute GPS seconds or seconds of the GPS week (first time < 604800 s).
-    With ``gps_week`` given, seconds of week are made absolute with it. Without it, a
-    seconds-of-week file is assumed to lie in the same GPS week as the other file: if the
-    other is absolute, its week is taken (from its first sample); if both are seconds of
+    With ``gps_week`` given, seconds of week are made absolute with it (a companion file
+    ``<name>.json`` stating another week is an error). Without it, a seconds-of-week file
+    takes the week its companion file states (Georefine writes one beside every SBET it
+    produces); without one it is assumed to lie in the same GPS week as the other file: if the
+    other's week is known (absolute times, or its companion file), that week is taken (of its
+    first sample); if both are seconds of
     week they are compared as seconds of week directly (``time_scale="seconds_of_week"``,
     the week is unknown). The result's ``notes`` and the JSON say which case applied.
 

@@ -24,7 +24,7 @@ from georefine.io.files import (
     make_output_folder,
     week_from_gps_seconds,
 )
-from georefine.io.trajectory import SBET_RECORD_SIZE, read_sbet
+from georefine.io.trajectory import SBET_RECORD_SIZE, read_sbet, read_sbet_companion, sbet_companion_path
 
 _log = logging.getLogger(__name__)
 
@@ -66,7 +66,9 @@ def compare_sbet_files(
         SBET files (:mod:`georefine.io.trajectory`).
     gps_week
         GPS week of files whose times are seconds of week. Without it, a seconds-of-week
-        file is assumed to be in the same week as the other file (module docstring).
+        file takes the week of its companion file (``<name>.json``, which Georefine writes
+        beside its SBETs) or, without one, is assumed to be in the same week as the other
+        file (module docstring).
     time_window
         ``(start, end)``: values below 604800 are seconds of week, others GPS seconds; both
         are brought to the data's scale (with the GPS week of the later start of the two
@@ -84,28 +86,38 @@ def compare_sbet_files(
         if t is None:  # missing, or shorter than one record: the reader says which
             read_sbet(p, gps_week=gps_week if gps_week is not None else 0)
     sow = {k: v is not None and v < SECONDS_PER_WEEK for k, v in first.items()}
+    companion = {k: read_sbet_companion(p) if sow[k] else None for k, p in paths.items()}
     notes: list[str] = []
     weeks: dict[str, int | None] = {}
+    # seconds of week that no companion file resolves
+    open_week = {k: sow[k] and companion[k] is None for k in paths}
     if gps_week is not None:
         weeks = {k: gps_week for k in paths}
         for k in paths:
             if sow[k]:
                 notes.append(f"{k} ({paths[k].name}): seconds of week, GPS week {gps_week} given")
-    elif not any(sow.values()):
-        weeks = {k: None for k in paths}
-    elif all(sow.values()):
-        weeks = {k: 0 for k in paths}
-        notes.append("both files store seconds of week and no GPS week was given: both are assumed to be "
-                     "in the same GPS week and compared as seconds of week")
     else:
-        absolute = "reference" if sow["estimate"] else "estimate"
-        week = int(week_from_gps_seconds(first[absolute])[0])
-        weeks = {k: week for k in paths}
-        relative = "estimate" if absolute == "reference" else "reference"
-        notes.append(f"{relative} ({paths[relative].name}) stores seconds of week and no GPS week was given: "
-                     f"assumed to be in GPS week {week} of the {absolute} ({paths[absolute].name})")
+        for k, c in companion.items():
+            if c is not None:
+                notes.append(f"{k} ({paths[k].name}): seconds of week, GPS week {c.gps_week} from "
+                             f"{sbet_companion_path(paths[k]).name}")
+        if not any(open_week.values()):
+            weeks = {k: None for k in paths}
+        elif all(open_week.values()):
+            weeks = {k: 0 for k in paths}
+            notes.append("both files store seconds of week and no GPS week was given: both are assumed to be "
+                         "in the same GPS week and compared as seconds of week")
+        else:
+            absolute = "reference" if open_week["estimate"] else "estimate"
+            c = companion[absolute]
+            start = first[absolute] + (c.gps_week * SECONDS_PER_WEEK if c is not None else 0.0)
+            week = int(week_from_gps_seconds(start)[0])
+            weeks = {k: week if open_week[k] else None for k in paths}
+            relative = "estimate" if absolute == "reference" else "reference"
+            notes.append(f"{relative} ({paths[relative].name}) stores seconds of week and no GPS week was given: "
+                         f"assumed to be in GPS week {week} of the {absolute} ({paths[absolute].name})")
     data = {k: read_sbet(p, gps_week=weeks[k]) for k, p in paths.items()}
-    same_week_assumed = gps_week is None and all(sow.values())
+    same_week_assumed = gps_week is None and all(open_week.values())
     if time_window is not None:
         if same_week_assumed:
             week_of_data = None

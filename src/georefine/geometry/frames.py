@@ -159,6 +159,23 @@ class OutputCRS:
         """``w`` positions of output-CRS coordinates."""
         return frame.from_geodetic(*self.to_geodetic(xyz))
 
+    def R_grid_enu(self, lat: np.ndarray, lon: np.ndarray, h: np.ndarray) -> np.ndarray:
+        """Rotations ``(n, 3, 3)`` from local east-north-up to the CRS's grid east-north-up.
+
+        The grid is conformal, so true north maps to a direction rotated by the meridian convergence
+        about the vertical; it is measured here by mapping a step of 1e-7 rad north through the CRS
+        (no sign convention to get wrong). Identity for a geographic CRS.
+        """
+        from georefine.geometry.rotation import rot_z
+
+        lat, lon, h = (np.atleast_1d(np.asarray(a, dtype=float)) for a in (lat, lon, h))
+        if self.crs.is_geographic:
+            return np.broadcast_to(np.eye(3), (len(lat), 3, 3)).copy()
+        a = self.from_geodetic(lat, lon, h)
+        b = self.from_geodetic(lat + 1e-7, lon, h)
+        gamma = np.arctan2(b[:, 0] - a[:, 0], b[:, 1] - a[:, 1])  # true north's azimuth on the grid
+        return rot_z(-gamma)  # ENU: a positive z rotation turns north (y) towards -x; true north -> azimuth gamma
+
 
 @numba.njit(cache=True, nogil=True)
 def _R_w_b_kernel(lat, lon, rph, R_e_w, out):  # pragma: no cover - compiled

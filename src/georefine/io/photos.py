@@ -50,7 +50,6 @@ from georefine.errors import InputError
 from georefine.geometry import earth
 from georefine.geometry.camera import Camera, R_w_c_from_opk, opk_from_R_w_c
 from georefine.geometry.frames import LocalFrame, OutputCRS
-from georefine.geometry.rotation import rot_z
 from georefine.io.files import PathLike, atomic_output, read_text_lines
 
 _log = logging.getLogger(__name__)
@@ -427,18 +426,8 @@ def check_photo_block(
 
 # ---------------------------------------------------------------------------- frames
 def _grid_from_enu(crs: OutputCRS, lat: np.ndarray, lon: np.ndarray, h: np.ndarray) -> np.ndarray:
-    """Rotations ``(n, 3, 3)`` from local east-north-up to the CRS's grid east-north-up.
-
-    The grid is conformal, so true north maps to a direction rotated by the meridian convergence
-    about the vertical; it is measured here by mapping a step of 1e-7 rad north through the CRS
-    (no sign convention to get wrong). Identity for a geographic CRS.
-    """
-    if crs.crs.is_geographic:
-        return np.broadcast_to(np.eye(3), (len(lat), 3, 3)).copy()
-    a = crs.from_geodetic(lat, lon, h)
-    b = crs.from_geodetic(lat + 1e-7, lon, h)
-    gamma = np.arctan2(b[:, 0] - a[:, 0], b[:, 1] - a[:, 1])  # true north's azimuth on the grid
-    return rot_z(-gamma)  # ENU: a positive z rotation turns north (y) towards -x; true north -> azimuth gamma
+    """Rotations ``(n, 3, 3)`` from local east-north-up to the CRS's grid east-north-up (meridian convergence)."""
+    return crs.R_grid_enu(lat, lon, h)
 
 
 def poses_in_w(eop: ExteriorOrientation, frame: LocalFrame, crs: OutputCRS) -> tuple[np.ndarray, np.ndarray]:

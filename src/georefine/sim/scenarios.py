@@ -9,7 +9,8 @@ plus the truth:
 
 ``project.yaml``, ``gnss/rover.pos``, ``imu/imu.csv`` (and ``imu/imu.imr`` on request),
 ``scans/strip_<id>.laz`` (scanner frame), ``reference/surfaces.csv`` (surveyed corners with
-survey noise), ``truth/trajectory.sbet`` (true IMU trajectory at IMU rate, seconds of GPS week),
+survey noise), ``truth/trajectory.sbet`` (true IMU trajectory at IMU rate, seconds of GPS week;
+the week in its companion ``truth/trajectory.sbet.json``),
 ``truth/strip_<id>.laz`` (every return georeferenced with the true trajectory, output CRS,
 same point order as the scan file, extra dimension ``range_error_m``),
 ``truth/reference_surfaces.csv`` (exact corners), ``truth/imu_errors.npz``,
@@ -369,7 +370,7 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
     t = _time.perf_counter()
     writers.write_gnss(root / "gnss" / "rover.pos", gnss)
     writers.write_imu(root / "imu" / "imu.csv", imu, imr_path=root / "imu" / "imu.imr" if write_imr else None)
-    writers.write_truth_trajectory(root / "truth" / "trajectory.sbet", traj, imu.time)
+    writers.write_truth_trajectory(root / "truth" / "trajectory.sbet", traj, imu.time, crs.epsg)
     writers.write_reference(root, scene.reference_surfaces, frame, crs, cfg.reference_survey_sigma_m, rng_survey)
     np.savez_compressed(
         root / "truth" / "imu_errors.npz", time_gps=imu.t0_gps + imu.time, bias_gyro=imu.bias_gyro,

@@ -18,7 +18,7 @@ from georefine.config import boresight_matrix, load_project
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.las import gps_week_of_strip, iter_las_chunks, read_las_info
-from georefine.io.trajectory import read_sbet
+from georefine.io.trajectory import read_sbet, read_sbet_companion
 from georefine.lidar.georeference import georeference
 from georefine.trajectory.sampled import trajectory_from_sbet
 
@@ -50,8 +50,10 @@ def verify_project(
     root = Path(project_dir)
     cfg = load_project(root)
     sbet_path = root / "truth" / "trajectory.sbet"
-    # The truth SBET is in seconds of week; the week follows from the scans' absolute times.
-    sbet = read_sbet(sbet_path, gps_week=gps_week_of_strip(root / cfg.scanner.files[0]))
+    # The truth SBET is in seconds of week; its companion file states the week (projects simulated
+    # before it was written: the week follows from the scans' absolute times).
+    week = None if read_sbet_companion(sbet_path) else gps_week_of_strip(root / cfg.scanner.files[0])
+    sbet = read_sbet(sbet_path, gps_week=week)
     t0 = float(np.floor(sbet.time_gps[0]))
     frame = LocalFrame(float(sbet.lat_rad[0]), float(sbet.lon_rad[0]), float(sbet.h_m[0]))
     trajectory = trajectory_from_sbet(sbet, frame, t0)

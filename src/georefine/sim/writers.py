@@ -20,7 +20,7 @@ from georefine.io.las import PointCloud
 from georefine.io.las_encode import ExtraDim
 from georefine.io.las_writer import LasWriter
 from georefine.io.reference import ReferenceSurfaces, write_reference_surfaces
-from georefine.io.trajectory import SbetData, write_sbet
+from georefine.io.trajectory import SbetCompanion, SbetData, write_sbet, write_sbet_companion
 from georefine.lidar.georeference import beam_scan_angles_deg
 from georefine.sim.flight import TrueTrajectory
 from georefine.sim.gnss import SimulatedGnss
@@ -62,8 +62,9 @@ def write_imu(path: Path, imu: SimulatedImu, imr_path: Path | None = None) -> No
         write_imr(imr_path, data, gps_week=int(week), delta=False)
 
 
-def write_truth_trajectory(path: Path, traj: TrueTrajectory, time: np.ndarray) -> None:
-    """The true IMU trajectory as an SBET (seconds of GPS week, wander angle 0) at ``time``."""
+def write_truth_trajectory(path: Path, traj: TrueTrajectory, time: np.ndarray, output_epsg: int | None = None) -> None:
+    """The true IMU trajectory as an SBET (seconds of GPS week, wander angle 0) at ``time``, with the
+    companion file ``path.json`` that states its GPS week and the output CRS (as Georefine's products)."""
     state = traj.state(time)
     frame = traj.frame
     lat, lon, h = frame.to_geodetic(state.p_w_b)
@@ -78,6 +79,7 @@ def write_truth_trajectory(path: Path, traj: TrueTrajectory, time: np.ndarray) -
         accel_b=f_ib_b, angular_rate_b=omega_ib_b,
     )
     write_sbet(path, sbet, time_scale="week")
+    write_sbet_companion(path, SbetCompanion(int(week_from_gps_seconds(sbet.time_gps[0])[0]), output_epsg))
 
 
 def write_reference(

@@ -2,8 +2,9 @@
 
 Implemented so far: loading and validating the navigation data, step 1 (initialisation
 filter and spline fit) and step 2 (GNSS/IMU adjustment), with their products:
-``trajectory.sbet`` (IMU rate), ``trajectory.csv`` (output CRS, roll/pitch/heading and
-posterior sigma) and ``adjustment.json`` (per-group statistics, iterations, cost, estimated
+``trajectory.sbet`` (IMU rate, seconds of the GPS week; the week in ``trajectory.sbet.json``,
+the posterior sigma in ``smrmsg_trajectory.out``), ``trajectory.csv`` (output CRS,
+roll/pitch/heading and posterior sigma) and ``adjustment.json`` (per-group statistics, iterations, cost, estimated
 IMU errors, timings). Each step is a plain function returning a frozen result.
 """
 
@@ -40,6 +41,7 @@ from georefine.trajectory.spline import KnotGrid
 from georefine.trajectory.spline_fit import fit_spline
 from georefine.workflows.delivered import read_delivered
 from georefine.workflows.products import (
+    accuracy_from_sigmas,
     body_kinematics,
     write_csv_product,
     write_sbet_product,
@@ -241,7 +243,8 @@ def _filter_sigma_rph(nav: NavigationData, filt: FilterResult) -> np.ndarray:
 
 
 def write_trajectory_products(out: Path, nav: NavigationData, adj: GnssImuResult, crs: OutputCRS) -> None:
-    """``trajectory.sbet`` at the IMU samples inside the spline, ``trajectory.csv`` at the knots."""
+    """``trajectory.sbet`` at the IMU samples inside the spline (with its companion ``trajectory.sbet.json``
+    and, at the posterior's times, the accuracy file ``smrmsg_trajectory.out``), ``trajectory.csv`` at the knots."""
     spline = adj.spline
     t_imu = nav.sample_time
     t_imu = t_imu[(t_imu >= spline.grid.t_start) & (t_imu <= spline.grid.t_end)]
@@ -250,7 +253,16 @@ def write_trajectory_products(out: Path, nav: NavigationData, adj: GnssImuResult
         traj = adj.high_rate.trajectory(spline)
         d_omega, d_f = adj.high_rate.reading_corrections(nav.frame, spline)
         p, v, R, f, w = traj.p_w_b, traj.v_w_b, traj.R_w_b, f + d_f, w + d_omega
-    write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, t_imu, p, v, R, f, w)
+    accuracy = None
+    if adj.sigma_velocity_m_s is not None:
+        p_s = spline.position(adj.sigma_time, 0)
+        accuracy = accuracy_from_sigmas(nav.frame, nav.t0_gps, adj.sigma_time, p_s, adj.sigma_position_m,
+                                        adj.sigma_velocity_m_s, adj.sigma_rph_rad)
+    else:  # a result cached before the velocity sigma was computed
+        log.warning("no posterior velocity sigma in this result (cached by an older version): no accuracy file "
+                    "beside %s; --fresh recomputes it", out / "trajectory.sbet")
+    write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, t_imu, p, v, R, f, w,
+                       output_epsg=crs.epsg, accuracy=accuracy)
     tk = spline.grid.knot_times
     pk, Rk = spline.pose(tk)
     sig_rph = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_rph_rad[:, i]) for i in range(3)])
@@ -306,11 +318,14 @@ def run_trajectory(
         if np.count_nonzero(at) == filt.time.size:
             f_b = (nav.imu.acc[at] - filt.bias_acc) / (1.0 + filt.scale_acc)
             w_b = (nav.imu.gyro[at] - filt.bias_gyro) / (1.0 + filt.scale_gyro)
-        write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, filt.time, filt.p_w_b, filt.v_w_b, filt.R_w_b,
-                           f_b, w_b)
         dec = slice(None, None, max(1, int(round(nav.imu.rate_hz / 10))))
+        sig_rph = _filter_sigma_rph(nav, filt)[dec]
+        accuracy = accuracy_from_sigmas(nav.frame, nav.t0_gps, filt.time[dec], filt.p_w_b[dec], filt.sigma[dec, 0:3],
+                                        filt.sigma[dec, 3:6], sig_rph)
+        write_sbet_product(out / "trajectory.sbet", nav.frame, nav.t0_gps, filt.time, filt.p_w_b, filt.v_w_b, filt.R_w_b,
+                           f_b, w_b, output_epsg=crs.epsg, accuracy=accuracy)
         write_csv_product(out / "trajectory.csv", nav.frame, crs, nav.t0_gps, filt.time[dec], filt.p_w_b[dec],
-                          filt.R_w_b[dec], _filter_sigma_rph(nav, filt)[dec], filt.sigma[dec, 0:3])
+                          filt.R_w_b[dec], sig_rph, filt.sigma[dec, 0:3])
     else:
         t = _time.perf_counter()
         adj = step_adjust_gnss_imu(nav, filt, progress)
@@ -371,7 +386,7 @@ def run_georeference(
     """
     from georefine.config import boresight_matrix
     from georefine.io.las import gps_week_of_strip, time_index
-    from georefine.io.trajectory import read_sbet
+    from georefine.io.trajectory import read_sbet, read_sbet_companion
     from georefine.lidar.georeference import PoseInterpolator
     from georefine.lidar.tiles import georeference_strips, plan_strip, refuse_strips_outside, tile_points
     from georefine.trajectory.sampled import trajectory_from_sbet
@@ -379,7 +394,7 @@ def run_georeference(
     root = Path(project_dir)
     cfg = load_project(root)
     out = output_folder(out, root)
-    if gps_week is None:
+    if gps_week is None and read_sbet_companion(trajectory_path) is None:  # else the SBET's companion states it
         gps_week = gps_week_of_strip(root / cfg.scanner.files[0])
     sbet = read_sbet(trajectory_path, gps_week=gps_week)
     frame = LocalFrame(float(sbet.lat_rad[0]), float(sbet.lon_rad[0]), float(sbet.h_m[0]))
