@@ -12,6 +12,7 @@ import laspy
 import numpy as np
 import pytest
 import yaml
+from colmap_helpers import colmap_checks
 
 from georefine.config import ProjectConfig, validate_model
 from georefine.demo.block import BlockDemoMetrics
@@ -115,6 +116,34 @@ def test_case_1_refines_the_jammed_cloud(demo):
     ours, theirs = solve_both(b, ~is_lg)
     assert theirs.re_px == pytest.approx(ours.re_px, rel=0.05), (ours.re_px, theirs.re_px)
     assert ours.re_px <= 0.5
+
+
+@pytest.mark.slow
+def test_colmap_model_is_used_as_is_by_colmap(demo, tmp_path):
+    out, _ = demo
+    c1 = out / "case1"
+    saved = json.loads((c1 / "metrics.json").read_text())["colmap_model"]
+    rec = read_model(c1 / saved["folder"])
+    names = sorted(rec.image(i).name for i in rec.reg_image_ids())
+    # The images the model names, under those names; the Metashape reference names the same images.
+    assert sorted(f.name for f in (c1 / "colmap" / "images").iterdir()) == names
+    assert sorted(metashape.read_cameras(c1 / "metashape_cameras.csv").images) == names
+    lgs = [n for n in names if n.startswith("LG_")]
+    assert len(lgs) == json.loads((c1 / "metrics.json").read_text())["lidargrams"] and all(n.endswith(".png") for n in lgs)
+    photo = next(n for n in names if not n.startswith("LG_"))
+    assert (c1 / "colmap" / "images" / photo).read_bytes() == (out / "project" / "photos" / photo).read_bytes()
+    assert saved["images"] == len(names) and saved["points"] == rec.num_points3D() > 100
+    # Errors as COLMAP computes them from the model; colours from the (grey) photos.
+    rec.update_point_3d_errors()
+    assert rec.compute_mean_reprojection_error() == pytest.approx(saved["mean_reprojection_error_px"], rel=1e-4)
+    colours = np.array([rec.point3D(k).color for k in rec.point3D_ids()])
+    assert colours.std() > 10 and np.all(colours[:, 0] == colours[:, 2])
+    ref = (c1 / "colmap" / "reference_images.txt").read_text().splitlines()
+    eop = photos.read_eop(c1 / "eop_photos.csv")
+    row = next(r.split() for r in ref if r.split()[0] == photo)
+    np.testing.assert_allclose(np.array(row[1:], float), eop.xyz[eop.index()[photo]], atol=2e-3)
+    if shutil.which("colmap"):
+        colmap_checks(c1 / "colmap", tmp_path, saved["mean_reprojection_error_px"])
 
 
 def _same_json(path: Path, data: dict, tmp_path: Path) -> bool:

@@ -3,7 +3,8 @@
 :func:`to_reconstruction` builds a ``pycolmap.Reconstruction`` from cameras, poses in ``w``
 (``x_c = R_w_c^T (X - p_w_c)``, COLMAP's ``cam_from_world``) and tracks; :func:`write_model`
 writes it as a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``) that
-COLMAP opens; :func:`read_model`, :func:`poses_from_reconstruction` and
+COLMAP opens, each point with its reprojection error and colour; :func:`write_reference_images`
+writes the camera centres as the reference file of ``colmap model_aligner``; :func:`read_model`, :func:`poses_from_reconstruction` and
 :func:`block_from_reconstruction` read one back (the last as Georefine cameras, poses and
 observations, ready for :mod:`georefine.adjustment`).
 :func:`colmap_bundle_adjustment` runs COLMAP's own bundle adjuster (Ceres) with chosen images
@@ -13,6 +14,12 @@ Cameras: ``OPENCV`` (fx, fy, cx, cy, k1, k2, p1, p2), or ``FULL_OPENCV`` when ``
 read back also ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL`` and ``RADIAL``.
 COLMAP's pixel origin is ours (top-left pixel centre at (0.5, 0.5)), so pixels pass unchanged.
 Image ids are 1-based in the order given; point ids follow the tracks' order.
+
+A point's error (``points3D.txt``, column ``ERROR``) is COLMAP's: the mean over its track of
+the image distances (px) between each observation and the point projected
+(:func:`observation_errors`, with Georefine's camera model, which is COLMAP's ``OPENCV``), so
+``colmap model_analyzer`` reports the mean reprojection error of the model as written
+(:func:`mean_reprojection_error`) instead of the 0 of a model whose errors are unset (-1).
 """
 
 from __future__ import annotations
@@ -23,10 +30,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from georefine.geometry.camera import Camera
+from georefine.geometry.camera import Camera, project_points
+from georefine.io.files import PathLike, atomic_output
 
-__all__ = ["to_reconstruction", "write_model", "read_model", "poses_from_reconstruction", "ColmapBlock",
-           "block_from_reconstruction", "colmap_bundle_adjustment", "mean_reprojection_error"]
+__all__ = ["to_reconstruction", "write_model", "write_reference_images", "read_model", "poses_from_reconstruction",
+           "ColmapBlock", "block_from_reconstruction", "colmap_bundle_adjustment", "observation_errors",
+           "point_errors", "mean_reprojection_error"]
 
 
 def _colmap_camera(camera: Camera, camera_id: int):
@@ -40,9 +49,34 @@ def _colmap_camera(camera: Camera, camera_id: int):
     return pycolmap.Camera(model=model, width=c.width_px, height=c.height_px, params=params, camera_id=camera_id)
 
 
+def observation_errors(cameras, R_w_c: np.ndarray, p_w_c: np.ndarray, obs_image: np.ndarray, obs_point: np.ndarray,
+                       obs_uv: np.ndarray, points_w: np.ndarray) -> np.ndarray:
+    """Image distance (px) between each observation and its point projected into its image."""
+    obs_image, obs_point = np.asarray(obs_image), np.asarray(obs_point)
+    uv = np.empty((len(obs_image), 2))
+    for cam in set(cameras):
+        sel = np.flatnonzero(np.array([c == cam for c in cameras])[obs_image])
+        uv[sel] = project_points(cam, np.asarray(points_w, dtype=float)[obs_point[sel]], np.asarray(R_w_c)[obs_image[sel]],
+                                 np.asarray(p_w_c)[obs_image[sel]])[0]
+    return np.linalg.norm(uv - np.asarray(obs_uv, dtype=float), axis=1)
+
+
+def point_errors(errors: np.ndarray, obs_point: np.ndarray, n_points: int) -> np.ndarray:
+    """Each point's mean observation error (COLMAP's ``Point3D.error``); NaN for a point without observations."""
+    n = np.bincount(obs_point, minlength=n_points)
+    s = np.bincount(obs_point, weights=np.asarray(errors, dtype=float), minlength=n_points)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return s / n
+
+
 def to_reconstruction(names, cameras, R_w_c: np.ndarray, p_w_c: np.ndarray, obs_image: np.ndarray,
-                      obs_point: np.ndarray, obs_uv: np.ndarray, points_w: np.ndarray):
-    """A ``pycolmap.Reconstruction`` of the block (points with fewer than two observations are left out)."""
+                      obs_point: np.ndarray, obs_uv: np.ndarray, points_w: np.ndarray,
+                      colors: np.ndarray | None = None):
+    """A ``pycolmap.Reconstruction`` of the block (points with fewer than two observations are left out).
+
+    Each point carries its reprojection error (:func:`point_errors` over the observations kept)
+    and ``colors[k]`` (RGB, uint8) if given, else black.
+    """
     import pycolmap
 
     rec = pycolmap.Reconstruction()
@@ -54,6 +88,8 @@ def to_reconstruction(names, cameras, R_w_c: np.ndarray, p_w_c: np.ndarray, obs_
     obs_image, obs_point = np.asarray(obs_image), np.asarray(obs_point)
     counts = np.bincount(obs_point, minlength=len(points_w))
     keep = counts[obs_point] >= 2
+    error = point_errors(observation_errors(cameras, R_w_c, p_w_c, obs_image[keep], obs_point[keep],
+                                            np.asarray(obs_uv)[keep], points_w), obs_point[keep], len(points_w))
     slot = np.zeros(len(obs_image), dtype=np.int64)  # index of each observation among its image's points2D
     for i, name in enumerate(names):
         sel = np.flatnonzero((obs_image == i) & keep)
@@ -66,11 +102,15 @@ def to_reconstruction(names, cameras, R_w_c: np.ndarray, p_w_c: np.ndarray, obs_
     order = np.argsort(obs_point[keep], kind="stable")
     idx = np.flatnonzero(keep)[order]
     starts = np.flatnonzero(np.r_[True, np.diff(obs_point[idx]) != 0])
+    black = np.zeros(3, dtype=np.uint8)
     for a, b in zip(starts, np.r_[starts[1:], idx.size]):
         track = pycolmap.Track()
         for o in idx[a:b]:
             track.add_element(int(obs_image[o]) + 1, int(slot[o]))
-        rec.add_point3D(np.asarray(points_w[obs_point[idx[a]]], dtype=float), track)
+        k = obs_point[idx[a]]
+        pid = rec.add_point3D(np.asarray(points_w[k], dtype=float), track,
+                              black if colors is None else np.asarray(colors[k], dtype=np.uint8))
+        rec.point3D(pid).error = float(error[k])
     return rec
 
 
@@ -80,6 +120,16 @@ def write_model(rec, folder: str | Path) -> Path:
     folder.mkdir(parents=True, exist_ok=True)
     rec.write_text(str(folder))
     return folder
+
+
+def write_reference_images(path: PathLike, names, xyz: np.ndarray) -> None:
+    """``colmap model_aligner``'s reference file (``--ref_images_path``, ``--ref_is_gps 0``): a line
+    ``NAME X Y Z`` per image, its camera centre in a Cartesian or projected CRS (mm)."""
+    if any(" " in str(n) for n in names):
+        raise ValueError("image names with spaces cannot be written to a COLMAP reference file")
+    with atomic_output(path) as fh:
+        for name, (x, y, z) in zip(names, np.asarray(xyz, dtype=float)):
+            fh.write(f"{name} {x:.4f} {y:.4f} {z:.4f}\n")
 
 
 def read_model(folder: str | Path):

@@ -15,8 +15,10 @@ georeferenced point cloud (LAZ strips in the output CRS, e.g. ``georefine run`` 
    paper's image-only formulation);
 4. writes the adjusted orientation of photos and lidargrams (``eop_photos.csv``,
    ``eop_lidargrams.csv``, output CRS), for cases 1 and 2 the refined point cloud
-   (``points/``, same files and point order as the input, :mod:`.reintersect`), a match picture
-   of one photo-lidargram pair (cf. paper Fig. 6), ``metrics.json`` and ``config.resolved.yaml``.
+   (``points/``, same files and point order as the input, :mod:`.reintersect`), the COLMAP model
+   with its images and georeference (``colmap/``, :mod:`georefine.workflows.colmap_export`), a
+   match picture of one photo-lidargram pair (cf. paper Fig. 6), ``metrics.json`` and
+   ``config.resolved.yaml``.
 
 Every setting is a field of ``processing.lidargrammetry`` (:class:`georefine.config.LidargrammetryConfig`);
 ``overrides`` (field name to value, e.g. from the command line) take precedence over
@@ -26,7 +28,6 @@ Every setting is a field of ``processing.lidargrammetry`` (:class:`georefine.con
 from __future__ import annotations
 
 import logging
-import shutil
 import time as _time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -42,12 +43,10 @@ from georefine.errors import InputError
 from georefine.geometry.camera import Camera
 from georefine.io import metashape
 from georefine.io import photos as pio
-from georefine.io.colmap import to_reconstruction, write_model
 from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.lidargrammetry.bundle import (
     CASES,
     BlockImages,
-    BundleResult,
     ControlData,
     coadjust,
     intersect_points,
@@ -69,9 +68,9 @@ from georefine.lidargrammetry.reintersect import Reintersector, feather_weights
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, file_stamp
+from georefine.workflows.colmap_export import export_colmap
 from georefine.workflows.lidargrammetry_results import (
     CoadjustResult,
-    ColmapModel,
     MatchSummary,
     PairCount,
     PairKindStats,
@@ -318,10 +317,10 @@ def _open(project_dir, out, overrides: Mapping[str, Any] | None, matcher=None, *
 
 
 def _lidargram_name(cloud: CloudIndex, strip: int, photo: str) -> str:
-    """``LG_<strip file stem>_<photo>`` of the lidargram rendered at ``photo`` from strip ``strip``
-    (``LG_all_<photo>`` for one of all strips, ``strip`` -1): the one naming rule of the block's
-    image list and of the lidargram files."""
-    return f"LG_{cloud.files[strip].stem if strip >= 0 else 'all'}_{photo}"
+    """``LG_<strip file stem>_<photo stem>.png`` of the lidargram rendered at ``photo`` from strip
+    ``strip`` (``LG_all_<photo stem>.png`` for one of all strips, ``strip`` -1): the one naming rule
+    of the block's image list, the lidargram files, the COLMAP model and the Metashape reference."""
+    return f"LG_{cloud.files[strip].stem if strip >= 0 else 'all'}_{Path(photo).stem}.png"
 
 
 def _block_images(pp: PhotoProject, cloud: CloudIndex, st: LidargrammetryConfig, progress: Progress,
@@ -348,8 +347,9 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
                    scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> list[str]:
     """Render the lidargrams (:func:`render_lidargrams`) and write each as ``out/NAME.png`` and ``NAME.npz``.
 
-    Names as ``run_match`` and ``run_coadjust`` give them: ``LG_<strip>_<photo>`` (``LG_all_<photo>``
-    with ``per_strip`` off); ``config.resolved.yaml`` beside them. Returns the names written.
+    Names as ``run_match`` and ``run_coadjust`` give them: ``LG_<strip>_<photo stem>.png``
+    (``LG_all_<photo stem>.png`` with ``per_strip`` off); ``config.resolved.yaml`` beside them.
+    Returns the image files' names.
     """
     from georefine.lidargrammetry.render import save_lidargram
 
@@ -359,8 +359,8 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
     with runner_for(scheduler) as runner:
         cloud = opened.read_cloud(points, runner, progress)
         for lg, i, s in render_lidargrams(pp, cloud, st, progress=progress, runner=runner):
-            names.append(_lidargram_name(cloud, s, Path(pp.eop.images[i]).stem))
-            save_lidargram(lg, out, names[-1])
+            names.append(_lidargram_name(cloud, s, pp.eop.images[i]))
+            save_lidargram(lg, out, Path(names[-1]).stem)
     return names
 
 
@@ -523,7 +523,9 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
     pair_counts = [PairCount(names[m.a], names[m.b], len(m)) for m in photo_lg]
     _draw_best(photo_lg, is_lg, images, matches.keypoints, out / "matches_lidargram_photo.png")
     t = _time.perf_counter()
-    export_colmap(out / "colmap", names, cameras, result, tr.image[keep], tr.track[keep], tr.uv[keep], station)
+    colmap = export_colmap(out / "colmap", names, cameras, result, tr.image[keep], tr.track[keep], tr.uv[keep],
+                           station, images=[pp.folder / x for x in pp.eop.images] + [lg.image for lg, _, _ in lgs],
+                           frame=pp.frame, crs=pp.crs)
     timings["colmap_export"] = _time.perf_counter() - t
     counts = None
     if case in (1, 2):
@@ -545,8 +547,7 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
         PhotoLidargramMatches.of_pairs(pair_counts), result.control, result.check,
         TieReprojection(result.tie_reprojection_px["photos"], result.tie_reprojection_px["lidargrams"]),
         result.solve.to_dict(), Precision.from_dict(ex["precision"]), ex["tie_inlier_fraction"],
-        ColmapModel("colmap", "local east-north-up", float(np.degrees(pp.frame.lat0_rad)),
-                    float(np.degrees(pp.frame.lon0_rad)), pp.frame.h0_m),
+        colmap,
         ex.get("photo_block_adjustment"), None if pbp is None else Precision.from_dict(pbp), counts, timings,
         bundle=result)
     write_json(out / "metrics.json", metrics.to_dict())
@@ -558,28 +559,3 @@ _MATCH_FIELDS = {"lidargram_scale", "per_strip", "point_spacing_m", "splat_scale
                  "sift_max_features", "sift_contrast_threshold", "sift_ratio", "deep_max_features",
                  "lightglue_features", "verification_threshold_px", "min_verified_matches"}
 """The settings the matches depend on (the step cache's key)."""
-
-
-def export_colmap(folder: Path, names, cameras, result: BundleResult, obs_image: np.ndarray, obs_point: np.ndarray,
-                  obs_uv: np.ndarray, station: np.ndarray | None = None) -> Path:
-    """The adjusted block as a COLMAP text model in the local frame ``w`` (:mod:`georefine.io.colmap`).
-
-    Photos and lidargrams with their adjusted poses, the tie points and their inlier
-    observations seen from two stations or more (``station``: of each image; without a base a
-    track's depth is free in a tie-only adjustment); control points are left out (COLMAP has no
-    coordinate observations). Returns ``folder``.
-    """
-
-    inl = result.tie_inlier.copy() if result.tie_inlier is not None else np.ones(len(obs_image), bool)
-    if station is not None and inl.any():  # tracks still seen from two stations
-        inl &= stations_per_point(obs_point[inl], station[obs_image[inl]], int(obs_point.max()) + 1)[obs_point] >= 2
-    rec = to_reconstruction(names, cameras, result.R_w_c, result.p_w_c, obs_image[inl], obs_point[inl], obs_uv[inl],
-                            np.nan_to_num(result.tie_points_w))
-    tmp = folder.with_name(folder.name + ".partial")  # written whole, then renamed
-    if tmp.exists():
-        shutil.rmtree(tmp)
-    write_model(rec, tmp)
-    if folder.exists():
-        shutil.rmtree(folder)
-    tmp.rename(folder)
-    return folder

@@ -204,22 +204,33 @@ class Precision:
 
 @dataclass(frozen=True)
 class ColmapModel:
-    """Where the COLMAP model is and the local frame it is in."""
+    """The COLMAP model written (:mod:`georefine.workflows.colmap_export`): its folder, the local
+    frame it is in, the output CRS of its reference file, its size and its mean reprojection error
+    (px, COLMAP's statistic: the mean over points of each point's mean error, as ``colmap
+    model_analyzer`` reports it)."""
 
     folder: str
     frame: str
     origin_lat_deg: float
     origin_lon_deg: float
     origin_h_m: float
+    crs: str = ""
+    images: int = 0
+    points: int = 0
+    observations: int = 0
+    mean_reprojection_error_px: float = float("nan")
 
     def to_dict(self) -> dict:
         return {"folder": self.folder, "frame": self.frame, "origin_lat_deg": self.origin_lat_deg,
-                "origin_lon_deg": self.origin_lon_deg, "origin_h_m": self.origin_h_m}
+                "origin_lon_deg": self.origin_lon_deg, "origin_h_m": self.origin_h_m, "crs": self.crs,
+                "images": self.images, "points": self.points, "observations": self.observations,
+                "mean_reprojection_error_px": self.mean_reprojection_error_px}
 
     @classmethod
     def from_dict(cls, d: dict) -> ColmapModel:
         return cls(str(d["folder"]), str(d["frame"]), _float(d["origin_lat_deg"]), _float(d["origin_lon_deg"]),
-                   _float(d["origin_h_m"]))
+                   _float(d["origin_h_m"]), str(d["crs"]), int(d["images"]), int(d["points"]),
+                   int(d["observations"]), _float(d["mean_reprojection_error_px"]))
 
 
 @dataclass(frozen=True)
