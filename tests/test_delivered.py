@@ -122,7 +122,7 @@ def test_a_heading_fix_moves_the_error_process_and_its_sigma_is_consistent(seed)
 @pytest.fixture(scope="module")
 def project(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("delivered") / "p"
-    simulate_project("corridor-tiny", out, seed=11, overrides=["scanner.pulse_rate_hz=30000", "scanner.line_rate_hz=90"])
+    simulate_project("corridor-tiny", out, seed=11)
     return out
 
 
@@ -175,6 +175,7 @@ def test_the_planes_correct_a_delivered_heading_error(project, tmp_path):
         "crs": {"output_epsg": 25832},
         "trajectory": {"sbet": "nav/sbet.out", "gps_week": _week(project), "default_sigma_heading_deg": 0.05},
         "scanner": {k: sc[k] for k in ("files", "lever_arm_m", "boresight_deg")},
+        "processing": {"lidar": {"outer_iterations": 2}},
     }))
     result = run_workflow(delivered, tmp_path / "run")
     for strip in (1, 2):

@@ -267,7 +267,8 @@ def import_strips_cmd(
     out: Path = typer.Option(..., "--out", "-o", help="Project folder to write."),
     lever_arm: str = typer.Option(..., "--lever-arm", help="Scanner origin in the IMU body frame, x,y,z (m, FRD)."),
     boresight: str = typer.Option("0,0,0", "--boresight", help="Boresight roll,pitch,yaw (deg) of R_b_s."),
-    smrmsg: Optional[Path] = typer.Option(None, "--smrmsg", help="The SBET's smrmsg accuracy file."),
+    smrmsg: Optional[Path] = typer.Option(
+        None, "--smrmsg", help="The SBET's smrmsg accuracy file (default: smrmsg_X.out beside sbet_X.out, if there)."),
     gps_week: Optional[int] = typer.Option(
         None, "--gps-week", help="GPS week of the SBET (default: the first strip's, from its adjusted GPS time)."),
     scheduler: str = _scheduler_option(),

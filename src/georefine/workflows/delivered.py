@@ -45,14 +45,12 @@ log = logging.getLogger(__name__)
 
 __all__ = ["build_delivered_problem", "delivered_sigmas", "read_delivered", "step_delivered", "warn_delivered_pull"]
 
-ARCMIN = np.radians(1.0 / 60.0)
-
-
 def delivered_sigmas(cfg: ProjectConfig, sbet: SbetData, smrmsg=None) -> tuple[np.ndarray, np.ndarray]:
     """Position sigma (east, north, up; m) and attitude sigma (about east, north, up; rad) per SBET record.
 
-    From the ``smrmsg`` records interpolated to the SBET times (north/east/down position RMS,
-    roll/pitch/heading RMS in arc-minutes), or ``trajectory.default_sigma_*``. Roll and pitch
+    From the ``smrmsg`` records (:class:`~georefine.io.trajectory.SmrmsgData`: north/east/down
+    position RMS, roll/pitch/heading RMS) interpolated to the SBET times, or
+    ``trajectory.default_sigma_*``. Roll and pitch
     become one sigma for both horizontal axes (:mod:`georefine.adjustment.trajectory_prior`).
     """
     tc = cfg.trajectory
@@ -66,9 +64,10 @@ def delivered_sigmas(cfg: ProjectConfig, sbet: SbetData, smrmsg=None) -> tuple[n
     def at(x):
         return np.interp(sbet.time_gps, smrmsg.time_gps, x)
 
-    sp = np.column_stack([at(smrmsg.east_m), at(smrmsg.north_m), at(smrmsg.down_m)])
-    h = np.sqrt(0.5 * (at(smrmsg.roll_arcmin) ** 2 + at(smrmsg.pitch_arcmin) ** 2)) * ARCMIN
-    st = np.column_stack([h, h, at(smrmsg.heading_arcmin) * ARCMIN])
+    ned, rph = smrmsg.sigma_ned_m, smrmsg.sigma_rph_rad
+    sp = np.column_stack([at(ned[:, 1]), at(ned[:, 0]), at(ned[:, 2])])
+    h = np.sqrt(0.5 * (at(rph[:, 0]) ** 2 + at(rph[:, 1]) ** 2))
+    st = np.column_stack([h, h, at(rph[:, 2])])
     return sp, st
 
 

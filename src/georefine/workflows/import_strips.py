@@ -42,7 +42,7 @@ from georefine.io.files import SECONDS_PER_WEEK, make_output_folder, write_json
 from georefine.io.las import PointCloud
 from georefine.io.las_encode import EncodedPoints, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter
-from georefine.io.trajectory import read_sbet
+from georefine.io.trajectory import read_sbet, read_smrmsg, smrmsg_path
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
@@ -215,7 +215,8 @@ def import_strips(
     """Write a Georefine project from delivered strips and their SBET (module docstring).
 
     ``gps_week``: the week of the SBET (and of strips in GPS week time); by default that of the
-    first strip's first point (adjusted standard time). ``channels``: the scanner views
+    first strip's first point (adjusted standard time). ``smrmsg``: by default the accuracy file
+    beside the SBET named the POSPac way (``sbet_X.out`` -> ``smrmsg_X.out``), if there is one. ``channels``: the scanner views
     (default nadir/forward/backward for ids 0-2, ``channel N`` otherwise).
 
     Raises
@@ -251,9 +252,10 @@ def import_strips(
             raise InputError("the SBET does not cover the strip", path=s.path, field="gps_time",
                              expected=f"GPS s {span[0]:.3f} to {span[1]:.3f} (the SBET {sbet_path.name}, week {gps_week})",
                              found=f"{s.time_gps[0]:.3f} to {s.time_gps[1]:.3f}")
+    if smrmsg is None and smrmsg_path(sbet_path).is_file():  # POSPac's naming: sbet_X.out, smrmsg_X.out
+        smrmsg = smrmsg_path(sbet_path)
+        log.info("%s: its accuracy file %s is used", sbet_path.name, Path(smrmsg).name)
     if smrmsg is not None:
-        from georefine.io.trajectory import read_smrmsg
-
         read_smrmsg(Path(smrmsg), gps_week=gps_week)  # refused now, not at the first run
     ids = _strip_ids(infos)
     if channels is None:
