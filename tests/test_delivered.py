@@ -42,6 +42,7 @@ from georefine.trajectory.spline import KnotGrid
 from georefine.workflows import run_georeference
 from georefine.workflows.import_strips import import_strips
 from georefine.workflows.lidar import run_workflow
+from georefine.workflows.project import inspect_project
 
 MDEG = np.radians(1e-3)
 
@@ -147,6 +148,10 @@ def test_imported_strips_are_the_scans_to_the_files_resolution(project, tmp_path
         assert np.array_equal(a.point_source_id, b.point_source_id)
     cfg = yaml.safe_load((tmp_path / "imp" / "project.yaml").read_text())
     assert cfg["trajectory"]["sbet"] == "nav/trajectory.sbet" and "gnss" not in cfg and "imu" not in cfg
+    # `georefine check` reads the delivered project with the workflow's readers.
+    summary = inspect_project(tmp_path / "imp")
+    assert summary.delivered[0] > 1000 and not summary.warnings
+    assert "delivered trajectory" in summary.summary() and "GNSS:" not in summary.summary()
 
 
 def _sbet_with_heading_error(project: Path, dest: Path) -> None:

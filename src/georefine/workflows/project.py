@@ -59,15 +59,22 @@ class ProjectSummary:
     warnings: tuple[str, ...] = field(default_factory=tuple)
     photos: tuple[int, int, int, int, int] | None = None
     """Images, cameras, control points, check points, image measurements (None: no photos section)."""
+    delivered: tuple[int, float, bool] | None = None
+    """A delivered trajectory (docs/ARCHITECTURE.md §4.9): SBET records, their rate (Hz), whether an smrmsg is given."""
 
     def summary(self) -> str:
         g0, g1 = self.gnss_span_gps
         i0, i1 = self.imu_span_gps
-        lines = [
-            f"Project {self.config.name!r} at {self.root}",
-            f"  GNSS: {self.gnss_epochs:,} epochs ({self.gnss_usable_epochs:,} usable), {g1 - g0:.1f} s",
-            f"  IMU:  {self.imu_samples:,} samples at {self.imu_rate_hz:g} Hz, {i1 - i0:.1f} s, {len(self.imu_gaps)} gaps",
-        ]
+        lines = [f"Project {self.config.name!r} at {self.root}"]
+        if self.delivered is not None:
+            n, rate, acc = self.delivered
+            lines.append(f"  delivered trajectory: {n:,} SBET records at {rate:.0f} Hz, {g1 - g0:.1f} s, "
+                         + ("smrmsg sigmas" if acc else "default sigmas (no smrmsg)"))
+        else:
+            lines += [
+                f"  GNSS: {self.gnss_epochs:,} epochs ({self.gnss_usable_epochs:,} usable), {g1 - g0:.1f} s",
+                f"  IMU:  {self.imu_samples:,} samples at {self.imu_rate_hz:g} Hz, {i1 - i0:.1f} s, {len(self.imu_gaps)} gaps",
+            ]
         for s in self.strips:
             per = ", ".join(f"ch{k}: {v:,}" for k, v in sorted(s.points_per_channel.items()))
             lines.append(
@@ -221,19 +228,30 @@ def inspect_project(
     cfg = load_project(root)
     warnings: list[str] = []
 
-    gnss = read_project_gnss(root, cfg)
-    imu = read_project_imu(root, cfg)
-    usable, g_span, i_span = check_navigation_spans(root, cfg, gnss, imu)
-    bridged = bridge_project_imu(root, cfg, imu)
-    check_imu_plausible(root, cfg, gnss, bridged.data)
-    gaps = np.array([(g.t_before, g.t_after) for g in bridged.gaps]).reshape(-1, 2)
-    if bridged.gaps:
-        warnings.append(bridged.describe())
-    g_gaps = gnss_gaps(gnss, usable)
-    if len(g_gaps):
-        k = int(np.argmax(g_gaps[:, 1] - g_gaps[:, 0]))
-        warnings.append(f"{len(g_gaps)} GNSS gaps (no epoch of quality Q <= {cfg.gnss.min_quality}), the longest "
-                        f"{g_gaps[k, 1] - g_gaps[k, 0]:.1f} s from {g_gaps[k, 0]:.1f} GPS s: bridged on the IMU alone")
+    delivered = None
+    if cfg.delivered_trajectory:  # the SBET (and smrmsg) with the workflow's reader and checks (§4.9)
+        from georefine.workflows.delivered import read_delivered
+
+        _, t0, prior = read_delivered(root, cfg)
+        g_span = i_span = (t0 + float(prior.time[0]), t0 + float(prior.time[-1]))
+        delivered = (int(prior.time.size), float(prior.rate_hz), bool(cfg.trajectory.smrmsg))
+        n_gnss = n_usable = n_imu = 0
+        rate, gaps = 0.0, np.zeros((0, 2))
+    else:
+        gnss = read_project_gnss(root, cfg)
+        imu = read_project_imu(root, cfg)
+        usable, g_span, i_span = check_navigation_spans(root, cfg, gnss, imu)
+        bridged = bridge_project_imu(root, cfg, imu)
+        check_imu_plausible(root, cfg, gnss, bridged.data)
+        gaps = np.array([(g.t_before, g.t_after) for g in bridged.gaps]).reshape(-1, 2)
+        if bridged.gaps:
+            warnings.append(bridged.describe())
+        g_gaps = gnss_gaps(gnss, usable)
+        if len(g_gaps):
+            k = int(np.argmax(g_gaps[:, 1] - g_gaps[:, 0]))
+            warnings.append(f"{len(g_gaps)} GNSS gaps (no epoch of quality Q <= {cfg.gnss.min_quality}), the longest "
+                            f"{g_gaps[k, 1] - g_gaps[k, 0]:.1f} s from {g_gaps[k, 0]:.1f} GPS s: bridged on the IMU alone")
+        n_gnss, n_usable, n_imu, rate = int(gnss.time_gps.size), int(usable.sum()), int(imu.time_gps.size), float(imu.rate_hz)
 
     channels = {c.id for c in cfg.scanner.channels}
     nav = (max(g_span[0], i_span[0]), min(g_span[1], i_span[1]))
@@ -271,7 +289,7 @@ def inspect_project(
         if outside == done:  # as the workflow refuses it (lidar.tiles.refuse_strips_outside)
             raise strip_outside_error(path, (nav[0] - shift, nav[1] - shift), (t_min, t_max), shift)
         if outside:
-            warnings.append(f"{path.name}: {outside:,} points outside the GNSS/IMU time span (they will be left out)")
+            warnings.append(f"{path.name}: {outside:,} points outside the navigation's time span (they will be left out)")
         missing = channels - set(per)
         if missing:
             warnings.append(f"{path.name}: no points of channel(s) {sorted(missing)}")
@@ -293,10 +311,10 @@ def inspect_project(
         photos = (len(pp.eop), len(pp.cameras), control, len(pp.gcps) - control, len(pp.image_points))
 
     return ProjectSummary(
-        root=root, config=cfg, gnss_epochs=int(gnss.time_gps.size), gnss_usable_epochs=int(usable.sum()),
-        gnss_span_gps=g_span, imu_samples=int(imu.time_gps.size), imu_rate_hz=float(imu.rate_hz),
+        root=root, config=cfg, gnss_epochs=n_gnss, gnss_usable_epochs=n_usable,
+        gnss_span_gps=g_span, imu_samples=n_imu, imu_rate_hz=rate,
         imu_span_gps=i_span, imu_gaps=gaps, strips=tuple(strips), reference_surfaces=n_ref, warnings=tuple(warnings),
-        photos=photos,
+        photos=photos, delivered=delivered,
     )
 
 
