@@ -57,16 +57,17 @@ def test_pose_observation_is_zero_on_the_reference_plus_error():
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-def test_gauss_markov_prior(seed):
+@pytest.mark.parametrize("tau", [30.0, (30.0, 30.0, 300.0)])
+def test_gauss_markov_prior(seed, tau):
     rng = np.random.default_rng(seed)
     egrid = BiasGrid.covering(0.0, 60.0, 2.0)
     sigma = rng.uniform(0.01, 0.03, (egrid.n_knots, 3))
-    group = GaussMarkovPrior("gm", "e", egrid, sigma, tau_s=30.0)
+    group = GaussMarkovPrior("gm", "e", egrid, sigma, tau_s=tau)
     e = rng.normal(0, 0.02, (egrid.n_knots, 3))
     chk = check_jacobians(group, {"e": e}, {"e": "euclidean"}, eps=1e-6)
     assert chk.max_rel_error < 1e-7, chk
     lin = group.linearize({"e": e}, jacobians=False)
-    phi = np.exp(-2.0 / 30.0)
+    phi = np.exp(-2.0 / np.asarray(tau))
     np.testing.assert_allclose(lin.residuals[:3], e[0] / sigma[0])
     np.testing.assert_allclose(lin.residuals[3:6], (e[1] - phi * e[0]) / (sigma[1] * np.sqrt(1 - phi**2)))
 

@@ -171,15 +171,19 @@ class TrajectoryPriorConfig(StrictModel):
     smrmsg: str | None = Field(None, description="Its smrmsg accuracy file; without it the default sigmas below.")
     gps_week: int = Field(ge=0, description="GPS week of the SBET's first record.")
     correlation_time_s: float = Field(
-        300.0, gt=0.0, description="Correlation time of the SBET's error (an INS/GNSS heading error lasts minutes).")
-    error_knot_interval_s: float = Field(1.0, gt=0.0, description="Knot spacing of the piecewise-linear error.")
+        300.0, gt=0.0,
+        description="Correlation time of the SBET's position and heading error (an INS/GNSS heading error lasts minutes).")
+    tilt_correlation_time_s: float = Field(
+        30.0, gt=0.0,
+        description="Correlation time of its roll and pitch error (levelled by the GNSS: it wanders in seconds).")
+    error_knot_interval_s: float = Field(0.5, gt=0.0, description="Knot spacing of the piecewise-linear error.")
     sigma_scale: float = Field(1.0, gt=0.0, description="Factor on the smrmsg (or default) sigmas.")
     default_sigma_position_m: float = Field(0.05, gt=0.0, description="Position sigma without smrmsg.")
     default_sigma_roll_pitch_deg: float = Field(0.005, gt=0.0, description="Roll and pitch sigma without smrmsg.")
     default_sigma_heading_deg: float = Field(0.01, gt=0.0, description="Heading sigma without smrmsg.")
     white_sigma_position_m: float = Field(
         0.002, gt=0.0, description="Sigma of the SBET's short-term noise about the spline plus error.")
-    white_sigma_attitude_mdeg: float = Field(0.5, gt=0.0, description="The same for the attitude.")
+    white_sigma_attitude_mdeg: float = Field(1.0, gt=0.0, description="The same for the attitude.")
 
 
 class ReferenceConfig(StrictModel):

@@ -208,8 +208,9 @@ def build_trajectory_prior_problem(
     scale = prior.sigma_scale
     problem.add_group(GaussMarkovPrior("sbet_position_error_prior", POSITION_ERROR, egrid,
                                        scale * _sigma_at(data, tk, data.sigma_p_w), prior.correlation_time_s))
+    tau = np.array([prior.tilt_correlation_time_s, prior.tilt_correlation_time_s, prior.correlation_time_s])
     problem.add_group(GaussMarkovPrior("sbet_attitude_error_prior", ATTITUDE_ERROR, egrid,
-                                       scale * _sigma_at(data, tk, data.sigma_theta_w), prior.correlation_time_s))
+                                       scale * _sigma_at(data, tk, data.sigma_theta_w), tau))
     return TrajectoryPriorProblem(problem, grid, egrid, blocks, data, cfg, prior, reference)
 
 

@@ -17,7 +17,7 @@ SBET's error, piecewise linear on its own knots (:class:`~georefine.adjustment.o
 and ``n`` a small white part.
 
 The error is a first-order Gauss-Markov process with the ``smrmsg`` sigma as its stationary
-sigma and a correlation time ``tau`` (:class:`GaussMarkovPrior`): ``e_0 ~ N(0, sigma_0^2)`` and
+sigma and a correlation time ``tau`` per axis (:class:`GaussMarkovPrior`): ``e_0 ~ N(0, sigma_0^2)`` and
 ``e_{j+1} - phi e_j ~ N(0, sigma_{j+1}^2 (1 - phi^2))`` with ``phi = exp(-dt / tau)``. Over a
 pass much shorter than ``tau`` the error is nearly an offset the planes can estimate; its size
 stays bounded by the sigma the post-processor states.
@@ -142,22 +142,23 @@ class GaussMarkovPrior:
     ----------
     sigma : (J, 3)
         Stationary sigma at each knot (> 0).
-    tau_s : float
-        Correlation time (s).
+    tau_s : float or (3,)
+        Correlation time (s), per axis if given so.
     """
 
     name: str
     block: str
     grid: BiasGrid
     sigma: np.ndarray
-    tau_s: float
+    tau_s: float | np.ndarray
     loss: RobustLoss | None = None
 
     def __post_init__(self) -> None:
         self.sigma = np.broadcast_to(np.asarray(self.sigma, dtype=float), (self.grid.n_knots, 3)).copy()
-        if np.any(self.sigma <= 0) or not self.tau_s > 0:
+        tau = np.broadcast_to(np.asarray(self.tau_s, dtype=float), (3,))
+        if np.any(self.sigma <= 0) or not np.all(tau > 0):
             raise ValueError(f"{self.name}: sigma and the correlation time must be positive")
-        self.phi = float(np.exp(-self.grid.dt_s / self.tau_s))
+        self.phi = np.exp(-self.grid.dt_s / tau)
 
     def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
         e = np.asarray(values[self.block])
@@ -172,6 +173,6 @@ class GaussMarkovPrior:
             if n > 1:
                 D = np.zeros((n - 1, 3, 3))
                 D[:, np.arange(3), np.arange(3)] = w
-                jac.append(JacobianBlock(self.block, rows[1:], np.arange(n - 1), -self.phi * D))
+                jac.append(JacobianBlock(self.block, rows[1:], np.arange(n - 1), -D * self.phi[None, :, None]))
                 jac.append(JacobianBlock(self.block, rows[1:], np.arange(1, n), D))
         return Linearization(r, jac, np.repeat(np.arange(n), 3))
