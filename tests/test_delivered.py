@@ -180,10 +180,12 @@ def test_the_planes_correct_a_delivered_heading_error(project, tmp_path):
         "crs": {"output_epsg": 25832},
         "trajectory": {"sbet": "nav/sbet.out", "gps_week": _week(project), "default_sigma_heading_deg": 0.05},
         "scanner": {k: sc[k] for k in ("files", "lever_arm_m", "boresight_deg")},
-        "processing": {"lidar": {"outer_iterations": 2}},
+        # One outer iteration, no time offset search: the heading is what this test is about (the
+        # raw workflow's tests cover the iterations and the search).
+        "processing": {"lidar": {"outer_iterations": 1, "time_offset": {"search": False}}},
     }))
-    result = run_workflow(delivered, tmp_path / "run")
-    for strip in (1, 2):
+    result = run_workflow(delivered, tmp_path / "run", strips=[1], points=False)  # one pass: its three views suffice
+    for strip in (1,):
         before = truth_pass_rmse(tmp_path / "run" / "gi" / "trajectory.sbet", project, strip)
         after = truth_pass_rmse(tmp_path / "run" / "gil" / "trajectory.sbet", project, strip)
         assert before[2] > 25.0, before
@@ -253,3 +255,29 @@ def test_a_strip_without_crs_or_gps_time_is_refused(delivered_files, project, tm
         from georefine.cli import _vector3
 
         _vector3("1,2", "--lever-arm")
+
+
+def test_with_the_raw_imu_the_sbet_positions_and_the_imu_observe_the_trajectory(project, delivered_files, tmp_path):
+    """`import-strips --imu`: the SBET's positions stand in for the GNSS (gnss.format: sbet), the raw
+    IMU rebuilds the attitude; with the truth SBET's positions the G/I heading is as good as the raw
+    GNSS gives it, and the SBET's attitude is not used (a heading error in it changes nothing)."""
+    cfg = yaml.safe_load((project / "project.yaml").read_text())
+    (tmp_path / "imu.yaml").write_text(yaml.safe_dump(dict(cfg["imu"], file=str(project / cfg["imu"]["file"]))))
+    sbet = tmp_path / "sbet.out"
+    _sbet_with_heading_error(project, sbet)  # the attitude is not used: a wrong heading must not matter
+    sc = _scanner(project)
+    files = sorted((delivered_files / "pts").glob("strip_*.laz"))
+    # The strips were georeferenced with the truth SBET: import them with it, then swap in the wrong one.
+    import_strips(files, project / "truth" / "trajectory.sbet", tmp_path / "imp", lever_arm_m=tuple(sc["lever_arm_m"]),
+                  boresight_deg=tuple(sc["boresight_deg"]), imu=tmp_path / "imu.yaml")
+    (tmp_path / "imp" / "nav" / "trajectory.sbet").write_bytes(sbet.read_bytes())
+    written = yaml.safe_load((tmp_path / "imp" / "project.yaml").read_text())
+    assert written["gnss"]["format"] == "sbet" and written["imu"]["file"] == "imu/" + Path(cfg["imu"]["file"]).name
+    assert "trajectory" not in written
+    summary = inspect_project(tmp_path / "imp")
+    assert summary.gnss_epochs > 1000 and summary.imu_samples > 10_000
+    result = run_workflow(tmp_path / "imp", tmp_path / "run", lidar=False, points=False)
+    assert result.gi.imu_errors is not None  # a raw G/I adjustment
+    for strip in (1, 2):
+        rmse = truth_pass_rmse(tmp_path / "run" / "gi" / "trajectory.sbet", project, strip)
+        assert rmse[2] < 20.0 and np.all(rmse[:2] < 5.0), (strip, rmse)  # the SBET's 30+ mdeg heading error is gone

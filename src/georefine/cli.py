@@ -271,10 +271,13 @@ def import_strips_cmd(
         None, "--smrmsg", help="The SBET's smrmsg accuracy file (default: smrmsg_X.out beside sbet_X.out, if there)."),
     gps_week: Optional[int] = typer.Option(
         None, "--gps-week", help="GPS week of the SBET (default: the first strip's, from its adjusted GPS time)."),
+    imu: Optional[Path] = typer.Option(
+        None, "--imu", help="YAML with the imu section of project.yaml for the raw IMU (its file relative to the "
+        "YAML): the SBET's positions and the raw IMU then observe the trajectory."),
     scheduler: str = _scheduler_option(),
     force: bool = _force_option(),
 ) -> None:
-    """Make a project from delivered data: georeferenced strips and their SBET (+ smrmsg).
+    """Make a project from delivered data: georeferenced strips and their SBET (+ smrmsg, + raw IMU).
 
     Every point goes back into the scanner frame with the SBET, the lever arm and the boresight;
     `georefine run PROJECT --out RUN` then adjusts the SBET with the LiDAR planes.
@@ -286,7 +289,7 @@ def import_strips_cmd(
         arm, bs = _vector3(lever_arm, "--lever-arm"), _vector3(boresight, "--boresight")
         with _progress() as report:
             result = import_strips(strips, sbet, out, lever_arm_m=arm, boresight_deg=bs, smrmsg=smrmsg,
-                                   gps_week=gps_week, progress=report, scheduler=scheduler)
+                                   gps_week=gps_week, imu=imu, progress=report, scheduler=scheduler)
     stdout.print(result.summary())
 
 

@@ -83,6 +83,19 @@ class GnssFileConfig(StrictModel):
     min_quality: int = Field(
         2, ge=1, le=6, description="Worst RTKLIB quality flag accepted (1 fix, 2 float, ... 6 PPP)."
     )
+    format: Literal["pos", "sbet"] = Field(
+        "pos", description="pos: RTKLIB solutions; sbet: the positions of a delivered SBET (one file, at the IMU: "
+        "lever arm 0) observe the trajectory with the raw IMU (docs/ARCHITECTURE.md §4.9).")
+    gps_week: int | None = Field(None, ge=0, description="format sbet: GPS week of the SBET (else its companion file).")
+    smrmsg: str | None = Field(None, description="format sbet: its smrmsg accuracy file (else gnss.sbet_sigma_m).")
+    sbet_rate_hz: float = Field(5.0, gt=0.0, le=50.0, description="format sbet: positions taken at this rate.")
+    sbet_sigma_m: float = Field(0.05, gt=0.0, description="format sbet: position sigma without smrmsg (m).")
+
+    @model_validator(mode="after")
+    def _one_sbet(self) -> "GnssFileConfig":
+        if self.format == "sbet" and len(self.files) != 1:
+            raise ValueError(f"format sbet takes one SBET file, got {len(self.files)}")
+        return self
 
 
 class ImuErrorSpec(StrictModel):
@@ -543,8 +556,9 @@ class ProjectConfig(StrictModel):
             raise ValueError(f"section {missing} missing: a project needs gnss and imu, or a delivered trajectory "
                              "(section trajectory: sbet, smrmsg, gps_week)")
         if self.trajectory is not None and any(raw) and not all(raw):
-            raise ValueError("a delivered trajectory with only one of gnss and imu is not supported: give both raw "
-                             "sensors (the trajectory section is then not used) or neither")
+            raise ValueError("a delivered trajectory with only one of gnss and imu: give neither (the SBET is adjusted) "
+                             "or both (the trajectory section is then not used; with the raw IMU, gnss.format: sbet "
+                             "takes the SBET's positions)")
         return self
 
     @property

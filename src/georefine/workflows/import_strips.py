@@ -35,7 +35,15 @@ from pathlib import Path
 
 import numpy as np
 
-from georefine.config import ChannelConfig, boresight_matrix, default_channels, write_yaml
+from georefine.config import (
+    ChannelConfig,
+    ImuFileConfig,
+    boresight_matrix,
+    default_channels,
+    read_yaml,
+    validate_model,
+    write_yaml,
+)
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.files import SECONDS_PER_WEEK, make_output_folder, write_json
@@ -208,6 +216,7 @@ def import_strips(
     smrmsg: str | Path | None = None,
     gps_week: int | None = None,
     channels: list[ChannelConfig] | None = None,
+    imu: str | Path | None = None,
     name: str | None = None,
     progress: Progress = no_progress,
     scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
@@ -216,8 +225,13 @@ def import_strips(
 
     ``gps_week``: the week of the SBET (and of strips in GPS week time); by default that of the
     first strip's first point (adjusted standard time). ``smrmsg``: by default the accuracy file
-    beside the SBET named the POSPac way (``sbet_X.out`` -> ``smrmsg_X.out``), if there is one. ``channels``: the scanner views
-    (default nadir/forward/backward for ids 0-2, ``channel N`` otherwise).
+    beside the SBET named the POSPac way (``sbet_X.out`` -> ``smrmsg_X.out``), if there is one.
+    ``channels``: the scanner views (default nadir/forward/backward for ids 0-2, ``channel N``
+    otherwise). ``imu``: a YAML file holding the ``imu`` section of ``project.yaml`` for the raw
+    IMU the SBET was computed from (its ``file`` relative to the YAML file; copied into
+    ``imu/``): the project then observes the trajectory with the SBET's positions
+    (``gnss.format: sbet``) and the raw IMU instead of adjusting the SBET itself
+    (docs/ARCHITECTURE.md §4.9).
 
     Raises
     ------
@@ -257,6 +271,13 @@ def import_strips(
         log.info("%s: its accuracy file %s is used", sbet_path.name, Path(smrmsg).name)
     if smrmsg is not None:
         read_smrmsg(Path(smrmsg), gps_week=gps_week)  # refused now, not at the first run
+    imu_cfg = None
+    if imu is not None:
+        imu_path = Path(imu)
+        imu_cfg = validate_model(ImuFileConfig, read_yaml(imu_path), imu_path)
+        source = imu_path.parent / imu_cfg.file
+        if not source.is_file():
+            raise InputError("IMU file not found", path=source, field="file", expected=f"a file named in {imu_path.name}")
     ids = _strip_ids(infos)
     if channels is None:
         channels = _channels({c for s in infos for c in s.channels})
@@ -299,15 +320,26 @@ def import_strips(
                     "time_gps": list(s.time_gps)} for s, f, k in zip(infos, scan_files, ids)],
         "sbet": str(sbet_path.resolve()), "smrmsg": None if smrmsg is None else str(Path(smrmsg).resolve()),
         "epsg": epsg, "gps_week": gps_week, "lever_arm_m": list(map(float, lever_arm_m)),
-        "boresight_deg": list(map(float, boresight_deg)),
+        "boresight_deg": list(map(float, boresight_deg)), "imu": None if imu is None else str(Path(imu).resolve()),
     })
-    trajectory = {"sbet": nav_name, "gps_week": int(gps_week)}
-    if smrmsg_name:
-        trajectory["smrmsg"] = smrmsg_name
+    navigation: dict = {}
+    if imu_cfg is not None:  # the SBET's positions and the raw IMU (gnss.format: sbet)
+        (out / "imu").mkdir(exist_ok=True)
+        imu_name = f"imu/{Path(imu_cfg.file).name}"
+        shutil.copyfile(Path(imu).parent / imu_cfg.file, out / imu_name)
+        gnss = {"files": [nav_name], "format": "sbet", "gps_week": int(gps_week), "lever_arm_m": [0.0, 0.0, 0.0]}
+        if smrmsg_name:
+            gnss["smrmsg"] = smrmsg_name
+        navigation = {"gnss": gnss, "imu": dict(imu_cfg.model_dump(mode="json"), file=imu_name)}
+    else:
+        trajectory = {"sbet": nav_name, "gps_week": int(gps_week)}
+        if smrmsg_name:
+            trajectory["smrmsg"] = smrmsg_name
+        navigation = {"trajectory": trajectory}
     write_yaml(out / "project.yaml", {
         "name": name or out.name,
         "crs": {"output_epsg": epsg},
-        "trajectory": trajectory,
+        **navigation,
         "scanner": {
             "files": scan_files, "lever_arm_m": list(map(float, lever_arm_m)),
             "boresight_deg": list(map(float, boresight_deg)),

@@ -400,7 +400,7 @@ def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
         files = [file_stamp(root / f, root) for f in (tc.sbet, tc.smrmsg) if f]
         return StepCache.key("delivered", files, cfg.crs.model_dump(), tc.model_dump(),
                              cfg.processing.trajectory.model_dump())
-    files = [file_stamp(root / f, root) for f in [*cfg.gnss.files, cfg.imu.file]]
+    files = [file_stamp(root / f, root) for f in [*cfg.gnss.files, cfg.imu.file, cfg.gnss.smrmsg] if f]
     return StepCache.key(
         "gi", files, cfg.crs.model_dump(), cfg.gnss.model_dump(), cfg.imu.model_dump(),
         cfg.processing.filter.model_dump(), cfg.processing.trajectory.model_dump(),
@@ -521,7 +521,7 @@ def warn_plane_misfit(gi: GnssImuResult, adj: LidarAdjustment, records: tuple[Ou
                       nav: NavigationData | None = None) -> None:
     """Warn, with the figures, when the planes pull the trajectory off the GNSS (:data:`GNSS_PULL_RATIO`),
     or a delivered trajectory beyond its stated accuracy (:func:`~georefine.workflows.delivered.warn_delivered_pull`)."""
-    if adj.result.sbet_errors is not None:
+    if getattr(adj.result, "sbet_errors", None) is not None:
         if nav is not None:
             warn_delivered_pull(nav, adj.result, records)
         return

@@ -90,8 +90,38 @@ class ProjectSummary:
         return "\n".join(lines)
 
 
+def gnss_from_sbet(root: Path, cfg: ProjectConfig) -> GnssSolution:
+    """``gnss.format: sbet``: the delivered SBET's positions at ``gnss.sbet_rate_hz`` as GNSS epochs.
+
+    The covariance is the ``smrmsg`` north/east/down sigma (or ``gnss.sbet_sigma_m``) rotated to
+    ECEF; quality 1. The raw IMU then rebuilds the attitude with them as from GNSS
+    (docs/ARCHITECTURE.md §4.9).
+    """
+    from georefine.geometry.earth import R_e_n, geodetic_to_ecef
+    from georefine.io.trajectory import read_sbet, read_smrmsg
+
+    g = cfg.gnss
+    sbet = read_sbet(root / g.files[0], gps_week=g.gps_week)
+    step = max(1, int(round(1.0 / (g.sbet_rate_hz * float(np.median(np.diff(sbet.time_gps)))))))
+    k = np.arange(0, len(sbet), step)
+    t = sbet.time_gps[k]
+    lat, lon, h = sbet.lat_rad[k], sbet.lon_rad[k], sbet.h_m[k]
+    if g.smrmsg:
+        acc = read_smrmsg(root / g.smrmsg, gps_week=g.gps_week if g.gps_week is not None else int(t[0] // 604800))
+        sig = np.column_stack([np.interp(t, acc.time_gps, acc.sigma_ned_m[:, i]) for i in range(3)])
+    else:
+        sig = np.full((t.size, 3), g.sbet_sigma_m)
+    R = R_e_n(lat, lon)
+    cov = np.einsum("nij,nj,nkj->nik", R, sig**2, R)
+    n = t.size
+    return GnssSolution(t, geodetic_to_ecef(lat, lon, h), cov, np.ones(n, dtype=np.int64), np.zeros(n, dtype=np.int64),
+                        np.zeros(n), np.zeros(n))
+
+
 def read_project_gnss(root: Path, cfg: ProjectConfig) -> GnssSolution:
-    """Read and concatenate the project's ``.pos`` files (time-ordered, no duplicates)."""
+    """Read and concatenate the project's ``.pos`` files (time-ordered, no duplicates), or the SBET's positions."""
+    if cfg.gnss.format == "sbet":
+        return gnss_from_sbet(root, cfg)
     parts = [read_pos(root / f) for f in cfg.gnss.files]
     if len(parts) == 1:
         return parts[0]
