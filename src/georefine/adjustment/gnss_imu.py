@@ -135,12 +135,24 @@ class GnssImuProblem:
     estimate_scale: bool
 
     def spline(self) -> SplineTrajectory:
-        p = self.problem
-        b = self.blocks
-        return SplineTrajectory(
-            self.grid, p.values(b.position), p.values(b.velocity), p.values(b.acceleration),
-            p.values(b.attitude), p.values(b.rate), t0_gps=self.data.t0_gps,
-        )
+        return spline_from_problem(self.problem, self.blocks, self.grid, self.data.t0_gps)
+
+
+def add_spline_blocks(problem: Problem, blocks: TrajectoryBlocks, initial: SplineTrajectory) -> None:
+    """The five knot blocks of a spline trajectory (§4.2), started at ``initial`` (copied)."""
+    problem.add_block(blocks.position, initial.p_w_b.copy())
+    problem.add_block(blocks.velocity, initial.v_w_b.copy())
+    problem.add_block(blocks.acceleration, initial.a_w_b.copy())
+    problem.add_block(blocks.attitude, initial.R_w_b.copy(), manifold="so3")
+    problem.add_block(blocks.rate, initial.omega_wb_b.copy())
+
+
+def spline_from_problem(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid, t0_gps: float) -> SplineTrajectory:
+    """The spline trajectory the knot blocks of ``problem`` hold now."""
+    return SplineTrajectory(
+        grid, problem.values(blocks.position), problem.values(blocks.velocity), problem.values(blocks.acceleration),
+        problem.values(blocks.attitude), problem.values(blocks.rate), t0_gps=t0_gps,
+    )
 
 
 def _densities(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> dict[str, float]:
@@ -195,11 +207,7 @@ def build_gnss_imu_problem(
 
     blocks = TrajectoryBlocks()
     problem = Problem()
-    problem.add_block(blocks.position, initial.p_w_b.copy())
-    problem.add_block(blocks.velocity, initial.v_w_b.copy())
-    problem.add_block(blocks.acceleration, initial.a_w_b.copy())
-    problem.add_block(blocks.attitude, initial.R_w_b.copy(), manifold="so3")
-    problem.add_block(blocks.rate, initial.omega_wb_b.copy())
+    add_spline_blocks(problem, blocks, initial)
     J = bias_grid.n_knots
     for name, b0 in (("acc_bias", acc_bias0), ("gyro_bias", gyro_bias0)):
         b = np.zeros((J, 3)) if b0 is None else np.broadcast_to(np.asarray(b0, dtype=float), (J, 3)).copy()

@@ -34,7 +34,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from georefine.adjustment.gnss_imu import GnssImuResult, block_sigma, trajectory_sigma
+from georefine.adjustment.gnss_imu import (
+    GnssImuResult,
+    add_spline_blocks,
+    block_sigma,
+    spline_from_problem,
+    trajectory_sigma,
+)
 from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
 from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior, TrajectoryPoseObservation
@@ -152,11 +158,7 @@ class TrajectoryPriorProblem:
     reference: SplineTrajectory
 
     def spline(self) -> SplineTrajectory:
-        p, b = self.problem, self.blocks
-        return SplineTrajectory(
-            self.grid, p.values(b.position), p.values(b.velocity), p.values(b.acceleration),
-            p.values(b.attitude), p.values(b.rate), t0_gps=self.data.t0_gps,
-        )
+        return spline_from_problem(self.problem, self.blocks, self.grid, self.data.t0_gps)
 
 
 def _sigma_at(data: TrajectoryPriorData, t: np.ndarray, which: np.ndarray) -> np.ndarray:
@@ -184,11 +186,7 @@ def build_trajectory_prior_problem(
     egrid = BiasGrid.covering(grid.t_start, grid.t_end, prior.error_knot_interval_s)
     blocks = TrajectoryBlocks()
     problem = Problem()
-    problem.add_block(blocks.position, initial.p_w_b.copy())
-    problem.add_block(blocks.velocity, initial.v_w_b.copy())
-    problem.add_block(blocks.acceleration, initial.a_w_b.copy())
-    problem.add_block(blocks.attitude, initial.R_w_b.copy(), manifold="so3")
-    problem.add_block(blocks.rate, initial.omega_wb_b.copy())
+    add_spline_blocks(problem, blocks, initial)
     e_p = np.zeros((egrid.n_knots, 3))
     e_t = np.zeros((egrid.n_knots, 3))
     if errors is not None:
