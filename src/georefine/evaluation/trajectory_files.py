@@ -217,6 +217,64 @@ def truth_pass_rmse(sbet: PathLike, project: PathLike, strip: int) -> np.ndarray
     return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
 
 
+@dataclass(frozen=True)
+class PassAccuracy:
+    """Attitude errors of a solution against a simulated project's truth during one pass.
+
+    ``rmse_mdeg``: roll, pitch, yaw RMSE (mdeg). ``z_rms``: RMS of error / stated sigma per
+    angle (the solution's ``smrmsg`` interpolated to the truth's times; 1 for honest sigmas,
+    above 1 optimistic, below 1 pessimistic); ``beyond_3_sigma``: the fraction of epochs whose
+    error exceeds three stated sigmas (0.3 % for Gaussian errors). Both NaN without an accuracy
+    file.
+    """
+
+    strip: int
+    rmse_mdeg: np.ndarray
+    z_rms: np.ndarray
+    beyond_3_sigma: np.ndarray
+    epochs: int
+
+    def to_dict(self) -> dict:
+        """Plain JSON values per angle (NaN as None)."""
+        def values(a: np.ndarray) -> dict:
+            return {k: (float(v) if np.isfinite(v) else None) for k, v in zip(("roll", "pitch", "yaw"), a)}
+
+        return {"strip": self.strip, "epochs": self.epochs, "rmse_mdeg": values(self.rmse_mdeg),
+                "z_rms": values(self.z_rms), "beyond_3_sigma": values(self.beyond_3_sigma)}
+
+
+def truth_pass_accuracy(sbet: PathLike, project: PathLike, strip: int) -> PassAccuracy:
+    """RMSE and sigma consistency of ``sbet`` against a simulated project's truth during one pass.
+
+    The pass's span comes from ``truth/scenario.yaml``, shortened by 1 s at both ends (as
+    :func:`truth_pass_rmse`); the sigmas from the accuracy file beside ``sbet``
+    (:func:`~georefine.io.trajectory.smrmsg_path`), when there is one.
+    """
+    import yaml
+
+    from georefine.io.trajectory import read_smrmsg, smrmsg_path
+
+    project, sbet = Path(project), Path(sbet)
+    truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
+    p = next(p for p in truth["passes"] if p["strip_id"] == strip)
+    t0 = truth["t0_gps"]
+    cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet",
+                             time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
+    rmse = np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
+    z_rms = beyond = np.full(3, np.nan)
+    accuracy = smrmsg_path(sbet)
+    if accuracy.is_file():
+        companion = read_sbet_companion(sbet)
+        sig = read_smrmsg(accuracy, gps_week=companion.gps_week if companion is not None else None)
+        if cmp.time_scale == "gps":
+            tq = cmp.t0_gps + cmp.time
+            s = np.column_stack([np.interp(tq, sig.time_gps, sig.sigma_rph_rad[:, j]) for j in range(3)])
+            z = cmp.d_rph_rad / s
+            z_rms = np.sqrt(np.mean(z * z, axis=0))
+            beyond = np.mean(np.abs(z) > 3.0, axis=0)
+    return PassAccuracy(strip, rmse, z_rms, beyond, len(cmp.time))
+
+
 def truth_gnss_time_offset(project: PathLike) -> float:
     """The LiDAR time offset (s) that a simulated project's GNSS errors alone make the passes show.
 
