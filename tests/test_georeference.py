@@ -96,6 +96,12 @@ def test_fused_kernel_matches_exact_slerp_and_the_numpy_blend():
     np.testing.assert_allclose(fast, georeference(t, x_s, traj, p_b_s, R_b_s), rtol=0, atol=1e-6)
     with pytest.raises(ValueError, match="outside the trajectory span"):
         georeference(np.array([tt[-1] + 1.0]), x_s[:1], interp, p_b_s, R_b_s)
+    # Points and directions in one pass (the time offset search's features): the same blend.
+    d_b = rng.normal(size=(t.size, 3))
+    x_w, d_w = interp.transform_with_directions(t, x_s, d_b)
+    np.testing.assert_allclose(x_w, p + np.einsum("nij,nj->ni", R_w_b, x_s), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(d_w, np.einsum("nij,nj->ni", R_w_b, d_b), rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(x_w, interp.transform(t, x_s))
 
 
 def test_scan_angle_left_negative_right_positive_with_the_roll():

@@ -18,6 +18,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+from shared_projects import GIL_SCAN
 from truth_helpers import pass_rmse
 
 from georefine.errors import InputError
@@ -44,14 +45,13 @@ from georefine.workflows.lidar import (
     step_features,
 )
 
-SCAN = ["scanner.pulse_rate_hz=100000", "scanner.line_rate_hz=120"]  # the corridor's scanner
+SCAN = GIL_SCAN  # the corridor's scanner
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("gil") / "p"
-    simulate_project("corridor-tiny", out, seed=7, overrides=SCAN)
-    return out
+def project(gil_project) -> Path:
+    """corridor-tiny, seed 7, the corridor's scanner: shared with test_workflow_gil_variants.py (read only)."""
+    return gil_project
 
 
 @pytest.fixture(scope="module")
@@ -63,12 +63,19 @@ def sparse_project(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="module")
-def full_run(project, tmp_path_factory) -> Path:
-    """`georefine run` on the project, both passes; the demo test resumes its steps."""
+def full_run(project, gil_gi_cache, tmp_path_factory) -> Path:
+    """`georefine run` on the project, both passes; the demo test resumes its steps.
+
+    Its step cache starts with the project's G/I adjustment (steps 1-2, computed once for this
+    file and test_workflow_gil_variants.py): the run resumes it and computes steps 3-6.
+    """
     out = tmp_path_factory.mktemp("run") / "run"
+    out.mkdir()
+    shutil.copytree(gil_gi_cache, out / ".cache")
     proc = subprocess.run([sys.executable, "-m", "georefine", "run", str(project), "--out", str(out)],
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
+    assert json.loads((out / "metrics.json").read_text())["resumed"] == ["gi"]
     return out
 
 

@@ -1,8 +1,9 @@
 """GNSS/IMU/LiDAR workflow variants on simulated truth: boresight recovery, robustness to wrong
 matches, a local cluster against one process, a coarse first outer iteration.
 
-The same project as tests/test_workflow_gil.py (its own copy: the two files run on different
-workers); the G/I adjustment is computed once into a step cache that every test starts from.
+The same project as tests/test_workflow_gil.py, simulated once for both files (tests/conftest.py:
+whichever worker needs it first builds it); the G/I adjustment is computed once into a step
+cache that every test (and test_workflow_gil.py's run) starts from.
 The runs are marked slow (CI runs them).
 """
 
@@ -23,7 +24,6 @@ from georefine.lidar.correspondences import (
     inject_wrong_matches,
     match_features,
 )
-from georefine.sim.scenarios import simulate_project
 from georefine.tasks import TaskRunner
 from georefine.trajectory.sampled import trajectory_from_sbet
 from georefine.workflows import (
@@ -31,7 +31,6 @@ from georefine.workflows import (
 )
 from georefine.workflows.cache import StepCache, StepRunner
 from georefine.workflows.lidar import (
-    precompute_gnss_imu,
     read_strips,
     run_workflow,
     stage_gnss_imu,
@@ -40,22 +39,16 @@ from georefine.workflows.lidar import (
 )
 from georefine.workflows.navigation import imu_rate_trajectory
 
-SCAN = ["scanner.pulse_rate_hz=100000", "scanner.line_rate_hz=120"]  # the corridor's scanner
+@pytest.fixture(scope="module")
+def project(gil_project) -> Path:
+    """corridor-tiny, seed 7, the corridor's scanner: shared with test_workflow_gil.py (read only)."""
+    return gil_project
 
 
 @pytest.fixture(scope="module")
-def project(tmp_path_factory) -> Path:
-    out = tmp_path_factory.mktemp("gil_variants") / "p"
-    simulate_project("corridor-tiny", out, seed=7, overrides=SCAN)
-    return out
-
-
-@pytest.fixture(scope="module")
-def gi_cache(project, tmp_path_factory) -> Path:
-    """A step cache holding the project's G/I adjustment (steps 1-2)."""
-    cache = tmp_path_factory.mktemp("gi_cache")
-    precompute_gnss_imu(project, cache)
-    return cache
+def gi_cache(gil_gi_cache) -> Path:
+    """A step cache holding the project's G/I adjustment (steps 1-2): read only."""
+    return gil_gi_cache
 
 
 def _cache(gi_cache: Path, dest: Path) -> Path:

@@ -72,6 +72,20 @@ class PoseInterpolator:
         _georeference_points(t, k, self.time, self.p, self.q, x_b, out)
         return out
 
+    def transform_with_directions(self, t: np.ndarray, x_b: np.ndarray, d_b: np.ndarray
+                                  ) -> tuple[np.ndarray, np.ndarray]:
+        """``(p_w_b(t) + R_w_b(t) x_b, R_w_b(t) d_b)``: body-frame points and directions (N,3) at ``t`` (N,) in the span.
+
+        One pass for both (planar features' centres and normals, :mod:`georefine.lidar.time_offset`).
+        """
+        t = np.ascontiguousarray(t, dtype=np.float64)
+        x_b = np.ascontiguousarray(x_b, dtype=np.float64)
+        d_b = np.ascontiguousarray(d_b, dtype=np.float64)
+        k = np.clip(np.searchsorted(self.time, t, side="right") - 1, 0, self.time.size - 2)
+        x_w, d_w = np.empty_like(x_b), np.empty_like(d_b)
+        _georeference_points_directions(t, k, self.time, self.p, self.q, x_b, d_b, x_w, d_w)
+        return x_w, d_w
+
 
 @numba.njit(cache=True, nogil=True)
 def _georeference_points(t, k, time, p, q, x_b, out):  # pragma: no cover - compiled
@@ -92,6 +106,31 @@ def _georeference_points(t, k, time, p, q, x_b, out):  # pragma: no cover - comp
                      + (1.0 - 2.0 * (qx * qx + qz * qz)) * y + 2.0 * (qy * qz - qx * qw) * z)
         out[n, 2] = (p[i, 2] + u * (p[i + 1, 2] - p[i, 2]) + 2.0 * (qx * qz - qy * qw) * x
                      + 2.0 * (qy * qz + qx * qw) * y + (1.0 - 2.0 * (qx * qx + qy * qy)) * z)
+
+
+@numba.njit(cache=True, nogil=True)
+def _georeference_points_directions(t, k, time, p, q, x_b, d_b, x_w, d_w):  # pragma: no cover - compiled
+    """``x_w = p(t) + R(q(t)) x_b`` and ``d_w = R(q(t)) d_b``, blended as in :func:`_georeference_points`."""
+    for n in range(t.shape[0]):
+        i = k[n]
+        u = (t[n] - time[i]) / (time[i + 1] - time[i])
+        qx = q[i, 0] + u * (q[i + 1, 0] - q[i, 0])
+        qy = q[i, 1] + u * (q[i + 1, 1] - q[i, 1])
+        qz = q[i, 2] + u * (q[i + 1, 2] - q[i, 2])
+        qw = q[i, 3] + u * (q[i + 1, 3] - q[i, 3])
+        s = 1.0 / np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+        qx, qy, qz, qw = qx * s, qy * s, qz * s, qw * s
+        r00, r01, r02 = 1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qz * qw), 2.0 * (qx * qz + qy * qw)
+        r10, r11, r12 = 2.0 * (qx * qy + qz * qw), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qx * qw)
+        r20, r21, r22 = 2.0 * (qx * qz - qy * qw), 2.0 * (qy * qz + qx * qw), 1.0 - 2.0 * (qx * qx + qy * qy)
+        x, y, z = x_b[n, 0], x_b[n, 1], x_b[n, 2]
+        x_w[n, 0] = p[i, 0] + u * (p[i + 1, 0] - p[i, 0]) + r00 * x + r01 * y + r02 * z
+        x_w[n, 1] = p[i, 1] + u * (p[i + 1, 1] - p[i, 1]) + r10 * x + r11 * y + r12 * z
+        x_w[n, 2] = p[i, 2] + u * (p[i + 1, 2] - p[i, 2]) + r20 * x + r21 * y + r22 * z
+        x, y, z = d_b[n, 0], d_b[n, 1], d_b[n, 2]
+        d_w[n, 0] = r00 * x + r01 * y + r02 * z
+        d_w[n, 1] = r10 * x + r11 * y + r12 * z
+        d_w[n, 2] = r20 * x + r21 * y + r22 * z
 
 
 @numba.njit(cache=True, nogil=True)
