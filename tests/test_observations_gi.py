@@ -48,6 +48,46 @@ def test_gnss_jacobians(seed):
 
 
 @pytest.mark.parametrize("seed", SEEDS)
+def test_gnss_jacobians_with_a_correlated_error(seed):
+    """The correlated GNSS error d(t) on its own knots: Jacobians, and d adds to the modelled position."""
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    egrid = BiasGrid.covering(0.0, grid.t_end, 0.35)
+    values["d"] = rng.normal(0, 0.02, (egrid.n_knots, 3))
+    t = np.sort(rng.uniform(0, grid.t_end, 20))
+    cov = np.broadcast_to(np.diag([1e-4, 1e-4, 4e-4]), (20, 3, 3)).copy()
+    lever = np.array([-0.8, 0.1, -1.4])
+    plain = GnssPositionObservation(grid, t, np.zeros((20, 3)), cov, lever).predict(values)
+    group = GnssPositionObservation(grid, t, plain, cov, lever, error_grid=egrid, error_block="d")
+    np.testing.assert_allclose(group.predict(values) - plain, egrid.evaluate(values["d"], t), atol=1e-12)
+    chk = check_jacobians(group, values, {**TRAJ_BLOCKS, "d": "euclidean"}, eps=1e-4)
+    assert chk.max_rel_error < 1e-5, chk
+    with pytest.raises(ValueError, match="go together"):
+        GnssPositionObservation(grid, t, plain, cov, lever, error_grid=egrid)
+
+
+def test_white_part_of_the_gnss_covariance():
+    """The .pos sigma less the correlated part per axis, floored, plus what the chord misses."""
+    from georefine.adjustment.gnss_imu import white_gnss_covariance
+    from georefine.config import GnssCorrelatedError
+
+    model = GnssCorrelatedError(sigma_horizontal_m=0.015, sigma_up_m=0.03, time_constant_s=300.0)
+    total = np.hypot([0.01, 0.01, 0.02], [0.015, 0.015, 0.03])
+    cov = np.diag(total**2)[None].repeat(2, axis=0)
+    cov[1] = np.diag([0.005, 0.005, 0.01]) ** 2  # smaller than the correlated part: the floor
+    white = white_gnss_covariance(cov, model, 5.0)
+    chord = np.array([0.015, 0.015, 0.03]) ** 2 * 5.0 / 900.0
+    np.testing.assert_allclose(np.diag(white[0]), np.array([0.01, 0.01, 0.02]) ** 2 + chord, rtol=1e-12)
+    np.testing.assert_allclose(np.diag(white[1]), (0.3 * np.array([0.005, 0.005, 0.01])) ** 2 + chord, rtol=1e-12)
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(3, 3)) * 0.01
+    c = white_gnss_covariance((A @ A.T + np.eye(3) * 1e-4)[None], model, 5.0)[0]
+    assert np.all(np.linalg.eigvalsh(c) > 0)  # rescaled axes keep it positive definite
+
+
+@pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("window_samples", [1, 10])
 def test_imu_jacobians(seed, window_samples):
     rng = np.random.default_rng(seed)

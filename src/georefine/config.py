@@ -77,6 +77,23 @@ class CrsConfig(StrictModel):
         return check_output_epsg(v)
 
 
+class GnssCorrelatedError(StrictModel):
+    """The time-correlated part of the GNSS position error (docs/ARCHITECTURE.md §4.3 GNSS).
+
+    PPK and PPP position errors are not white: residual atmosphere, orbit and multipath errors
+    last minutes. The adjustment models them as a first-order Gauss-Markov process per axis of
+    ``w`` (east, north, up) with these stationary sigmas and correlation time; the ``.pos``
+    sigmas are taken as the total, and their white part is what remains after this (at least
+    ``min_white_fraction`` of them).
+    """
+
+    sigma_horizontal_m: float = Field(0.015, gt=0.0, description="Stationary sigma per horizontal axis (m).")
+    sigma_up_m: float = Field(0.03, gt=0.0, description="Stationary sigma of the height (m).")
+    time_constant_s: float = Field(300.0, gt=0.0, description="Correlation time (s).")
+    min_white_fraction: float = Field(
+        0.3, gt=0.0, le=1.0, description="The white sigma per axis is at least this fraction of the .pos sigma.")
+
+
 class GnssFileConfig(StrictModel):
     files: list[str] = Field(min_length=1, description="RTKLIB .pos files, relative to the project folder.")
     lever_arm_m: Vector3 = Field(description="Antenna phase centre in the body frame, p_b_a (m).")
@@ -90,6 +107,10 @@ class GnssFileConfig(StrictModel):
     smrmsg: str | None = Field(None, description="format sbet: its smrmsg accuracy file (else gnss.sbet_sigma_m).")
     sbet_rate_hz: float = Field(5.0, gt=0.0, le=50.0, description="format sbet: positions taken at this rate.")
     sbet_sigma_m: float = Field(0.05, gt=0.0, description="format sbet: position sigma without smrmsg (m).")
+    correlated_error: GnssCorrelatedError | None = Field(
+        default_factory=GnssCorrelatedError,
+        description="The GNSS error that lasts minutes, estimated on its own knots "
+        "(processing.trajectory.gnss_error_knot_interval_s); null: every epoch's error is white.")
 
     @model_validator(mode="after")
     def _one_sbet(self) -> "GnssFileConfig":
@@ -346,6 +367,8 @@ class TrajectoryAdjustmentConfig(StrictModel):
         "high-frequency motion taken out of the IMU windows (each G/I/L outer iteration does so anyway).",
     )
     bias_knot_interval_s: float = Field(10.0, gt=0.0, description="Knot spacing of the piecewise-linear biases.")
+    gnss_error_knot_interval_s: float = Field(
+        5.0, gt=0.0, description="Knot spacing of the piecewise-linear correlated GNSS error (gnss.correlated_error).")
     estimate_scale_factors: bool = True
     gnss_loss: Literal["huber", "cauchy", "none"] = "huber"
     gnss_loss_scale: float = Field(3.0, gt=0.0, description="Huber delta / Cauchy c in units of sigma.")

@@ -19,11 +19,12 @@ from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
 from georefine.adjustment.observations.imu import ImuObservation, make_imu_windows
 from georefine.adjustment.observations.prior import EuclideanPrior
+from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolveResult, SolverOptions
-from georefine.config import ImuErrorSpec, TrajectoryAdjustmentConfig
+from georefine.config import GnssCorrelatedError, ImuErrorSpec, TrajectoryAdjustmentConfig
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import rph_from_R_n_b
@@ -49,6 +50,10 @@ class GnssImuData:
     imu_gyro_sigma, imu_acc_sigma : (N,) or None
         Interpolation sigma of samples bridged over a sampling gap (rad/s, m/s²; 0 for measured
         ones; :mod:`georefine.io.imu_gaps`); None when no sample was bridged.
+    gnss_correlated : GnssCorrelatedError or None
+        The GNSS error that lasts minutes (``gnss.correlated_error``): estimated on its own
+        knots, ``gnss_cov_w`` then holds the total of which the white part is what remains;
+        None: ``gnss_cov_w`` is white.
     """
 
     frame: LocalFrame
@@ -63,6 +68,42 @@ class GnssImuData:
     p_b_a: np.ndarray
     imu_gyro_sigma: np.ndarray | None = None
     imu_acc_sigma: np.ndarray | None = None
+    gnss_correlated: GnssCorrelatedError | None = None
+
+
+GNSS_ERROR_BLOCK = "gnss_error"
+"""Block of the correlated GNSS error's knot values ((J, 3), m in ``w``)."""
+
+
+@dataclass(frozen=True)
+class GnssErrorEstimate:
+    """The estimated correlated GNSS error ``d(t)`` (m, east/north/up of ``w``) on its knots, with 1-sigma."""
+
+    grid: BiasGrid
+    value_w: np.ndarray
+    sigma_w: np.ndarray | None = None
+
+    def at(self, t: np.ndarray) -> np.ndarray:
+        """``d`` at times ``t`` (s, relative to the dataset epoch), (N, 3)."""
+        return self.grid.evaluate(self.value_w, np.asarray(t, dtype=float))
+
+
+def white_gnss_covariance(cov_w: np.ndarray, model: GnssCorrelatedError, knot_interval_s: float) -> np.ndarray:
+    """The white part of the GNSS covariances ``cov_w`` (G, 3, 3) when ``model`` is estimated apart.
+
+    Per axis of ``w`` the variance of the correlated part is taken off the epoch's (down to
+    ``min_white_fraction`` of its sigma), and what a piecewise-linear ``d(t)`` on knots
+    ``knot_interval_s`` apart cannot follow is added: a Gauss-Markov process of sigma ``s`` and
+    correlation time ``tau`` is locally a random walk of density ``s sqrt(2 / tau)``, whose
+    distance from the chord between knots ``dt`` apart has a mean variance of
+    ``s² dt / (3 tau)``. The correlations between axes are kept (the axes are rescaled).
+    """
+    cov_w = np.asarray(cov_w, dtype=float)
+    var = np.diagonal(cov_w, axis1=1, axis2=2)
+    s2 = np.array([model.sigma_horizontal_m, model.sigma_horizontal_m, model.sigma_up_m]) ** 2
+    white = np.maximum(var - s2, model.min_white_fraction**2 * var) + s2 * knot_interval_s / (3.0 * model.time_constant_s)
+    scale = np.sqrt(white / np.maximum(var, 1e-300))
+    return cov_w * scale[:, :, None] * scale[:, None, :]
 
 
 @dataclass(frozen=True)
@@ -120,6 +161,8 @@ class GnssImuResult:
     sbet_errors: object | None = None
     """Without raw GNSS/IMU (``imu_errors`` None): the delivered trajectory's estimated error,
     a :class:`~georefine.adjustment.trajectory_prior.SbetErrorEstimate`."""
+    gnss_error: GnssErrorEstimate | None = None
+    """The estimated correlated GNSS error (``gnss.correlated_error``), or None."""
 
 
 @dataclass
@@ -133,6 +176,7 @@ class GnssImuProblem:
     data: GnssImuData
     cfg: TrajectoryAdjustmentConfig
     estimate_scale: bool
+    gnss_error_grid: BiasGrid | None = None
 
     def spline(self) -> SplineTrajectory:
         return spline_from_problem(self.problem, self.blocks, self.grid, self.data.t0_gps)
@@ -218,10 +262,19 @@ def build_gnss_imu_problem(
     g_in = (data.gnss_time >= span[0]) & (data.gnss_time <= span[1])
     if not np.any(g_in):
         raise InputError("no GNSS epoch inside the trajectory span", field="time")
+    cov, error, egrid = data.gnss_cov_w[g_in], {}, None
+    model = data.gnss_correlated
+    if model is not None:  # d(t) on its own knots with its Gauss-Markov prior; the epochs keep the white part
+        egrid = BiasGrid.covering(span[0], span[1], cfg.gnss_error_knot_interval_s)
+        cov = white_gnss_covariance(cov, model, egrid.dt_s)
+        problem.add_block(GNSS_ERROR_BLOCK, np.zeros((egrid.n_knots, 3)))
+        sigma = np.array([model.sigma_horizontal_m, model.sigma_horizontal_m, model.sigma_up_m])
+        problem.add_group(GaussMarkovPrior("gnss_error_prior", GNSS_ERROR_BLOCK, egrid, sigma, model.time_constant_s))
+        error = {"error_grid": egrid, "error_block": GNSS_ERROR_BLOCK}
     problem.add_group(
         GnssPositionObservation(
-            grid, data.gnss_time[g_in], data.gnss_p_w[g_in], data.gnss_cov_w[g_in], data.p_b_a,
-            loss=make_loss(cfg.gnss_loss, cfg.gnss_loss_scale), blocks=blocks,
+            grid, data.gnss_time[g_in], data.gnss_p_w[g_in], cov, data.p_b_a,
+            loss=make_loss(cfg.gnss_loss, cfg.gnss_loss_scale), blocks=blocks, **error,
         )
     )
     problem.add_group(
@@ -237,17 +290,30 @@ def build_gnss_imu_problem(
     if cfg.estimate_scale_factors:
         problem.add_group(EuclideanPrior("acc_scale_prior", "acc_scale", [0], np.zeros(3), d["acc_scale"]))
         problem.add_group(EuclideanPrior("gyro_scale_prior", "gyro_scale", [0], np.zeros(3), d["gyro_scale"]))
-    return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors)
+    return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors, egrid)
 
 
-def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate) -> GnssImuProblem:
-    """Start ``built``'s biases and scale factors at ``errors`` (same bias knots); returns ``built``."""
+def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
+                     gnss_error: GnssErrorEstimate | None = None) -> GnssImuProblem:
+    """Start ``built``'s biases and scale factors at ``errors`` (same bias knots), and its correlated
+    GNSS error at ``gnss_error`` where both have one (same knots); returns ``built``."""
     P = built.problem
+    if gnss_error is not None and GNSS_ERROR_BLOCK in P.blocks:
+        P.set_values(GNSS_ERROR_BLOCK, gnss_error.value_w)
     P.set_values("acc_bias", errors.acc_bias)
     P.set_values("gyro_bias", errors.gyro_bias)
     P.set_values("acc_scale", np.asarray(errors.acc_scale, dtype=float).reshape(1, 3))
     P.set_values("gyro_scale", np.asarray(errors.gyro_scale, dtype=float).reshape(1, 3))
     return built
+
+
+def gnss_error_of(built: GnssImuProblem, scale: float | None = None) -> GnssErrorEstimate | None:
+    """The correlated GNSS error ``built`` holds now (with posterior sigma, covariance times ``scale``, if
+    ``scale`` is given), or None."""
+    if built.gnss_error_grid is None:
+        return None
+    s = block_sigma(built.problem, GNSS_ERROR_BLOCK, scale) if scale is not None else None
+    return GnssErrorEstimate(built.gnss_error_grid, built.problem.values(GNSS_ERROR_BLOCK).copy(), s)
 
 
 def euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
@@ -282,7 +348,8 @@ def solve_gnss_imu(
     errors = ImuErrorEstimate(
         built.bias_grid, p.values("acc_bias"), p.values("gyro_bias"), p.values("acc_scale")[0], p.values("gyro_scale")[0],
     )
-    out = GnssImuResult(built.spline(), errors, result, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), timings)
+    out = GnssImuResult(built.spline(), errors, result, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), timings,
+                        gnss_error=gnss_error_of(built))
     return with_posterior(built, out) if covariance else out
 
 
@@ -323,23 +390,38 @@ def block_sigma(problem: Problem, name: str, scale: float | None = None) -> np.n
     return np.sqrt(np.clip(np.diagonal(c, axis1=1, axis2=2), 0.0, None))
 
 
+def posterior_scale(solve: SolveResult) -> float:
+    """The factor on the posterior covariances: the a-posteriori variance factor where it exceeds 1.
+
+    Below 1 the a-priori sigmas stay: a factor below 1 comes from the robust losses, which
+    weight the observations with large residuals down (the plane observations' Cauchy loss takes
+    the G/I/L factor to about 0.7 while their median-based sigma0 is 1.0), and from datasheet
+    noise figures that are upper bounds; shrinking every sigma by it made the G/I/L attitude
+    sigmas optimistic (BENCHMARKS.md, Operating conditions). Above 1 the data say the model
+    is too optimistic, and the sigmas grow with it.
+    """
+    return max(1.0, float(solve.sigma0) ** 2) if np.isfinite(solve.sigma0) else 1.0
+
+
 def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResult:
     """``result`` with posterior sigma of attitude (roll/pitch/yaw), position, velocity and IMU errors.
 
     ``built`` must be the problem whose last solve gave ``result``. Attitude and position sigma
-    are computed at knots every ``covariance_interval_s`` (at most ``max_covariance_knots``).
+    are computed at knots every ``covariance_interval_s`` (at most ``max_covariance_knots``);
+    the covariances are scaled by :func:`posterior_scale`.
     """
     t = _time.perf_counter()
     p = built.problem
+    vf = posterior_scale(result.solve)
     tk, sigma_rph, sigma_p, sigma_v = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame,
-                                                       result.spline)
+                                                       result.spline, scale=vf)
     e = result.imu_errors
     errors = ImuErrorEstimate(
         e.bias_grid, e.acc_bias, e.gyro_bias, e.acc_scale, e.gyro_scale,
-        acc_bias_sigma=block_sigma(p, "acc_bias"), gyro_bias_sigma=block_sigma(p, "gyro_bias"),
-        acc_scale_sigma=block_sigma(p, "acc_scale")[0] if built.estimate_scale else None,
-        gyro_scale_sigma=block_sigma(p, "gyro_scale")[0] if built.estimate_scale else None,
+        acc_bias_sigma=block_sigma(p, "acc_bias", vf), gyro_bias_sigma=block_sigma(p, "gyro_bias", vf),
+        acc_scale_sigma=block_sigma(p, "acc_scale", vf)[0] if built.estimate_scale else None,
+        gyro_scale_sigma=block_sigma(p, "gyro_scale", vf)[0] if built.estimate_scale else None,
     )
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
     return replace(result, imu_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph, sigma_position_m=sigma_p,
-                   sigma_velocity_m_s=sigma_v, timings_s=timings)
+                   sigma_velocity_m_s=sigma_v, timings_s=timings, gnss_error=gnss_error_of(built, vf))

@@ -38,6 +38,7 @@ from georefine.adjustment.gnss_imu import (
     GnssImuResult,
     add_spline_blocks,
     block_sigma,
+    posterior_scale,
     spline_from_problem,
     trajectory_sigma,
 )
@@ -235,7 +236,7 @@ def with_prior_posterior(built: TrajectoryPriorProblem, result: GnssImuResult) -
     # Scaled by the variance factor only where it exceeds 1: the delivered trajectory's samples
     # fit the reference they are fitted to, so without other observations the factor is 0 and
     # says nothing; the stated accuracy is the floor.
-    vf = max(1.0, float(result.solve.sigma0) ** 2)
+    vf = posterior_scale(result.solve)
     tk, sigma_rph, sigma_p, sigma_v = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame,
                                                        result.spline, scale=vf)
     e = result.sbet_errors

@@ -224,8 +224,9 @@ class PassAccuracy:
     ``rmse_mdeg``: roll, pitch, yaw RMSE (mdeg). ``z_rms``: RMS of error / stated sigma per
     angle (the solution's ``smrmsg`` interpolated to the truth's times; 1 for honest sigmas,
     above 1 optimistic, below 1 pessimistic); ``beyond_3_sigma``: the fraction of epochs whose
-    error exceeds three stated sigmas (0.3 % for Gaussian errors). Both NaN without an accuracy
-    file.
+    error exceeds three stated sigmas (0.3 % for Gaussian errors); ``sigma_rms_mdeg``: the RMS of
+    the stated sigma over the pass, the precision the solution claims. All NaN without an
+    accuracy file.
     """
 
     strip: int
@@ -233,6 +234,7 @@ class PassAccuracy:
     z_rms: np.ndarray
     beyond_3_sigma: np.ndarray
     epochs: int
+    sigma_rms_mdeg: np.ndarray = dataclasses.field(default_factory=lambda: np.full(3, np.nan))
 
     def to_dict(self) -> dict:
         """Plain JSON values per angle (NaN as None)."""
@@ -240,7 +242,8 @@ class PassAccuracy:
             return {k: (float(v) if np.isfinite(v) else None) for k, v in zip(("roll", "pitch", "yaw"), a)}
 
         return {"strip": self.strip, "epochs": self.epochs, "rmse_mdeg": values(self.rmse_mdeg),
-                "z_rms": values(self.z_rms), "beyond_3_sigma": values(self.beyond_3_sigma)}
+                "z_rms": values(self.z_rms), "beyond_3_sigma": values(self.beyond_3_sigma),
+                "sigma_rms_mdeg": values(self.sigma_rms_mdeg)}
 
 
 def truth_pass_accuracy(sbet: PathLike, project: PathLike, strip: int) -> PassAccuracy:
@@ -261,7 +264,7 @@ def truth_pass_accuracy(sbet: PathLike, project: PathLike, strip: int) -> PassAc
     cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet",
                              time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
     rmse = np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
-    z_rms = beyond = np.full(3, np.nan)
+    z_rms = beyond = sigma_rms = np.full(3, np.nan)
     accuracy = smrmsg_path(sbet)
     if accuracy.is_file():
         companion = read_sbet_companion(sbet)
@@ -272,7 +275,8 @@ def truth_pass_accuracy(sbet: PathLike, project: PathLike, strip: int) -> PassAc
             z = cmp.d_rph_rad / s
             z_rms = np.sqrt(np.mean(z * z, axis=0))
             beyond = np.mean(np.abs(z) > 3.0, axis=0)
-    return PassAccuracy(strip, rmse, z_rms, beyond, len(cmp.time))
+            sigma_rms = np.degrees(np.sqrt(np.mean(s * s, axis=0))) * 1e3
+    return PassAccuracy(strip, rmse, z_rms, beyond, len(cmp.time), sigma_rms)
 
 
 def truth_gnss_time_offset(project: PathLike) -> float:

@@ -39,6 +39,7 @@ from pydantic import Field, field_validator
 from georefine.config import (
     ChannelConfig,
     CrsConfig,
+    GnssCorrelatedError,
     GnssFileConfig,
     ImuErrorSpec,
     ImuFileConfig,
@@ -130,6 +131,16 @@ class ScenarioConfig(StrictModel):
         "preset, the --config file, --imu-grade/--gnss-grade, each --set (filled by resolve_scenario).",
     )
 
+
+
+def _stated_gnss_error(gnss: GnssConfig) -> GnssCorrelatedError | None:
+    """The correlated GNSS error project.yaml states: the simulated one (as it states the IMU's errors)."""
+    h, u = gnss.gm_sigma_horizontal_m, gnss.gm_sigma_up_m
+    if gnss.grade != "ppk" or max(h, u) <= 0.0:
+        return None
+    floor = 1e-4  # a sigma must be positive; 0.1 mm is none to speak of
+    return GnssCorrelatedError(sigma_horizontal_m=max(h, floor), sigma_up_m=max(u, floor),
+                               time_constant_s=gnss.gm_time_constant_s)
 
 
 def _scenario_defaults(name: str) -> dict[str, Any]:
@@ -384,7 +395,8 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
     project = ProjectConfig(
         name=cfg.name,
         crs=CrsConfig(output_epsg=cfg.output_epsg),
-        gnss=GnssFileConfig(files=["gnss/rover.pos"], lever_arm_m=cfg.gnss_lever_arm_m),
+        gnss=GnssFileConfig(files=["gnss/rover.pos"], lever_arm_m=cfg.gnss_lever_arm_m,
+                            correlated_error=_stated_gnss_error(cfg.gnss)),
         imu=ImuFileConfig(file="imu/imu.csv", format="csv", rate_hz=cfg.imu.rate_hz, errors=errors),
         scanner=ScannerFileConfig(
             files=[f"scans/strip_{s}.{ext}" for s, _, _ in traj.passes],

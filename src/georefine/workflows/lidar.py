@@ -33,6 +33,7 @@ from georefine.adjustment.gnss_imu import (
     GnssImuProblem,
     GnssImuResult,
     build_gnss_imu_problem,
+    posterior_scale,
     solve_gnss_imu,
     start_imu_errors,
     with_posterior,
@@ -116,12 +117,15 @@ def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
     else:
         result = with_posterior(adj.built, adj.result)
     problem = adj.built.problem
+    vf = posterior_scale(result.solve)  # as the trajectory's: the variance factor where it exceeds 1
     bs_sig = None
     if adj.boresight_deg is not None:
-        bs_sig = np.degrees(np.sqrt(np.diag(problem.covariance("boresight")[0]))) * 1e3
+        cov = problem.covariance("boresight", scale_by_variance_factor=False)[0] * vf
+        bs_sig = np.degrees(np.sqrt(np.diag(cov))) * 1e3
     extra = {}
     if OFFSET_BLOCK in problem.blocks:
-        extra["time_offset_sigma_s"] = float(np.sqrt(problem.covariance(OFFSET_BLOCK)[0, 0, 0]))
+        cov = problem.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0] * vf
+        extra["time_offset_sigma_s"] = float(np.sqrt(cov))
     return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
 
 
@@ -160,7 +164,8 @@ def step_adjust_gil(
         built, high_rate = build_delivered_problem(nav, tcfg, spline, previous)
     else:  # windows without the previous result's high-frequency motion (up-sampling, §4.6)
         data = without_high_rate(nav.gnss, previous)
-        built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors)
+        built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors,
+                                 previous.gnss_error)
     P = built.problem
 
     grid = built.grid

@@ -125,6 +125,7 @@ def load_navigation(project_dir: str | Path) -> NavigationData:
         p_b_a=np.asarray(cfg.gnss.lever_arm_m, dtype=float),
         imu_gyro_sigma=bridged.gyro_sigma if bridged.gaps else None,
         imu_acc_sigma=bridged.acc_sigma if bridged.gaps else None,
+        gnss_correlated=cfg.gnss.correlated_error,
     )
     return NavigationData(cfg, root, frame, t0, imu, data)
 
@@ -200,7 +201,7 @@ def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Prog
 
     def rebuild(data, previous):
         last["built"] = start_imu_errors(build_gnss_imu_problem(data, nav.config.imu.errors, tcfg, previous.spline),
-                                         previous.imu_errors)
+                                         previous.imu_errors, previous.gnss_error)
         return last["built"]
 
     def solve(b):

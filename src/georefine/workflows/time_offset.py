@@ -101,7 +101,12 @@ def gnss_offset_sigma(nav, gi) -> float:
     errors made -0.62 ms of it (``evaluation.trajectory_files.truth_gnss_time_offset``), against
     a sigma of 0.02 ms from the adjustment and 0.71 ms from this (18 m/s, 1.8 cm). ``nav``: the navigation data
     (GNSS covariances in ``w``); ``gi``: a trajectory result (the speed at its knots).
+
+    0 when the adjustment estimates the correlated GNSS error (``gnss.correlated_error``): its
+    own sigma holds this then.
     """
+    if nav.prior is None and nav.gnss.gnss_correlated is not None:
+        return 0.0
     if nav.prior is not None:  # a delivered trajectory: its stated horizontal position sigma (§4.9)
         sp = nav.prior.sigma_p_w
         sigma_h = float(np.median(np.sqrt(0.5 * (sp[:, 0] ** 2 + sp[:, 1] ** 2))))
@@ -131,9 +136,10 @@ def warn_time_offset(cfg, offset_s: float, sigma_s: float | None, gnss_sigma_s: 
     sigma = float(np.hypot(sigma_s, gnss))
     if abs(diff) * 1e3 <= tcfg.warn_ms or abs(diff) <= 3.0 * sigma:
         return
+    split = f": {sigma_s * 1e3:.2f} from the adjustment, {gnss * 1e3:.2f} from GNSS errors that last a pass" if gnss else ""
     log.warning(
-        "the LiDAR time stamps are %+.2f ms (± %.2f ms: %.2f from the adjustment, %.2f from GNSS errors that last a "
-        "pass) off the navigation: the adjustment estimated a time offset of %.4f s against scanner.time_offset_s "
-        "= %.4f s; state it in project.yaml (scanner.time_offset_s: %.4f) or fix the synchronisation",
-        diff * 1e3, sigma * 1e3, sigma_s * 1e3, gnss * 1e3, offset_s, configured, offset_s,
+        "the LiDAR time stamps are %+.2f ms (± %.2f ms%s) off the navigation: the adjustment estimated a time offset "
+        "of %.4f s against scanner.time_offset_s = %.4f s; state it in project.yaml (scanner.time_offset_s: %.4f) or "
+        "fix the synchronisation",
+        diff * 1e3, sigma * 1e3, split, offset_s, configured, offset_s,
     )

@@ -1,7 +1,11 @@
 """GNSS antenna position observations (docs/ARCHITECTURE.md §4.3, paper 000 Eq. 3).
 
-``p~_w = p_w(t) + R_w_b(t) p_b_a + eps``, whitened with the ``.pos`` covariance rotated into
-``w``: ``r = L (p_w(t) + R_w_b(t) p_b_a - p~_w)``. Right perturbation of ``R(t)`` gives
+``p~_w = p_w(t) + R_w_b(t) p_b_a + d(t) + eps``, whitened with the covariance of ``eps``
+rotated into ``w``: ``r = L (p_w(t) + R_w_b(t) p_b_a + d(t) - p~_w)``. ``d(t)``, the GNSS
+error that lasts minutes, is optional: piecewise linear on its own knots (a
+:class:`~georefine.adjustment.observations.bias.BiasGrid`, block ``error_block``), with a
+Gauss-Markov prior (:class:`~georefine.adjustment.observations.trajectory_prior.GaussMarkovPrior`)
+added by the problem builder. Right perturbation of ``R(t)`` gives
 ``d(R l)/d delta = -R skew(l)``. A robust loss (Huber by default) acts on the squared norm
 of each epoch's whitened 3-vector, against multipath jumps.
 """
@@ -13,7 +17,8 @@ from typing import Mapping
 
 import numpy as np
 
-from georefine.adjustment.blocks import Linearization
+from georefine.adjustment.blocks import JacobianBlock, Linearization
+from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
     orientation_jacobians,
@@ -41,6 +46,9 @@ class GnssPositionObservation:
         Their covariances in ``w`` (m²).
     p_b_a : (3,)
         Antenna lever arm in the body frame (m).
+    error_grid, error_block
+        Knots and block name ((J, 3), m in ``w``) of the correlated GNSS error ``d(t)``; None:
+        the error is white.
     """
 
     grid: KnotGrid
@@ -51,6 +59,8 @@ class GnssPositionObservation:
     loss: RobustLoss | None = None
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     name: str = "gnss"
+    error_grid: BiasGrid | None = None
+    error_block: str | None = None
 
     def __post_init__(self) -> None:
         self.time = np.asarray(self.time, dtype=float)
@@ -62,11 +72,21 @@ class GnssPositionObservation:
         self._w0 = position_basis(u, self.grid.dt, 0)
         self._rows = np.arange(3 * m).reshape(m, 3)
         self._obs = np.repeat(np.arange(m), 3)
+        if (self.error_grid is None) != (self.error_block is None):
+            raise ValueError(f"{self.name}: error_grid and error_block go together")
+        if self.error_grid is not None:
+            self._j, self._lam = self.error_grid.weights(self.time)
 
     def predict(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
         """Modelled antenna positions (M, 3) in ``w``."""
         P, V, A, R, W = self.blocks.knots(values)
-        return self._model(P, V, A, R, W, jacobians=False)[0]
+        return self._model(P, V, A, R, W, jacobians=False)[0] + self._error(values)
+
+    def _error(self, values: Mapping[str, np.ndarray]) -> np.ndarray | float:
+        """The correlated GNSS error ``d(t)`` at the epochs (M, 3), or 0."""
+        if self.error_block is None:
+            return 0.0
+        return self.error_grid.evaluate(np.asarray(values[self.error_block]), self.time)
 
     def _model(self, P, V, A, R, W, jacobians):
         k, w0 = self._k, self._w0
@@ -80,11 +100,15 @@ class GnssPositionObservation:
     def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
         P, V, A, R, W = self.blocks.knots(values)
         model, ev = self._model(P, V, A, R, W, jacobians)
-        r = np.einsum("nij,nj->ni", self._L, model - self.p_w)
+        r = np.einsum("nij,nj->ni", self._L, model + self._error(values) - self.p_w)
         jac = []
         if jacobians:
             L = self._L
             jac += position_jacobians(self.blocks, self._rows, self._k, self._w0, L)
             M_R = -L @ ev.R_w_b @ skew(self.p_b_a)
             jac += orientation_jacobians(self.blocks, self._rows, ev.jacobians, M_R)
+            if self.error_block is not None:
+                lam = self._lam[:, None, None]
+                jac.append(JacobianBlock(self.error_block, self._rows, self._j, L * (1.0 - lam)))
+                jac.append(JacobianBlock(self.error_block, self._rows, self._j + 1, L * lam))
         return Linearization(r.ravel(), jac, self._obs)
