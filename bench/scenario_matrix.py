@@ -118,17 +118,21 @@ def simulate(work: Path, s, seed: int, length: float) -> Path:
     overrides += [outage_override(overrides, imu)] if gnss == "outage" else GNSS[gnss]
     if out.exists():
         shutil.rmtree(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "georefine", "simulate", "corridor", "--out", str(out), "--seed", str(seed),
            "--imu-grade", imu]
     for o in overrides:
         cmd += ["--set", o]
-    subprocess.run(cmd, check=True, capture_output=True, text=True)
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd[2:])}: exit {proc.returncode}\n{proc.stderr[-2000:]}")
     return out
 
 
 def run(project: Path, out: Path, strips: str | None) -> dict:
     if out.exists():
         shutil.rmtree(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
     cmd = [sys.executable, "-m", "georefine", "run", str(project), "--out", str(out), "--no-points"]
     if strips:
         cmd += ["--strips", strips]
