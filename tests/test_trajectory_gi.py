@@ -61,24 +61,24 @@ def test_gnss_imu_adjustment_on_the_corridor(seed, tmp_path):
     project = tmp_path / "corridor"
     simulate_project("corridor", project, seed=seed, overrides=FAST_SCAN)
     gi = run_trajectory(project, tmp_path / "gi")
-    run_trajectory(project, tmp_path / "filter", filter_only=True)
-    run_trajectory(_white_gnss_copy(project, tmp_path / "white"), tmp_path / "gi_white")
     assert gi.adjustment.solve.converged
     cmp, s = _errors_against_truth(tmp_path / "gi", project)
-    _, f = _errors_against_truth(tmp_path / "filter", project)
-    _, w = _errors_against_truth(tmp_path / "gi_white", project)
-
-    # With white GNSS errors, as the filter models them, the batch adjustment and the RTS smoother
-    # use the same information: the adjustment must not be worse in any angle (2 % + 0.05 mdeg for
-    # rounding of two near-optimal estimates).
-    for angle in ("roll", "pitch", "yaw"):
-        assert w[f"{angle}_rmse_mdeg"] <= 1.02 * f[f"{angle}_rmse_mdeg"] + 0.05, (angle, w, f)
-    # The correlated GNSS error estimated (the default) gives the white part its weight: yaw
-    # improves by 11 % over seeds 42 and 1-3 (measured 22.4/23.7/15.2/17.6 against
-    # 26.1/21.8/19.4/21.1 mdeg), one seed in four 9 % worse; roll and pitch change by a few %.
-    assert s["yaw_rmse_mdeg"] <= 1.15 * w["yaw_rmse_mdeg"], (s, w)
-    for angle in ("roll", "pitch"):
-        assert s[f"{angle}_rmse_mdeg"] <= 1.1 * w[f"{angle}_rmse_mdeg"], (angle, s, w)
+    if seed == 1:  # the model comparisons on one seed (each is two more runs of steps 1-2)
+        run_trajectory(project, tmp_path / "filter", filter_only=True)
+        run_trajectory(_white_gnss_copy(project, tmp_path / "white"), tmp_path / "gi_white")
+        _, f = _errors_against_truth(tmp_path / "filter", project)
+        _, w = _errors_against_truth(tmp_path / "gi_white", project)
+        # With white GNSS errors, as the filter models them, the batch adjustment and the RTS
+        # smoother use the same information: the adjustment must not be worse in any angle (2 % +
+        # 0.05 mdeg for rounding of two near-optimal estimates).
+        for angle in ("roll", "pitch", "yaw"):
+            assert w[f"{angle}_rmse_mdeg"] <= 1.02 * f[f"{angle}_rmse_mdeg"] + 0.05, (angle, w, f)
+        # The correlated GNSS error estimated (the default) gives the white part its weight: yaw
+        # improves by 11 % over seeds 42 and 1-3 (measured 22.4/23.7/15.2/17.6 against
+        # 26.1/21.8/19.4/21.1 mdeg), this seed the one 9 % worse; roll and pitch change by a few %.
+        assert s["yaw_rmse_mdeg"] <= 1.15 * w["yaw_rmse_mdeg"], (s, w)
+        for angle in ("roll", "pitch"):
+            assert s[f"{angle}_rmse_mdeg"] <= 1.1 * w[f"{angle}_rmse_mdeg"], (angle, s, w)
     # Heading is the weak angle of straight corridor flight (paper 000): the largest error.
     assert s["yaw_rmse_mdeg"] > max(s["roll_rmse_mdeg"], s["pitch_rmse_mdeg"])
     assert s["roll_rmse_mdeg"] < 10 and s["pitch_rmse_mdeg"] < 10 and s["yaw_rmse_mdeg"] < 60
