@@ -116,7 +116,15 @@ def test_gnss_imu_adjustment_on_the_corridor(seed, tmp_path):
             assert 0.2 < np.sqrt(np.mean(z**2)) < 1.5, (key, z)
 
     rep = json.loads((tmp_path / "gi" / "adjustment.json").read_text())
-    assert {g["name"] for g in rep["adjustment"]["groups"]} >= {"gnss", "imu"}
+    assert {g["name"] for g in rep["adjustment"]["groups"]} >= {"gnss", "imu", "gnss_error_prior"}
+    # The estimated GNSS error against the simulated one at its knots (north, east, down -> east, north,
+    # up). The simulated error holds its white part too (1/1/2 cm), so the window is loose.
+    ge, truth = rep["gnss_error"], np.load(project / "truth" / "gnss_errors.npz")
+    tk = np.asarray(ge["knot_times_s"]) + rep["t0_gps"]
+    ned = np.column_stack([np.interp(tk, truth["time_gps"], truth["error_ned"][:, i]) for i in range(3)])
+    inside = (tk > truth["time_gps"][0]) & (tk < truth["time_gps"][-1])
+    z_gnss = ((np.asarray(ge["enu_m"]) - np.column_stack([ned[:, 1], ned[:, 0], -ned[:, 2]])) / np.asarray(ge["enu_sigma_m"]))[inside]
+    assert 0.3 < np.sqrt(np.mean(z_gnss**2)) < 2.0, np.sqrt(np.mean(z_gnss**2, axis=0))
     assert 0.8 < rep["adjustment"]["variance_factor"] < 1.25
 
 

@@ -87,6 +87,13 @@ class GnssErrorEstimate:
         """``d`` at times ``t`` (s, relative to the dataset epoch), (N, 3)."""
         return self.grid.evaluate(self.value_w, np.asarray(t, dtype=float))
 
+    def to_dict(self) -> dict:
+        """``adjustment.json``'s ``gnss_error``: knot times (s from ``t0_gps``), east/north/up values and sigma (m)."""
+        out = {"knot_times_s": self.grid.times.tolist(), "enu_m": np.round(self.value_w, 5).tolist()}
+        if self.sigma_w is not None:
+            out["enu_sigma_m"] = np.round(self.sigma_w, 5).tolist()
+        return out
+
 
 def white_gnss_covariance(cov_w: np.ndarray, model: GnssCorrelatedError, knot_interval_s: float) -> np.ndarray:
     """The white part of the GNSS covariances ``cov_w`` (G, 3, 3) when ``model`` is estimated apart.

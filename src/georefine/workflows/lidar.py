@@ -605,6 +605,8 @@ def _adjustment_report(nav: NavigationData, adj: GnssImuResult, boresight: Lidar
         report["imu_errors"] = adj.imu_errors.to_dict()
     if adj.sbet_errors is not None:  # a delivered trajectory: its estimated error (§4.9)
         report["sbet_errors"] = adj.sbet_errors.to_dict()
+    if adj.gnss_error is not None:  # the GNSS error that lasts minutes (§4.3)
+        report["gnss_error"] = adj.gnss_error.to_dict()
     if boresight is not None and boresight.boresight_deg is not None:
         report["boresight_deg"] = boresight.boresight_deg.tolist()
         report["boresight_sigma_mdeg"] = boresight.boresight_sigma_mdeg.tolist()

@@ -349,6 +349,8 @@ def run_trajectory(
     if adj is not None:
         report["adjustment"] = adj.solve.to_dict()
         report["imu_errors"] = adj.imu_errors.to_dict()
+        if adj.gnss_error is not None:
+            report["gnss_error"] = adj.gnss_error.to_dict()
         report["timings_s"] = dict(timings, **{f"adjustment_{k}": v for k, v in adj.timings_s.items()})
     write_json(out / "adjustment.json", report)
     write_yaml(out / "config.resolved.yaml", nav.config)
