@@ -87,25 +87,31 @@ class PoseInterpolator:
         return x_w, d_w
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _blended_rotation(q, i, u):  # pragma: no cover - compiled
+    """Entries (row by row) of ``R`` of the normalised linear blend ``(1 - u) q[i] + u q[i + 1]`` (xyzw)."""
+    qx = q[i, 0] + u * (q[i + 1, 0] - q[i, 0])
+    qy = q[i, 1] + u * (q[i + 1, 1] - q[i, 1])
+    qz = q[i, 2] + u * (q[i + 1, 2] - q[i, 2])
+    qw = q[i, 3] + u * (q[i + 1, 3] - q[i, 3])
+    s = 1.0 / np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
+    qx, qy, qz, qw = qx * s, qy * s, qz * s, qw * s
+    return (1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qz * qw), 2.0 * (qx * qz + qy * qw),
+            2.0 * (qx * qy + qz * qw), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qx * qw),
+            2.0 * (qx * qz - qy * qw), 2.0 * (qy * qz + qx * qw), 1.0 - 2.0 * (qx * qx + qy * qy))
+
+
 @numba.njit(cache=True, nogil=True)
 def _georeference_points(t, k, time, p, q, x_b, out):  # pragma: no cover - compiled
     """``out = p(t) + R(q(t)) x_b``: linear position, normalised linear quaternion blend (xyzw)."""
     for n in range(t.shape[0]):
         i = k[n]
         u = (t[n] - time[i]) / (time[i + 1] - time[i])
-        qx = q[i, 0] + u * (q[i + 1, 0] - q[i, 0])
-        qy = q[i, 1] + u * (q[i + 1, 1] - q[i, 1])
-        qz = q[i, 2] + u * (q[i + 1, 2] - q[i, 2])
-        qw = q[i, 3] + u * (q[i + 1, 3] - q[i, 3])
-        s = 1.0 / np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        qx, qy, qz, qw = qx * s, qy * s, qz * s, qw * s
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _blended_rotation(q, i, u)
         x, y, z = x_b[n, 0], x_b[n, 1], x_b[n, 2]
-        out[n, 0] = (p[i, 0] + u * (p[i + 1, 0] - p[i, 0]) + (1.0 - 2.0 * (qy * qy + qz * qz)) * x
-                     + 2.0 * (qx * qy - qz * qw) * y + 2.0 * (qx * qz + qy * qw) * z)
-        out[n, 1] = (p[i, 1] + u * (p[i + 1, 1] - p[i, 1]) + 2.0 * (qx * qy + qz * qw) * x
-                     + (1.0 - 2.0 * (qx * qx + qz * qz)) * y + 2.0 * (qy * qz - qx * qw) * z)
-        out[n, 2] = (p[i, 2] + u * (p[i + 1, 2] - p[i, 2]) + 2.0 * (qx * qz - qy * qw) * x
-                     + 2.0 * (qy * qz + qx * qw) * y + (1.0 - 2.0 * (qx * qx + qy * qy)) * z)
+        out[n, 0] = p[i, 0] + u * (p[i + 1, 0] - p[i, 0]) + r00 * x + r01 * y + r02 * z
+        out[n, 1] = p[i, 1] + u * (p[i + 1, 1] - p[i, 1]) + r10 * x + r11 * y + r12 * z
+        out[n, 2] = p[i, 2] + u * (p[i + 1, 2] - p[i, 2]) + r20 * x + r21 * y + r22 * z
 
 
 @numba.njit(cache=True, nogil=True)
@@ -114,15 +120,7 @@ def _georeference_points_directions(t, k, time, p, q, x_b, d_b, x_w, d_w):  # pr
     for n in range(t.shape[0]):
         i = k[n]
         u = (t[n] - time[i]) / (time[i + 1] - time[i])
-        qx = q[i, 0] + u * (q[i + 1, 0] - q[i, 0])
-        qy = q[i, 1] + u * (q[i + 1, 1] - q[i, 1])
-        qz = q[i, 2] + u * (q[i + 1, 2] - q[i, 2])
-        qw = q[i, 3] + u * (q[i + 1, 3] - q[i, 3])
-        s = 1.0 / np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        qx, qy, qz, qw = qx * s, qy * s, qz * s, qw * s
-        r00, r01, r02 = 1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qz * qw), 2.0 * (qx * qz + qy * qw)
-        r10, r11, r12 = 2.0 * (qx * qy + qz * qw), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qx * qw)
-        r20, r21, r22 = 2.0 * (qx * qz - qy * qw), 2.0 * (qy * qz + qx * qw), 1.0 - 2.0 * (qx * qx + qy * qy)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _blended_rotation(q, i, u)
         x, y, z = x_b[n, 0], x_b[n, 1], x_b[n, 2]
         x_w[n, 0] = p[i, 0] + u * (p[i + 1, 0] - p[i, 0]) + r00 * x + r01 * y + r02 * z
         x_w[n, 1] = p[i, 1] + u * (p[i + 1, 1] - p[i, 1]) + r10 * x + r11 * y + r12 * z
@@ -144,15 +142,7 @@ def _scan_angles(t, k, time, q, x_s, R_b_s, up, out):  # pragma: no cover - comp
         z = R_b_s[2, 0] * xs + R_b_s[2, 1] * ys + R_b_s[2, 2] * zs
         i = k[n]
         a = (t[n] - time[i]) / (time[i + 1] - time[i])
-        qx = q[i, 0] + a * (q[i + 1, 0] - q[i, 0])
-        qy = q[i, 1] + a * (q[i + 1, 1] - q[i, 1])
-        qz = q[i, 2] + a * (q[i + 1, 2] - q[i, 2])
-        qw = q[i, 3] + a * (q[i + 1, 3] - q[i, 3])
-        s = 1.0 / np.sqrt(qx * qx + qy * qy + qz * qz + qw * qw)
-        qx, qy, qz, qw = qx * s, qy * s, qz * s, qw * s
-        r00, r01, r02 = 1.0 - 2.0 * (qy * qy + qz * qz), 2.0 * (qx * qy - qz * qw), 2.0 * (qx * qz + qy * qw)
-        r10, r11, r12 = 2.0 * (qx * qy + qz * qw), 1.0 - 2.0 * (qx * qx + qz * qz), 2.0 * (qy * qz - qx * qw)
-        r20, r21, r22 = 2.0 * (qx * qz - qy * qw), 2.0 * (qy * qz + qx * qw), 1.0 - 2.0 * (qx * qx + qy * qy)
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = _blended_rotation(q, i, a)
         b0, b1, b2 = r00 * x + r01 * y + r02 * z, r10 * x + r11 * y + r12 * z, r20 * x + r21 * y + r22 * z
         u0, u1, u2 = up[n, 0], up[n, 1], up[n, 2]
         c0, c1, c2 = r10 * u2 - r20 * u1, r20 * u0 - r00 * u2, r00 * u1 - r10 * u0  # f x u
