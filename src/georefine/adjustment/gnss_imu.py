@@ -83,10 +83,6 @@ class GnssErrorEstimate:
     value_w: np.ndarray
     sigma_w: np.ndarray | None = None
 
-    def at(self, t: np.ndarray) -> np.ndarray:
-        """``d`` at times ``t`` (s, relative to the dataset epoch), (N, 3)."""
-        return self.grid.evaluate(self.value_w, np.asarray(t, dtype=float))
-
     def to_dict(self) -> dict:
         """``adjustment.json``'s ``gnss_error``: knot times (s from ``t0_gps``), east/north/up values and sigma (m)."""
         out = {"knot_times_s": self.grid.times.tolist(), "enu_m": np.round(self.value_w, 5).tolist()}

@@ -206,15 +206,20 @@ def truth_pass_rmse(sbet: PathLike, project: PathLike, strip: int) -> np.ndarray
 
     The pass's span comes from ``truth/scenario.yaml``, shortened by 1 s at both ends.
     """
+    cmp = _truth_pass_comparison(sbet, project, strip)
+    return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
+
+
+def _truth_pass_comparison(sbet: PathLike, project: PathLike, strip: int) -> TrajectoryComparison:
+    """``sbet`` against a simulated project's truth during pass ``strip`` (``truth/scenario.yaml``, 1 s inset)."""
     import yaml
 
     project = Path(project)
     truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
     p = next(p for p in truth["passes"] if p["strip_id"] == strip)
     t0 = truth["t0_gps"]
-    cmp = compare_sbet_files(Path(sbet), project / "truth" / "trajectory.sbet",
-                             time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
-    return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
+    return compare_sbet_files(Path(sbet), project / "truth" / "trajectory.sbet",
+                              time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
 
 
 @dataclass(frozen=True)
@@ -253,16 +258,10 @@ def truth_pass_accuracy(sbet: PathLike, project: PathLike, strip: int) -> PassAc
     :func:`truth_pass_rmse`); the sigmas from the accuracy file beside ``sbet``
     (:func:`~georefine.io.trajectory.smrmsg_path`), when there is one.
     """
-    import yaml
-
     from georefine.io.trajectory import read_smrmsg, smrmsg_path
 
-    project, sbet = Path(project), Path(sbet)
-    truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
-    p = next(p for p in truth["passes"] if p["strip_id"] == strip)
-    t0 = truth["t0_gps"]
-    cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet",
-                             time_window=(t0 + p["t_start_s"] + 1.0, t0 + p["t_end_s"] - 1.0))
+    sbet = Path(sbet)
+    cmp = _truth_pass_comparison(sbet, project, strip)
     rmse = np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
     z_rms = beyond = sigma_rms = np.full(3, np.nan)
     accuracy = smrmsg_path(sbet)
