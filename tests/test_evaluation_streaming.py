@@ -304,3 +304,21 @@ def test_per_surface_boxes_keep_the_points_near_every_surface_and_drop_the_rest(
     for o in obs:
         e = next(e for e in expected if (e.surface_id, e.channel) == (o.surface_id, o.channel))
         assert o.mean_m == pytest.approx(e.mean_m, abs=1e-12) and o.sd_points_m == pytest.approx(e.sd_points_m, abs=1e-12)
+
+
+def test_cloud_error_map_is_the_mean_error_per_cell(tmp_path):
+    from georefine.evaluation.coadjust import CloudErrors, _error_grid, plot_cloud_errors
+
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(0.0, 10.0, (20_000, 2))
+    n = xy[:, 0] * 0.01 + rng.normal(0.0, 0.001, len(xy))  # error grows eastwards
+    grid = _error_grid(xy, n, np.zeros(2), 1.0, (10, 10))
+    cell = (xy // 1.0).astype(int)
+    inside = (cell[:, 0] == 3) & (cell[:, 1] == 7)
+    assert grid[7, 3] == pytest.approx(n[inside].mean())  # row = north, column = east
+    assert np.all(np.diff(np.nanmean(grid, axis=0)) > 0)
+    empty = _error_grid(xy[xy[:, 0] < 5], n[xy[:, 0] < 5], np.zeros(2), 1.0, (10, 10))
+    assert np.all(np.isnan(empty[:, 5:])) and not np.any(np.isnan(empty[:, :5]))
+    errors = CloudErrors(xy, np.column_stack([n, n, n]), np.column_stack([n, n, n]) / 2)
+    path = plot_cloud_errors(errors, tmp_path / "map.png", title="t")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
