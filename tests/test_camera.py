@@ -85,6 +85,13 @@ def test_undistortion_inverts_distortion_over_the_image():
     rays = CAM.rays(uv)
     np.testing.assert_allclose(CAM.project(rays), uv, atol=1e-7)
     np.testing.assert_allclose(np.linalg.norm(rays, axis=1), 1.0)
+    # Solved in chunks of a few points (as large inputs are): the same, in the input's shape.
+    xd = (uv - [CAM.cx_px, CAM.cy_px]) / [CAM.fx_px, CAM.fy_px]
+    whole = CAM.undistort(xd)
+    chunked = CAM.undistort(xd.reshape(31, 41, 2), chunk=100)
+    assert chunked.shape == (31, 41, 2)
+    np.testing.assert_allclose(chunked.reshape(-1, 2), whole, atol=1e-15)
+    np.testing.assert_allclose(CAM.distort(chunked), xd.reshape(31, 41, 2), atol=1e-14)
 
 
 def test_omega_phi_kappa_matches_micmac_oriexport_and_round_trips():
