@@ -220,7 +220,8 @@ def solve_trajectory_prior(
     """Solve; the result has ``imu_errors`` None and the SBET error in ``sbet_errors``."""
     cfg = built.cfg
     t = _time.perf_counter()
-    options = options or SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance)
+    options = options or SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance,
+                                       initial_lambda=cfg.initial_lambda)
     result = built.problem.solve(options, progress=progress)
     p = built.problem
     errors = SbetErrorEstimate(built.error_grid, p.values(POSITION_ERROR), p.values(ATTITUDE_ERROR))
