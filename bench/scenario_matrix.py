@@ -206,6 +206,21 @@ def yaw_bound(d: dict) -> str:
     return "-" if not s else f"{d['rmse_mdeg']['yaw'] / s:.2f}"
 
 
+def report_markdown(records: list[dict]) -> None:
+    """The rows of :func:`report` as a Markdown table (BENCHMARKS.md)."""
+    print("| scenario | run | pass | G/I r/p/y (mdeg) | G/I/L r/p/y (mdeg) | G/I/L : G/I | error/sigma G/I | "
+          "error/sigma G/I/L | > 3 sigma G/I/L (%) | yaw/sigma | fails |")
+    print("|---|---|---:|---|---|---|---|---|---|---:|---|")
+    for rec in records:
+        name = name_of(tuple(rec["scenario"].values()))
+        for kind, k, gi, gil in rows(rec):
+            ratio = {a: gil["rmse_mdeg"][a] / gi["rmse_mdeg"][a] for a in ANGLES}
+            beyond = {a: 100 * gil["beyond_3_sigma"][a] for a in ANGLES}
+            print(f"| {name} | {kind} | {gi['strip']} | {fmt3(gi['rmse_mdeg'], '.2f')} | {fmt3(gil['rmse_mdeg'], '.2f')} | "
+                  f"{fmt3(ratio, '.2f')} | {fmt3(gi['z_rms'], '.2f')} | {fmt3(gil['z_rms'], '.2f')} | "
+                  f"{fmt3(beyond, '.1f')} | {yaw_bound(gil)} | {'; '.join(checks(gi, gil)) or '-'} |")
+
+
 def report(records: list[dict]) -> None:
     print(f"{'scenario':44s} {'run':6s} pass  {'G/I rmse r/p/y':16s} {'G/I/L rmse':16s} {'ratio':14s} "
           f"{'z G/I':14s} {'z G/I/L':14s} {'>3s G/I/L %':12s} {'yaw/sigma':9s} fails")
@@ -246,6 +261,7 @@ def main() -> None:
     ap.add_argument("--only", nargs="*", default=[], help="run the scenarios whose name holds all of these")
     ap.add_argument("--length", type=float, default=2400.0, help="corridor length (m)")
     ap.add_argument("--report-only", action="store_true", help="print the results kept in WORK, run nothing")
+    ap.add_argument("--markdown", action="store_true", help="also print the rows as a Markdown table")
     a = ap.parse_args()
     todo = [s for s in scenarios(a.design) if all(o in name_of(s) for o in a.only)]
     seeds = {s: 1600 + i for i, s in enumerate(scenarios("full"))}
@@ -259,6 +275,9 @@ def main() -> None:
         if not a.report_only:
             print(f"{name_of(s)}: {time.perf_counter() - t:.0f} s", file=sys.stderr, flush=True)
     report(records)
+    if a.markdown:
+        print()
+        report_markdown(records)
 
 
 if __name__ == "__main__":
