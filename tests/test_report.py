@@ -25,7 +25,7 @@ from georefine.evaluation.summary import (
     TrajectoryFigures,
 )
 from georefine.io.files import write_json
-from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
+from georefine.io.run_metrics import OuterIteration, PassPrecision, PointsWritten, WorkflowMetrics
 
 
 def _figures(rng) -> TrajectoryFigures:
@@ -43,6 +43,8 @@ def _records(seed: int) -> tuple[WorkflowMetrics, RunEvaluation]:
             for i in (1, 2)),
         points=(PointsWritten(1, "strip_1.laz", 1234, 0), PointsWritten(2, "strip_2.laz", 5678, 3)),
         resumed=("gi",), timings_s={"read": 0.5, "gi_adjustment": 2.25, "final_georeferencing": 1.0},
+        pass_precision=(PassPrecision(1, (3.5, 3.25, 16.5), (1.0, 1.25, 1.75)),
+                        PassPrecision(2, (4.0, 4.25, 40.5), (1.0, 1.25, 1.75))),
     )
     sol = {label: SolutionFigures({1: _figures(rng), 2: _figures(rng)}, _figures(rng)) for label in ("G/I", "G/I/L")}
     sol["G/I/L single pass (strip 1)"] = SolutionFigures({1: _figures(rng)}, _figures(rng))
@@ -74,8 +76,10 @@ def test_records_read_back_to_what_was_written(tmp_path, seed):
     metrics, evaluation = _records(seed)
     d = _written(tmp_path, metrics)
     assert WorkflowMetrics.from_dict(d) == metrics and WorkflowMetrics.from_dict(d).to_dict() == d
-    assert list(d) == ["t0_gps", "strips", "strip_time_gps", "outer_iterations", "points", "resumed", "timings_s"]
+    assert list(d) == ["t0_gps", "strips", "strip_time_gps", "outer_iterations", "points", "resumed", "timings_s",
+                       "pass_precision"]
     assert d["strip_time_gps"] == {"1": [1.4e9 + 10.0, 1.4e9 + 40.5], "2": [1.4e9 + 60.0, 1.4e9 + 91.25]}
+    assert d["pass_precision"][1] == {"strip": 2, "gi_sigma_mdeg": [4.0, 4.25, 40.5], "gil_sigma_mdeg": [1.0, 1.25, 1.75]}
     e = _written(tmp_path, evaluation)
     back = RunEvaluation.from_dict(e)
     assert back.to_dict() == e

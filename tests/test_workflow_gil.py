@@ -27,7 +27,7 @@ from georefine.evaluation.summary import RunEvaluation
 from georefine.io.files import make_output_folder
 from georefine.io.las import read_las
 from georefine.io.run_metrics import WorkflowMetrics
-from georefine.io.trajectory import read_sbet
+from georefine.io.trajectory import read_sbet, read_trajectory_csv
 from georefine.lidar.correspondences import (
     read_objects,
 )
@@ -98,6 +98,17 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, full_run, tm
     assert [p.file for p in typed.points] == ["strip_1.laz", "strip_2.laz"]
     assert typed.strip_time_gps[1][0] < typed.strip_time_gps[1][1] <= typed.strip_time_gps[2][0]
     assert all(p["outside_trajectory"] == 0 for p in metrics["points"])
+    # What the planes added per pass: the posterior attitude sigma of G/I and G/I/L during each strip,
+    # the RMS of each solution's trajectory.csv sigma over the strip's span.
+    assert [p.strip for p in typed.pass_precision] == [1, 2]
+    for p in typed.pass_precision:
+        t0, t1 = typed.strip_time_gps[p.strip]
+        for sol, stated in (("gi", p.gi_sigma_mdeg), ("gil", p.gil_sigma_mdeg)):
+            table = read_trajectory_csv(out / sol / "trajectory.csv")
+            inside = (table.time_gps >= t0) & (table.time_gps <= t1)
+            rms = 1e3 * np.degrees(np.sqrt(np.mean(table.sigma_rpy_rad[inside] ** 2, axis=0)))
+            np.testing.assert_allclose(stated, rms, rtol=0.05)
+        assert p.gil_sigma_mdeg[2] < 0.3 * p.gi_sigma_mdeg[2]  # heading: the planes' contribution
     # The feature tables hold the features that entered the adjustment; objects refer to their rows.
     last = metrics["outer_iterations"][-1]
     features = read_features(out / "features" / "features.csv")

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-__all__ = ["OuterIteration", "PointsWritten", "WorkflowMetrics"]
+__all__ = ["OuterIteration", "PassPrecision", "PointsWritten", "WorkflowMetrics"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +112,28 @@ class PointsWritten:
 
 
 @dataclass(frozen=True)
+class PassPrecision:
+    """The posterior attitude sigma during one strip, G/I and G/I/L: what the planes added.
+
+    ``gi_sigma_mdeg`` and ``gil_sigma_mdeg`` are the RMS of the roll, pitch and yaw sigma over the
+    strip's time span (:func:`georefine.workflows.precision.pass_precision`).
+    """
+
+    strip: int
+    gi_sigma_mdeg: tuple[float, float, float]
+    gil_sigma_mdeg: tuple[float, float, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"strip": self.strip, "gi_sigma_mdeg": list(self.gi_sigma_mdeg),
+                "gil_sigma_mdeg": list(self.gil_sigma_mdeg)}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PassPrecision:
+        return cls(int(d["strip"]), tuple(float(v) for v in d["gi_sigma_mdeg"]),  # type: ignore[arg-type]
+                   tuple(float(v) for v in d["gil_sigma_mdeg"]))  # type: ignore[arg-type]
+
+
+@dataclass(frozen=True)
 class WorkflowMetrics:
     """What ``georefine run`` records in ``metrics.json``.
 
@@ -132,6 +154,8 @@ class WorkflowMetrics:
     timings_s
         Wall time (s) per step, in the order run; a step's time excludes the steps timed
         inside it (the filter is not part of ``gi_adjustment``).
+    pass_precision
+        Per strip, the posterior attitude sigma of G/I and G/I/L (empty without LiDAR).
     """
 
     t0_gps: float
@@ -141,6 +165,7 @@ class WorkflowMetrics:
     points: tuple[PointsWritten, ...] = ()
     resumed: tuple[str, ...] = ()
     timings_s: dict[str, float] = field(default_factory=dict)
+    pass_precision: tuple[PassPrecision, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """The JSON object of ``metrics.json`` (strip ids as string keys, as JSON requires)."""
@@ -152,6 +177,7 @@ class WorkflowMetrics:
             "points": [p.to_dict() for p in self.points],
             "resumed": list(self.resumed),
             "timings_s": dict(self.timings_s),
+            "pass_precision": [p.to_dict() for p in self.pass_precision],
         }
 
     @classmethod
@@ -164,6 +190,7 @@ class WorkflowMetrics:
             points=tuple(PointsWritten.from_dict(p) for p in d.get("points", [])),
             resumed=tuple(str(s) for s in d.get("resumed", [])),
             timings_s={str(k): float(v) for k, v in d.get("timings_s", {}).items()},
+            pass_precision=tuple(PassPrecision.from_dict(p) for p in d.get("pass_precision", [])),
         )
 
     @classmethod

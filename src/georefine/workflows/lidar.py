@@ -70,6 +70,7 @@ from georefine.workflows.navigation import (
 )
 from georefine.workflows.project import output_folder
 from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
+from georefine.workflows.precision import pass_precision, precision_lines
 from georefine.workflows.time_offset import (
     EDGE_MARGIN_S,
     OFFSET_BLOCK,
@@ -268,6 +269,7 @@ class WorkflowResult:
             gnss = self.gil.time_offset_gnss_sigma_s
             lines.append(f"  LiDAR time offset: {self.gil.time_offset_s:+.5f} s ± {self.gil.time_offset_sigma_s * 1e3:.3f} ms"
                          + (f" (± {gnss * 1e3:.2f} ms from GNSS errors that last a pass)" if gnss else ""))
+        lines += precision_lines(m.pass_precision)
         if m.resumed:
             lines.append("  resumed from the cache: " + ", ".join(m.resumed))
         lines.append("  timings: " + ", ".join(f"{k} {v:.1f} s" for k, v in m.timings_s.items()))
@@ -670,14 +672,19 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
 
 
 def stage_metrics(steps: StepRunner, inputs: WorkflowInputs, outer: tuple[OuterIteration, ...],
-                  points: tuple[PointsWritten, ...]) -> WorkflowMetrics:
-    """``metrics.json`` and ``config.resolved.yaml``: what was run, resumed and how long it took."""
+                  points: tuple[PointsWritten, ...], gi: GnssImuResult | None = None,
+                  gil: LidarAdjustment | None = None) -> WorkflowMetrics:
+    """``metrics.json`` and ``config.resolved.yaml``: what was run, resumed and how long it took,
+    and with ``gi`` and ``gil`` the attitude sigma per pass of both (:mod:`georefine.workflows.precision`)."""
     nav = inputs.nav
+    passes = () if gi is None or gil is None else pass_precision(
+        gi, gil.result, {s.strip_id: (float(s.t_first), float(s.t_last)) for s in inputs.strips})
     metrics = WorkflowMetrics(
         t0_gps=nav.t0_gps, strips=tuple(s.strip_id for s in inputs.strips),
         strip_time_gps={s.strip_id: (float(s.t_first + nav.t0_gps), float(s.t_last + nav.t0_gps))
                         for s in inputs.strips},
         outer_iterations=outer, points=points, resumed=steps.resumed, timings_s=dict(steps.timings_s),
+        pass_precision=passes,
     )
     write_json(inputs.out / "metrics.json", metrics.to_dict())
     write_yaml(inputs.out / "config.resolved.yaml", nav.config)
@@ -759,5 +766,5 @@ def _run_stages(steps: StepRunner, project_dir, out, strips, lidar: bool, points
         final = gil.result
     with steps.timed("final_georeferencing"):
         written = stage_points(steps, inputs, final, gil, key, progress) if points else ()
-    metrics = stage_metrics(steps, inputs, records, written)
+    metrics = stage_metrics(steps, inputs, records, written, gi, gil)
     return WorkflowResult(inputs.out, gi, gil, metrics)
