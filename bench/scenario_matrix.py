@@ -262,8 +262,12 @@ def main() -> None:
     ap.add_argument("--length", type=float, default=2400.0, help="corridor length (m)")
     ap.add_argument("--report-only", action="store_true", help="print the results kept in WORK, run nothing")
     ap.add_argument("--markdown", action="store_true", help="also print the rows as a Markdown table")
+    ap.add_argument("--reverse", action="store_true",
+                    help="run the scenarios from the last: a second process on another core meets the first in the middle")
     a = ap.parse_args()
     todo = [s for s in scenarios(a.design) if all(o in name_of(s) for o in a.only)]
+    if a.reverse:
+        todo = todo[::-1]
     seeds = {s: 1600 + i for i, s in enumerate(scenarios("full"))}
     records = []
     for s in todo:
