@@ -41,3 +41,18 @@ def test_the_summary_names_the_angles_the_planes_add_little_to():
     assert len(precision_lines(passes[:1] + (PassPrecision(2, (4.0, 4.0, 40.0), (1.0, 1.0, 1.8)),))) == 2
     assert len(precision_lines((PassPrecision(1, (4.0, 4.0, 40.0), (1.0, 1.0, 1.8)),))) == 1
     assert precision_lines(()) == []
+
+
+def test_a_pass_without_posterior_reads_back_as_nan(tmp_path):
+    import json
+
+    from georefine.io.files import write_json
+
+    record = PassPrecision(1, (float("nan"),) * 3, (1.0, 1.25, 1.75))
+    write_json(tmp_path / "p.json", record.to_dict())
+    d = json.loads((tmp_path / "p.json").read_text())
+    assert d["gi_sigma_mdeg"] == [None, None, None]
+    back = PassPrecision.from_dict(d)
+    assert np.all(np.isnan(back.gi_sigma_mdeg)) and back.gil_sigma_mdeg == (1.0, 1.25, 1.75)
+    # no posterior: no sigma to compare, and nothing named as resting on the GNSS/IMU
+    assert len(precision_lines((record,))) == 1

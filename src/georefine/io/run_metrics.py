@@ -129,8 +129,10 @@ class PassPrecision:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> PassPrecision:
-        return cls(int(d["strip"]), tuple(float(v) for v in d["gi_sigma_mdeg"]),  # type: ignore[arg-type]
-                   tuple(float(v) for v in d["gil_sigma_mdeg"]))  # type: ignore[arg-type]
+        def sigmas(key: str) -> tuple[float, float, float]:  # NaN (no posterior) is null in JSON
+            return tuple(float("nan") if v is None else float(v) for v in d[key])  # type: ignore[return-value]
+
+        return cls(int(d["strip"]), sigmas("gi_sigma_mdeg"), sigmas("gil_sigma_mdeg"))
 
 
 @dataclass(frozen=True)

@@ -68,9 +68,9 @@ from georefine.workflows.navigation import (
     step_initialise,
     write_trajectory_products,
 )
+from georefine.workflows.precision import pass_precision, precision_lines
 from georefine.workflows.project import output_folder
 from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
-from georefine.workflows.precision import pass_precision, precision_lines
 from georefine.workflows.time_offset import (
     EDGE_MARGIN_S,
     OFFSET_BLOCK,
