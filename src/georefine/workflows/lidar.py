@@ -672,12 +672,11 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
 
 
 def stage_metrics(steps: StepRunner, inputs: WorkflowInputs, outer: tuple[OuterIteration, ...],
-                  points: tuple[PointsWritten, ...], gi: GnssImuResult | None = None,
-                  gil: LidarAdjustment | None = None) -> WorkflowMetrics:
+                  points: tuple[PointsWritten, ...], gi: GnssImuResult, gil: LidarAdjustment | None) -> WorkflowMetrics:
     """``metrics.json`` and ``config.resolved.yaml``: what was run, resumed and how long it took,
-    and with ``gi`` and ``gil`` the attitude sigma per pass of both (:mod:`georefine.workflows.precision`)."""
+    and with a G/I/L ``gil`` the attitude sigma per pass of it and ``gi`` (:mod:`georefine.workflows.precision`)."""
     nav = inputs.nav
-    passes = () if gi is None or gil is None else pass_precision(
+    passes = () if gil is None else pass_precision(
         gi, gil.result, {s.strip_id: (float(s.t_first), float(s.t_last)) for s in inputs.strips})
     metrics = WorkflowMetrics(
         t0_gps=nav.t0_gps, strips=tuple(s.strip_id for s in inputs.strips),
