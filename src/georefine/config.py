@@ -346,6 +346,16 @@ class LidarAdjustmentConfig(StrictModel):
         "and moved roll/pitch/yaw RMSE by less than 0.01 mdeg on corridor-tiny (10 against 25 iterations); "
         "the next outer iteration starts from the result anyway.",
     )
+    initial_lambda: float = Field(
+        1e-9, gt=0.0,
+        description="Initial Levenberg-Marquardt damping of the G/I/L adjustment, relative to diag(N). Planes "
+        "see every pass's pitch only together with its climb rate; a tilt of the whole scene (pitch and climb "
+        "rate of all passes at once) they cannot see, and the GNSS/IMU hold it with an eigenvalue far below "
+        "the diagonal. From the solver's general 1e-4, divided by at most 3 per step, that direction barely "
+        "moved before the cost-change test stopped: a navigation-grade corridor kept a 0.3 mdeg world tilt "
+        "the G/I did not have (pitch error/sigma 2.3). From 1e-9 it is solved in the same number of "
+        "iterations (docs/ARCHITECTURE.md §4.4).",
+    )
 
 
 class TrajectoryAdjustmentConfig(StrictModel):

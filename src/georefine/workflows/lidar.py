@@ -204,7 +204,8 @@ def step_adjust_gil(
     def report(it) -> None:
         progress("G/I/L adjustment", getattr(it, "iteration", 0), cfg.processing.trajectory.max_iterations)
 
-    options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance)
+    options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance,
+                            initial_lambda=lcfg.initial_lambda)
     if nav.prior is not None:
         result = solve_trajectory_prior(built, options, progress=report, covariance=False, high_rate=high_rate)
     else:
