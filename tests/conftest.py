@@ -13,7 +13,15 @@ reuses them; a simulation is 35-40 s, the G/I adjustment 12-15 s).
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # Each worker is one process on one core: BLAS, OpenMP and numba thread pools of the size of
+    # the machine in every worker oversubscribe the cores (a G/I test alone: 72 s with them, 58 s
+    # without). Set before numpy is imported; subprocesses and dask workers inherit it.
+    for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
 
 import pytest
 from shared_projects import GIL_SCAN, built_once
