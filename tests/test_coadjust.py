@@ -177,10 +177,10 @@ def test_results_read_back_from_their_files_write_the_same_files(demo, tmp_path)
 @pytest.mark.slow
 def test_match_command_writes_matches_of_each_kind(demo, tmp_path):
     out, _ = demo
-    # A copy of the project whose project.yaml sets the lidargrammetry section; --scale overrides it.
-    project = tmp_path / "project"
-    shutil.copytree(out / "project" / "photos", project / "photos")
-    data = yaml.safe_load((out / "project" / "project.yaml").read_text())
+    # Two photos of the project (their lidargrams from both strips' clouds) whose project.yaml sets
+    # the lidargrammetry section; --scale overrides it.
+    project = _photo_subset(out / "project", tmp_path / "project", ["IMG_01001.jpg", "IMG_01002.jpg"])
+    data = yaml.safe_load((project / "project.yaml").read_text())
     data.setdefault("processing", {})["lidargrammetry"] = {
         "lidargram_scale": 0.5, "pair_kinds": ["photo-lidargram", "lidargram-lidargram"], "min_coverage": 0.25}
     (project / "project.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
@@ -284,7 +284,8 @@ def test_lidargrams_command_writes_loadable_lidargrams(demo, tmp_path):
     from georefine.lidargrammetry.render import load_lidargram
 
     out, _ = demo
-    project, cloud = out / "project", out / "run" / "points"
+    project = _photo_subset(out / "project", tmp_path / "project", ["IMG_01001.jpg", "IMG_01002.jpg"])
+    cloud = out / "run" / "points"
     proc = subprocess.run([sys.executable, "-m", "georefine", "lidargrams", str(project), "--points", str(cloud),
                            "--out", str(tmp_path / "lg")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
