@@ -56,7 +56,7 @@ def _white_gnss_copy(project: Path, out: Path) -> Path:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [1])  # seeds 42, 2, 3: BENCHMARKS.md, "The GNSS error that lasts minutes"
+@pytest.mark.parametrize("seed", [1])  # seeds 42, 2, 3: BENCHMARKS.md (the default corridor's G/I)
 def test_gnss_imu_adjustment_on_the_corridor(seed, tmp_path):
     project = tmp_path / "corridor"
     simulate_project("corridor", project, seed=seed, overrides=FAST_SCAN)
