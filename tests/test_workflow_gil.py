@@ -338,6 +338,7 @@ def test_only_a_first_outer_iteration_that_others_follow_takes_coarse_knots():
     assert outer_knot_interval(Lidar(first_knot_interval_s=0.1), 0.1, 1) is None  # not coarser
     assert outer_knot_interval(Lidar(), 0.5, 1) is None
     assert outer_knot_interval(Lidar(first_knot_interval_s=0.5), 0.1, 1) == 0.5
+    assert outer_knot_interval(Lidar(), 0.1, 1, vibrating=True) is None  # the vibration would alias
 
 
 def test_outer_iterations_that_do_not_converge_are_reported_with_their_figures(caplog):

@@ -35,7 +35,8 @@ from georefine.trajectory.highrate import HighRateMotion, reconstruct_high_rate
 
 log = logging.getLogger(__name__)
 
-__all__ = ["adjust_upsampled", "corrected_imu", "rebuild_high_rate", "without_high_rate"]
+__all__ = ["MIN_SIGNIFICANT_SHARE", "adjust_upsampled", "corrected_imu", "high_rate_share", "rebuild_high_rate",
+           "without_high_rate"]
 
 
 def _inside(data: GnssImuData, hf_or_span) -> np.ndarray:
@@ -62,6 +63,12 @@ def rebuild_high_rate(data: GnssImuData, result: GnssImuResult) -> HighRateMotio
 def without_high_rate(data: GnssImuData, result: GnssImuResult) -> GnssImuData:
     """``data`` whose IMU readings no longer contain ``result.high_rate`` (inputs are not modified)."""
     return _clean(data, result)[0]
+
+
+def high_rate_share(data: GnssImuData, result: GnssImuResult) -> float:
+    """The share of ``result``'s rebuilt high-rate readings that stands out of the IMU noise
+    (:func:`_clean`): at least :data:`MIN_SIGNIFICANT_SHARE` on a vibrating platform."""
+    return _clean(data, result)[1]
 
 
 def _clean(data: GnssImuData, result: GnssImuResult) -> tuple[GnssImuData, float]:

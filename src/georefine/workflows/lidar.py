@@ -39,7 +39,12 @@ from georefine.adjustment.gnss_imu import (
     with_posterior,
 )
 from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_trajectory_prior, with_prior_posterior
-from georefine.adjustment.upsampling import rebuild_high_rate, without_high_rate
+from georefine.adjustment.upsampling import (
+    MIN_SIGNIFICANT_SHARE,
+    high_rate_share,
+    rebuild_high_rate,
+    without_high_rate,
+)
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.observations.prior import RotationPrior
 from georefine.adjustment.robust import make_loss
@@ -391,11 +396,20 @@ def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, p
     return IterationOutcome(gil, record, features, objects)
 
 
-def outer_knot_interval(lcfg, knot_interval_s: float, iteration: int) -> float | None:
+def outer_knot_interval(lcfg, knot_interval_s: float, iteration: int, vibrating: bool = False) -> float | None:
     """The coarser knot interval of outer iteration ``iteration`` (only the first, and only when
     more may follow), or None for the configured ``knot_interval_s``
-    (``processing.lidar.first_knot_interval_s``)."""
+    (``processing.lidar.first_knot_interval_s``).
+
+    Never on a ``vibrating`` platform (the G/I's up-sampling found vibration, §4.6): the motion
+    rebuilt above the coarse knots (2 Hz at 0.25 s) holds a band the configured knots follow,
+    and the fine iteration after it does not get that band back. A 6.5 Hz rotor line, aliased
+    by the 0.25 s knots to 2.5 Hz, stayed in the trajectory: 0.6-0.8 mdeg of roll and pitch
+    error with a navigation-grade IMU, against 0.2 with fine knots throughout (BENCHMARKS.md,
+    Operating conditions)."""
     fine, coarse = knot_interval_s, lcfg.first_knot_interval_s
+    if vibrating:
+        return None
     if iteration == 1 and lcfg.outer_iterations > 1 and coarse is not None and coarse > fine * (1.0 + 1e-6):
         return float(coarse)
     return None
@@ -471,10 +485,11 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
     """
     nav, lcfg = inputs.nav, inputs.nav.config.processing.lidar
     current, records, strips, prior = gi, [], inputs.strips, None
+    vibrating = _vibrating(nav, gi)
     for it in range(1, lcfg.outer_iterations + 1):
         key = _lidar_key(nav, inputs.strips, key, it)
         start = current
-        coarse = outer_knot_interval(lcfg, nav.config.processing.trajectory.knot_interval_s, it)
+        coarse = outer_knot_interval(lcfg, nav.config.processing.trajectory.knot_interval_s, it, vibrating)
         outcome = steps.cached(
             f"gil_{it}", key, partial(_outer_iteration, nav, start, strips, it, steps.timed, progress,
                                       inputs.runner, coarse, prior),
@@ -492,6 +507,19 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
     else:
         warn_unconverged(records, lcfg)
     return OuterIterations(outcome, start, key, tuple(records))
+
+
+def _vibrating(nav: NavigationData, gi: GnssImuResult) -> bool:
+    """Whether the G/I's up-sampling found vibration in the raw IMU (§4.6); logged when it did."""
+    if nav.prior is not None or gi.high_rate is None:
+        return False
+    share = high_rate_share(nav.gnss, gi)
+    if share < MIN_SIGNIFICANT_SHARE:
+        return False
+    if nav.config.processing.lidar.first_knot_interval_s is not None:
+        log.info("vibration: %.0f %% of the rebuilt IMU readings stand out of the noise; every outer iteration "
+                 "on the configured knots (no coarse first iteration)", 100 * share)
+    return True
 
 
 def outer_converged(record: OuterIteration, lcfg) -> bool:
