@@ -328,7 +328,9 @@ class LidarAdjustmentConfig(StrictModel):
         "iterations may follow; the later ones use the configured knots, and it never ends the outer iterations. "
         "It starts from the G/I trajectory, tens of mdeg away, and only has to bring it near enough to "
         "re-extract and re-match: on coarse knots its Cauchy reweighting converges in fewer and much cheaper "
-        "iterations (BENCHMARKS.md, Flight length). null: every outer iteration on the configured knots.",
+        "iterations (BENCHMARKS.md, Flight length). Not on a vibrating platform (up-sampling found vibration): "
+        "there the coarse knots would alias it into the trajectory. null: every outer iteration on the "
+        "configured knots.",
     )
     plane_loss: Literal["cauchy", "huber", "none"] = "cauchy"
     plane_loss_scale: float = Field(2.0, gt=0.0, description="Cauchy c / Huber delta in units of sigma.")
