@@ -29,13 +29,18 @@ from shared_projects import GIL_SCAN, built_once
 SLOW_FIRST = (
     "test_coadjust.py",
     "test_workflow_gil.py",
-    "test_delivered.py",
-    "test_readme_tiny.py",
     "test_workflow_gil_variants.py",
+    "test_readme_tiny.py",
     "test_trajectory_gi.py",
+    "test_bad_inputs.py",
+    "test_delivered.py",
     "test_time_offset.py",
+    "test_operating_conditions.py",
+    "test_upsampling.py",
 )
-"""Files of about a minute or more, longest first (``python -m pytest --durations=40``)."""
+"""Files of about half a minute or more, longest first (``python -m pytest --durations=60``), but
+the two files that share :func:`gil_project` not side by side at the start (the second would wait
+for the first to build it)."""
 
 
 def pytest_collection_modifyitems(session, config, items) -> None:
