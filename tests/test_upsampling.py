@@ -140,10 +140,11 @@ def test_gnss_imu_adjustment_on_a_vibrating_platform_with_and_without_upsampling
     assert up.adjustment.high_rate is not None and down.adjustment.high_rate is None
     # The G/I/L then runs every outer iteration on the configured knots (no coarse first one, which
     # would alias the vibration into the trajectory: georefine.workflows.lidar.outer_knot_interval).
-    from georefine.adjustment.upsampling import MIN_SIGNIFICANT_SHARE, high_rate_share
+    from georefine.adjustment.upsampling import high_rate_share
+    from georefine.workflows.lidar import VIBRATION_SHARE
     from georefine.workflows.navigation import load_navigation
 
-    assert high_rate_share(load_navigation(project).gnss, up.adjustment) > 5 * MIN_SIGNIFICANT_SHARE
+    assert high_rate_share(load_navigation(project).gnss, up.adjustment) > VIBRATION_SHARE
 
     hf_up = _high_frequency_attitude_error(project, tmp_path / "up" / "trajectory.sbet")
     hf_down = _high_frequency_attitude_error(project, tmp_path / "down" / "trajectory.sbet")
