@@ -519,15 +519,17 @@ the world tilt (pitch 0.13 / 0.06 mdeg against 0.23 with fine knots throughout).
 
 
 def _vibrating(nav: NavigationData, gi: GnssImuResult) -> bool:
-    """Whether the G/I's up-sampling found vibration in the raw IMU (§4.6); logged when it did."""
-    if nav.prior is not None or gi.high_rate is None:
+    """Whether the G/I's up-sampling found vibration in the raw IMU (§4.6), where a coarse first
+    outer iteration could be run at all (logged when it is left out). A delivered trajectory's
+    faster motion comes from its SBET (§4.9) and is not tested here."""
+    lcfg = nav.config.processing.lidar
+    if nav.prior is not None or gi.high_rate is None or lcfg.first_knot_interval_s is None or lcfg.outer_iterations < 2:
         return False
     share = high_rate_share(nav.gnss, gi)
     if share < VIBRATION_SHARE:
         return False
-    if nav.config.processing.lidar.first_knot_interval_s is not None:
-        log.info("vibration: %.0f %% of the rebuilt IMU readings stand out of the noise; every outer iteration "
-                 "on the configured knots (no coarse first iteration)", 100 * share)
+    log.info("vibration: %.0f %% of the rebuilt IMU readings stand out of the noise; every outer iteration "
+             "on the configured knots (no coarse first iteration)", 100 * share)
     return True
 
 
