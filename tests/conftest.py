@@ -38,9 +38,9 @@ SLOW_FIRST = (
     "test_operating_conditions.py",
     "test_upsampling.py",
 )
-"""Files of about half a minute or more, longest first (``python -m pytest --durations=60``), but
-the two files that share :func:`gil_project` not side by side at the start (the second would wait
-for the first to build it)."""
+"""Files of about half a minute or more, longest first (``python -m pytest --durations=60``),
+except that the two files sharing :func:`gil_project` do not start side by side (the second
+would wait for the first to build it)."""
 
 
 def pytest_collection_modifyitems(session, config, items) -> None:

@@ -93,8 +93,9 @@ def test_case_1_refines_the_jammed_cloud(demo):
     # The small block (3 photos per strip, a lighter scanner, about 19 verified matches per
     # photo-lidargram pair) refines to a floor of 0.16-0.19 m whatever the jammed error was:
     # seeds 11, 12, 13 measured 0.188 -> 0.164, 0.129 -> 0.191 and 0.234 -> 0.162 m (0.87x, 1.48x,
-    # 0.69x; seed 11 gives 0.177 m, 0.94x, with the current packages). Where the jammed cloud is already near the floor (seed 12), case 1 makes it worse:
-    # a limit of the method on a block this small, recorded in BENCHMARKS.md. The ratio of 1/3 is
+    # 0.69x; seed 11 gives 0.177 m, 0.94x, with the current packages). Where the jammed cloud is
+    # already near the floor (seed 12), case 1 makes it worse: a limit of the method on a block
+    # this small, recorded in BENCHMARKS.md. The ratio of 1/3 is
     # held on the benchmark block (14 photos, 0.32x). Here: the floor, and an improvement on
     # seed 11, whose jammed cloud lies above it.
     assert after < 0.2, (before, after)
