@@ -67,25 +67,35 @@ def without_high_rate(data: GnssImuData, result: GnssImuResult) -> GnssImuData:
 
 def high_rate_share(data: GnssImuData, result: GnssImuResult) -> float:
     """The share of ``result``'s rebuilt high-rate readings that stands out of the IMU noise
-    (:func:`_clean`): 1.00 with rotor vibration, a few hundredths on a smooth platform with a MEMS
-    IMU (:data:`MIN_SIGNIFICANT_SHARE`; ``georefine.workflows.lidar.VIBRATION_SHARE``)."""
-    return _clean(data, result)[1]
+    (:func:`_significant`): 1.00 with rotor vibration, a few hundredths on a smooth platform with
+    a MEMS IMU (:data:`MIN_SIGNIFICANT_SHARE`; ``georefine.workflows.lidar.VIBRATION_SHARE``)."""
+    return _significant(data, result)[2]
 
 
-def _clean(data: GnssImuData, result: GnssImuResult) -> tuple[GnssImuData, float]:
-    """:func:`without_high_rate` and the share of the rebuilt readings that was taken out.
+def _significant(data: GnssImuData, result: GnssImuResult) -> tuple[np.ndarray, np.ndarray, float]:
+    """The significant part of ``result.high_rate``'s readings (gyro, accelerometer) and its share.
 
     The share is the larger of gyro and accelerometer of RMS(significant) / RMS(all rebuilt
     readings): near 0 when the high-frequency content is sensor noise alone, near 1 when it
-    is vibration.
+    is vibration. Empty readings and 0 without a rebuilt motion.
     """
     hf = result.high_rate
     if hf is None or hf.time.size == 0:
-        return data, 0.0
+        return np.zeros((0, 3)), np.zeros((0, 3)), 0.0
     d_omega, d_f = hf.significant_corrections(data.frame, result.spline, data.imu_rate_hz)
     all_omega, all_f = hf.reading_corrections(data.frame, result.spline)
     share = max(float(np.sqrt(np.mean(d_omega**2) / max(np.mean(all_omega**2), 1e-300))),
                 float(np.sqrt(np.mean(d_f**2) / max(np.mean(all_f**2), 1e-300))))
+    return d_omega, d_f, share
+
+
+def _clean(data: GnssImuData, result: GnssImuResult) -> tuple[GnssImuData, float]:
+    """:func:`without_high_rate` and the share of the rebuilt readings that was taken out
+    (:func:`_significant`)."""
+    d_omega, d_f, share = _significant(data, result)
+    hf = result.high_rate
+    if hf is None or hf.time.size == 0:
+        return data, share
     sel = np.flatnonzero(_inside(data, (hf.time[0], hf.time[-1])))
     if sel.size != hf.time.size or not np.array_equal(data.imu_time[sel], hf.time):
         raise ValueError("the high-rate motion was rebuilt from other IMU samples than these")

@@ -407,9 +407,8 @@ def outer_knot_interval(lcfg, knot_interval_s: float, iteration: int, vibrating:
     error with a navigation-grade IMU, against 0.2 with fine knots throughout (BENCHMARKS.md,
     Operating conditions)."""
     fine, coarse = knot_interval_s, lcfg.first_knot_interval_s
-    if vibrating:
-        return None
-    if iteration == 1 and lcfg.outer_iterations > 1 and coarse is not None and coarse > fine * (1.0 + 1e-6):
+    if (iteration == 1 and not vibrating and lcfg.outer_iterations > 1 and coarse is not None
+            and coarse > fine * (1.0 + 1e-6)):
         return float(coarse)
     return None
 
@@ -519,11 +518,12 @@ the world tilt (pitch 0.13 / 0.06 mdeg against 0.23 with fine knots throughout).
 
 
 def _vibrating(nav: NavigationData, gi: GnssImuResult) -> bool:
-    """Whether the G/I's up-sampling found vibration in the raw IMU (§4.6), where a coarse first
-    outer iteration could be run at all (logged when it is left out). A delivered trajectory's
-    faster motion comes from its SBET (§4.9) and is not tested here."""
-    lcfg = nav.config.processing.lidar
-    if nav.prior is not None or gi.high_rate is None or lcfg.first_knot_interval_s is None or lcfg.outer_iterations < 2:
+    """Whether the G/I's up-sampling found vibration in the raw IMU (§4.6), asked only where
+    :func:`outer_knot_interval` would start coarse (logged when it then does not). A delivered
+    trajectory's faster motion comes from its SBET (§4.9) and is not tested here."""
+    if nav.prior is not None or gi.high_rate is None:
+        return False
+    if outer_knot_interval(nav.config.processing.lidar, nav.config.processing.trajectory.knot_interval_s, 1) is None:
         return False
     share = high_rate_share(nav.gnss, gi)
     if share < VIBRATION_SHARE:
