@@ -597,6 +597,55 @@ def test_conjugate_gradient_steps_under_changing_robust_weights():
     np.testing.assert_allclose(fits["cg"][0], fits["direct"][0], rtol=0, atol=1e-7)
 
 
+class MisfitGroup:
+    """Residuals that no parameter moves (zero Jacobian): misfit the model cannot remove."""
+
+    name = "misfit"
+    loss = None
+
+    def __init__(self, r):
+        self.r = r
+
+    def linearize(self, values, jacobians=True):
+        jac = []
+        if jacobians:
+            jac = [JacobianBlock("theta", np.arange(self.r.size)[:, None], np.zeros(self.r.size, int),
+                                 np.zeros((self.r.size, 1, 2)))]
+        return Linearization(self.r.copy(), jac)
+
+
+def test_the_cost_change_test_relative_to_fit_ignores_misfit_it_cannot_remove():
+    """Cauchy IRLS converges linearly; 2000 rows of 30 sigma that no parameter moves make the cost
+    900 times a fitting model's. The plain relative test then stops after 2 steps, 0.2 sigma of the
+    intercept short; ``relative_to_fit`` stops as near the optimum as the problem without that misfit."""
+    rng = np.random.default_rng(22)
+    n, sigma = 400, 0.1
+    x = rng.uniform(0.0, 10.0, n)
+    y = 0.7 * x - 1.2 + rng.normal(scale=sigma, size=n)
+    bad = rng.choice(n, size=n // 5, replace=False)
+    y[bad] += rng.uniform(3.0, 8.0, bad.size)
+
+    def fit(misfit, relative_to_fit, tol=1e-4):
+        problem = Problem()
+        problem.add_block("theta", np.zeros((1, 2)))
+        problem.add_group(LineGroup(x, y, sigma, CauchyLoss(2.385)))
+        if misfit:
+            problem.add_group(MisfitGroup(np.full(2000, 30.0)))
+        result = problem.solve(SolverOptions(max_iterations=200, function_tolerance=tol, relative_to_fit=relative_to_fit))
+        assert result.termination == "function_tolerance"
+        return problem.values("theta")[0], result.iterations
+
+    exact, _ = fit(False, False, tol=1e-14)
+    clean, _ = fit(False, False)
+    plain, plain_iterations = fit(True, False)
+    relative, relative_iterations = fit(True, True)
+    sigma_q = sigma * np.sqrt(4.0 / n)  # the intercept's, near enough
+    assert relative_iterations > plain_iterations
+    for estimate in (clean, relative):
+        assert abs(estimate[1] - exact[1]) < 0.02 * sigma_q
+    assert abs(plain[1] - exact[1]) > 0.1 * sigma_q
+
+
 # ---------------------------------------------------------------------------------------------
 # (4) robust losses
 # ---------------------------------------------------------------------------------------------

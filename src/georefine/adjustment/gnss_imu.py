@@ -345,7 +345,7 @@ def solve_gnss_imu(
     cfg = built.cfg
     t = _time.perf_counter()
     options = options or SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance,
-                                       initial_lambda=cfg.initial_lambda)
+                                       relative_to_fit=True, initial_lambda=cfg.initial_lambda)
     result = built.problem.solve(options, progress=progress)
     timings = {"solve": _time.perf_counter() - t}
     p = built.problem

@@ -26,7 +26,9 @@ Each iteration
        ``lambda *= nu``, ``nu *= 2`` (Nielsen 1999; Madsen, Nielsen & Tingleff 2004, §3.2).
 
 Termination (Ceres Solver's criteria)
-    ``function_tolerance``: an accepted step with ``(F - F') / F <= function_tolerance``;
+    ``function_tolerance``: an accepted step with ``(F - F') / F <= function_tolerance``
+    (with ``relative_to_fit``: ``(F - F') / min(F, r / 2) <= function_tolerance``, ``r`` the
+    redundancy below);
     ``parameter_tolerance``: ``||delta|| <= parameter_tolerance (||x|| + parameter_tolerance)``,
     ``||x||`` over the free Euclidean values plus one per free rotation;
     ``gradient_tolerance``: ``max |g| <= gradient_tolerance``;
@@ -99,6 +101,13 @@ class SolverOptions:
         Maximum number of trial steps (accepted or rejected).
     function_tolerance
         Stop when an accepted step decreases the cost by less than this fraction.
+    relative_to_fit
+        Take that fraction of ``min(F, redundancy / 2)`` rather than of the cost ``F``:
+        ``redundancy / 2`` is the cost of a model that fits its weights (variance factor 1), so
+        misfit the model cannot remove (a variance factor of 100 from vibration left in IMU
+        windows) does not loosen the test a hundredfold and stop the adjustment while a weak
+        direction is still moving (BENCHMARKS.md, Operating conditions). Where the model fits, or
+        a robust loss takes the cost below it, the test is the plain one.
     parameter_tolerance
         Stop when ``||delta|| <= parameter_tolerance * (||x|| + parameter_tolerance)``.
     gradient_tolerance
@@ -119,6 +128,7 @@ class SolverOptions:
 
     max_iterations: int = 50
     function_tolerance: float = 1e-8
+    relative_to_fit: bool = False
     parameter_tolerance: float = 1e-10
     gradient_tolerance: float = 1e-10
     initial_lambda: float = 1e-4
@@ -499,7 +509,10 @@ def run_levenberg_marquardt(
             history.append(cost)
             lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
             nu = 2.0
-            converged = actual <= options.function_tolerance * (cost + actual)
+            reference = cost + actual
+            if options.relative_to_fit and current.n_rows > layout.n_cols:
+                reference = min(reference, 0.5 * (current.n_rows - layout.n_cols))
+            converged = actual <= options.function_tolerance * reference
             normal_is_current = False
             if not converged:  # else N at the solution is assembled only if covariances are asked for
                 normal = _normal_equations(current, layout, assembler)

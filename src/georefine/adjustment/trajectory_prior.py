@@ -221,7 +221,7 @@ def solve_trajectory_prior(
     cfg = built.cfg
     t = _time.perf_counter()
     options = options or SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance,
-                                       initial_lambda=cfg.initial_lambda)
+                                       relative_to_fit=True, initial_lambda=cfg.initial_lambda)
     result = built.problem.solve(options, progress=progress)
     p = built.problem
     errors = SbetErrorEstimate(built.error_grid, p.values(POSITION_ERROR), p.values(ATTITUDE_ERROR))

@@ -209,7 +209,7 @@ def step_adjust_gil(
         progress("G/I/L adjustment", getattr(it, "iteration", 0), cfg.processing.trajectory.max_iterations)
 
     options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance,
-                            initial_lambda=lcfg.initial_lambda)
+                            relative_to_fit=True, initial_lambda=lcfg.initial_lambda)
     if nav.prior is not None:
         result = solve_trajectory_prior(built, options, progress=report, covariance=False, high_rate=high_rate)
     else:
