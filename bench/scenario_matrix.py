@@ -1,8 +1,10 @@
 """G/I and G/I/L attitude across operating conditions: accuracy against the truth and honesty of the sigmas.
 
-    python bench/scenario_matrix.py WORK [--design full|oat] [--only SUBSTRING ...] [--length 2400]
+    python bench/scenario_matrix.py WORK [--design full|oat] [--only SUBSTRING ...] [--length 2400] [--draws 1]
 
-The matrix (its own seeds, one per scenario):
+The matrix (its own seeds, one per scenario; ``--draws K`` adds K - 1 more per scenario, seeds
+1000 apart, so that the errors a single pass samples once -- the tilt of the whole scene, the
+roll common to both passes -- are seen over several draws):
 
 | factor | levels |
 |---|---|
@@ -111,9 +113,9 @@ def outage_override(overrides: list[str], imu: str) -> str:
     return f"gnss.outages=[[{a:.1f}, {b:.1f}]]"
 
 
-def simulate(work: Path, s, seed: int, length: float) -> Path:
+def simulate(work: Path, s, seed: int, length: float, key: str) -> Path:
     imu, flight, gnss, lat, vib = s
-    out = work / "projects" / name_of(s)
+    out = work / "projects" / key
     if (out / "truth" / "scenario.yaml").is_file():
         return out
     overrides = [f"scene.length_m={length:g}", *FLIGHT[flight], *LATITUDE[lat], *VIBRATION[vib]]
@@ -153,19 +155,25 @@ def evaluate(project: Path, out: Path, strips: list[int]) -> dict:
     return res
 
 
-def one(work: Path, s, seed: int, length: float) -> dict:
-    path = work / "results" / f"{name_of(s)}.json"
+def key_of(s, draw: int = 0) -> str:
+    """File name of a scenario's draw: the name, and ``~K`` for the K-th extra seed (``--draws``)."""
+    return name_of(s) + (f"~{draw}" if draw else "")
+
+
+def one(work: Path, s, seed: int, length: float, draw: int = 0) -> dict:
+    key = key_of(s, draw)
+    path = work / "results" / f"{key}.json"
     if path.is_file():
         return json.loads(path.read_text())
     t = time.perf_counter()
-    project = simulate(work, s, seed, length)
+    project = simulate(work, s, seed, length, key)
     strips = [p["strip_id"] for p in yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["passes"]]
-    both = run(project, work / "runs" / name_of(s), None)
-    single = run(project, work / "runs" / f"{name_of(s)}_single", str(strips[0]))
+    both = run(project, work / "runs" / key, None)
+    single = run(project, work / "runs" / f"{key}_single", str(strips[0]))
     rec = {"scenario": dict(zip(("imu", "flight", "gnss", "latitude", "vibration"), s)), "seed": seed,
-           "length_m": length,
-           "both": {**evaluate(project, work / "runs" / name_of(s), strips), **both},
-           "single": {**evaluate(project, work / "runs" / f"{name_of(s)}_single", strips[:1]), **single},
+           "draw": draw, "length_m": length,
+           "both": {**evaluate(project, work / "runs" / key, strips), **both},
+           "single": {**evaluate(project, work / "runs" / f"{key}_single", strips[:1]), **single},
            "wall_s": time.perf_counter() - t}
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(rec, indent=1))
@@ -212,7 +220,7 @@ def report_markdown(records: list[dict]) -> None:
           "error/sigma G/I/L | > 3 sigma G/I/L (%) | yaw/sigma | fails |")
     print("|---|---|---:|---|---|---|---|---|---|---:|---|")
     for rec in records:
-        name = name_of(tuple(rec["scenario"].values()))
+        name = key_of(tuple(rec["scenario"].values()), rec.get("draw", 0))
         for kind, k, gi, gil in rows(rec):
             ratio = {a: gil["rmse_mdeg"][a] / gi["rmse_mdeg"][a] for a in ANGLES}
             beyond = {a: 100 * gil["beyond_3_sigma"][a] for a in ANGLES}
@@ -228,7 +236,7 @@ def report(records: list[dict]) -> None:
     beyond = {sol: {a: [] for a in ANGLES} for sol in ("gi", "gil")}
     n_fail = 0
     for rec in records:
-        name = name_of(tuple(rec["scenario"].values()))
+        name = key_of(tuple(rec["scenario"].values()), rec.get("draw", 0))
         for kind, k, gi, gil in rows(rec):
             ratio = {a: gil["rmse_mdeg"][a] / gi["rmse_mdeg"][a] for a in ANGLES}
             fails = checks(gi, gil)
@@ -260,6 +268,8 @@ def main() -> None:
     ap.add_argument("--design", choices=("full", "oat"), default="oat")
     ap.add_argument("--only", nargs="*", default=[], help="run the scenarios whose name holds all of these")
     ap.add_argument("--length", type=float, default=2400.0, help="corridor length (m)")
+    ap.add_argument("--draws", type=int, default=1,
+                    help="independent draws per scenario: the K-th extra one has seed + 1000 K and is named NAME~K")
     ap.add_argument("--report-only", action="store_true", help="print the results kept in WORK, run nothing")
     ap.add_argument("--markdown", action="store_true", help="also print the rows as a Markdown table")
     ap.add_argument("--reverse", action="store_true",
@@ -271,13 +281,14 @@ def main() -> None:
     seeds = {s: 1600 + i for i, s in enumerate(scenarios("full"))}
     records = []
     for s in todo:
-        path = a.work / "results" / f"{name_of(s)}.json"
-        if a.report_only and not path.is_file():
-            continue
-        t = time.perf_counter()
-        records.append(one(a.work, s, seeds[s], a.length))
-        if not a.report_only:
-            print(f"{name_of(s)}: {time.perf_counter() - t:.0f} s", file=sys.stderr, flush=True)
+        for draw in range(a.draws):
+            path = a.work / "results" / f"{key_of(s, draw)}.json"
+            if a.report_only and not path.is_file():
+                continue
+            t = time.perf_counter()
+            records.append(one(a.work, s, seeds[s] + 1000 * draw, a.length, draw))
+            if not a.report_only:
+                print(f"{key_of(s, draw)}: {time.perf_counter() - t:.0f} s", file=sys.stderr, flush=True)
     report(records)
     if a.markdown:
         print()
