@@ -346,9 +346,9 @@ class LidarAdjustmentConfig(StrictModel):
         description="Stop the G/I/L Levenberg-Marquardt when an iteration lowers the cost by less than this "
         "fraction. Under the Cauchy loss the last per-mille of the cost comes slowly (IRLS converges linearly) "
         "and moved roll/pitch/yaw RMSE by less than 0.01 mdeg on corridor-tiny (10 against 25 iterations); "
-        "the next outer iteration starts from the result anyway. The fraction is of the cost a fitting model "
-        "has (redundancy / 2) where the cost exceeds it: misfit the model cannot remove (vibration left in the "
-        "IMU windows) must not loosen the test (docs/ARCHITECTURE.md §4.4).",
+        "the next outer iteration starts from the result anyway. Where the variance factor exceeds 1 the fraction "
+        "is of the cost divided by it: misfit the model cannot remove (vibration left in the IMU windows) must "
+        "not loosen the test (docs/ARCHITECTURE.md §4.4).",
     )
     initial_lambda: float = Field(
         1e-9, gt=0.0,
@@ -398,8 +398,8 @@ class TrajectoryAdjustmentConfig(StrictModel):
     function_tolerance: float = Field(
         1e-5, gt=0.0,
         description="Stop when an iteration lowers the cost by less than this fraction (1e-5 of a cost of "
-        "~1e5 is far below one unit of chi-square) of the cost, or of the cost a fitting model has (redundancy / 2) "
-        "where the cost exceeds it (docs/ARCHITECTURE.md §4.4).",
+        "~1e5 is far below one unit of chi-square) of the cost, divided by the variance factor where that exceeds "
+        "1 (docs/ARCHITECTURE.md §4.4).",
     )
     covariance_interval_s: float = Field(
         5.0, gt=0.0, description="Posterior roll/pitch/yaw sigma are computed at knots this far apart ..."

@@ -27,8 +27,8 @@ Each iteration
 
 Termination (Ceres Solver's criteria)
     ``function_tolerance``: an accepted step with ``(F - F') / F <= function_tolerance``
-    (with ``relative_to_fit``: ``(F - F') / min(F, r / 2) <= function_tolerance``, ``r`` the
-    redundancy below);
+    (with ``relative_to_fit``: ``(F - F') max(1, sigma0^2) / F``, ``sigma0^2`` the
+    a-posteriori variance factor below at the step's estimate);
     ``parameter_tolerance``: ``||delta|| <= parameter_tolerance (||x|| + parameter_tolerance)``,
     ``||x||`` over the free Euclidean values plus one per free rotation;
     ``gradient_tolerance``: ``max |g| <= gradient_tolerance``;
@@ -102,12 +102,11 @@ class SolverOptions:
     function_tolerance
         Stop when an accepted step decreases the cost by less than this fraction.
     relative_to_fit
-        Take that fraction of ``min(F, redundancy / 2)`` rather than of the cost ``F``:
-        ``redundancy / 2`` is the cost of a model that fits its weights (variance factor 1), so
-        misfit the model cannot remove (a variance factor of 100 from vibration left in IMU
-        windows) does not loosen the test a hundredfold and stop the adjustment while a weak
-        direction is still moving (BENCHMARKS.md, Operating conditions). Where the model fits, or
-        a robust loss takes the cost below it, the test is the plain one.
+        Take that fraction of ``F / max(1, sigma0^2)`` rather than of the cost ``F``: of the cost
+        the model would have if it fitted its weights, so that misfit it cannot remove (a variance
+        factor of 100 from vibration left in IMU windows) does not loosen the test a hundredfold
+        and stop the adjustment while a weak direction is still moving (BENCHMARKS.md, Operating
+        conditions). Where the variance factor is at most 1 the test is the plain one.
     parameter_tolerance
         Stop when ``||delta|| <= parameter_tolerance * (||x|| + parameter_tolerance)``.
     gradient_tolerance
@@ -510,8 +509,8 @@ def run_levenberg_marquardt(
             lam = max(lam * max(1.0 / 3.0, 1.0 - (2.0 * gain - 1.0) ** 3), _MIN_LAMBDA)
             nu = 2.0
             reference = cost + actual
-            if options.relative_to_fit and current.n_rows > layout.n_cols:
-                reference = min(reference, 0.5 * (current.n_rows - layout.n_cols))
+            if options.relative_to_fit and current.n_rows > layout.n_cols:  # the step's sigma0^2, if > 1
+                reference /= max(1.0, sum(g.sum_wr2 for g in current.groups) / (current.n_rows - layout.n_cols))
             converged = actual <= options.function_tolerance * reference
             normal_is_current = False
             if not converged:  # else N at the solution is assembled only if covariances are asked for
