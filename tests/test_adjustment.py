@@ -646,6 +646,23 @@ def test_the_cost_change_test_relative_to_fit_ignores_misfit_it_cannot_remove():
     assert abs(plain[1] - exact[1]) > 0.1 * sigma_q
 
 
+def test_relative_to_fit_changes_nothing_where_the_variance_factor_is_below_one():
+    """Weights a fifth looser than the noise (variance factor about 0.7): the same steps, the same estimate."""
+    rng = np.random.default_rng(23)
+    x = rng.uniform(0.0, 10.0, 300)
+    y = 0.7 * x - 1.2 + rng.normal(scale=0.1, size=x.size)
+    out = {}
+    for relative_to_fit in (False, True):
+        problem = Problem()
+        problem.add_block("theta", np.zeros((1, 2)))
+        problem.add_group(LineGroup(x, y, 0.12, CauchyLoss(2.385)))
+        result = problem.solve(SolverOptions(function_tolerance=1e-6, relative_to_fit=relative_to_fit))
+        assert result.variance_factor < 1.0
+        out[relative_to_fit] = (problem.values("theta")[0].copy(), result.iterations)
+    assert out[True][1] == out[False][1]
+    np.testing.assert_array_equal(out[True][0], out[False][0])
+
+
 # ---------------------------------------------------------------------------------------------
 # (4) robust losses
 # ---------------------------------------------------------------------------------------------

@@ -27,7 +27,7 @@ Each iteration
 
 Termination (Ceres Solver's criteria)
     ``function_tolerance``: an accepted step with ``(F - F') / F <= function_tolerance``
-    (with ``relative_to_fit``: ``(F - F') max(1, sigma0^2) / F``, ``sigma0^2`` the
+    (with ``relative_to_fit`` the left side times ``max(1, sigma0^2)``, ``sigma0^2`` the
     a-posteriori variance factor below at the step's estimate);
     ``parameter_tolerance``: ``||delta|| <= parameter_tolerance (||x|| + parameter_tolerance)``,
     ``||x||`` over the free Euclidean values plus one per free rotation;
