@@ -171,6 +171,11 @@ class _Evaluation:
     def n_rows(self) -> int:
         return sum(g.linearization.residuals.size for g in self.groups)
 
+    def variance_factor(self, n_unknowns: int) -> float:
+        """A-posteriori ``sigma0^2 = sum w r^2 / redundancy`` (NaN without redundancy)."""
+        redundancy = self.n_rows - n_unknowns
+        return sum(g.sum_wr2 for g in self.groups) / redundancy if redundancy > 0 else math.nan
+
 
 def _evaluate(
     groups: Sequence[ObservationGroup], values: Mapping[str, np.ndarray], jacobians: bool, robust: bool
@@ -510,7 +515,7 @@ def run_levenberg_marquardt(
             nu = 2.0
             reference = cost + actual
             if options.relative_to_fit and current.n_rows > layout.n_cols:  # the step's sigma0^2, if > 1
-                reference /= max(1.0, sum(g.sum_wr2 for g in current.groups) / (current.n_rows - layout.n_cols))
+                reference /= max(1.0, current.variance_factor(layout.n_cols))
             converged = actual <= options.function_tolerance * reference
             normal_is_current = False
             if not converged:  # else N at the solution is assembled only if covariances are asked for
@@ -577,7 +582,7 @@ def _statistics(
     history, lam, timings: Timings, backend: str, factorisations: int = 0, iterative_steps: int = 0,
 ) -> SolveResult:
     total_cost = evaluation.cost
-    stats, n_obs, n_rows, sum_wr2 = [], 0, 0, 0.0
+    stats, n_obs = [], 0
     for group, ge in zip(groups, evaluation.groups):
         m = ge.linearization.residuals.size
         stats.append(
@@ -595,8 +600,7 @@ def _statistics(
             )
         )
         n_obs += ge.n_observations
-        n_rows += m
-        sum_wr2 += ge.sum_wr2
+    n_rows = evaluation.n_rows
     redundancy = n_rows - layout.n_cols
     return SolveResult(
         termination=termination,
@@ -610,7 +614,7 @@ def _statistics(
         n_observations=n_obs,
         n_residuals=n_rows,
         redundancy=redundancy,
-        variance_factor=sum_wr2 / redundancy if redundancy > 0 else math.nan,
+        variance_factor=evaluation.variance_factor(layout.n_cols),
         groups=tuple(stats),
         timings=timings,
         backend=backend,
