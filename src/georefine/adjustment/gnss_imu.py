@@ -333,6 +333,15 @@ def euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
     return np.linalg.inv(E)
 
 
+def trajectory_solver_options(cfg: TrajectoryAdjustmentConfig, **overrides) -> SolverOptions:
+    """Solver options of the trajectory adjustments (G/I, delivered trajectory, G/I/L with its own
+    ``overrides``): ``cfg``'s limits, and the cost-change test against a fitting model's cost
+    (``relative_to_fit``, docs/ARCHITECTURE.md §4.4)."""
+    options = SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance,
+                            initial_lambda=cfg.initial_lambda, relative_to_fit=True)
+    return replace(options, **overrides)
+
+
 def solve_gnss_imu(
     built: GnssImuProblem, options: SolverOptions | None = None, progress=None, covariance: bool = True
 ) -> GnssImuResult:
@@ -344,8 +353,7 @@ def solve_gnss_imu(
     """
     cfg = built.cfg
     t = _time.perf_counter()
-    options = options or SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance,
-                                       relative_to_fit=True, initial_lambda=cfg.initial_lambda)
+    options = options or trajectory_solver_options(cfg)
     result = built.problem.solve(options, progress=progress)
     timings = {"solve": _time.perf_counter() - t}
     p = built.problem

@@ -41,6 +41,7 @@ from georefine.adjustment.gnss_imu import (
     posterior_scale,
     spline_from_problem,
     trajectory_sigma,
+    trajectory_solver_options,
 )
 from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
@@ -220,8 +221,7 @@ def solve_trajectory_prior(
     """Solve; the result has ``imu_errors`` None and the SBET error in ``sbet_errors``."""
     cfg = built.cfg
     t = _time.perf_counter()
-    options = options or SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance,
-                                       relative_to_fit=True, initial_lambda=cfg.initial_lambda)
+    options = options or trajectory_solver_options(cfg)
     result = built.problem.solve(options, progress=progress)
     p = built.problem
     errors = SbetErrorEstimate(built.error_grid, p.values(POSITION_ERROR), p.values(ATTITUDE_ERROR))

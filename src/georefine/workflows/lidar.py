@@ -36,6 +36,7 @@ from georefine.adjustment.gnss_imu import (
     posterior_scale,
     solve_gnss_imu,
     start_imu_errors,
+    trajectory_solver_options,
     with_posterior,
 )
 from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_trajectory_prior, with_prior_posterior
@@ -47,7 +48,6 @@ from georefine.adjustment.upsampling import (
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.observations.prior import RotationPrior
 from georefine.adjustment.robust import make_loss
-from georefine.adjustment.solver import SolverOptions
 from georefine.config import ProjectConfig, boresight_matrix, load_project, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.frames import OutputCRS
@@ -208,8 +208,8 @@ def step_adjust_gil(
     def report(it) -> None:
         progress("G/I/L adjustment", getattr(it, "iteration", 0), cfg.processing.trajectory.max_iterations)
 
-    options = SolverOptions(max_iterations=tcfg.max_iterations, function_tolerance=lcfg.function_tolerance,
-                            relative_to_fit=True, initial_lambda=lcfg.initial_lambda)
+    options = trajectory_solver_options(tcfg, function_tolerance=lcfg.function_tolerance,
+                                        initial_lambda=lcfg.initial_lambda)
     if nav.prior is not None:
         result = solve_trajectory_prior(built, options, progress=report, covariance=False, high_rate=high_rate)
     else:
