@@ -577,14 +577,20 @@ def test_a_factor_that_needed_many_conjugate_gradient_iterations_is_replaced_nex
         assert ("cg", "cg") in pairs
 
 
-def test_conjugate_gradient_steps_under_changing_robust_weights():
-    """Cauchy IRLS reweights the rows every iteration; CG steps on the old factor still reach the same fit."""
+def _line_with_outliers(n=400, sigma=0.1):
+    """``n`` points of y = 0.7 x - 1.2 with noise ``sigma``, a fifth of them 3-8 m too high (seeded)."""
     rng = np.random.default_rng(22)
-    n, sigma = 400, 0.1
     x = rng.uniform(0.0, 10.0, n)
     y = 0.7 * x - 1.2 + rng.normal(scale=sigma, size=n)
     bad = rng.choice(n, size=n // 5, replace=False)
     y[bad] += rng.uniform(3.0, 8.0, bad.size)
+    return x, y
+
+
+def test_conjugate_gradient_steps_under_changing_robust_weights():
+    """Cauchy IRLS reweights the rows every iteration; CG steps on the old factor still reach the same fit."""
+    n, sigma = 400, 0.1
+    x, y = _line_with_outliers(n, sigma)
     fits = {}
     for name, reuse_from in (("direct", 10**9), ("cg", 0)):
         problem = Problem()
@@ -618,12 +624,8 @@ def test_the_cost_change_test_relative_to_fit_ignores_misfit_it_cannot_remove():
     """Cauchy IRLS converges linearly; 2000 rows of 30 sigma that no parameter moves make the cost
     900 times a fitting model's. The plain relative test then stops after 2 steps, 0.2 sigma of the
     intercept short; ``relative_to_fit`` stops as near the optimum as the problem without that misfit."""
-    rng = np.random.default_rng(22)
     n, sigma = 400, 0.1
-    x = rng.uniform(0.0, 10.0, n)
-    y = 0.7 * x - 1.2 + rng.normal(scale=sigma, size=n)
-    bad = rng.choice(n, size=n // 5, replace=False)
-    y[bad] += rng.uniform(3.0, 8.0, bad.size)
+    x, y = _line_with_outliers(n, sigma)
 
     def fit(misfit, relative_to_fit, tol=1e-4):
         problem = Problem()
