@@ -54,7 +54,7 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
-import scipy.stats
+from scipy.special import chdtri  # chi-square quantiles without scipy.stats (0.4 s to import)
 
 from georefine.adjustment.blocks import (
     ColumnLayout,
@@ -574,7 +574,7 @@ def robust_sigma0(median_s: float, dof: float) -> float:
     """``sqrt(median s / median chi2(dof))``: sigma0 from the median squared norm ``s`` of
     observations with ``dof`` rows each; about 1 when the model and the sigmas fit, whatever a
     minority of outliers does."""
-    return math.sqrt(median_s / scipy.stats.chi2.ppf(0.5, dof)) if math.isfinite(median_s) else math.nan
+    return math.sqrt(median_s / chdtri(dof, 0.5)) if math.isfinite(median_s) else math.nan
 
 
 def _statistics(
