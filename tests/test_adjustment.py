@@ -243,10 +243,11 @@ def test_marginal_covariance_blocks_batches_match_dense_inverse(backend):
     starts = np.array([0, 9, -1, 30, 57])
     factor = cholesky(A, backend=backend)
     assert hasattr(factor, "solve_half") == (backend == "cholmod")
-    blocks = marginal_covariance_blocks(factor, starts, 3, max_rhs=4)
-    for k, s in enumerate(starts):
-        expected = np.zeros((3, 3)) if s < 0 else inv[s : s + 3, s : s + 3]
-        np.testing.assert_allclose(blocks[k], expected, atol=1e-12)
+    for max_rhs in (4, 256):  # one element per batch, all in one (only the diagonal blocks of a batch are kept)
+        blocks = marginal_covariance_blocks(factor, starts, 3, max_rhs=max_rhs)
+        for k, s in enumerate(starts):
+            expected = np.zeros((3, 3)) if s < 0 else inv[s : s + 3, s : s + 3]
+            np.testing.assert_allclose(blocks[k], expected, atol=1e-12)
 
 
 

@@ -503,8 +503,8 @@ def marginal_covariance_blocks(
         k = sel.size
         half = getattr(factor, "solve_unit_columns_half", None)
         if half is not None:  # sparse triangular solve: (A^-1)_ij = x_i . x_j
-            X = half(cols)
-            sub = (X.T @ X).toarray().reshape(k, dim, k, dim)
+            out[sel] = _diagonal_gram_blocks(half(cols), k, dim)
+            continue
         elif hasattr(factor, "solve_half"):  # the forward half of each solve: (A^-1)_ij = x_i . x_j
             E = np.zeros((n, cols.size))
             E[cols, np.arange(cols.size)] = 1.0
@@ -520,3 +520,23 @@ def marginal_covariance_blocks(
         blocks = np.einsum("iaib->iab", sub)
         out[sel] = 0.5 * (blocks + np.swapaxes(blocks, 1, 2))
     return out
+
+
+def _diagonal_gram_blocks(X: sp.csc_matrix, k: int, dim: int) -> np.ndarray:
+    """The ``k`` diagonal ``dim x dim`` blocks of ``X^T X`` for ``X`` of ``k * dim`` columns (sparse).
+
+    Column ``a`` of every block at once: ``X[:, a::dim]``; entry ``(a, b)`` of all blocks is the
+    column sums of its elementwise product with ``X[:, b::dim]``. The work is ``dim`` times the
+    non-zeros of ``X``; the whole ``X^T X`` (as before) cost the square of the non-zeros per row,
+    with ``k * dim`` columns sharing the rows near the root of the elimination tree: 6 s of a
+    G/I/L posterior on ``corridor-tiny`` went into blocks off the diagonal.
+    """
+    X = X.tocsc()
+    per_a = [X[:, a::dim] for a in range(dim)]
+    blocks = np.empty((k, dim, dim))
+    for a in range(dim):
+        for b in range(a, dim):
+            v = np.asarray(per_a[a].multiply(per_a[b]).sum(axis=0)).reshape(-1)
+            blocks[:, a, b] = v
+            blocks[:, b, a] = v
+    return blocks
