@@ -438,9 +438,11 @@ def _lidar_key(nav: NavigationData, strips: list[StripFile], upstream: str, iter
 
 
 def _points_key(nav: NavigationData, strips: list[StripFile], upstream: str) -> str:
-    """Key of step 6: the trajectory's key, the CRS, the scanner and the strips."""
+    """Key of step 6: the trajectory's key, the CRS, the scanner and the strips (named relative
+    to the project, as in the other steps' keys: a project moved, or named by another path,
+    keeps its points)."""
     return StepCache.key("points", upstream, nav.config.crs.model_dump(), nav.config.scanner.model_dump(),
-                         [file_stamp(s.path) for s in strips])
+                         [file_stamp(s.path, nav.root) for s in strips])
 
 
 def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Path,
