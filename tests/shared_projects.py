@@ -4,13 +4,43 @@ from __future__ import annotations
 
 import os
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 from typing import Callable
 
 from filelock import FileLock
 
-GIL_SCAN = ["scanner.pulse_rate_hz=100000", "scanner.line_rate_hz=120"]  # the corridor's scanner
-"""Scanner overrides of the shared G/I/L project (``gil_project`` in tests/conftest.py)."""
+README_SEED = 4
+"""The seed of the README's smallest example (``georefine simulate corridor-tiny --seed 4``)."""
+
+README_COMMANDS: list[list[str]] = [
+    ["simulate", "corridor-tiny", "--out", "tiny", "--seed", str(README_SEED)],
+    ["check", "tiny"],
+    ["run", "tiny", "--out", "r"],
+    ["evaluate", "trajectory", "r/gil/trajectory.sbet", "--reference", "tiny/truth/trajectory.sbet", "--out", "r/eval"],
+    ["run", "tiny", "--out", "r1", "--strips", "1"],
+]
+"""The README's smallest example, in order (README.md, "The smallest example"; test_readme_tiny.py
+checks that the README holds exactly these lines)."""
+
+
+def georefine_in(cwd: Path, *args: str) -> subprocess.CompletedProcess:
+    """`georefine ARGS` in ``cwd`` (this interpreter, the inherited PYTHONPATH), output captured."""
+    env = dict(os.environ, COLUMNS="200")
+    return subprocess.run([sys.executable, "-m", "georefine", *args], cwd=cwd, capture_output=True, text=True,
+                          env=env, timeout=1800)
+
+
+def ok(proc: subprocess.CompletedProcess) -> None:
+    assert proc.returncode == 0, f"{' '.join(proc.args[2:])}: exit {proc.returncode}\n{proc.stderr[-3000:]}"
+
+
+def run_readme_example(folder: Path) -> None:
+    """The README's commands (:data:`README_COMMANDS`) in the empty ``folder``."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for cmd in README_COMMANDS:
+        ok(georefine_in(folder, *cmd))
 
 
 def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Path:

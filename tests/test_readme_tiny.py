@@ -34,15 +34,13 @@ and the position within 0.1 m (it stays on the GNSS, a few centimetres off).
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import laspy
 import numpy as np
 import pytest
+from shared_projects import README_COMMANDS, georefine_in, ok
 from truth_helpers import pass_rmse
 
 from trajectory_tools import assert_same_figures, evo_ape_rmse, trajectopy_ate, trajectopy_python
@@ -54,27 +52,16 @@ from georefine.io.trajectory import read_sbet
 pytestmark = pytest.mark.slow  # simulation plus two runs: minutes on two cores
 
 
-def _georefine(cwd: Path, *args: str) -> subprocess.CompletedProcess:
-    """`georefine ARGS` in ``cwd`` (this interpreter, the inherited PYTHONPATH)."""
-    env = dict(os.environ, COLUMNS="200")
-    return subprocess.run([sys.executable, "-m", "georefine", *args], cwd=cwd, capture_output=True, text=True,
-                          env=env, timeout=1800)
-
-
-def _ok(proc: subprocess.CompletedProcess) -> None:
-    assert proc.returncode == 0, f"{' '.join(proc.args[2:])}: exit {proc.returncode}\n{proc.stderr[-3000:]}"
-
-
 @pytest.fixture(scope="module")
-def example(tmp_path_factory) -> Path:
-    """The folder in which the README's commands ran (simulate, check, run, evaluate)."""
-    cwd = tmp_path_factory.mktemp("readme")
-    _ok(_georefine(cwd, "simulate", "corridor-tiny", "--out", "tiny", "--seed", "4"))
-    _ok(_georefine(cwd, "check", "tiny"))
-    _ok(_georefine(cwd, "run", "tiny", "--out", "r"))
-    _ok(_georefine(cwd, "evaluate", "trajectory", "r/gil/trajectory.sbet", "--reference",
-                   "tiny/truth/trajectory.sbet", "--out", "r/eval"))
-    return cwd
+def example(readme_example) -> Path:
+    """The folder in which the README's commands ran (tests/conftest.py: once per test run, shared)."""
+    return readme_example
+
+
+def test_the_readme_shows_exactly_the_commands_that_ran():
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = "\n".join(f"georefine {' '.join(cmd)}" for cmd in README_COMMANDS)
+    assert f"```bash\n{block}\n```" in readme
 
 
 def _check_pass(gi: np.ndarray, gil: np.ndarray, what: str) -> None:
@@ -120,7 +107,6 @@ def test_readme_example_runs_and_improves_the_attitude(example):
 
 def test_readme_single_pass_run(example):
     tiny, r1 = example / "tiny", example / "r1"
-    _ok(_georefine(example, "run", "tiny", "--out", "r1", "--strips", "1"))
     metrics = json.loads((r1 / "metrics.json").read_text())
     assert metrics["strips"] == [1]
     assert [p.name for p in (r1 / "points").glob("*.laz")] == ["strip_1.laz"]
@@ -138,7 +124,7 @@ README_EXPORTS = [("tum", "est.tum", "r/gil/trajectory.sbet"), ("tum", "ref.tum"
 def exports(example) -> dict:
     """The README's `georefine export trajectory` commands, run in the example's folder; its evaluation's figures."""
     for fmt, out, source in README_EXPORTS:
-        _ok(_georefine(example, "export", "trajectory", source, "--format", fmt, "--out", out))
+        ok(georefine_in(example, "export", "trajectory", source, "--format", fmt, "--out", out))
     return json.loads((example / "r" / "eval" / "trajectory_comparison.json").read_text())
 
 

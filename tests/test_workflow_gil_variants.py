@@ -1,9 +1,9 @@
 """GNSS/IMU/LiDAR workflow variants on simulated truth: boresight recovery, robustness to wrong
 matches, a local cluster against one process, a coarse first outer iteration.
 
-The same project as tests/test_workflow_gil.py, simulated once for both files (tests/conftest.py:
-whichever worker needs it first builds it); the G/I adjustment is computed once into a step
-cache that every test (and test_workflow_gil.py's run) starts from.
+The project of the README's smallest example, simulated and run once for this file,
+tests/test_workflow_gil.py and tests/test_readme_tiny.py (tests/conftest.py: whichever worker
+needs it first builds it); every run here starts from that run's G/I adjustment.
 The runs are marked slow (CI runs them).
 """
 
@@ -19,6 +19,7 @@ import yaml
 from truth_helpers import pass_rmse
 
 from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.io.run_metrics import WorkflowMetrics
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import (
     inject_wrong_matches,
@@ -41,13 +42,13 @@ from georefine.workflows.navigation import imu_rate_trajectory
 
 @pytest.fixture(scope="module")
 def project(gil_project) -> Path:
-    """corridor-tiny, seed 7, the corridor's scanner: shared with test_workflow_gil.py (read only)."""
+    """The README example's project (corridor-tiny, seed 4, the corridor's scanner): shared (read only)."""
     return gil_project
 
 
 @pytest.fixture(scope="module")
 def gi_cache(gil_gi_cache) -> Path:
-    """A step cache holding the project's G/I adjustment (steps 1-2): read only."""
+    """A step cache holding the project's G/I adjustment (steps 1-2) only: read only."""
     return gil_gi_cache
 
 
@@ -137,25 +138,26 @@ def test_a_local_cluster_writes_the_same_trajectory_and_points_as_one_process(pr
 
 
 @pytest.mark.slow
-def test_a_coarse_first_outer_iteration_ends_where_fine_ones_do(project, gi_cache, tmp_path):
+def test_a_coarse_first_outer_iteration_ends_where_fine_ones_do(project, gi_cache, gil_single_pass, tmp_path):
     """Outer iterations that start on 0.25 s knots give the trajectory of outer iterations on 0.1 s
     knots alone: the same accuracy against the truth, and the two within the churn of re-matching.
     One pass keeps it short (test_run_both_passes_fixes_heading_and_the_point_cloud runs both
-    with the coarse start)."""
+    with the coarse start). The coarse start is the default: the README's single-pass run."""
     fine = tmp_path / "p"
     shutil.copytree(project, fine)
     cfg = yaml.safe_load((fine / "project.yaml").read_text())
     cfg.setdefault("processing", {}).setdefault("lidar", {})["first_knot_interval_s"] = None
     (fine / "project.yaml").write_text(yaml.safe_dump(cfg))
-    a = run_workflow(project, tmp_path / "coarse", strips=[1], points=False, cache_dir=_cache(gi_cache, tmp_path / "cache"))
-    b = run_workflow(fine, tmp_path / "fine", strips=[1], points=False, cache_dir=tmp_path / "cache")
-    assert a.metrics.resumed == b.metrics.resumed == ("gi",)  # the same G/I start
-    assert [it.knot_interval_s for it in a.metrics.outer_iterations][0] == pytest.approx(0.25, rel=1e-3)
+    a_out = gil_single_pass
+    a = WorkflowMetrics.read(a_out / "metrics.json")
+    b = run_workflow(fine, tmp_path / "fine", strips=[1], points=False, cache_dir=_cache(gi_cache, tmp_path / "cache"))
+    assert b.metrics.resumed == ("gi",) and a.strips == b.metrics.strips == (1,)
+    # The same G/I start: the single pass computed its own, the fine run resumed the run of both passes'.
+    assert (a_out / "gi" / "trajectory.sbet").read_bytes() == (b.out / "gi" / "trajectory.sbet").read_bytes()
+    assert [it.knot_interval_s for it in a.outer_iterations][0] == pytest.approx(0.25, rel=1e-3)
     assert {round(it.knot_interval_s, 6) for it in b.metrics.outer_iterations} == {0.1}
-    ra = pass_rmse(a.out / "gil" / "trajectory.sbet", project, 1)
+    ra = pass_rmse(a_out / "gil" / "trajectory.sbet", project, 1)
     rb = pass_rmse(b.out / "gil" / "trajectory.sbet", project, 1)
     assert np.all(ra <= 1.15 * rb + 0.1), (ra, rb)  # mdeg
-    between = compare_sbet_files(a.out / "gil" / "trajectory.sbet", b.out / "gil" / "trajectory.sbet").stats
+    between = compare_sbet_files(a_out / "gil" / "trajectory.sbet", b.out / "gil" / "trajectory.sbet").stats
     assert between["attitude_angle_rmse_mdeg"] < 1.5, between  # processing.lidar.convergence_attitude_mdeg
-
-
