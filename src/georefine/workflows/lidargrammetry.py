@@ -477,8 +477,10 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
                                                        blk.is_lidargram, blk.R0, blk.p0, blk.images)
     t = _time.perf_counter()
     cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
+    # The clouds lie anywhere: named by their resolved paths, so that another spelling of the same
+    # files (relative, absolute) keeps the matches.
     key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
-                        [file_stamp(f) for f in cloud.files], _method(st, matcher),
+                        [file_stamp(Path(f).resolve()) for f in cloud.files], _method(st, matcher),
                         st.model_dump(mode="json", include=_MATCH_FIELDS), len(lgs), MATCHING_VERSION)
     matches = cache.load("matches", key) if cache is not None else None
     if matches is None:
