@@ -1,4 +1,5 @@
-"""The README's smallest example, run exactly as written through the CLI in an empty folder.
+"""The README's smallest example, run exactly as written through the CLI in an empty folder
+(once per test run, tests/conftest.py: the G/I/L tests reuse its project and runs).
 
     georefine simulate corridor-tiny --out tiny --seed 4
     georefine check tiny
