@@ -255,6 +255,17 @@ def test_scheduler_names_and_addresses():
         TaskRunner("tcp://127.0.0.1:9", timeout="1s").start()
 
 
+def test_a_local_cluster_starts_with_its_first_task_not_on_entering():
+    """A run that stops on its inputs starts no cluster; its task slots are known before."""
+    for scheduler, workers in (("threads", 3), ("processes", 2)):
+        with TaskRunner(scheduler, workers=workers) as runner:
+            assert runner.workers == workers and runner._client is None
+    with TaskRunner("threads", workers=2) as runner:
+        assert list(runner.map(pow, [(3, 2)])) == [9] and runner._client is not None
+        assert runner.workers == 2  # now from the running cluster
+    assert runner._client is None  # closed on leaving
+
+
 def test_map_keeps_the_order_and_reports_progress():
     calls = []
     with TaskRunner("threads", workers=2) as runner:

@@ -106,7 +106,10 @@ class TaskRunner:
     # -- life cycle ---------------------------------------------------------------------------
 
     def __enter__(self) -> TaskRunner:
-        self.start()
+        # Nothing is started here: the cluster starts with the first task, shared value or worker
+        # count that needs it (:meth:`start`). A run that stops on its inputs (a bad project.yaml,
+        # a missing file) then never starts and stops a cluster, whose shutdown straight after its
+        # start could log asyncio's "Future exception was never retrieved" beside the one-line error.
         return self
 
     def __exit__(self, *exc) -> None:
@@ -150,9 +153,12 @@ class TaskRunner:
 
     @property
     def workers(self) -> int:
-        """Tasks that run at once: 1 for ``sync``, else the cluster's threads."""
+        """Tasks that run at once: 1 for ``sync``, else the cluster's threads (a local cluster's
+        without starting it: one worker of ``workers`` threads, or ``workers`` one-thread processes)."""
         if self.scheduler == "sync":
             return 1
+        if self._client is None and self.scheduler in ("threads", "processes"):
+            return self._workers
         self.start()
         info = self._client.scheduler_info(n_workers=-1) if _takes_n_workers(self._client) else \
             self._client.scheduler_info()
