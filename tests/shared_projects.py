@@ -5,10 +5,10 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 from typing import Callable
 
+from cli_helpers import run_georefine
 from filelock import FileLock
 
 README_SEED = 4
@@ -26,14 +26,12 @@ checks that the README holds exactly these lines)."""
 
 
 def georefine_in(cwd: Path, *args: str) -> subprocess.CompletedProcess:
-    """`georefine ARGS` in ``cwd`` (this interpreter, the inherited PYTHONPATH), output captured."""
-    env = dict(os.environ, COLUMNS="200")
-    return subprocess.run([sys.executable, "-m", "georefine", *args], cwd=cwd, capture_output=True, text=True,
-                          env=env, timeout=1800)
+    """`georefine ARGS` in ``cwd`` as the user types it (:func:`cli_helpers.run_georefine`), output captured."""
+    return run_georefine(*args, timeout=1800, cwd=cwd)
 
 
 def ok(proc: subprocess.CompletedProcess) -> None:
-    assert proc.returncode == 0, f"{' '.join(proc.args[2:])}: exit {proc.returncode}\n{proc.stderr[-3000:]}"
+    assert proc.returncode == 0, f"{' '.join(map(str, proc.args))}: exit {proc.returncode}\n{proc.stderr[-3000:]}"
 
 
 def run_readme_example(folder: Path) -> None:
