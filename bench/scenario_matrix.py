@@ -116,7 +116,7 @@ def outage_override(overrides: list[str], imu: str) -> str:
 def simulate(work: Path, s, seed: int, length: float, key: str) -> Path:
     imu, flight, gnss, lat, vib = s
     out = work / "projects" / key
-    if (out / "truth" / "scenario.yaml").is_file():
+    if (out / "truth" / "scenario.yaml").is_file() and (out / "scans").is_dir():  # the strips go once a run is done
         return out
     overrides = [f"scene.length_m={length:g}", *FLIGHT[flight], *LATITUDE[lat], *VIBRATION[vib]]
     overrides += [outage_override(overrides, imu)] if gnss == "outage" else GNSS[gnss]
