@@ -27,7 +27,7 @@ Hold constant
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,9 +47,19 @@ from georefine.adjustment.linalg import (
 from georefine.adjustment.selected_inverse import SelectedInverse, selected_inverse
 from georefine.adjustment.solver import (
     IterationSummary,
+    LMOutcome,
     SolveResult,
     SolverOptions,
     run_levenberg_marquardt,
+)
+from georefine.adjustment.variance_components import (
+    MIN_REDUNDANCY,
+    PROBES,
+    VarianceComponent,
+    group_traces,
+    row_weights,
+    traces_needed,
+    variance_components,
 )
 
 __all__ = ["Problem"]
@@ -69,6 +79,9 @@ class _Posterior:
     factor: Factorization | None = None
     inverse: SelectedInverse | None = None
     factorizer: SparseCholesky | None = None  # the solve's, whose symbolic analysis fits the normal matrix
+    outcome: LMOutcome | None = None  # for J, until the normal matrix is formed
+    result: SolveResult | None = None
+    components: tuple[VarianceComponent, ...] | None = None  # set: normal() is the component-weighted matrix
 
 
 class Problem:
@@ -187,8 +200,67 @@ class Problem:
             variance_factor=outcome.result.variance_factor,
             backend=options.linear_solver,
             factorizer=outcome.factorizer,
+            outcome=outcome,
+            result=outcome.result,
         )
         return outcome.result
+
+    def use_variance_components(self, pools: Sequence[Sequence[str]] | None = None, *,
+                                min_redundancy: float = MIN_REDUNDANCY, probes: int = PROBES,
+                                seed: int = 0) -> tuple[VarianceComponent, ...]:
+        """Give groups of observations their own variance factor in the posterior of the last solve.
+
+        Estimates the components (:mod:`georefine.adjustment.variance_components`): with
+        ``pools`` None one per group with at least ``min_redundancy`` and the rest pooled;
+        otherwise one per pool of group names and one for the groups in none. Each factor is
+        floored at 1. Makes :meth:`covariance` return ``(sum_g N_g / s_g)^-1`` from then on;
+        call it with ``scale_by_variance_factor=False`` (the components are the scaling). Costs
+        one factorisation of ``N`` and a solve per trace probe where a pool's trace is needed,
+        and one more factorisation where the scales differ. Called again, returns the same
+        components.
+
+        Raises
+        ------
+        RuntimeError
+            Before the first solve, or after a covariance query of the same solve (``J`` is gone).
+        """
+        post = self._posterior
+        if post is None:
+            raise RuntimeError("use_variance_components(): call solve() first")
+        if post.components is not None:
+            return post.components
+        if post.outcome is None or post.result is None or post.inverse is not None or post.factor is not None:
+            raise RuntimeError("use_variance_components(): call it before the first covariance query of a solve")
+        J = post.outcome.jacobian()
+        N = post.outcome.normal_matrix(keep_jacobian=True)
+        names = [g.name for g in post.result.groups]
+        rows = [g.n_residuals for g in post.result.groups]
+        omega = [g.variance_factor * g.n_residuals if g.n_residuals else 0.0 for g in post.result.groups]
+        which = traces_needed(names, rows, pools)
+        traces, sds = np.full(len(names), np.nan), np.full(len(names), np.nan)
+        if any(which):
+            solver = post.factorizer if post.factorizer is not None else SparseCholesky(post.backend)
+            factor = solver.factorize(N)
+            traces, sds = group_traces(J, rows, factor, probes=probes, seed=seed, which=which)
+            del factor
+        comps = variance_components(names, rows, omega, traces, sds, post.result.redundancy, pools=pools,
+                                    min_redundancy=min_redundancy)
+        scales = {c.scale for c in comps}
+        if len(scales) == 1:
+            s = scales.pop()
+            weighted = N if s == 1.0 else N / s
+        else:
+            w = np.sqrt(row_weights(comps, names, rows))
+            Jw = sp.csr_matrix(J.multiply(w[:, None]))
+            weighted = sp.csr_matrix(Jw.T @ Jw)
+        del J
+        post.outcome.normal_matrix()  # frees J
+        post.outcome = None
+        post.normal = lambda: weighted
+        post.components = comps
+        logger.debug("variance components: %s", ", ".join(
+            f"{'+'.join(c.groups)} {c.factor:.3g} (r {c.redundancy:.0f})" for c in comps))
+        return comps
 
     def covariance(
         self,
@@ -201,7 +273,8 @@ class Problem:
 
         The blocks are the diagonal blocks of ``N^-1`` (``N = J^T W J`` at the solution, with
         the final robust weights), multiplied by the a-posteriori variance factor ``sigma0^2``
-        when ``scale_by_variance_factor``. For so3 blocks the covariance is that of the right
+        when ``scale_by_variance_factor``; after :meth:`use_variance_components`, of
+        ``(sum_g N_g / s_g)^-1`` (``scale_by_variance_factor`` must then be False). For so3 blocks the covariance is that of the right
         perturbation ``delta`` in ``R_true = R_est Exp(delta)`` (body frame). Constant elements get
         zero covariance.
 
@@ -242,6 +315,9 @@ class Problem:
             raise RuntimeError("covariance(): call solve() first")
         if block not in post.col_start:
             raise KeyError(f"no parameter block {block!r} in the last solve")
+        if scale_by_variance_factor and post.components is not None:
+            raise ValueError("covariance(): the variance components scale it already "
+                             "(use_variance_components); use scale_by_variance_factor=False")
         starts = post.col_start[block]
         idx = np.arange(starts.size) if elements is None else np.asarray(elements, dtype=np.int64).reshape(-1)
         if idx.size and (idx.min() < -starts.size or idx.max() >= starts.size):

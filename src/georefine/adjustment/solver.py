@@ -367,14 +367,29 @@ class LMOutcome:
     factorizer: SparseCholesky | None = None  # its symbolic analysis fits the normal matrix too
     _assembler: JacobianAssembler | None = None  # the solve's, whose structure fits J at the solution
 
-    def normal_matrix(self) -> sp.csr_matrix:
-        """``N = J^T W J`` at the solution (full symmetric CSR)."""
+    _jacobian_freed: bool = False
+
+    def jacobian(self) -> sp.csr_matrix:
+        """The whitened, robustly weighted ``J`` at the solution (rows in group order).
+
+        Available until :meth:`normal_matrix` is called without ``keep_jacobian``.
+        """
         if self._normal is None:
             self._normal = _normal_equations(self._evaluation, self._layout, self._assembler or JacobianAssembler())
             self._evaluation = None
             self._assembler = None
+        if self._jacobian_freed:
+            raise RuntimeError("jacobian(): J was freed when the normal matrix was formed")
+        return self._normal.J
+
+    def normal_matrix(self, keep_jacobian: bool = False) -> sp.csr_matrix:
+        """``N = J^T W J`` at the solution (full symmetric CSR); ``J`` is freed unless ``keep_jacobian``."""
+        if self._normal is None:
+            self.jacobian()
         N = self._normal.N()
-        self._normal = _Normal(sp.csr_matrix((0, 0)), np.zeros(0), np.zeros(0), np.zeros(0), 0.0, N)  # J freed
+        if not keep_jacobian and not self._jacobian_freed:
+            self._normal = _Normal(sp.csr_matrix((0, 0)), np.zeros(0), np.zeros(0), np.zeros(0), 0.0, N)  # J freed
+            self._jacobian_freed = True
         return N
 
 

@@ -114,6 +114,9 @@ class SolveResult:
     factorisations, iterative_steps
         Steps solved by a Cholesky factorisation, and by conjugate gradients preconditioned
         with an earlier one (large problems, :class:`~georefine.adjustment.solver.SolverOptions`).
+    variance_components
+        :class:`~georefine.adjustment.variance_components.VarianceComponent` per group (or pool)
+        where the posterior used them; empty otherwise.
     """
 
     termination: str
@@ -133,6 +136,7 @@ class SolveResult:
     backend: str
     factorisations: int = 0
     iterative_steps: int = 0
+    variance_components: tuple[Any, ...] = ()
 
     @property
     def converged(self) -> bool:
@@ -173,6 +177,9 @@ class SolveResult:
                 f"cost share {g.cost_share:.1%}, s0^2~{g.variance_factor:.4g}, robust s0 {g.robust_sigma0:.3g}, "
                 f"downweighted {g.n_downweighted}"
             )
+        for c in self.variance_components:
+            lines.append(f"  variance component {'+'.join(c.groups)}: redundancy {c.redundancy:.1f}, "
+                         f"factor {c.factor:.4g}, posterior scale {c.scale:.4g}")
         return "\n".join(lines)
 
 
