@@ -117,6 +117,13 @@ def test_gnss_imu_adjustment_on_the_corridor(seed, tmp_path):
 
     rep = json.loads((tmp_path / "gi" / "adjustment.json").read_text())
     assert {g["name"] for g in rep["adjustment"]["groups"]} >= {"gnss", "imu", "gnss_error_prior"}
+    # The posterior's variance components: in the G/I one, the navigation sensors (GNSS, IMU, priors,
+    # random walks), with the adjustment's redundancy and its variance factor floored at 1.
+    (comp,) = rep["adjustment"]["variance_components"]
+    a = rep["adjustment"]
+    assert set(comp["groups"]) == {g["name"] for g in a["groups"]}
+    assert comp["redundancy"] == a["redundancy"] and comp["redundancy_sd"] == 0.0
+    assert comp["scale"] == pytest.approx(max(1.0, a["variance_factor"]), rel=1e-9)
     # The estimated GNSS error against the simulated one at its knots (north, east, down -> east, north,
     # up). The simulated error holds its white part too (1/1/2 cm), so the window is loose.
     ge, truth = rep["gnss_error"], np.load(project / "truth" / "gnss_errors.npz")

@@ -109,6 +109,15 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, full_run, tm
             rms = 1e3 * np.degrees(np.sqrt(np.mean(table.sigma_rpy_rad[inside] ** 2, axis=0)))
             np.testing.assert_allclose(stated, rms, rtol=0.05)
         assert p.gil_sigma_mdeg[2] < 0.3 * p.gi_sigma_mdeg[2]  # heading: the planes' contribution
+    # Those sigmas come from two variance components: the planes, and the navigation sensors with
+    # the rest of the redundancy (rows - unknowns, exact); each scale its factor floored at 1.
+    adj = json.loads((out / "gil" / "adjustment.json").read_text())["adjustment"]
+    planes, navigation = adj["variance_components"]
+    assert planes["groups"] == ["planes"] and "imu" in navigation["groups"] and "gnss" in navigation["groups"]
+    assert planes["redundancy"] + navigation["redundancy"] == pytest.approx(adj["redundancy"], rel=1e-9)
+    assert 0 < planes["redundancy_sd"] < 1e-3 * planes["redundancy"]
+    for c in (planes, navigation):
+        assert c["scale"] == pytest.approx(max(1.0, c["factor"])) and 0.3 < c["factor"] < 3.0, c
     # The feature tables hold the features that entered the adjustment; objects refer to their rows.
     last = metrics["outer_iterations"][-1]
     features = read_features(out / "features" / "features.csv")

@@ -404,6 +404,12 @@ class TrajectoryAdjustmentConfig(StrictModel):
     covariance_interval_s: float = Field(
         5.0, gt=0.0, description="Posterior roll/pitch/yaw sigma are computed at knots this far apart ..."
     )
+    variance_components: bool = Field(
+        True,
+        description="Posterior sigma with a variance factor per group of observations (IMU windows, GNSS, "
+        "planes; the small groups pooled), each floored at 1, instead of one factor for all "
+        "(georefine.adjustment.variance_components, docs/ARCHITECTURE.md §4.4).",
+    )
     max_covariance_knots: int = Field(
         150, ge=2,
         description="... but at no more knots than this (each costs a solve of the whole system, so the "

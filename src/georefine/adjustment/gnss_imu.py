@@ -403,7 +403,8 @@ def block_sigma(problem: Problem, name: str, scale: float | None = None) -> np.n
 
 
 def posterior_scale(solve: SolveResult) -> float:
-    """The factor on the posterior covariances: the a-posteriori variance factor where it exceeds 1.
+    """The factor on the posterior covariances: 1 where variance components weight the posterior's
+    normal matrix (:func:`posterior_components`), else the a-posteriori variance factor where it exceeds 1.
 
     Below 1 the a-priori sigmas stay: a factor below 1 comes from the robust losses, which
     weight the observations with large residuals down (the plane observations' Cauchy loss takes
@@ -412,7 +413,29 @@ def posterior_scale(solve: SolveResult) -> float:
     sigmas optimistic (BENCHMARKS.md, Operating conditions). Above 1 the data say the model
     is too optimistic, and the sigmas grow with it.
     """
+    if solve.variance_components:
+        return 1.0
     return max(1.0, float(solve.sigma0) ** 2) if np.isfinite(solve.sigma0) else 1.0
+
+
+POSTERIOR_POOLS = (("planes",),)
+"""The variance components of the trajectory posteriors: the LiDAR's plane observations, and the
+navigation sensors (GNSS, IMU, their priors and random walks, in the G/I the only component).
+
+Not one per group: the GNSS positions fit at about 1 where rotor vibration takes the IMU
+windows to 2.7, but what vibration leaves in a tactical IMU's errors is not white, and the
+tilt the GNSS and the IMU determine together was as wrong as the joint factor said: with the
+GNSS on its own factor the G/I roll's RMS of error/sigma went from 1.18 to 1.52 over six passes
+(BENCHMARKS.md, Operating conditions). The planes are another sensor with its own misfit."""
+
+
+def posterior_components(problem: Problem, cfg: TrajectoryAdjustmentConfig, solve: SolveResult) -> SolveResult:
+    """``solve`` with the variance components (:data:`POSTERIOR_POOLS`) of ``problem``'s last solve
+    where ``cfg`` asks for them (``variance_components``; the posterior then uses them:
+    :func:`posterior_scale` is 1), else as it is."""
+    if not cfg.variance_components or solve.redundancy <= 0:
+        return solve
+    return replace(solve, variance_components=problem.use_variance_components(POSTERIOR_POOLS))
 
 
 def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResult:
@@ -424,7 +447,8 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
     """
     t = _time.perf_counter()
     p = built.problem
-    vf = posterior_scale(result.solve)
+    solve = posterior_components(p, built.cfg, result.solve)
+    vf = posterior_scale(solve)
     tk, sigma_rph, sigma_p, sigma_v = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame,
                                                        result.spline, scale=vf)
     e = result.imu_errors
@@ -435,5 +459,6 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
         gyro_scale_sigma=block_sigma(p, "gyro_scale", vf)[0] if built.estimate_scale else None,
     )
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
-    return replace(result, imu_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph, sigma_position_m=sigma_p,
-                   sigma_velocity_m_s=sigma_v, timings_s=timings, gnss_error=gnss_error_of(built, vf))
+    return replace(result, solve=solve, imu_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph,
+                   sigma_position_m=sigma_p, sigma_velocity_m_s=sigma_v, timings_s=timings,
+                   gnss_error=gnss_error_of(built, vf))

@@ -38,6 +38,7 @@ from georefine.adjustment.gnss_imu import (
     GnssImuResult,
     add_spline_blocks,
     block_sigma,
+    posterior_components,
     posterior_scale,
     spline_from_problem,
     trajectory_sigma,
@@ -237,12 +238,13 @@ def with_prior_posterior(built: TrajectoryPriorProblem, result: GnssImuResult) -
     # Scaled by the variance factor only where it exceeds 1: the delivered trajectory's samples
     # fit the reference they are fitted to, so without other observations the factor is 0 and
     # says nothing; the stated accuracy is the floor.
-    vf = posterior_scale(result.solve)
+    solve = posterior_components(p, built.cfg, result.solve)
+    vf = posterior_scale(solve)
     tk, sigma_rph, sigma_p, sigma_v = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame,
                                                        result.spline, scale=vf)
     e = result.sbet_errors
     errors = replace(e, position_sigma_m=block_sigma(p, POSITION_ERROR, vf),
                      attitude_sigma_rad=block_sigma(p, ATTITUDE_ERROR, vf))
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t)
-    return replace(result, sbet_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph, sigma_position_m=sigma_p,
+    return replace(result, solve=solve, sbet_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph, sigma_position_m=sigma_p,
                    sigma_velocity_m_s=sigma_v, timings_s=timings)

@@ -176,6 +176,13 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
             [[g["name"], f"{g['n_observations']:,}", f"{g['n_residuals']:,}", _f(g["rms"], digits=3),
               _f(g["variance_factor"], digits=3), f"{100 * g['cost_share']:.1f} %", g["n_downweighted"]]
              for g in s.get("groups", [])]))
+        if s.get("variance_components"):
+            parts.append("<p>The posterior sigmas weight each variance component by its own factor (floored at 1; "
+                         "docs/ARCHITECTURE.md §4.4):</p>")
+            parts.append(table(
+                ["groups", "rows", "redundancy", "σ0²", "posterior scale"],
+                [[", ".join(c["groups"]), f"{c['n_residuals']:,}", _f(c["redundancy"], digits=1),
+                  _f(c["factor"], digits=3), _f(c["scale"], digits=3)] for c in s["variance_components"]]))
         e = a.get("imu_errors", {})
         if e:
             rows = []
