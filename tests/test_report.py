@@ -137,6 +137,20 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     assert "<td>road_b</td><td>1</td><td>2.0</td><td>–</td>" in page  # no SD of a surface seen once
     assert "G/I/L: median – mm, P95 – mm over 0 planar 1 m cells" in page
     assert "over 4,000 planar 1 m cells; 100 gated (grey): rough 60, steep 20, edge 15, normals 5" in page
+    # The G/I/L's adjustment statistics with its variance components.
+    groups = [{"name": n, "n_observations": m, "n_residuals": 3 * m, "rms": 1.0, "variance_factor": 1.0,
+               "cost_share": 0.5, "n_downweighted": 0} for n, m in (("imu", 1000), ("planes", 5000))]
+    comps = [{"groups": ["planes"], "n_residuals": 15000, "redundancy": 13456.7, "redundancy_sd": 20.0,
+              "sum_wr2": 9000.0, "factor": 0.669, "scale": 1.0},
+             {"groups": ["imu", "gnss"], "n_residuals": 3000, "redundancy": 1500.0, "redundancy_sd": 20.0,
+              "sum_wr2": 3300.0, "factor": 2.2, "scale": 2.2}]
+    (run / "gil").mkdir()
+    write_json(run / "gil" / "adjustment.json", {"adjustment": {
+        "termination": "function_tolerance", "iterations": 4, "variance_factor": 0.83, "n_unknowns": 2000,
+        "redundancy": 14956, "groups": groups, "variance_components": comps}})
+    page = html.unescape(write_report(run).read_text())
+    assert "<td>planes</td><td>15,000</td><td>13456.7</td><td>0.669</td><td>1.000</td>" in page
+    assert "<td>imu, gnss</td><td>3,000</td><td>1500.0</td><td>2.200</td><td>2.200</td>" in page
     # A run without an evaluation still gets its report.
     (run / "evaluation" / "summary.json").unlink()
     page = html.unescape(write_report(run).read_text())
