@@ -7,8 +7,9 @@ import pytest
 import scipy.sparse as sp
 
 from georefine.adjustment.blocks import JacobianBlock, Linearization
-from georefine.adjustment.linalg import cholesky
+from georefine.adjustment.linalg import available_backends, cholesky
 from georefine.adjustment.problem import Problem
+from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.variance_components import group_traces, traces_needed, variance_components
 
 
@@ -121,6 +122,20 @@ def test_pools_take_the_rest_from_the_exact_redundancy():
     assert only.redundancy == result2.redundancy and only.scale == pytest.approx(result2.variance_factor)
     np.testing.assert_allclose(problem2.covariance("x", scale_by_variance_factor=False),
                                _fresh_covariance(problem2, result2.variance_factor), rtol=1e-10)
+
+
+@pytest.mark.parametrize("backend", available_backends())
+def test_where_every_scale_is_one_the_posterior_is_the_unscaled_one(backend):
+    rng = np.random.default_rng(10)
+    problem, A, B = _two_group_problem(rng, np.zeros(3), 500, 0.5, 0.5)  # both fit better than assumed
+    problem.solve(SolverOptions(linear_solver=backend))
+    comps = problem.use_variance_components([("a",)])
+    assert [c.scale for c in comps] == [1.0, 1.0] and all(c.factor < 0.5 for c in comps)
+    # The factor of the traces serves the covariance (CHOLMOD factorises again: its selected inverse may pay).
+    assert (problem._posterior.factor is not None) == (backend != "cholmod")
+    P = np.eye(3)[:1] / 10.0
+    np.testing.assert_allclose(problem.covariance("x", scale_by_variance_factor=False)[0],
+                               np.linalg.inv(A.T @ A + B.T @ B + P.T @ P), rtol=1e-8)
 
 
 def _fresh_covariance(problem, scale):

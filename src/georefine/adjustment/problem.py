@@ -215,9 +215,10 @@ class Problem:
         otherwise one per pool of group names and one for the groups in none. Each factor is
         floored at 1. Makes :meth:`covariance` return ``(sum_g N_g / s_g)^-1`` from then on;
         call it with ``scale_by_variance_factor=False`` (the components are the scaling). Costs
-        one factorisation of ``N`` and a solve per trace probe where a pool's trace is needed,
-        and one more factorisation where the scales differ. Called again, returns the same
-        components.
+        one factorisation of ``N`` and a solve per trace probe where a pool's trace is needed;
+        the covariance queries then factorise the weighted matrix, or reuse that factor where
+        every scale is 1 (not with scikit-sparse's CHOLMOD, whose selected inverse may pay).
+        Called again, returns the same components.
 
         Raises
         ------
@@ -238,22 +239,26 @@ class Problem:
         omega = [g.variance_factor * g.n_residuals if g.n_residuals else 0.0 for g in post.result.groups]
         which = traces_needed(names, rows, pools)
         traces, sds = np.full(len(names), np.nan), np.full(len(names), np.nan)
+        factor = None
         if any(which):
             solver = post.factorizer if post.factorizer is not None else SparseCholesky(post.backend)
-            factor = solver.factorize(N)
+            factor = solver.factorize(N)  # with the singularity test of the posterior's factorisation
             traces, sds = group_traces(J, rows, factor, probes=probes, seed=seed, which=which)
-            del factor
         comps = variance_components(names, rows, omega, traces, sds, post.result.redundancy, pools=pools,
                                     min_redundancy=min_redundancy)
         scales = {c.scale for c in comps}
         if len(scales) == 1:
             s = scales.pop()
             weighted = N if s == 1.0 else N / s
+            if s == 1.0 and factor is not None and factor.backend != "cholmod":
+                # The posterior's matrix is N: its factor serves the covariance queries (with
+                # scikit-sparse's CHOLMOD the selected inverse may be the cheaper, so it factorises).
+                post.factor = factor
         else:
             w = np.sqrt(row_weights(comps, names, rows))
             Jw = sp.csr_matrix(J.multiply(w[:, None]))
             weighted = sp.csr_matrix(Jw.T @ Jw)
-        del J
+        del J, factor
         post.outcome.normal_matrix()  # frees J
         post.outcome = None
         post.normal = lambda: weighted
