@@ -7,7 +7,7 @@ import pytest
 import scipy.sparse as sp
 
 from georefine.adjustment.blocks import JacobianBlock, Linearization
-from georefine.adjustment.linalg import available_backends, cholesky
+from georefine.adjustment.linalg import NotPositiveDefiniteError, available_backends, cholesky
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.variance_components import group_traces, traces_needed, variance_components
@@ -146,6 +146,18 @@ def _fresh_covariance(problem, scale):
         twin.add_group(g)
     twin.solve()
     return twin.covariance("x", scale_by_variance_factor=False) * scale
+
+
+@pytest.mark.parametrize("backend", available_backends())
+def test_a_singular_normal_matrix_is_reported_before_any_trace(backend):
+    rng = np.random.default_rng(12)
+    B = np.c_[np.zeros(200), rng.normal(size=(200, 2))]  # nothing observes x[0]
+    problem = Problem()
+    problem.add_block("x", np.zeros((1, 3)))
+    problem.add_group(Linear("b", B, rng.normal(size=200), 1.0))
+    problem.solve(SolverOptions(linear_solver=backend))
+    with pytest.raises(NotPositiveDefiniteError):
+        problem.use_variance_components()
 
 
 def test_use_variance_components_needs_a_fresh_solve():

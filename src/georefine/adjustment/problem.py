@@ -42,6 +42,7 @@ from georefine.adjustment.blocks import (
 from georefine.adjustment.linalg import (
     Factorization,
     SparseCholesky,
+    check_by_solve,
     marginal_covariance_blocks,
 )
 from georefine.adjustment.selected_inverse import SelectedInverse, selected_inverse
@@ -242,7 +243,10 @@ class Problem:
         factor = None
         if any(which):
             solver = post.factorizer if post.factorizer is not None else SparseCholesky(post.backend)
-            factor = solver.factorize(N)  # with the singularity test of the posterior's factorisation
+            # The singularity test by a solve, as the posterior's factorisation does it (with
+            # scikit-sparse the pivot test copies the whole factor out).
+            factor = solver.factorize(N, check_pivots=False)
+            check_by_solve(factor, lambda v: N @ v)
             traces, sds = group_traces(J, rows, factor, probes=probes, seed=seed, which=which)
         comps = variance_components(names, rows, omega, traces, sds, post.result.redundancy, pools=pools,
                                     min_redundancy=min_redundancy)
@@ -279,9 +283,9 @@ class Problem:
         The blocks are the diagonal blocks of ``N^-1`` (``N = J^T W J`` at the solution, with
         the final robust weights), multiplied by the a-posteriori variance factor ``sigma0^2``
         when ``scale_by_variance_factor``; after :meth:`use_variance_components`, of
-        ``(sum_g N_g / s_g)^-1`` (``scale_by_variance_factor`` must then be False). For so3 blocks the covariance is that of the right
-        perturbation ``delta`` in ``R_true = R_est Exp(delta)`` (body frame). Constant elements get
-        zero covariance.
+        ``(sum_g N_g / s_g)^-1`` (``scale_by_variance_factor`` must then be False). For so3
+        blocks the covariance is that of the right perturbation ``delta`` in
+        ``R_true = R_est Exp(delta)`` (body frame). Constant elements get zero covariance.
 
         Cost: the first call factorises ``N`` (and assembles it if the solve ended on an
         accepted step) and, with scikit-sparse where it pays, inverts it on the factor's pattern
