@@ -69,20 +69,21 @@ class VarianceComponent:
     Attributes
     ----------
     groups
-        Names of the observation groups (one, or the pooled small groups).
+        Names of the observation groups (one, or a pool).
     n_residuals
         Residual rows.
     redundancy
-        ``rows - tr(N^-1 N_g)`` summed over the groups.
+        ``rows - tr(N^-1 N_g)`` summed over the groups; for the one component whose traces were
+        not estimated, the adjustment's redundancy less the other components'.
     redundancy_sd
-        Standard deviation of ``redundancy`` from the trace estimate (0 where exact).
+        Standard deviation of ``redundancy`` from the trace estimates (0 where exact).
     sum_wr2
         ``sum w r^2`` of the rows (robust weights at the solution).
     factor
         ``sum_wr2 / redundancy`` (NaN without redundancy).
     scale
-        What the posterior uses: ``factor`` floored at 1, or the whole adjustment's factor for
-        a pool with too little redundancy.
+        What the posterior uses: ``factor`` floored at 1; 1 with less than one unit of
+        redundancy.
     """
 
     groups: tuple[str, ...]
