@@ -406,9 +406,9 @@ class TrajectoryAdjustmentConfig(StrictModel):
     )
     variance_components: bool = Field(
         True,
-        description="Posterior sigma with a variance factor per group of observations (IMU windows, GNSS, "
-        "planes; the small groups pooled), each floored at 1, instead of one factor for all "
-        "(georefine.adjustment.variance_components, docs/ARCHITECTURE.md §4.4).",
+        description="Posterior sigma with a variance factor for the planes and one for the navigation sensors "
+        "(GNSS, IMU, their priors and random walks), each floored at 1, instead of one factor for all "
+        "(georefine.adjustment.gnss_imu.POSTERIOR_POOLS, docs/ARCHITECTURE.md §4.4).",
     )
     max_covariance_knots: int = Field(
         150, ge=2,

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from georefine.adjustment.assembly import normal_equations
 from georefine.adjustment.blocks import (
     Manifold,
     ObservationGroup,
@@ -259,9 +260,8 @@ class Problem:
                 # scikit-sparse's CHOLMOD the selected inverse may be the cheaper, so it factorises).
                 post.factor = factor
         else:
-            w = np.sqrt(row_weights(comps, names, rows))
-            Jw = sp.csr_matrix(J.multiply(w[:, None]))
-            weighted = sp.csr_matrix(Jw.T @ Jw)
+            Jw = sp.diags(np.sqrt(row_weights(comps, names, rows))) @ J
+            weighted = normal_equations(sp.csr_matrix(Jw), np.zeros(J.shape[0]))[0]
         del J, factor
         post.outcome.normal_matrix()  # frees J
         post.outcome = None
