@@ -9,7 +9,8 @@
    less than the configured thresholds.
 6. Final georeferencing into the output CRS.
 
-Steps 3-4 are in :mod:`georefine.workflows.strips`, step 5 and the run are here.
+Steps 3-4 are in :mod:`georefine.workflows.strips`, step 5 in :mod:`georefine.workflows.gil`; the
+outer iterations and the run are here.
 :func:`run_workflow` runs the workflow as explicit stages -- read inputs, G/I, G/I products,
 outer iterations, posterior, G/I/L products, final point clouds, metrics -- each cached stage
 through one helper (:class:`~georefine.workflows.cache.StepRunner`). It writes ``gi/`` and
@@ -30,40 +31,25 @@ from pathlib import Path
 import numpy as np
 
 from georefine.adjustment.gnss_imu import (
-    GnssImuProblem,
     GnssImuResult,
-    build_gnss_imu_problem,
-    posterior_scale,
-    solve_gnss_imu,
-    start_imu_errors,
-    trajectory_solver_options,
-    with_posterior,
 )
-from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_trajectory_prior, with_prior_posterior
 from georefine.adjustment.upsampling import (
     high_rate_share,
-    rebuild_high_rate,
-    without_high_rate,
 )
-from georefine.adjustment.observations.plane import PlaneObservation
-from georefine.adjustment.observations.prior import RotationPrior
-from georefine.adjustment.robust import make_loss
 from georefine.config import ProjectConfig, boresight_matrix, load_project, write_yaml
-from georefine.errors import InputError
 from georefine.geometry.frames import OutputCRS
-from georefine.geometry.rotation import log_so3, rph_from_R_n_b
+from georefine.geometry.rotation import log_so3
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
-from georefine.lidar.feature_sample import feature_keys, stable_object_subset
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
 from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
-from georefine.trajectory.spline import KnotGrid
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
-from georefine.workflows.delivered import build_delivered_problem, step_delivered, warn_delivered_pull
+from georefine.workflows.delivered import step_delivered, warn_delivered_pull
+from georefine.workflows.gil import LidarAdjustment, add_posterior, step_adjust_gil
 from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
@@ -76,10 +62,7 @@ from georefine.workflows.precision import pass_precision, precision_lines
 from georefine.workflows.project import output_folder
 from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
 from georefine.workflows.time_offset import (
-    EDGE_MARGIN_S,
-    OFFSET_BLOCK,
     TimeOffsetStart,
-    add_time_offset,
     gnss_offset_sigma,
     search_and_shift,
     warn_time_offset,
@@ -87,146 +70,10 @@ from georefine.workflows.time_offset import (
 
 log = logging.getLogger(__name__)
 
-__all__ = [  # steps 3-4 live in georefine.workflows.strips; named here as the workflow's steps
+__all__ = [  # steps 3-5 live in georefine.workflows.strips and .gil; named here as the workflow's steps
     "FeatureCounts", "LidarAdjustment", "StripFile", "WorkflowResult", "add_posterior", "precompute_gnss_imu",
     "read_strips", "run_workflow", "step_adjust_gil", "step_features", "trajectory_change",
 ]
-
-
-@dataclass(frozen=True)
-class LidarAdjustment:
-    """Result of one G/I/L adjustment (``built``: the problem, for :func:`add_posterior`).
-
-    ``time_offset_s`` is the LiDAR time offset the adjustment ends with (estimated, or the one its
-    features used); ``time_offset_start`` where it started; the sigmas come with the posterior.
-    """
-
-    result: GnssImuResult
-    features_used: int
-    objects_used: int
-    boresight_deg: np.ndarray | None
-    boresight_sigma_mdeg: np.ndarray | None
-    built: GnssImuProblem | None = None
-    time_offset_s: float = 0.0
-    time_offset_start: TimeOffsetStart | None = None
-    time_offset_sigma_s: float | None = None
-    time_offset_gnss_sigma_s: float | None = None  # what GNSS errors lasting a pass add (gnss_offset_sigma)
-
-
-def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
-    """``adj`` with posterior sigma (trajectory, IMU errors, boresight, time offset) if it has none yet."""
-    if adj.result.sigma_time.size or adj.built is None:
-        return adj
-    if isinstance(adj.built, TrajectoryPriorProblem):
-        result = with_prior_posterior(adj.built, adj.result)
-    else:
-        result = with_posterior(adj.built, adj.result)
-    problem = adj.built.problem
-    vf = posterior_scale(result.solve)  # as the trajectory's: the variance factor where it exceeds 1
-    bs_sig = None
-    if adj.boresight_deg is not None:
-        cov = problem.covariance("boresight", scale_by_variance_factor=False)[0] * vf
-        bs_sig = np.degrees(np.sqrt(np.diag(cov))) * 1e3
-    extra = {}
-    if OFFSET_BLOCK in problem.blocks:
-        cov = problem.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0] * vf
-        extra["time_offset_sigma_s"] = float(np.sqrt(cov))
-    return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
-
-
-def step_adjust_gil(
-    nav: NavigationData,
-    previous: GnssImuResult,
-    features: PlanarFeatures,
-    objects: PlanarObjects,
-    progress: Progress = no_progress,
-    covariance: bool = True,
-    knot_interval_s: float | None = None,
-    time_offset: TimeOffsetStart | None = None,
-) -> LidarAdjustment:
-    """Step 5: the G/I problem started at ``previous`` plus the plane observations.
-
-    With ``covariance=False`` no posterior sigma is computed (see :func:`add_posterior`).
-    ``time_offset``: the LiDAR time offset the features' times include and the centre of its
-    prior (default ``scanner.time_offset_s`` for both); with
-    ``processing.lidar.time_offset.estimate`` the adjustment estimates it
-    (:mod:`georefine.workflows.time_offset`).
-    The trajectory has knots about ``knot_interval_s`` apart (default
-    ``processing.trajectory.knot_interval_s``) over ``previous``'s span, IMU windows in the
-    configured proportion to them; ``previous`` on another grid is resampled onto it.
-    """
-    cfg = nav.config
-    lcfg = cfg.processing.lidar
-    tcfg = cfg.processing.trajectory
-    spline = previous.spline
-    if knot_interval_s is not None and knot_interval_s != tcfg.knot_interval_s:
-        tcfg = tcfg.model_copy(update={"knot_interval_s": float(knot_interval_s),
-                                       "imu_window_s": tcfg.imu_window_s * knot_interval_s / tcfg.knot_interval_s})
-    if abs(spline.grid.dt - tcfg.knot_interval_s) > 1e-6 * tcfg.knot_interval_s:
-        spline = spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, tcfg.knot_interval_s))
-    high_rate = None
-    if nav.prior is not None:  # a delivered trajectory (§4.9): its problem, its faster motion
-        built, high_rate = build_delivered_problem(nav, tcfg, spline, previous)
-    else:  # windows without the previous result's high-frequency motion (up-sampling, §4.6)
-        data = without_high_rate(nav.gnss, previous)
-        built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors,
-                                 previous.gnss_error)
-    P = built.problem
-
-    grid = built.grid
-    if time_offset is None:
-        time_offset = TimeOffsetStart(cfg.scanner.time_offset_s, cfg.scanner.time_offset_s)
-    timing = add_time_offset(P, cfg, time_offset)
-    margin = EDGE_MARGIN_S if timing["time_offset"] else 0.0  # an estimated offset moves the feature times
-    sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start + margin)
-                         & (features.time <= grid.t_end - margin))
-    if sel.size > lcfg.max_features:
-        # Whole objects, the same ones in every outer iteration as far as the re-matching allows
-        # (ranked by a min-hash of keys fixed by strip, channel and seed voxel), not a fresh random
-        # draw, and not single features, which would leave objects with one view or one member.
-        sel = stable_object_subset(sel, feature_keys(features), objects.feature_object, lcfg.max_features)
-    if sel.size == 0:
-        raise InputError("no matched planar features inside the trajectory span", field="processing.matching")
-    used_objects, obj_index = np.unique(objects.feature_object[sel], return_inverse=True)
-    f = features.select(sel)
-    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
-    P.add_block("plane_params", np.zeros((used_objects.size, 3)))
-    boresight = None
-    if lcfg.estimate_boresight:
-        P.add_block("boresight", R_b_s[None].copy(), manifold="so3")
-        P.add_group(RotationPrior("boresight_prior", "boresight", [0], R_b_s[None], np.radians(lcfg.boresight_prior_deg)))
-        boresight = "boresight"
-    P.add_group(
-        PlaneObservation(
-            grid, f.time, f.centre_s, f.axis1_s, f.axis2_s, f.sigma_d_m, f.sigma_slope_rad, obj_index,
-            objects.c0[used_objects], objects.k1[used_objects], objects.k2[used_objects], objects.n0[used_objects],
-            np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight,
-            blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale), **timing,
-        )
-    )
-
-    def report(it) -> None:
-        progress("G/I/L adjustment", getattr(it, "iteration", 0), cfg.processing.trajectory.max_iterations)
-
-    options = trajectory_solver_options(tcfg, function_tolerance=lcfg.function_tolerance,
-                                        initial_lambda=lcfg.initial_lambda)
-    if nav.prior is not None:
-        result = solve_trajectory_prior(built, options, progress=report, covariance=False, high_rate=high_rate)
-    else:
-        result = solve_gnss_imu(built, options, progress=report, covariance=False)
-        if tcfg.upsampling:
-            result = replace(result, high_rate=rebuild_high_rate(nav.gnss, result))
-    bs_deg = None
-    if boresight:
-        R = P.values("boresight")[0]
-        bs_deg = np.degrees(rph_from_R_n_b(R))
-        bs_deg[2] = (bs_deg[2] + 180.0) % 360.0 - 180.0
-    offset = time_offset.features_s
-    if timing["time_offset"]:
-        offset += float(P.values(OFFSET_BLOCK)[0, 0])
-    adj = LidarAdjustment(result, int(sel.size), int(used_objects.size), bs_deg, None, built,
-                          time_offset_s=offset, time_offset_start=time_offset)
-    return add_posterior(adj) if covariance else adj
 
 
 def trajectory_change(a, b, *, statistic: str = "rms") -> tuple[float, float]:

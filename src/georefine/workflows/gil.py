@@ -1,0 +1,227 @@
+"""Workflow step 5 of paper 000: the GNSS/IMU/LiDAR adjustment of one outer iteration.
+
+:func:`build_gil_problem` builds it -- the G/I problem started at the previous trajectory plus
+the plane observations (robust loss), optionally the boresight and the LiDAR time offset --
+and :func:`step_adjust_gil` solves it; :func:`add_posterior` adds the posterior sigma. The
+outer iterations and the run are in :mod:`georefine.workflows.lidar`; the Cramér-Rao bound of a
+simulated project builds the same problem at the truth (:mod:`georefine.workflows.cramer_rao`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from georefine.adjustment.gnss_imu import (
+    GnssImuProblem,
+    GnssImuResult,
+    build_gnss_imu_problem,
+    posterior_scale,
+    solve_gnss_imu,
+    start_imu_errors,
+    trajectory_solver_options,
+    with_posterior,
+)
+from georefine.adjustment.observations.plane import PlaneObservation
+from georefine.adjustment.observations.prior import RotationPrior
+from georefine.adjustment.robust import make_loss
+from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_trajectory_prior, with_prior_posterior
+from georefine.adjustment.upsampling import rebuild_high_rate, without_high_rate
+from georefine.config import boresight_matrix
+from georefine.errors import InputError
+from georefine.geometry.rotation import rph_from_R_n_b
+from georefine.lidar.correspondences import PlanarObjects
+from georefine.lidar.feature_sample import feature_keys, stable_object_subset
+from georefine.lidar.planes import PlanarFeatures
+from georefine.progress import Progress, no_progress
+from georefine.trajectory.spline import KnotGrid
+from georefine.workflows.delivered import build_delivered_problem
+from georefine.workflows.navigation import NavigationData
+from georefine.workflows.time_offset import EDGE_MARGIN_S, OFFSET_BLOCK, TimeOffsetStart, add_time_offset
+
+__all__ = ["GilProblem", "LidarAdjustment", "add_posterior", "build_gil_problem", "step_adjust_gil"]
+
+
+@dataclass(frozen=True)
+class LidarAdjustment:
+    """Result of one G/I/L adjustment (``built``: the problem, for :func:`add_posterior`).
+
+    ``time_offset_s`` is the LiDAR time offset the adjustment ends with (estimated, or the one its
+    features used); ``time_offset_start`` where it started; the sigmas come with the posterior.
+    """
+
+    result: GnssImuResult
+    features_used: int
+    objects_used: int
+    boresight_deg: np.ndarray | None
+    boresight_sigma_mdeg: np.ndarray | None
+    built: GnssImuProblem | None = None
+    time_offset_s: float = 0.0
+    time_offset_start: TimeOffsetStart | None = None
+    time_offset_sigma_s: float | None = None
+    time_offset_gnss_sigma_s: float | None = None  # what GNSS errors lasting a pass add (gnss_offset_sigma)
+
+
+def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
+    """``adj`` with posterior sigma (trajectory, IMU errors, boresight, time offset) if it has none yet."""
+    if adj.result.sigma_time.size or adj.built is None:
+        return adj
+    if isinstance(adj.built, TrajectoryPriorProblem):
+        result = with_prior_posterior(adj.built, adj.result)
+    else:
+        result = with_posterior(adj.built, adj.result)
+    problem = adj.built.problem
+    vf = posterior_scale(result.solve)  # as the trajectory's: the variance factor where it exceeds 1
+    bs_sig = None
+    if adj.boresight_deg is not None:
+        cov = problem.covariance("boresight", scale_by_variance_factor=False)[0] * vf
+        bs_sig = np.degrees(np.sqrt(np.diag(cov))) * 1e3
+    extra = {}
+    if OFFSET_BLOCK in problem.blocks:
+        cov = problem.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0] * vf
+        extra["time_offset_sigma_s"] = float(np.sqrt(cov))
+    return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
+
+
+@dataclass
+class GilProblem:
+    """A built G/I/L problem (:func:`build_gil_problem`) and what its solve needs.
+
+    ``built``: the G/I problem with the plane observations in it; ``features_used`` and
+    ``objects_used``: the features and objects it observes; ``boresight``: the name of the
+    boresight block, or None; ``estimates_offset``: whether it estimates the LiDAR time offset;
+    ``high_rate``: a delivered trajectory's faster motion (§4.9), else None.
+    """
+
+    built: GnssImuProblem | TrajectoryPriorProblem
+    features_used: int
+    objects_used: int
+    boresight: str | None
+    estimates_offset: bool
+    time_offset: TimeOffsetStart
+    high_rate: object = None
+
+
+def build_gil_problem(
+    nav: NavigationData,
+    previous: GnssImuResult,
+    features: PlanarFeatures,
+    objects: PlanarObjects,
+    knot_interval_s: float | None = None,
+    time_offset: TimeOffsetStart | None = None,
+) -> GilProblem:
+    """Step 5's problem: the G/I problem started at ``previous`` plus the plane observations.
+
+    Arguments as :func:`step_adjust_gil`; ``previous.high_rate`` (up-sampling, §4.6) is taken
+    out of the IMU windows.
+
+    Raises
+    ------
+    InputError
+        No matched planar feature inside the trajectory span.
+    """
+    cfg = nav.config
+    lcfg = cfg.processing.lidar
+    tcfg = cfg.processing.trajectory
+    spline = previous.spline
+    if knot_interval_s is not None and knot_interval_s != tcfg.knot_interval_s:
+        tcfg = tcfg.model_copy(update={"knot_interval_s": float(knot_interval_s),
+                                       "imu_window_s": tcfg.imu_window_s * knot_interval_s / tcfg.knot_interval_s})
+    if abs(spline.grid.dt - tcfg.knot_interval_s) > 1e-6 * tcfg.knot_interval_s:
+        spline = spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, tcfg.knot_interval_s))
+    high_rate = None
+    if nav.prior is not None:  # a delivered trajectory (§4.9): its problem, its faster motion
+        built, high_rate = build_delivered_problem(nav, tcfg, spline, previous)
+    else:  # windows without the previous result's high-frequency motion (up-sampling, §4.6)
+        data = without_high_rate(nav.gnss, previous)
+        built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors,
+                                 previous.gnss_error)
+    P = built.problem
+
+    grid = built.grid
+    if time_offset is None:
+        time_offset = TimeOffsetStart(cfg.scanner.time_offset_s, cfg.scanner.time_offset_s)
+    timing = add_time_offset(P, cfg, time_offset)
+    margin = EDGE_MARGIN_S if timing["time_offset"] else 0.0  # an estimated offset moves the feature times
+    sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start + margin)
+                         & (features.time <= grid.t_end - margin))
+    if sel.size > lcfg.max_features:
+        # Whole objects, the same ones in every outer iteration as far as the re-matching allows
+        # (ranked by a min-hash of keys fixed by strip, channel and seed voxel), not a fresh random
+        # draw, and not single features, which would leave objects with one view or one member.
+        sel = stable_object_subset(sel, feature_keys(features), objects.feature_object, lcfg.max_features)
+    if sel.size == 0:
+        raise InputError("no matched planar features inside the trajectory span", field="processing.matching")
+    used_objects, obj_index = np.unique(objects.feature_object[sel], return_inverse=True)
+    f = features.select(sel)
+    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
+    P.add_block("plane_params", np.zeros((used_objects.size, 3)))
+    boresight = None
+    if lcfg.estimate_boresight:
+        P.add_block("boresight", R_b_s[None].copy(), manifold="so3")
+        P.add_group(RotationPrior("boresight_prior", "boresight", [0], R_b_s[None], np.radians(lcfg.boresight_prior_deg)))
+        boresight = "boresight"
+    P.add_group(
+        PlaneObservation(
+            grid, f.time, f.centre_s, f.axis1_s, f.axis2_s, f.sigma_d_m, f.sigma_slope_rad, obj_index,
+            objects.c0[used_objects], objects.k1[used_objects], objects.k2[used_objects], objects.n0[used_objects],
+            np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight,
+            blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale), **timing,
+        )
+    )
+    return GilProblem(built, int(sel.size), int(used_objects.size), boresight, bool(timing["time_offset"]),
+                      time_offset, high_rate)
+
+
+def step_adjust_gil(
+    nav: NavigationData,
+    previous: GnssImuResult,
+    features: PlanarFeatures,
+    objects: PlanarObjects,
+    progress: Progress = no_progress,
+    covariance: bool = True,
+    knot_interval_s: float | None = None,
+    time_offset: TimeOffsetStart | None = None,
+) -> LidarAdjustment:
+    """Step 5: the G/I problem started at ``previous`` plus the plane observations, solved.
+
+    With ``covariance=False`` no posterior sigma is computed (see :func:`add_posterior`).
+    ``time_offset``: the LiDAR time offset the features' times include and the centre of its
+    prior (default ``scanner.time_offset_s`` for both); with
+    ``processing.lidar.time_offset.estimate`` the adjustment estimates it
+    (:mod:`georefine.workflows.time_offset`).
+    The trajectory has knots about ``knot_interval_s`` apart (default
+    ``processing.trajectory.knot_interval_s``) over ``previous``'s span, IMU windows in the
+    configured proportion to them; ``previous`` on another grid is resampled onto it.
+    """
+    cfg = nav.config
+    lcfg = cfg.processing.lidar
+    tcfg = cfg.processing.trajectory
+    gil = build_gil_problem(nav, previous, features, objects, knot_interval_s, time_offset)
+    built, P = gil.built, gil.built.problem
+
+    def report(it) -> None:
+        progress("G/I/L adjustment", getattr(it, "iteration", 0), tcfg.max_iterations)
+
+    if knot_interval_s is not None and knot_interval_s != tcfg.knot_interval_s:
+        tcfg = tcfg.model_copy(update={"knot_interval_s": float(knot_interval_s)})
+    options = trajectory_solver_options(tcfg, function_tolerance=lcfg.function_tolerance,
+                                        initial_lambda=lcfg.initial_lambda)
+    if nav.prior is not None:
+        result = solve_trajectory_prior(built, options, progress=report, covariance=False, high_rate=gil.high_rate)
+    else:
+        result = solve_gnss_imu(built, options, progress=report, covariance=False)
+        if tcfg.upsampling:
+            result = replace(result, high_rate=rebuild_high_rate(nav.gnss, result))
+    bs_deg = None
+    if gil.boresight:
+        R = P.values("boresight")[0]
+        bs_deg = np.degrees(rph_from_R_n_b(R))
+        bs_deg[2] = (bs_deg[2] + 180.0) % 360.0 - 180.0
+    offset = gil.time_offset.features_s
+    if gil.estimates_offset:
+        offset += float(P.values(OFFSET_BLOCK)[0, 0])
+    adj = LidarAdjustment(result, gil.features_used, gil.objects_used, bs_deg, None, built,
+                          time_offset_s=offset, time_offset_start=gil.time_offset)
+    return add_posterior(adj) if covariance else adj
