@@ -1,0 +1,214 @@
+"""The Cramér-Rao bound of a simulated project's G/I/L attitude (docs/ARCHITECTURE.md §4.4).
+
+The precision the simulated sensors allow: the attitude covariance of a perfectly modelled
+G/I/L adjustment, from its information at the true trajectory. The problem is the one the run's
+last outer iteration solved (:func:`~georefine.workflows.gil.build_gil_problem`: the same GNSS
+epochs, IMU windows, priors and matched planar features, read from the run's ``features/``),
+linearised at the truth:
+
+1. the knots are fitted to ``truth/trajectory.sbet`` (:func:`~georefine.trajectory.spline_fit.fit_spline`)
+   and held there;
+2. what the truth does not hold -- the plane parameters, the GNSS error's knots (the simulator
+   keeps its white part in the same series), the biases' knots, the boresight and the time offset
+   -- is estimated with the trajectory held, by plain least squares (no robust loss), started
+   at the simulated IMU errors and GNSS error;
+3. the covariance is ``N^-1`` at that point, with the a-priori weights: no variance factor,
+   no variance components, no robust weights (the bound of a model that fits its weights).
+
+The group fits at that point (``sum w r^2 / n``) say how well the model describes the data when
+the trajectory is right: near 1 where the weights are the sensors' (GNSS, IMU windows), below
+or above where the model is conservative or misses something. The bound is the
+attitude sigma's RMS over each pass's epochs (1 s inset, as
+:func:`~georefine.evaluation.trajectory_files.truth_pass_accuracy`).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from georefine.adjustment.gnss_imu import GnssErrorEstimate, GnssImuResult, ImuErrorEstimate, trajectory_sigma
+from georefine.adjustment.observations.bias import BiasGrid
+from georefine.adjustment.observations.plane import PlaneObservation
+from georefine.adjustment.solver import SolverOptions
+from georefine.errors import InputError
+from georefine.io.trajectory import read_sbet
+from georefine.lidar.correspondences import read_objects
+from georefine.lidar.planes import read_features
+from georefine.trajectory.sampled import trajectory_from_sbet
+from georefine.trajectory.spline import KnotGrid
+from georefine.trajectory.spline_fit import fit_spline
+from georefine.workflows.gil import build_gil_problem
+from georefine.workflows.navigation import NavigationData, load_navigation
+from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart
+
+__all__ = ["CramerRaoBound", "PassBound", "cramer_rao_bound"]
+
+ANGLES = ("roll", "pitch", "yaw")
+NUISANCE_ITERATIONS = 10
+"""Gauss-Newton steps for what the truth does not hold (step 2 of the module docstring): the
+problem is nearly linear in it once the trajectory is right (two or three steps converge)."""
+
+BOUND_INTERVAL_S = 1.0
+"""The bound's epochs are this far apart (s) over the whole flight: finer than the runs' products
+(``covariance_interval_s``, ``max_covariance_knots``), since a pass's RMS should not rest on a
+dozen epochs. Each costs three columns of ``N^-1`` (a look-up or three solves)."""
+
+
+@dataclass(frozen=True)
+class PassBound:
+    """The bound over one pass: ``sigma_rms_mdeg`` (roll, pitch, yaw), the RMS of the attitude
+    sigma over the pass's covariance epochs (``epochs`` of them)."""
+
+    strip: int
+    sigma_rms_mdeg: np.ndarray
+    epochs: int
+
+    def to_dict(self) -> dict:
+        return {"strip": self.strip, "epochs": self.epochs,
+                "sigma_rms_mdeg": dict(zip(ANGLES, map(float, self.sigma_rms_mdeg)))}
+
+
+@dataclass(frozen=True)
+class CramerRaoBound:
+    """:func:`cramer_rao_bound`'s result.
+
+    ``passes``: the bound per pass; ``group_fit``: ``sum w r^2 / n`` of every observation group
+    at the truth (the trajectory held, the rest estimated); ``plane_robust_sigma0``: the plane
+    residuals' median-based sigma (``1.4826 MAD`` of the whitened distance and two slopes) there,
+    which a heavy tail of misfitting features does not raise; ``features_used`` and
+    ``objects_used``: the plane observations; ``unknowns`` and ``rows`` of the problem.
+    """
+
+    passes: tuple[PassBound, ...]
+    group_fit: dict[str, float]
+    plane_robust_sigma0: np.ndarray
+    features_used: int
+    objects_used: int
+    unknowns: int
+    rows: int
+
+    def to_dict(self) -> dict:
+        return {"passes": [p.to_dict() for p in self.passes], "group_fit": self.group_fit,
+                "plane_robust_sigma0": dict(zip(("distance", "slope_1", "slope_2"), map(float, self.plane_robust_sigma0))),
+                "features_used": self.features_used, "objects_used": self.objects_used,
+                "unknowns": self.unknowns, "rows": self.rows}
+
+
+def _truth(root: Path) -> dict:
+    path = root / "truth" / "scenario.yaml"
+    if not path.is_file():
+        raise InputError("not a simulated project: no truth", path=str(path),
+                         expected="truth/scenario.yaml, truth/trajectory.sbet, truth/imu_errors.npz, truth/gnss_errors.npz")
+    return yaml.safe_load(path.read_text())
+
+
+def _grid(nav: NavigationData) -> KnotGrid:
+    """The knots of the run's trajectory (as step 2 lays them: over the GNSS and IMU overlap)."""
+    tcfg = nav.config.processing.trajectory
+    t_first, t_last = nav.span
+    return KnotGrid(t_first, tcfg.knot_interval_s, int(np.floor((t_last - t_first) / tcfg.knot_interval_s + 1e-9)) + 1)
+
+
+def _truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
+    """The starting point at the truth: the knots fitted to the true trajectory, the simulated
+    IMU errors at the bias knots, the simulated GNSS error (east, north, up) at its knots."""
+    tcfg = nav.config.processing.trajectory
+    sbet = read_sbet(root / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
+    truth = trajectory_from_sbet(sbet, nav.frame, nav.t0_gps)
+    grid = _grid(nav)
+    if truth.time[0] > grid.t_start or truth.time[-1] < grid.t_end:
+        raise InputError("the true trajectory does not cover the navigation data", path=str(root / "truth" / "trajectory.sbet"),
+                         expected=f"[{grid.t_start:.3f}, {grid.t_end:.3f}] s",
+                         found=f"[{truth.time[0]:.3f}, {truth.time[-1]:.3f}] s")
+    sel = (truth.time >= grid.t_start) & (truth.time <= grid.t_end)
+    spline = fit_spline(grid, truth.time[sel], truth.p_w_b[sel], truth.R_w_b[sel],
+                        None if truth.v_w_b is None else truth.v_w_b[sel], t0_gps=nav.t0_gps)
+    imu = np.load(root / "truth" / "imu_errors.npz")
+    bias_grid = BiasGrid.covering(grid.t_start, grid.t_end, tcfg.bias_knot_interval_s)
+    tb = bias_grid.times + nav.t0_gps
+
+    def at(t, series):
+        return np.column_stack([np.interp(t, imu["time_gps"], series[:, i]) for i in range(3)])
+
+    errors = ImuErrorEstimate(bias_grid, at(tb, imu["bias_acc"]), at(tb, imu["bias_gyro"]),
+                              np.asarray(imu["scale_acc"], dtype=float), np.asarray(imu["scale_gyro"], dtype=float))
+    gnss_error = None
+    if nav.gnss.gnss_correlated is not None:
+        g = np.load(root / "truth" / "gnss_errors.npz")
+        egrid = BiasGrid.covering(grid.t_start, grid.t_end, tcfg.gnss_error_knot_interval_s)
+        ned = np.column_stack([np.interp(egrid.times + nav.t0_gps, g["time_gps"], g["error_ned"][:, i]) for i in range(3)])
+        gnss_error = GnssErrorEstimate(egrid, np.column_stack([ned[:, 1], ned[:, 0], -ned[:, 2]]))
+    # Only what build_gil_problem reads of a previous result: the spline, the errors, no high-rate motion.
+    return GnssImuResult(spline, errors, None, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), gnss_error=gnss_error)
+
+
+def _pass_bounds(nav: NavigationData, truth: dict, times: np.ndarray, sigma_rph: np.ndarray,
+                 strips: set[int]) -> tuple[PassBound, ...]:
+    out = []
+    t0 = float(truth["t0_gps"])
+    for p in truth["passes"]:
+        if p["strip_id"] not in strips:
+            continue
+        t = times + nav.t0_gps
+        inside = (t >= t0 + p["t_start_s"] + 1.0) & (t <= t0 + p["t_end_s"] - 1.0)
+        if not np.any(inside):
+            continue
+        rms = np.degrees(np.sqrt(np.mean(sigma_rph[inside] ** 2, axis=0))) * 1e3
+        out.append(PassBound(int(p["strip_id"]), rms, int(inside.sum())))
+    return tuple(out)
+
+
+def cramer_rao_bound(project_dir: str | Path, run_dir: str | Path) -> CramerRaoBound:
+    """The Cramér-Rao bound of the attitude of the G/I/L run ``run_dir`` of the simulated project
+    ``project_dir`` (see the module docstring), for the passes whose strips the run matched.
+
+    Raises
+    ------
+    InputError
+        Not a simulated project, a project with a delivered trajectory, or a run without
+        matched features (``features/``: a G/I/L run).
+    """
+    root, run = Path(project_dir), Path(run_dir)
+    truth = _truth(root)
+    nav = load_navigation(root)
+    if nav.prior is not None:
+        raise InputError("the bound needs raw GNSS and IMU, not a delivered trajectory", path=str(root / "project.yaml"),
+                         field="delivered_trajectory")
+    folder = run / "features"
+    if not (folder / "features.csv").is_file() or not (folder / "objects.csv").is_file():
+        raise InputError("no matched features: the bound needs a G/I/L run", path=str(folder),
+                         expected="features.csv and objects.csv (georefine run without --no-lidar)")
+    features, objects = read_features(folder / "features.csv"), read_objects(folder / "objects.csv")
+    metrics = json.loads((run / "metrics.json").read_text())
+    last = metrics["outer_iterations"][-1]
+    configured = nav.config.scanner.time_offset_s
+    start_s, prior_s = (configured if last.get(k) is None else float(last[k])
+                        for k in ("time_offset_start_s", "time_offset_prior_s"))
+    gil = build_gil_problem(nav, _truth_start(nav, root), features, objects,
+                            time_offset=TimeOffsetStart(start_s, prior_s))
+    P, blocks = gil.built.problem, gil.built.blocks
+    if gil.estimates_offset:  # the scan times run the simulated offset behind GPS time
+        P.set_values(OFFSET_BLOCK, np.array([[float(truth["scenario"].get("scanner_time_offset_s", 0.0)) - start_s]]))
+    held = (blocks.position, blocks.velocity, blocks.acceleration, blocks.attitude, blocks.rate)
+    for name in held:
+        P.set_constant(name, True)
+    P.solve(SolverOptions(max_iterations=NUISANCE_ITERATIONS, robust=False, initial_lambda=1e-9))
+    for name in held:
+        P.set_constant(name, False)
+    at_truth = P.solve(SolverOptions(max_iterations=0, robust=False))
+    grid = gil.built.grid
+    tcfg = nav.config.processing.trajectory.model_copy(update={
+        "covariance_interval_s": BOUND_INTERVAL_S, "max_covariance_knots": int((grid.t_end - grid.t_start) / BOUND_INTERVAL_S) + 2})
+    times, sigma_rph, _, _ = trajectory_sigma(P, blocks, grid, tcfg, nav.frame, gil.built.spline(), scale=1.0)
+    strips = set(np.unique(features.strip[objects.feature_object >= 0]).astype(int).tolist())
+    fit = {g.name: float(g.variance_factor) for g in at_truth.groups if g.n_residuals}
+    planes = next(g for g in P.groups if isinstance(g, PlaneObservation))
+    r = planes.linearize({n: P.values(n) for n in P.blocks}, jacobians=False).residuals.reshape(-1, 3)
+    robust = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+    return CramerRaoBound(_pass_bounds(nav, truth, times, sigma_rph, strips), fit, robust, gil.features_used,
+                          gil.objects_used, int(at_truth.n_unknowns), int(at_truth.n_residuals))
