@@ -32,9 +32,9 @@ pools every row of an angle and solution, which is the test of the sigmas.
 The column ``yaw/sigma`` is the G/I/L yaw RMSE over the RMS of the yaw sigma the solution
 states: the posterior of an adjustment whose model matches the simulated sensors is the
 precision the data allow (the Cramér-Rao bound of this linearised Gaussian problem), so this is
-how far the solution is from it. **Limit**: the information is evaluated at the solution, not at
-the true trajectory, and with the solution's own feature sigmas; where those are wrong the
-bound is too.
+how far the solution is from it, where the stated sigma is not scaled. The bound itself, at the
+true trajectory and with the a-priori weights: :func:`georefine.workflows.cramer_rao.cramer_rao_bound`
+of a kept run (``WORK/runs/NAME``; BENCHMARKS.md, Operating conditions).
 
 Results are kept per scenario in ``WORK/results/NAME.json``: a rerun skips scenarios done
 (delete the file to redo one), so the matrix can be run in parts.

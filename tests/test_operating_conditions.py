@@ -47,3 +47,20 @@ def test_navigation_grade_gil_keeps_the_gi_tilt_and_honest_sigmas(navigation_run
         assert np.all(gil.beyond_3_sigma <= 0.01), (strip, gil.beyond_3_sigma)
         # Yaw, which the planes do fix: at most 0.6x the G/I (0.19 / 0.67 against 0.30 / 1.33 mdeg).
         assert gil.rmse_mdeg[2] <= 0.6 * gi.rmse_mdeg[2] + 0.05, (strip, gi.rmse_mdeg, gil.rmse_mdeg)
+
+
+@pytest.mark.slow
+def test_navigation_grade_gil_against_its_cramer_rao_bound(navigation_run):
+    from georefine.workflows.cramer_rao import cramer_rao_bound
+
+    project, out = navigation_run
+    bound = cramer_rao_bound(project, out)
+    assert [p.strip for p in bound.passes] == [1, 2]
+    for group in ("gnss", "imu"):  # the navigation sensors fit their weights at the truth
+        assert 0.8 < bound.group_fit[group] < 1.25, bound.group_fit
+    for p in bound.passes:
+        gil = truth_pass_accuracy(out / "gil" / "trajectory.sbet", project, p.strip)
+        # The stated sigma is the posterior at the solution with its factors floored at 1.
+        ratio = gil.sigma_rms_mdeg / p.sigma_rms_mdeg
+        assert np.all((0.97 < ratio) & (ratio < 1.5)), (p.strip, ratio)
+        assert np.all(gil.rmse_mdeg < 2.5 * p.sigma_rms_mdeg), (p.strip, gil.rmse_mdeg, p.sigma_rms_mdeg)

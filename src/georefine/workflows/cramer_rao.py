@@ -7,7 +7,8 @@ epochs, IMU windows, priors and matched planar features, read from the run's ``f
 linearised at the truth:
 
 1. the knots are fitted to ``truth/trajectory.sbet`` (:func:`~georefine.trajectory.spline_fit.fit_spline`)
-   and held there;
+   and held there; the motion faster than them is rebuilt from the IMU and taken out of its
+   windows as the run does it (up-sampling, docs/ARCHITECTURE.md §4.6);
 2. what the truth does not hold -- the plane parameters, the GNSS error's knots (the simulator
    keeps its white part in the same series), the biases' knots, the boresight and the time offset
    -- is estimated with the trajectory held, by plain least squares (no robust loss), started
@@ -25,7 +26,7 @@ attitude sigma's RMS over each pass's epochs (1 s inset, as
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +36,7 @@ from georefine.adjustment.gnss_imu import GnssErrorEstimate, GnssImuResult, ImuE
 from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.solver import SolverOptions
+from georefine.adjustment.upsampling import rebuild_high_rate
 from georefine.errors import InputError
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import read_objects
@@ -143,8 +145,13 @@ def _truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
         egrid = BiasGrid.covering(grid.t_start, grid.t_end, tcfg.gnss_error_knot_interval_s)
         ned = np.column_stack([np.interp(egrid.times + nav.t0_gps, g["time_gps"], g["error_ned"][:, i]) for i in range(3)])
         gnss_error = GnssErrorEstimate(egrid, np.column_stack([ned[:, 1], ned[:, 0], -ned[:, 2]]))
-    # Only what build_gil_problem reads of a previous result: the spline, the errors, no high-rate motion.
-    return GnssImuResult(spline, errors, None, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), gnss_error=gnss_error)
+    # Only what build_gil_problem reads of a previous result: the spline, the errors and the motion
+    # faster than the knots, rebuilt from the IMU as the run rebuilds it (§4.6), so that a
+    # vibrating platform's windows are cleaned as the run's are.
+    start = GnssImuResult(spline, errors, None, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), gnss_error=gnss_error)
+    if tcfg.upsampling:
+        start = replace(start, high_rate=rebuild_high_rate(nav.gnss, start))
+    return start
 
 
 def _pass_bounds(nav: NavigationData, truth: dict, times: np.ndarray, sigma_rph: np.ndarray,
