@@ -56,3 +56,7 @@ def test_the_bound_needs_a_simulated_project_and_a_gil_run(gil_project, gil_sing
     shutil.copy(gil_single_pass / "metrics.json", run / "metrics.json")
     with pytest.raises(InputError, match="features"):
         cramer_rao_bound(gil_project, run)
+    shutil.copytree(gil_single_pass / "features", run / "features")
+    (run / "metrics.json").write_text("{}")
+    with pytest.raises(InputError, match="outer iterations"):
+        cramer_rao_bound(gil_project, run)

@@ -178,7 +178,7 @@ def cramer_rao_bound(project_dir: str | Path, run_dir: str | Path) -> CramerRaoB
     ------
     InputError
         Not a simulated project, a project with a delivered trajectory, or a run without
-        matched features (``features/``: a G/I/L run).
+        matched features (``features/``) or outer iterations (``metrics.json``): not a G/I/L run.
     """
     root, run = Path(project_dir), Path(run_dir)
     truth = _truth(root)
@@ -190,9 +190,14 @@ def cramer_rao_bound(project_dir: str | Path, run_dir: str | Path) -> CramerRaoB
     if not (folder / "features.csv").is_file() or not (folder / "objects.csv").is_file():
         raise InputError("no matched features: the bound needs a G/I/L run", path=str(folder),
                          expected="features.csv and objects.csv (georefine run without --no-lidar)")
+    metrics_path = run / "metrics.json"
+    try:
+        last = json.loads(metrics_path.read_text())["outer_iterations"][-1]
+    except (OSError, ValueError, KeyError, IndexError, TypeError) as exc:
+        raise InputError("the run's metrics do not name its outer iterations", path=str(metrics_path),
+                         field="outer_iterations", expected="the metrics.json of a G/I/L run",
+                         found=type(exc).__name__) from None
     features, objects = read_features(folder / "features.csv"), read_objects(folder / "objects.csv")
-    metrics = json.loads((run / "metrics.json").read_text())
-    last = metrics["outer_iterations"][-1]
     configured = nav.config.scanner.time_offset_s
     start_s, prior_s = (configured if last.get(k) is None else float(last[k])
                         for k in ("time_offset_start_s", "time_offset_prior_s"))
