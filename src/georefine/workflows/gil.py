@@ -204,8 +204,6 @@ def step_adjust_gil(
     def report(it) -> None:
         progress("G/I/L adjustment", getattr(it, "iteration", 0), tcfg.max_iterations)
 
-    if knot_interval_s is not None and knot_interval_s != tcfg.knot_interval_s:
-        tcfg = tcfg.model_copy(update={"knot_interval_s": float(knot_interval_s)})
     options = trajectory_solver_options(tcfg, function_tolerance=lcfg.function_tolerance,
                                         initial_lambda=lcfg.initial_lambda)
     if nav.prior is not None:
