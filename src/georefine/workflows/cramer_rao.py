@@ -42,10 +42,9 @@ from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import read_objects
 from georefine.lidar.planes import read_features
 from georefine.trajectory.sampled import trajectory_from_sbet
-from georefine.trajectory.spline import KnotGrid
 from georefine.trajectory.spline_fit import fit_spline
 from georefine.workflows.gil import build_gil_problem
-from georefine.workflows.navigation import NavigationData, load_navigation
+from georefine.workflows.navigation import NavigationData, knot_grid, load_navigation
 from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart
 
 __all__ = ["CramerRaoBound", "PassBound", "cramer_rao_bound"]
@@ -109,11 +108,9 @@ def _truth(root: Path) -> dict:
     return yaml.safe_load(path.read_text())
 
 
-def _grid(nav: NavigationData) -> KnotGrid:
-    """The knots of the run's trajectory (as step 2 lays them: over the GNSS and IMU overlap)."""
-    tcfg = nav.config.processing.trajectory
-    t_first, t_last = nav.span
-    return KnotGrid(t_first, tcfg.knot_interval_s, int(np.floor((t_last - t_first) / tcfg.knot_interval_s + 1e-9)) + 1)
+def _columns_at(t: np.ndarray, time: np.ndarray, series: np.ndarray) -> np.ndarray:
+    """The three columns of ``series`` (sampled at ``time``) interpolated at ``t``."""
+    return np.column_stack([np.interp(t, time, series[:, i]) for i in range(3)])
 
 
 def _truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
@@ -122,7 +119,7 @@ def _truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
     tcfg = nav.config.processing.trajectory
     sbet = read_sbet(root / "truth" / "trajectory.sbet", gps_week=int(nav.t0_gps // 604800))
     truth = trajectory_from_sbet(sbet, nav.frame, nav.t0_gps)
-    grid = _grid(nav)
+    grid = knot_grid(*nav.span, tcfg.knot_interval_s)  # the run's knots: over the GNSS and IMU overlap
     if truth.time[0] > grid.t_start or truth.time[-1] < grid.t_end:
         raise InputError("the true trajectory does not cover the navigation data", path=str(root / "truth" / "trajectory.sbet"),
                          expected=f"[{grid.t_start:.3f}, {grid.t_end:.3f}] s",
@@ -133,17 +130,14 @@ def _truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
     imu = np.load(root / "truth" / "imu_errors.npz")
     bias_grid = BiasGrid.covering(grid.t_start, grid.t_end, tcfg.bias_knot_interval_s)
     tb = bias_grid.times + nav.t0_gps
-
-    def at(t, series):
-        return np.column_stack([np.interp(t, imu["time_gps"], series[:, i]) for i in range(3)])
-
-    errors = ImuErrorEstimate(bias_grid, at(tb, imu["bias_acc"]), at(tb, imu["bias_gyro"]),
+    errors = ImuErrorEstimate(bias_grid, _columns_at(tb, imu["time_gps"], imu["bias_acc"]),
+                              _columns_at(tb, imu["time_gps"], imu["bias_gyro"]),
                               np.asarray(imu["scale_acc"], dtype=float), np.asarray(imu["scale_gyro"], dtype=float))
     gnss_error = None
     if nav.gnss.gnss_correlated is not None:
         g = np.load(root / "truth" / "gnss_errors.npz")
         egrid = BiasGrid.covering(grid.t_start, grid.t_end, tcfg.gnss_error_knot_interval_s)
-        ned = np.column_stack([np.interp(egrid.times + nav.t0_gps, g["time_gps"], g["error_ned"][:, i]) for i in range(3)])
+        ned = _columns_at(egrid.times + nav.t0_gps, g["time_gps"], g["error_ned"])
         gnss_error = GnssErrorEstimate(egrid, np.column_stack([ned[:, 1], ned[:, 0], -ned[:, 2]]))
     # Only what build_gil_problem reads of a previous result: the spline, the errors and the motion
     # faster than the knots, rebuilt from the IMU as the run rebuilds it (§4.6), so that a

@@ -164,13 +164,17 @@ def step_initialise(nav: NavigationData) -> FilterResult:
     )
 
 
+def knot_grid(t_first: float, t_last: float, knot_interval_s: float) -> KnotGrid:
+    """The knots of step 2: from ``t_first`` every ``knot_interval_s``, the last at or before ``t_last``."""
+    return KnotGrid(t_first, knot_interval_s, int(np.floor((t_last - t_first) / knot_interval_s + 1e-9)) + 1)
+
+
 def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Progress = no_progress) -> GnssImuResult:
     """Step 2: fit the spline to the smoothed filter and adjust GNSS + IMU."""
     tcfg = nav.config.processing.trajectory
     t_first = max(float(filt.time[0]), float(nav.gnss.gnss_time[0]))
     t_last = min(float(filt.time[-1]), float(nav.gnss.gnss_time[-1]))
-    n = int(np.floor((t_last - t_first) / tcfg.knot_interval_s + 1e-9)) + 1
-    grid = KnotGrid(t_first, tcfg.knot_interval_s, n)
+    grid = knot_grid(t_first, t_last, tcfg.knot_interval_s)
     sel = (filt.time >= grid.t_start) & (filt.time <= grid.t_end)
     s_g = getattr(filt, "scale_gyro", np.zeros(3))
     imu_sel = np.isin(nav.gnss.imu_time, filt.time[sel])
