@@ -88,8 +88,8 @@ def test_white_part_of_the_gnss_covariance():
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-@pytest.mark.parametrize("window_samples", [1, 10])
-def test_imu_jacobians(seed, window_samples):
+@pytest.mark.parametrize(("window_samples", "kind"), [(1, "rates"), (10, "rates"), (10, "increments")])
+def test_imu_jacobians(seed, window_samples, kind):
     rng = np.random.default_rng(seed)
     K = 12
     grid = KnotGrid(0.0, 0.1, K)
@@ -97,7 +97,7 @@ def test_imu_jacobians(seed, window_samples):
     rate = 200.0
     t = np.arange(0.01, grid.t_end - 0.01, 1 / rate)
     wins = make_imu_windows(t, rng.normal(0, 0.1, (t.size, 3)), rng.normal(0, 1, (t.size, 3)) + [0, 0, -9.8],
-                            rate, window_samples / rate)
+                            rate, window_samples / rate, kind=kind)
     bg_a = BiasGrid(0.0, 0.5, 4)
     bg_g = BiasGrid(0.0, 0.5, 4)
     values |= {"acc_bias": rng.normal(0, 0.01, (4, 3)), "gyro_bias": rng.normal(0, 1e-4, (4, 3)),
@@ -107,6 +107,50 @@ def test_imu_jacobians(seed, window_samples):
     blocks = dict(TRAJ_BLOCKS, acc_bias="euclidean", gyro_bias="euclidean", acc_scale="euclidean", gyro_scale="euclidean")
     chk = check_jacobians(group, values, blocks, eps=1e-4)
     assert chk.max_rel_error < 1e-6, chk
+
+
+def _readings(grid, values, t, kind, rate):
+    """Noise-free readings of the spline at ``t``: its value at each time tag (rates) or its mean
+    over the interval that ends there (increments, 5-point Gauss-Legendre per interval)."""
+    one = make_imu_windows(t, np.zeros((t.size, 3)), np.zeros((t.size, 3)), rate, 1 / rate, kind=kind)
+    acc, gyro = ImuObservation(grid, one, FRAME, BiasGrid(0.0, 0.5, 4), BiasGrid(0.0, 0.5, 4), 1.0, 1.0,
+                               nodes=5).predict(values)
+    return gyro, acc
+
+
+@pytest.mark.parametrize("kind", ["rates", "increments"])
+def test_imu_windows_model_what_a_sample_is(kind):
+    """A window's model is the mean of what its samples are: the spline's value at the time tags
+    (rates, exactly) or its mean over the intervals ending there (increments). The midpoint rule of
+    the continuous mean misses rates by (2 pi f dt)^2 / 24 of a line at f (the module docstring),
+    half a sample's shift misses increments."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(7)
+    K, rate = 12, 200.0
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    values |= {"acc_bias": np.zeros((4, 3)), "gyro_bias": np.zeros((4, 3)),
+               "acc_scale": np.zeros((1, 3)), "gyro_scale": np.zeros((1, 3))}
+    # Increments: the windows (t_first - dt, t_last] start on the knots, so that the quadrature
+    # integrates within one piece of the spline (across a knot its rate has a kink).
+    t = np.arange(0.02 + (1 / rate if kind == "increments" else 0.0), grid.t_end - 0.02, 1 / rate)
+    gyro, acc = _readings(grid, values, t, kind, rate)
+    wins = make_imu_windows(t, gyro, acc, rate, 4 / rate, kind=kind)
+    bg = BiasGrid(0.0, 0.5, 4)
+
+    def misfit(w):
+        model_acc, model_gyro = ImuObservation(grid, w, FRAME, bg, bg, 1.0, 1.0, nodes=3).predict(values)
+        return np.abs(model_gyro - w.gyro).max() / np.abs(w.gyro).max()
+
+    other = replace(wins, kind="increments" if kind == "rates" else "rates")
+    if kind == "rates":
+        assert misfit(wins) < 1e-12
+    else:
+        np.testing.assert_allclose(wins.t_start, t[::4] - 1 / rate, atol=1e-12)  # (t_first - dt, t_last]
+        assert misfit(wins) < 1e-6
+        other = make_imu_windows(t, gyro, acc, rate, 4 / rate)  # the same numbers read as rates
+    assert misfit(other) > 100 * max(misfit(wins), 1e-9), (misfit(other), misfit(wins))
 
 
 def test_imu_windows_average_and_respect_gaps():

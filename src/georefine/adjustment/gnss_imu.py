@@ -12,12 +12,13 @@ from __future__ import annotations
 
 import time as _time
 from dataclasses import dataclass, field, replace
+from typing import Literal
 
 import numpy as np
 
 from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
-from georefine.adjustment.observations.imu import ImuObservation, make_imu_windows
+from georefine.adjustment.observations.imu import ImuObservation, make_imu_windows, sample_support
 from georefine.adjustment.observations.prior import EuclideanPrior
 from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
@@ -54,6 +55,11 @@ class GnssImuData:
         The GNSS error that lasts minutes (``gnss.correlated_error``): estimated on its own
         knots, ``gnss_cov_w`` then holds the total of which the white part is what remains;
         None: ``gnss_cov_w`` is white.
+
+    imu_kind : ``"rates"`` or ``"increments"``
+        What an IMU sample is (``ImuData.kind``): the value at its time tag, or the mean over
+        the interval that ends there. It decides how the windows are modelled
+        (:mod:`georefine.adjustment.observations.imu`).
     """
 
     frame: LocalFrame
@@ -69,6 +75,7 @@ class GnssImuData:
     imu_gyro_sigma: np.ndarray | None = None
     imu_acc_sigma: np.ndarray | None = None
     gnss_correlated: GnssCorrelatedError | None = None
+    imu_kind: Literal["rates", "increments"] = "rates"
 
 
 GNSS_ERROR_BLOCK = "gnss_error"
@@ -235,14 +242,15 @@ def build_gnss_imu_problem(
     """
     grid = initial.grid
     span = (grid.t_start, grid.t_end)
-    inside = (data.imu_time - 0.5 / data.imu_rate_hz >= span[0]) & (data.imu_time + 0.5 / data.imu_rate_hz <= span[1])
+    before, after = sample_support(data.imu_kind, data.imu_rate_hz)
+    inside = (data.imu_time - before >= span[0]) & (data.imu_time + after <= span[1])
     if inside.sum() < 2:
         raise InputError("no IMU samples inside the trajectory span", field="time")
     d = _densities(spec, cfg)
     windows = make_imu_windows(
         data.imu_time[inside], data.imu_gyro[inside], data.imu_acc[inside], data.imu_rate_hz, cfg.imu_window_s,
         gyro_sigma=None if data.imu_gyro_sigma is None else data.imu_gyro_sigma[inside],
-        acc_sigma=None if data.imu_acc_sigma is None else data.imu_acc_sigma[inside],
+        acc_sigma=None if data.imu_acc_sigma is None else data.imu_acc_sigma[inside], kind=data.imu_kind,
     )
     sigma_g = d["gyro_noise"] * np.sqrt(data.imu_rate_hz / windows.n_samples)
     sigma_a = d["acc_noise"] * np.sqrt(data.imu_rate_hz / windows.n_samples)

@@ -125,7 +125,7 @@ def load_navigation(project_dir: str | Path) -> NavigationData:
         p_b_a=np.asarray(cfg.gnss.lever_arm_m, dtype=float),
         imu_gyro_sigma=bridged.gyro_sigma if bridged.gaps else None,
         imu_acc_sigma=bridged.acc_sigma if bridged.gaps else None,
-        gnss_correlated=cfg.gnss.correlated_error,
+        gnss_correlated=cfg.gnss.correlated_error, imu_kind=imu.kind,
     )
     return NavigationData(cfg, root, frame, t0, imu, data)
 

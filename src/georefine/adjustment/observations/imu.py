@@ -9,9 +9,20 @@ with piecewise-linear biases on their own knots and constant diagonal scale fact
 
 Down-sampling (Pöppl et al. 2025): consecutive samples are averaged over windows
 (``processing.trajectory.imu_window_s``, default 0.02 s) and compared with the model averaged
-over the same window by Gauss-Legendre quadrature, so the adjustment size follows the window rate, not the IMU rate. A window's
-standard deviation follows from the noise density ``N`` (ARW/VRW): for ``n`` samples at rate
-``f`` the mean has ``sigma = N sqrt(f / n)``. Windows never span a sampling gap.
+the same way, so the adjustment size follows the window rate, not the IMU rate. How depends on
+what a sample is (``ImuData.kind``, :mod:`georefine.io.imu`):
+
+* ``"rates"``, the sensor's value at its time tag: the model's mean at the window's sample
+  times, exact whatever the motion. A quadrature of the continuous mean instead (the samples
+  as its midpoint rule) differs from the samples' mean by ``(2 pi f dt)^2 / 24`` of a line at
+  ``f``: 0.7 % at 13 Hz and 200 Hz, which with rotor vibration and a navigation-grade IMU is
+  tens of times its noise (BENCHMARKS.md, Operating conditions);
+* ``"increments"``, the mean over the interval that ends at the time tag: the window covers
+  ``(t_first - dt, t_last]`` and the model's continuous mean over it is a Gauss-Legendre
+  quadrature (``nodes``).
+
+A window's standard deviation follows from the noise density ``N`` (ARW/VRW): for ``n``
+samples at rate ``f`` the mean has ``sigma = N sqrt(f / n)``. Windows never span a sampling gap.
 
 Jacobians (right perturbation ``R <- R Exp(delta)``): ``d(R^T x)/d delta = skew(R^T x)``;
 ``d(R^T x)/d p'' = R^T``, ``d/d p' = 2 R^T skew(omega_ie_w)``, ``d/d p = -R^T G`` with
@@ -21,7 +32,7 @@ Jacobians (right perturbation ``R <- R Exp(delta)``): ``d(R^T x)/d delta = skew(
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Literal, Mapping
 
 import numpy as np
 
@@ -45,8 +56,9 @@ class ImuWindows:
     Attributes
     ----------
     t_start, t_end : (W,)
-        Window limits, s relative to the epoch (half a sample interval beyond the first and
-        last sample: the samples are the midpoint rule of the window's mean).
+        Window limits, s relative to the epoch: for rates half a sample interval beyond the
+        first and last sample, for increments from one interval before the first sample to
+        the last.
     gyro, acc : (W, 3)
         Mean angular rate (rad/s) and specific force (m/s²), body frame.
     n_samples : (W,) int
@@ -55,6 +67,8 @@ class ImuWindows:
         (:mod:`georefine.io.imu_gaps`): the window's mean of its samples' interpolation sigma,
         i.e. ``(k / n) sigma`` for ``k`` of ``n`` samples bridged (fully correlated errors).
         None: every sample was measured.
+    kind
+        ``"rates"`` or ``"increments"``: what a sample is (module docstring).
     """
 
     t_start: np.ndarray
@@ -64,6 +78,7 @@ class ImuWindows:
     n_samples: np.ndarray
     gyro_bridged_sigma: np.ndarray | None = None
     acc_bridged_sigma: np.ndarray | None = None
+    kind: Literal["rates", "increments"] = "rates"
 
     def __len__(self) -> int:
         return self.t_start.size
@@ -72,13 +87,17 @@ class ImuWindows:
 def make_imu_windows(
     time: np.ndarray, gyro: np.ndarray, acc: np.ndarray, rate_hz: float, window_s: float, max_gap_factor: float = 1.5,
     gyro_sigma: np.ndarray | None = None, acc_sigma: np.ndarray | None = None,
+    kind: Literal["rates", "increments"] = "rates",
 ) -> ImuWindows:
     """Average consecutive samples over windows of ``round(window_s * rate_hz)`` samples.
 
     Windows restart after every sampling gap (interval > ``max_gap_factor / rate_hz``) so that
     no window spans missing data; the last window of a segment may be shorter. ``gyro_sigma``
     and ``acc_sigma`` (N,) are the interpolation sigma of bridged samples (0 for measured ones).
+    ``kind``: what a sample is (module docstring); it sets the window limits.
     """
+    if kind not in ("rates", "increments"):
+        raise ValueError(f"kind must be 'rates' or 'increments', got {kind!r}")
     time = np.asarray(time, dtype=float)
     n = max(1, int(round(window_s * rate_hz)))
     dt = 1.0 / rate_hz
@@ -90,9 +109,10 @@ def make_imu_windows(
     starts = np.flatnonzero(np.concatenate([[True], np.diff(window_id) != 0]))
     counts = np.diff(np.concatenate([starts, [time.size]]))
     ends = starts + counts - 1
+    before, after = sample_support(kind, rate_hz)
     return ImuWindows(
-        t_start=time[starts] - 0.5 * dt,
-        t_end=time[ends] + 0.5 * dt,
+        t_start=time[starts] - before,
+        t_end=time[ends] + after,
         gyro=np.add.reduceat(gyro, starts, axis=0) / counts[:, None],
         acc=np.add.reduceat(acc, starts, axis=0) / counts[:, None],
         n_samples=counts,
@@ -100,7 +120,15 @@ def make_imu_windows(
         np.add.reduceat(np.asarray(gyro_sigma, float), starts) / counts,
         acc_bridged_sigma=None if acc_sigma is None or not np.any(acc_sigma) else
         np.add.reduceat(np.asarray(acc_sigma, float), starts) / counts,
+        kind=kind,
     )
+
+
+def sample_support(kind: str, rate_hz: float) -> tuple[float, float]:
+    """How far before and after its time tag a sample's window reaches (s): half an interval
+    either side for rates, the interval before the tag for increments."""
+    dt = 1.0 / rate_hz
+    return (dt, 0.0) if kind == "increments" else (0.5 * dt, 0.5 * dt)
 
 
 @dataclass
@@ -122,7 +150,8 @@ class ImuObservation:
     acc_scale, gyro_scale
         Names of the (1, 3) scale-factor blocks, or None to leave scale factors out.
     nodes
-        Gauss-Legendre nodes per window (1 for single samples).
+        Gauss-Legendre nodes per window of increments (1 for single samples). Windows of
+        rates are averaged at their samples (module docstring).
     """
 
     grid: KnotGrid
@@ -144,12 +173,20 @@ class ImuObservation:
     def __post_init__(self) -> None:
         w = self.windows
         n = len(w)
-        x, q = np.polynomial.legendre.leggauss(self.nodes)
-        mid, half = 0.5 * (w.t_start + w.t_end), 0.5 * (w.t_end - w.t_start)
-        t_nodes = mid[:, None] + half[:, None] * x[None, :]
-        t_nodes = np.clip(t_nodes, self.grid.t_start, self.grid.t_end)
-        self._t = t_nodes.T.ravel()  # node-major: node i of all windows is a contiguous slice
-        self._q = 0.5 * q
+        if w.kind == "rates":  # the mean at the samples: node i is sample i, weight 1/n (0 past a short window's end)
+            i = np.arange(int(w.n_samples.max()))[:, None]
+            step = (w.t_end - w.t_start) / w.n_samples
+            t_nodes = w.t_start + (np.minimum(i, w.n_samples - 1) + 0.5) * step
+            q = np.where(i < w.n_samples, 1.0 / w.n_samples, 0.0)
+        else:
+            x, qg = np.polynomial.legendre.leggauss(self.nodes)
+            mid, half = 0.5 * (w.t_start + w.t_end), 0.5 * (w.t_end - w.t_start)
+            t_nodes = mid + half * x[:, None]
+            q = np.broadcast_to(0.5 * qg[:, None], (self.nodes, n))
+        self._nodes = t_nodes.shape[0]
+        # node-major: node i of all windows is a contiguous slice
+        self._t = np.clip(t_nodes, self.grid.t_start, self.grid.t_end).ravel()
+        self._q = np.ascontiguousarray(q)  # (nodes, W) weights
         k, u = self.grid.locate(self._t)
         self._k = k
         self._basis = [position_basis(u, self.grid.dt, order) for order in (0, 1, 2)]
@@ -191,7 +228,7 @@ class ImuObservation:
         return dict(p=p, g=g, ev=ev, Rt=Rt, Rt_x=Rt_x, Rt_W=Rt_W, rate=rate, s_a=s_a, s_g=s_g, f=f_node, w=w_node)
 
     def _average(self, node_values: np.ndarray) -> np.ndarray:
-        return np.einsum("i,ind->nd", self._q, node_values.reshape(self.nodes, self._n, 3))
+        return np.einsum("in,ind->nd", self._q, node_values.reshape(self._nodes, self._n, 3))
 
     def predict(self, values: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Modelled window means ``(acc (W,3), gyro (W,3))``."""
@@ -219,7 +256,7 @@ class ImuObservation:
         Da, Dg = np.diag(1.0 + t["s_a"]), np.diag(1.0 + t["s_g"])
         ev = t["ev"]
         eye = np.eye(3)
-        for i in range(self.nodes):
+        for i in range(self._nodes):
             sl = slice(i * n, (i + 1) * n)
             ca = (self._q[i] / self._sa)[:, None, None]
             cg = (self._q[i] / self._sg)[:, None, None]
