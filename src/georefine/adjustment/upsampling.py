@@ -76,7 +76,8 @@ def _significant(data: GnssImuData, result: GnssImuResult) -> tuple[np.ndarray, 
     """The significant part of ``result.high_rate``'s readings (gyro, accelerometer) and its share.
 
     The share is the larger of gyro and accelerometer of RMS(significant) / RMS(all rebuilt
-    readings): near 0 when the high-frequency content is sensor noise alone, near 1 when it
+    readings), away from the segments' ends (:meth:`~HighRateMotion.edges`, where all of it is
+    taken): near 0 when the high-frequency content is sensor noise alone, near 1 when it
     is vibration. Empty readings and 0 without a rebuilt motion.
     """
     hf = result.high_rate
@@ -84,8 +85,11 @@ def _significant(data: GnssImuData, result: GnssImuResult) -> tuple[np.ndarray, 
         return np.zeros((0, 3)), np.zeros((0, 3)), 0.0
     d_omega, d_f = hf.significant_corrections(data.frame, result.spline, data.imu_rate_hz)
     all_omega, all_f = hf.reading_corrections(data.frame, result.spline)
-    share = max(float(np.sqrt(np.mean(d_omega**2) / max(np.mean(all_omega**2), 1e-300))),
-                float(np.sqrt(np.mean(d_f**2) / max(np.mean(all_f**2), 1e-300))))
+    inner = ~hf.edges(data.imu_rate_hz)
+    if not np.any(inner):  # segments shorter than a block: no share to measure
+        return d_omega, d_f, 0.0
+    share = max(float(np.sqrt(np.mean(d_omega[inner]**2) / max(np.mean(all_omega[inner]**2), 1e-300))),
+                float(np.sqrt(np.mean(d_f[inner]**2) / max(np.mean(all_f[inner]**2), 1e-300))))
     return d_omega, d_f, share
 
 
