@@ -369,7 +369,9 @@ class TrajectoryAdjustmentConfig(StrictModel):
     imu_window_s: float = Field(
         0.02, gt=0.0, le=1.0, description="IMU samples are averaged over windows of this length (down-sampling)."
     )
-    quadrature_nodes: int = Field(3, ge=1, le=5, description="Gauss-Legendre nodes per IMU window.")
+    quadrature_nodes: int = Field(
+        3, ge=1, le=5, description="Gauss-Legendre nodes per IMU window of increments (windows of rates are "
+        "modelled at their samples, docs/ARCHITECTURE.md §4.6).")
     upsampling: bool = Field(
         True,
         description="Rebuild the motion faster than the knots from the raw, error-corrected IMU and "
