@@ -16,7 +16,7 @@ what a sample is (``ImuData.kind``, :mod:`georefine.io.imu`):
   times, exact whatever the motion. A quadrature of the continuous mean instead (the samples
   as its midpoint rule) differs from the samples' mean by ``(2 pi f dt)^2 / 24`` of a line at
   ``f``: 0.7 % at 13 Hz and 200 Hz, which with rotor vibration and a navigation-grade IMU is
-  tens of times its noise (BENCHMARKS.md, Operating conditions);
+  up to 12 times its window noise (BENCHMARKS.md, Operating conditions);
 * ``"increments"``, the mean over the interval that ends at the time tag: the window covers
   ``(t_first - dt, t_last]`` and the model's continuous mean over it is a Gauss-Legendre
   quadrature (``nodes``).
