@@ -118,7 +118,8 @@ class SolverOptions:
     verbose
         Log every iteration at INFO instead of DEBUG.
     linear_solver
-        Sparse Cholesky backend: ``"auto"``, ``"cholmod"``, ``"cholespy"`` or ``"scipy"``.
+        Sparse Cholesky backend: ``"auto"``, ``"cholmod"``, ``"cvxopt"``, ``"cholespy"`` or ``"scipy"``
+        (:func:`~georefine.adjustment.linalg.available_backends`).
     reuse_factor_from
         Problems with at least this many unknowns solve the steps after the first by conjugate
         gradients preconditioned with the last Cholesky factor (see :func:`_pcg_step`), and
@@ -133,7 +134,7 @@ class SolverOptions:
     initial_lambda: float = 1e-4
     robust: bool = True
     verbose: bool = False
-    linear_solver: Literal["auto", "cholmod", "cholespy", "scipy"] = "auto"
+    linear_solver: Literal["auto", "cholmod", "cvxopt", "cholespy", "scipy"] = "auto"
     reuse_factor_from: int = 100_000
 
     def __post_init__(self) -> None:
