@@ -54,6 +54,7 @@ from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import log_so3
 from georefine.trajectory.highrate import HighRateMotion
+from georefine.trajectory.sampled import interp_columns
 from georefine.trajectory.spline import KnotGrid, SplineTrajectory
 from georefine.trajectory.spline_fit import fit_spline
 
@@ -165,7 +166,7 @@ class TrajectoryPriorProblem:
 
 
 def _sigma_at(data: TrajectoryPriorData, t: np.ndarray, which: np.ndarray) -> np.ndarray:
-    return np.column_stack([np.interp(t, data.time, which[:, i]) for i in range(3)])
+    return interp_columns(t, data.time, which)
 
 
 def build_trajectory_prior_problem(

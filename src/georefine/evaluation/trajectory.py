@@ -63,6 +63,7 @@ from georefine.geometry.earth import R_e_n, ecef_to_geodetic, geodetic_to_ecef
 from georefine.geometry.rotation import R_n_b_from_rph, exp_so3, log_so3, rph_from_R_n_b
 from georefine.io.files import SECONDS_PER_WEEK, week_from_gps_seconds
 from georefine.io.trajectory import SbetData
+from georefine.trajectory.sampled import interp_columns
 
 __all__ = [
     "TrajectoryComparison",
@@ -456,7 +457,7 @@ def consistency(
         if ts.ndim != 1 or sigma.shape != (ts.shape[0], 3):
             raise ValueError(f"sigma_rph_rad must have shape ({ts.shape[0]}, 3), got {sigma.shape}")
         tq = comparison.time_gps
-        sigma = np.column_stack([np.interp(tq, ts, sigma[:, j]) for j in range(3)])
+        sigma = interp_columns(tq, ts, sigma)
     if sigma.shape != comparison.d_rph_rad.shape:
         raise ValueError(f"sigma_rph_rad must have shape {comparison.d_rph_rad.shape}, got {sigma.shape}")
     if not np.all(sigma > 0):

@@ -25,6 +25,7 @@ from georefine.io.files import (
     week_from_gps_seconds,
 )
 from georefine.io.trajectory import SBET_RECORD_SIZE, read_sbet, read_sbet_companion, sbet_companion_path
+from georefine.trajectory.sampled import interp_columns
 
 _log = logging.getLogger(__name__)
 
@@ -270,7 +271,7 @@ def truth_pass_accuracy(sbet: PathLike, project: PathLike, strip: int) -> PassAc
         sig = read_smrmsg(accuracy, gps_week=companion.gps_week if companion is not None else None)
         if cmp.time_scale == "gps":
             tq = cmp.t0_gps + cmp.time
-            s = np.column_stack([np.interp(tq, sig.time_gps, sig.sigma_rph_rad[:, j]) for j in range(3)])
+            s = interp_columns(tq, sig.time_gps, sig.sigma_rph_rad)
             z = cmp.d_rph_rad / s
             z_rms = np.sqrt(np.mean(z * z, axis=0))
             beyond = np.mean(np.abs(z) > 3.0, axis=0)

@@ -36,6 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from georefine.trajectory.sampled import interp_columns
+
 __all__ = ["ImuFrameFinding", "check_imu_frame", "gyro_fit_residuals", "signed_permutations"]
 
 _AXES = "xyz"
@@ -71,7 +73,7 @@ def _epochs(gnss_time: np.ndarray, gnss_p: np.ndarray, t_first: float, t_last: f
     for dt in (-0.5, 0.5):
         k = np.clip(np.searchsorted(gnss_time, T + dt), 1, gnss_time.size - 1)
         gap_ok &= (gnss_time[k] - gnss_time[k - 1] <= 1.0) & (T + dt >= gnss_time[0]) & (T + dt <= gnss_time[-1])
-    p = lambda t: np.column_stack([np.interp(t, gnss_time, gnss_p[:, i]) for i in range(3)])  # noqa: E731
+    p = lambda t: interp_columns(t, gnss_time, gnss_p)  # noqa: E731
     return T, p(T + 0.5) - p(T - 0.5), gap_ok
 
 

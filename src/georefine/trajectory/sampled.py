@@ -15,6 +15,12 @@ from georefine.errors import InputError
 from georefine.geometry.rotation import exp_so3, log_so3
 
 
+def interp_columns(t: np.ndarray, time: np.ndarray, series: np.ndarray) -> np.ndarray:
+    """The three columns of ``series`` (N, 3), sampled at increasing ``time`` (N,), linearly
+    interpolated at ``t`` (M,): (M, 3), held constant beyond the ends (``np.interp``)."""
+    return np.column_stack([np.interp(t, time, series[:, i]) for i in range(3)])
+
+
 @dataclass(frozen=True)
 class Trajectory:
     """Body poses in ``w``.

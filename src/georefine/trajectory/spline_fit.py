@@ -16,7 +16,7 @@ import scipy.linalg
 import scipy.sparse
 
 from georefine.geometry.rotation import exp_so3, log_so3, right_jacobian_inv
-from georefine.trajectory.sampled import Trajectory
+from georefine.trajectory.sampled import Trajectory, interp_columns
 from georefine.trajectory.spline import (
     KnotGrid,
     SplineTrajectory,
@@ -103,7 +103,7 @@ def _initial_rates(time, R, omega, t_knots) -> np.ndarray:
     if omega is None:
         omega = log_so3(np.swapaxes(R[:-1], 1, 2) @ R[1:]) / np.diff(time)[:, None]
         time = 0.5 * (time[1:] + time[:-1])
-    return np.column_stack([np.interp(t_knots, time, omega[:, i]) for i in range(3)])
+    return interp_columns(t_knots, time, omega)
 
 
 def fit_spline(

@@ -41,7 +41,7 @@ from georefine.errors import InputError
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import read_objects
 from georefine.lidar.planes import read_features
-from georefine.trajectory.sampled import trajectory_from_sbet
+from georefine.trajectory.sampled import interp_columns, trajectory_from_sbet
 from georefine.trajectory.spline_fit import fit_spline
 from georefine.workflows.gil import build_gil_problem
 from georefine.workflows.navigation import NavigationData, knot_grid, load_navigation
@@ -108,11 +108,6 @@ def _truth(root: Path) -> dict:
     return yaml.safe_load(path.read_text())
 
 
-def _columns_at(t: np.ndarray, time: np.ndarray, series: np.ndarray) -> np.ndarray:
-    """The three columns of ``series`` (sampled at ``time``) interpolated at ``t``."""
-    return np.column_stack([np.interp(t, time, series[:, i]) for i in range(3)])
-
-
 def _truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
     """The starting point at the truth: the knots fitted to the true trajectory, the simulated
     IMU errors at the bias knots, the simulated GNSS error (east, north, up) at its knots."""
@@ -130,14 +125,14 @@ def _truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
     imu = np.load(root / "truth" / "imu_errors.npz")
     bias_grid = BiasGrid.covering(grid.t_start, grid.t_end, tcfg.bias_knot_interval_s)
     tb = bias_grid.times + nav.t0_gps
-    errors = ImuErrorEstimate(bias_grid, _columns_at(tb, imu["time_gps"], imu["bias_acc"]),
-                              _columns_at(tb, imu["time_gps"], imu["bias_gyro"]),
+    errors = ImuErrorEstimate(bias_grid, interp_columns(tb, imu["time_gps"], imu["bias_acc"]),
+                              interp_columns(tb, imu["time_gps"], imu["bias_gyro"]),
                               np.asarray(imu["scale_acc"], dtype=float), np.asarray(imu["scale_gyro"], dtype=float))
     gnss_error = None
     if nav.gnss.gnss_correlated is not None:
         g = np.load(root / "truth" / "gnss_errors.npz")
         egrid = BiasGrid.covering(grid.t_start, grid.t_end, tcfg.gnss_error_knot_interval_s)
-        ned = _columns_at(egrid.times + nav.t0_gps, g["time_gps"], g["error_ned"])
+        ned = interp_columns(egrid.times + nav.t0_gps, g["time_gps"], g["error_ned"])
         gnss_error = GnssErrorEstimate(egrid, np.column_stack([ned[:, 1], ned[:, 0], -ned[:, 2]]))
     # Only what build_gil_problem reads of a previous result: the spline, the errors and the motion
     # faster than the knots, rebuilt from the IMU as the run rebuilds it (§4.6), so that a

@@ -38,7 +38,7 @@ from georefine.geometry.frames import LocalFrame
 from georefine.io.trajectory import SbetData, read_sbet
 from georefine.progress import Progress, no_progress
 from georefine.trajectory.highrate import HighRateMotion
-from georefine.trajectory.sampled import trajectory_from_sbet
+from georefine.trajectory.sampled import interp_columns, trajectory_from_sbet
 from georefine.trajectory.spline import KnotGrid, SplineTrajectory
 
 log = logging.getLogger(__name__)
@@ -169,7 +169,7 @@ def warn_delivered_pull(nav, result: GnssImuResult, records=()) -> None:
     worst = []
     for est, sig, unit, f in ((e.position_m, nav.prior.sigma_p_w, "mm", 1e3),
                               (e.attitude_rad, nav.prior.sigma_theta_w, "mdeg", np.degrees(1.0) * 1e3)):
-        s = tc.sigma_scale * np.column_stack([np.interp(tk, nav.prior.time, sig[:, i]) for i in range(3)])
+        s = tc.sigma_scale * interp_columns(tk, nav.prior.time, sig)
         ratio = np.abs(est) / s
         j, i = np.unravel_index(int(np.argmax(ratio)), ratio.shape)
         worst.append((float(ratio[j, i]), "ENU"[i], float(est[j, i] * f), float(s[j, i] * f), unit, float(tk[j])))

@@ -36,7 +36,7 @@ from georefine.io.imu import ImuData
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.trajectory.ekf import FilterResult, run_filter
-from georefine.trajectory.sampled import Trajectory
+from georefine.trajectory.sampled import Trajectory, interp_columns
 from georefine.trajectory.spline import KnotGrid
 from georefine.trajectory.spline_fit import fit_spline
 from georefine.workflows.delivered import read_delivered
@@ -189,7 +189,7 @@ def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Prog
     # Start the IMU errors from the filter's estimates.
     tb = built.bias_grid.times
     for name, series in (("acc_bias", filt.bias_acc), ("gyro_bias", filt.bias_gyro)):
-        built.problem.set_values(name, np.column_stack([np.interp(tb, filt.time, series[:, i]) for i in range(3)]))
+        built.problem.set_values(name, interp_columns(tb, filt.time, series))
     if tcfg.estimate_scale_factors:
         built.problem.set_values("acc_scale", np.asarray(filt.scale_acc, dtype=float).reshape(1, 3))
         built.problem.set_values("gyro_scale", np.asarray(filt.scale_gyro, dtype=float).reshape(1, 3))
@@ -270,8 +270,8 @@ def write_trajectory_products(out: Path, nav: NavigationData, adj: GnssImuResult
                        output_epsg=crs.epsg, accuracy=accuracy)
     tk = spline.grid.knot_times
     pk, Rk = spline.pose(tk)
-    sig_rph = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_rph_rad[:, i]) for i in range(3)])
-    sig_p = np.column_stack([np.interp(tk, adj.sigma_time, adj.sigma_position_m[:, i]) for i in range(3)])
+    sig_rph = interp_columns(tk, adj.sigma_time, adj.sigma_rph_rad)
+    sig_p = interp_columns(tk, adj.sigma_time, adj.sigma_position_m)
     write_csv_product(out / "trajectory.csv", nav.frame, crs, nav.t0_gps, tk, pk, Rk, sig_rph, sig_p)
 
 

@@ -13,6 +13,7 @@ import numpy as np
 
 from georefine.adjustment.gnss_imu import GnssImuResult
 from georefine.io.run_metrics import PassPrecision
+from georefine.trajectory.sampled import interp_columns
 
 __all__ = ["LITTLE_GAIN", "pass_precision", "precision_lines"]
 
@@ -28,7 +29,7 @@ def _rms_sigma_mdeg(result: GnssImuResult, t0: float, t1: float) -> tuple[float,
     if t.size == 0:
         return (float("nan"),) * 3  # type: ignore[return-value]
     ts = np.linspace(t0, t1, max(2, int(np.ceil(t1 - t0)) + 1))
-    s = np.column_stack([np.interp(ts, t, sig[:, i]) for i in range(3)])
+    s = interp_columns(ts, t, sig)
     return tuple(float(v) for v in 1e3 * np.degrees(np.sqrt(np.mean(s**2, axis=0))))  # type: ignore[return-value]
 
 

@@ -27,6 +27,7 @@ from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces
 from georefine.lidar.tiles import strip_outside_error
 from georefine.progress import no_progress
 from georefine.trajectory.imu_check import check_imu_frame
+from georefine.trajectory.sampled import interp_columns
 
 
 @dataclass(frozen=True)
@@ -108,7 +109,7 @@ def gnss_from_sbet(root: Path, cfg: ProjectConfig) -> GnssSolution:
     lat, lon, h = sbet.lat_rad[k], sbet.lon_rad[k], sbet.h_m[k]
     if g.smrmsg:
         acc = read_smrmsg(root / g.smrmsg, gps_week=g.gps_week if g.gps_week is not None else int(t[0] // 604800))
-        sig = np.column_stack([np.interp(t, acc.time_gps, acc.sigma_ned_m[:, i]) for i in range(3)])
+        sig = interp_columns(t, acc.time_gps, acc.sigma_ned_m)
     else:
         sig = np.full((t.size, 3), g.sbet_sigma_m)
     R = R_e_n(lat, lon)
