@@ -83,8 +83,8 @@ def _significant(data: GnssImuData, result: GnssImuResult) -> tuple[np.ndarray, 
     hf = result.high_rate
     if hf is None or hf.time.size == 0:
         return np.zeros((0, 3)), np.zeros((0, 3)), 0.0
-    d_omega, d_f = hf.significant_corrections(data.frame, result.spline, data.imu_rate_hz)
     all_omega, all_f = hf.reading_corrections(data.frame, result.spline)
+    d_omega, d_f = hf.significant_part(all_omega, all_f, data.imu_rate_hz)
     inner = ~hf.edges(data.imu_rate_hz)
     if not np.any(inner):  # segments shorter than a block: no share to measure
         return d_omega, d_f, 0.0

@@ -203,7 +203,11 @@ class HighRateMotion:
         misfit; taken whole, they fit as the rest does, and their few seconds of windows lose
         the sensor noise above the knots (BENCHMARKS.md, Operating conditions).
         """
-        d_omega, d_f = self.reading_corrections(frame, spline)
+        return self.significant_part(*self.reading_corrections(frame, spline), rate_hz)
+
+    def significant_part(self, d_omega: np.ndarray, d_f: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+        """What :meth:`significant_corrections` keeps of the corrections ``d_omega``, ``d_f``
+        (:meth:`reading_corrections`, for a caller that has them already)."""
         both = np.hstack([d_omega, d_f])
         out = np.zeros_like(both)
         for s in _segments(self.time, rate_hz):
