@@ -634,7 +634,10 @@ def test_the_cost_change_test_relative_to_fit_ignores_misfit_it_cannot_remove():
         problem.add_group(LineGroup(x, y, sigma, CauchyLoss(2.385)))
         if misfit:
             problem.add_group(MisfitGroup(np.full(2000, 30.0)))
-        result = problem.solve(SolverOptions(max_iterations=200, function_tolerance=tol, relative_to_fit=relative_to_fit))
+        # polish=False: the test is of the cost-change test under IRLS, not of the steps at the
+        # least damping that follow it by default (test_polish_*).
+        result = problem.solve(SolverOptions(max_iterations=200, function_tolerance=tol, relative_to_fit=relative_to_fit,
+                                             polish=False))
         assert result.termination == "function_tolerance"
         return problem.values("theta")[0], result.iterations
 
@@ -647,6 +650,54 @@ def test_the_cost_change_test_relative_to_fit_ignores_misfit_it_cannot_remove():
     for estimate in (clean, relative):
         assert abs(estimate[1] - exact[1]) < 0.02 * sigma_q
     assert abs(plain[1] - exact[1]) > 0.1 * sigma_q
+
+
+class ChainGroup:
+    """``K`` states tied by precise differences (sigma ``sigma_d``), each observed once (sigma 1).
+
+    The common mode is the weak direction: its curvature ``K`` against a diagonal of about
+    ``2 / sigma_d^2`` per state, as a pass's heading against the IMU windows of its knots."""
+
+    name = "chain"
+    loss = None
+
+    def __init__(self, y, sigma_d):
+        self.y, self.sigma_d = y, sigma_d
+
+    def linearize(self, values, jacobians=True):
+        x = values["x"][:, 0]
+        k = x.size
+        r = np.concatenate([x - self.y, np.diff(x) / self.sigma_d])
+        jac = []
+        if jacobians:
+            rows = np.concatenate([np.arange(k), k + np.arange(k - 1), k + np.arange(k - 1)])
+            elements = np.concatenate([np.arange(k), np.arange(k - 1), np.arange(1, k)])
+            vals = np.concatenate([np.ones(k), np.full(k - 1, -1.0 / self.sigma_d), np.full(k - 1, 1.0 / self.sigma_d)])
+            jac = [JacobianBlock("x", rows[:, None], elements, vals[:, None, None])]
+        return Linearization(r, jac)
+
+
+def test_polish_takes_a_weak_direction_to_its_optimum():
+    """A damping of 1e-9 times the diagonal moves the chain's common mode (relative curvature 5e-13)
+    by 1/2000 of the way per step, and the cost-change test of 1e-2 stops it there, 10 sigma short.
+    The steps at the least damping that ``polish`` adds reach the optimum in one or two more."""
+    rng = np.random.default_rng(11)
+    k, sigma_d = 100, 1e-6
+    y = 1.0 + rng.normal(size=k)
+    exact = y.mean()  # the differences pin the states together: the optimum is the mean
+    sigma_mean = 1.0 / np.sqrt(k)
+    out = {}
+    for polish in (False, True):
+        problem = Problem()
+        problem.add_block("x", np.zeros((k, 1)))
+        problem.add_group(ChainGroup(y, sigma_d))
+        result = problem.solve(SolverOptions(max_iterations=50, function_tolerance=1e-2, initial_lambda=1e-9,
+                                             polish=polish))
+        assert result.termination == "function_tolerance"
+        out[polish] = (problem.values("x")[:, 0].mean(), result.iterations)
+    assert abs(out[False][0] - exact) > 5 * sigma_mean, out
+    assert abs(out[True][0] - exact) < 0.01 * sigma_mean, out
+    assert out[True][1] <= out[False][1] + 3, out
 
 
 def test_relative_to_fit_changes_nothing_where_the_variance_factor_is_below_one():

@@ -89,6 +89,7 @@ _MIN_LAMBDA = 1e-15
 _MAX_LAMBDA = 1e16
 _MIN_GAIN_RATIO = 1e-3
 _PIVOT_SAFE_LAMBDA = 1e-10  # damping above which a factorisation needs no singularity test
+_POLISH_LAMBDA = 1e-13  # a solve that meets the cost-change test at a larger damping goes on (SolverOptions.polish)
 
 
 @dataclass(frozen=True)
@@ -124,6 +125,14 @@ class SolverOptions:
         Problems with at least this many unknowns solve the steps after the first by conjugate
         gradients preconditioned with the last Cholesky factor (see :func:`_pcg_step`), and
         factorise again only when those do not converge; 0: always, a huge number: never.
+    polish
+        When the cost-change test is first met by a step whose damping exceeded ``_POLISH_LAMBDA``,
+        do not stop: go on with the least damping until the test is met again. A damping
+        ``lambda diag(J^T J)`` shortens the step along a direction of curvature ``mu`` (relative
+        to the diagonal) by ``mu / (mu + lambda)``, and a weak direction can be left short by a
+        sigma while each step lowers the cost by less than the test sees (a whole sigma is worth
+        1/2). A single pass's heading with a navigation IMU is such a direction: the G/I/L
+        stopped with 0.14 mdeg of it still to go, 0.4 of its sigma (docs/ARCHITECTURE.md §4.4).
     """
 
     max_iterations: int = 50
@@ -136,6 +145,7 @@ class SolverOptions:
     verbose: bool = False
     linear_solver: Literal["auto", "cholmod", "cvxopt", "cholespy", "scipy"] = "auto"
     reuse_factor_from: int = 100_000
+    polish: bool = True
 
     def __post_init__(self) -> None:
         if self.max_iterations < 0:
@@ -445,6 +455,7 @@ def run_levenberg_marquardt(
     history = [cost]
     lam, nu = options.initial_lambda, 2.0
     iterations = accepted_steps = 0
+    polishing = False  # the cost-change test was met once at a larger damping (SolverOptions.polish)
     factorizer = SparseCholesky(options.linear_solver)  # one symbolic analysis for all iterations
     backend_used = options.linear_solver
     reuse = layout.n_cols >= options.reuse_factor_from
@@ -533,6 +544,11 @@ def run_levenberg_marquardt(
             if options.relative_to_fit and current.n_rows > layout.n_cols:  # the step's sigma0^2, if > 1
                 reference /= max(1.0, current.variance_factor(layout.n_cols))
             converged = actual <= options.function_tolerance * reference
+            if converged and options.polish and not polishing and lam > _POLISH_LAMBDA:
+                polishing, converged = True, False
+                log("iter %3d: cost change within the tolerance at lambda %.3g: on with lambda %.3g",
+                    iterations, lam, _MIN_LAMBDA)
+                lam = _MIN_LAMBDA
             normal_is_current = False
             if not converged:  # else N at the solution is assembled only if covariances are asked for
                 normal = _normal_equations(current, layout, assembler)
