@@ -33,7 +33,10 @@ The column ``yaw/sigma`` is the G/I/L yaw RMSE over the RMS of the yaw sigma the
 states; ``G/I/L : bound`` its roll, pitch and yaw RMSE over the Cramér-Rao bound of the run at
 the true trajectory (:func:`georefine.workflows.cramer_rao.cramer_rao_bound`, with the a-priori
 weights; the precision the simulated sensors allow), computed after the runs (``--no-bounds``:
-not) and added to kept results that lack it while their runs are there.
+not) and added to kept results that lack it while their runs are there. With it come the RMSE
+of each model's optimum from the truth (the G/I's and the G/I/L's own adjustment converged from
+the true trajectory: the error this draw of the noise allows) and the G/I's bound; a row that
+fails the checks says whether the optima fail them too (``optima fail``: the draw, not the run).
 
 Results are kept per scenario in ``WORK/results/NAME.json``: a rerun skips scenarios done
 (delete the file to redo one), so the matrix can be run in parts.
@@ -165,7 +168,8 @@ def bounds(work: Path, key: str, rec: dict) -> dict:
     none and the runs and the project are still there (the bound needs no scans)."""
     project = work / "projects" / key
     for kind, run_dir in (("both", work / "runs" / key), ("single", work / "runs" / f"{key}_single")):
-        if "bound" in rec[kind] or not (run_dir / "features" / "features.csv").is_file():
+        done = rec[kind].get("bound") and all("gi" in b for b in rec[kind]["bound"])
+        if done or not (run_dir / "features" / "features.csv").is_file():
             continue
         if not (project / "truth" / "scenario.yaml").is_file():
             continue
@@ -178,7 +182,8 @@ def one(work: Path, s, seed: int, length: float, draw: int = 0, with_bounds: boo
     path = work / "results" / f"{key}.json"
     if path.is_file():
         rec = json.loads(path.read_text())
-        if with_bounds and not all("bound" in rec[kind] for kind in ("both", "single")):
+        if with_bounds and not all(rec[kind].get("bound") and all("gi" in b for b in rec[kind]["bound"])
+                                   for kind in ("both", "single")):
             rec = bounds(work, key, rec)
             path.write_text(json.dumps(rec, indent=1))
         return rec
@@ -216,14 +221,34 @@ def checks(gi: dict, gil: dict) -> list[str]:
     return bad
 
 
+def optima_fail(gi: dict, gil: dict) -> bool | None:
+    """Whether the two models' optima from the truth fail :func:`checks` too (None: not computed)."""
+    a, b = gi.get("optimum_mdeg"), gil.get("optimum_mdeg")
+    if not a or not b:
+        return None
+    return bool(checks({"rmse_mdeg": a}, {"rmse_mdeg": b}))
+
+
+def fails_text(gi: dict, gil: dict) -> str:
+    bad = checks(gi, gil)
+    if not bad:
+        return ""
+    both = optima_fail(gi, gil)
+    return "; ".join(bad) + ("" if both is None else " (optima fail)" if both else " (optima pass)")
+
+
 def rows(rec: dict):
     for kind in ("both", "single"):
         for k in range(len(rec[kind]["gi"])):
-            gil = dict(rec[kind]["gil"][k])
+            gi, gil = dict(rec[kind]["gi"][k]), dict(rec[kind]["gil"][k])
             bound = {b["strip"]: b for b in rec[kind].get("bound", [])}.get(gil["strip"])
             if bound is not None:
                 gil["bound_mdeg"] = bound["sigma_rms_mdeg"]
-            yield kind, k, rec[kind]["gi"][k], gil
+                gil["optimum_mdeg"] = bound.get("optimum_rmse_mdeg")
+                if "gi" in bound:
+                    gi["bound_mdeg"] = bound["gi"]["sigma_rms_mdeg"]
+                    gi["optimum_mdeg"] = bound["gi"]["optimum_rmse_mdeg"]
+            yield kind, k, gi, gil
 
 
 def fmt3(d: dict, f: str) -> str:
@@ -242,11 +267,18 @@ def over_bound(d: dict) -> str:
     return "-" if not b else fmt3({a: d["rmse_mdeg"][a] / b[a] for a in ANGLES}, ".2f")
 
 
+def optimum(d: dict) -> str:
+    """The RMSE of the model's optimum from the truth, roll/pitch/yaw (module docstring), or -."""
+    b = d.get("optimum_mdeg")
+    return "-" if not b else fmt3(b, ".2f")
+
+
 def report_markdown(records: list[dict]) -> None:
     """The rows of :func:`report` as a Markdown table (BENCHMARKS.md)."""
     print("| scenario | run | pass | G/I r/p/y (mdeg) | G/I/L r/p/y (mdeg) | G/I/L : G/I | error/sigma G/I | "
-          "error/sigma G/I/L | > 3 sigma G/I/L (%) | yaw/sigma | G/I/L : bound r/p/y | fails |")
-    print("|---|---|---:|---|---|---|---|---|---|---:|---|---|")
+          "error/sigma G/I/L | > 3 sigma G/I/L (%) | yaw/sigma | G/I/L : bound r/p/y | optimum G/I | "
+          "optimum G/I/L | fails |")
+    print("|---|---|---:|---|---|---|---|---|---|---:|---|---|---|---|")
     for rec in records:
         name = key_of(tuple(rec["scenario"].values()), rec.get("draw", 0))
         for kind, k, gi, gil in rows(rec):
@@ -254,21 +286,24 @@ def report_markdown(records: list[dict]) -> None:
             beyond = {a: 100 * gil["beyond_3_sigma"][a] for a in ANGLES}
             print(f"| {name} | {kind} | {gi['strip']} | {fmt3(gi['rmse_mdeg'], '.2f')} | {fmt3(gil['rmse_mdeg'], '.2f')} | "
                   f"{fmt3(ratio, '.2f')} | {fmt3(gi['z_rms'], '.2f')} | {fmt3(gil['z_rms'], '.2f')} | "
-                  f"{fmt3(beyond, '.1f')} | {yaw_sigma(gil)} | {over_bound(gil)} | {'; '.join(checks(gi, gil)) or '-'} |")
+                  f"{fmt3(beyond, '.1f')} | {yaw_sigma(gil)} | {over_bound(gil)} | {optimum(gi)} | {optimum(gil)} | "
+                  f"{fails_text(gi, gil) or '-'} |")
 
 
 def report(records: list[dict]) -> None:
     print(f"{'scenario':44s} {'run':6s} pass  {'G/I rmse r/p/y':16s} {'G/I/L rmse':16s} {'ratio':14s} "
-          f"{'z G/I':14s} {'z G/I/L':14s} {'>3s G/I/L %':12s} {'yaw/sigma':9s} {'G/I/L:bound':14s} fails")
+          f"{'z G/I':14s} {'z G/I/L':14s} {'>3s G/I/L %':12s} {'yaw/sigma':9s} {'G/I/L:bound':14s} "
+          f"{'opt G/I':16s} {'opt G/I/L':16s} fails")
     pooled = {sol: {a: [] for a in ANGLES} for sol in ("gi", "gil")}
     beyond = {sol: {a: [] for a in ANGLES} for sol in ("gi", "gil")}
-    n_fail = 0
+    n_fail = n_fail_optima = 0
     for rec in records:
         name = key_of(tuple(rec["scenario"].values()), rec.get("draw", 0))
         for kind, k, gi, gil in rows(rec):
             ratio = {a: gil["rmse_mdeg"][a] / gi["rmse_mdeg"][a] for a in ANGLES}
-            fails = checks(gi, gil)
+            fails = fails_text(gi, gil)
             n_fail += bool(fails)
+            n_fail_optima += bool(fails) and optima_fail(gi, gil) is True
             for sol, d in (("gi", gi), ("gil", gil)):
                 for a in ANGLES:
                     if d["z_rms"][a] is not None:
@@ -277,8 +312,8 @@ def report(records: list[dict]) -> None:
             print(f"{name:44s} {kind:6s} {gi['strip']:4d}  {fmt3(gi['rmse_mdeg'], '.2f'):16s} "
                   f"{fmt3(gil['rmse_mdeg'], '.2f'):16s} {fmt3(ratio, '.2f'):14s} {fmt3(gi['z_rms'], '.2f'):14s} "
                   f"{fmt3(gil['z_rms'], '.2f'):14s} {fmt3({a: 100 * gil['beyond_3_sigma'][a] for a in ANGLES}, '.1f'):12s} "
-                  f"{yaw_sigma(gil):9s} {over_bound(gil):14s} {'; '.join(fails)}")
-    print(f"\nrows failing the accuracy checks: {n_fail}")
+                  f"{yaw_sigma(gil):9s} {over_bound(gil):14s} {optimum(gi):16s} {optimum(gil):16s} {fails}")
+    print(f"\nrows failing the accuracy checks: {n_fail}, of which the optima from the truth fail them too: {n_fail_optima}")
     print("pooled over every row (epoch-weighted): RMS of error/sigma, share beyond 3 sigma")
     for sol in ("gi", "gil"):
         parts = []

@@ -2,7 +2,8 @@
 
 On the README example's single-pass run (tests/conftest.py): the bound is built from the run's
 matched features and the project's truth, the navigation sensors fit their weights there, the
-run's stated sigma lies at or above it, and the run's error is within a window of it.
+run's stated sigma lies at or above it, and the run's error is within a window of it; the
+model's optimum from the truth is where the run lands, and the G/I's bound lies above the G/I/L's.
 """
 
 from __future__ import annotations
@@ -48,6 +49,28 @@ def test_the_bound_of_a_single_pass_at_the_truth(single_pass_bound, gil_project,
     assert json.loads(json.dumps(bound.to_dict()))["passes"][0]["strip"] == 1
 
 
+@pytest.mark.slow
+def test_the_optimum_from_the_truth_and_the_gi_bound(single_pass_bound, gil_project, gil_single_pass):
+    """The model's optimum from the truth is where a converged run of the same model lands on the
+    same data (G/I/L 0.84/1.24/1.72 mdeg against an optimum of 0.88/1.31/1.78; G/I 2.56/3.48/9.74
+    against 2.55/3.48/9.76), and the G/I's bound is the G/I/L's without the planes' information."""
+    (p,) = single_pass_bound.passes
+    assert p.gi is not None
+    # Taking observations away never lowers a sigma; one pass's heading rests on the planes
+    # (G/I 16.7 against 1.6 mdeg).
+    assert np.all(p.gi.sigma_rms_mdeg >= p.gil.sigma_rms_mdeg * (1 - 1e-6)), (p.gi.sigma_rms_mdeg, p.gil.sigma_rms_mdeg)
+    assert p.gi.sigma_rms_mdeg[2] > 5 * p.gil.sigma_rms_mdeg[2]
+    for sol, b in (("gi", p.gi), ("gil", p.gil)):
+        acc = truth_pass_accuracy(gil_single_pass / sol / "trajectory.sbet", gil_project, 1)
+        # The run and the optimum: one model on one draw of the noise, so they agree to a small
+        # part of the bound, much closer than either is to the truth's window (2.5x the bound).
+        assert np.all(np.abs(acc.rmse_mdeg - b.optimum_rmse_mdeg) < 0.15 * b.sigma_rms_mdeg), (sol, acc.rmse_mdeg, b)
+        assert np.all(np.abs(b.optimum_mean_mdeg) <= b.optimum_rmse_mdeg + 1e-9)
+    d = p.to_dict()
+    assert set(d["gi"]) == {"sigma_rms_mdeg", "optimum_rmse_mdeg", "optimum_mean_mdeg"}
+    assert d["optimum_rmse_mdeg"]["yaw"] == pytest.approx(p.gil.optimum_rmse_mdeg[2])
+
+
 def test_the_bound_needs_a_simulated_project_and_a_gil_run(gil_project, gil_single_pass, tmp_path):
     with pytest.raises(InputError, match="truth"):
         cramer_rao_bound(tmp_path, gil_single_pass)
@@ -60,3 +83,4 @@ def test_the_bound_needs_a_simulated_project_and_a_gil_run(gil_project, gil_sing
     (run / "metrics.json").write_text("{}")
     with pytest.raises(InputError, match="outer iterations"):
         cramer_rao_bound(gil_project, run)
+

@@ -91,7 +91,10 @@ class GilProblem:
     ``built``: the G/I problem with the plane observations in it; ``features_used`` and
     ``objects_used``: the features and objects it observes; ``boresight``: the name of the
     boresight block, or None; ``estimates_offset``: whether it estimates the LiDAR time offset;
-    ``high_rate``: a delivered trajectory's faster motion (§4.9), else None.
+    ``high_rate``: a delivered trajectory's faster motion (§4.9), else None; ``lidar_groups`` and
+    ``lidar_blocks``: what the LiDAR adds to the G/I problem (the plane observations, the
+    boresight's and time offset's priors; the objects, boresight and time offset blocks), so that
+    the G/I problem can be had back from it (:func:`~georefine.workflows.cramer_rao.cramer_rao_bound`).
     """
 
     built: GnssImuProblem | TrajectoryPriorProblem
@@ -101,6 +104,8 @@ class GilProblem:
     estimates_offset: bool
     time_offset: TimeOffsetStart
     high_rate: object = None
+    lidar_groups: tuple[str, ...] = ()
+    lidar_blocks: tuple[str, ...] = ()
 
 
 def build_gil_problem(
@@ -138,6 +143,7 @@ def build_gil_problem(
         built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors,
                                  previous.gnss_error)
     P = built.problem
+    gi_groups, gi_blocks = {g.name for g in P.groups}, set(P.blocks)
 
     grid = built.grid
     if time_offset is None:
@@ -171,7 +177,8 @@ def build_gil_problem(
         )
     )
     return GilProblem(built, int(sel.size), int(used_objects.size), boresight, bool(timing["time_offset"]),
-                      time_offset, high_rate)
+                      time_offset, high_rate, tuple(g.name for g in P.groups if g.name not in gi_groups),
+                      tuple(n for n in P.blocks if n not in gi_blocks))
 
 
 def step_adjust_gil(
