@@ -36,7 +36,8 @@ weights; the precision the simulated sensors allow), computed after the runs (``
 not) and added to kept results that lack it while their runs are there. With it come the RMSE
 of each model's optimum from the truth (the G/I's and the G/I/L's own adjustment converged from
 the true trajectory: the error this draw of the noise allows) and the G/I's bound; a row that
-fails the checks says whether the optima fail them too (``optima fail``: the draw, not the run).
+fails the checks says whether the optima fail them too (``optima fail``: the model gives that
+error on this draw, whether by chance or by a defect of its own; not the run's solve or start).
 
 Results are kept per scenario in ``WORK/results/NAME.json``: a rerun skips scenarios done
 (delete the file to redo one), so the matrix can be run in parts.

@@ -29,9 +29,11 @@ Two more figures per pass split a run's error into what these data allow and wha
    the least damping); its attitude error against the truth at the knots inside the pass (RMS
    and mean, roll/pitch/heading). It is the error a converged adjustment of this model has on
    *these* data (this draw of the sensor noise): a run beyond it is held back by its solve, its
-   starting point (the G/I and the features matched on it) or its up-sampling, while a run near
-   it that is large against the bound has drawn a large error, which more draws show
-   (BENCHMARKS.md, Operating conditions). Without the robust loss the planes' misfitting tail
+   starting point (the G/I and the features matched on it) or its up-sampling, while in a run
+   near it that is large against the bound the model itself gives that error on these data:
+   a large draw, or a defect of the model, which more draws tell apart (BENCHMARKS.md,
+   Operating conditions). Without vibration the run and the optimum minimise the same function
+   of the same data and agree. Without the robust loss the planes' misfitting tail
    (the group fit) moves the optimum: on the tests' single pass its heading RMSE was 3.6 mdeg
    against the run's 1.7 and 1.6 of the bound;
 5. **the G/I's bound and optimum**: the same, with the LiDAR taken out (the plane observations
@@ -58,9 +60,9 @@ from georefine.adjustment.gnss_imu import (
 )
 from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.plane import PlaneObservation
+from georefine.adjustment.problem import Problem
 from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.upsampling import rebuild_high_rate
-from georefine.adjustment.problem import Problem
 from georefine.errors import InputError
 from georefine.geometry.rotation import log_so3, rph_from_R_n_b
 from georefine.io.trajectory import read_sbet
