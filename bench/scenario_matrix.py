@@ -164,13 +164,17 @@ def key_of(s, draw: int = 0) -> str:
     return name_of(s) + (f"~{draw}" if draw else "")
 
 
+def has_bounds(rec: dict, kind: str) -> bool:
+    """Whether ``rec[kind]`` holds the bound of every pass with the optima and the G/I's bound."""
+    return bool(rec[kind].get("bound")) and all("gi" in b for b in rec[kind]["bound"])
+
+
 def bounds(work: Path, key: str, rec: dict) -> dict:
     """``rec`` with the Cramér-Rao bound of both runs (``rec[kind]["bound"]``, per pass) where it has
     none and the runs and the project are still there (the bound needs no scans)."""
     project = work / "projects" / key
     for kind, run_dir in (("both", work / "runs" / key), ("single", work / "runs" / f"{key}_single")):
-        done = rec[kind].get("bound") and all("gi" in b for b in rec[kind]["bound"])
-        if done or not (run_dir / "features" / "features.csv").is_file():
+        if has_bounds(rec, kind) or not (run_dir / "features" / "features.csv").is_file():
             continue
         if not (project / "truth" / "scenario.yaml").is_file():
             continue
@@ -183,8 +187,7 @@ def one(work: Path, s, seed: int, length: float, draw: int = 0, with_bounds: boo
     path = work / "results" / f"{key}.json"
     if path.is_file():
         rec = json.loads(path.read_text())
-        if with_bounds and not all(rec[kind].get("bound") and all("gi" in b for b in rec[kind]["bound"])
-                                   for kind in ("both", "single")):
+        if with_bounds and not all(has_bounds(rec, kind) for kind in ("both", "single")):
             rec = bounds(work, key, rec)
             path.write_text(json.dumps(rec, indent=1))
         return rec
