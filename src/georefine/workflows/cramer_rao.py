@@ -27,7 +27,8 @@ Two more figures per pass split a run's error into what these data allow and wha
 4. **the model's optimum**: the adjustment the run makes (a-priori weights, the planes' robust
    loss) started at that point and iterated to its minimum (:data:`OPTIMUM_ITERATIONS` steps from
    the least damping); its attitude error against the truth at the knots inside the pass (RMS
-   and mean, roll/pitch/heading). It is the error a converged adjustment of this model has on
+   and mean of the wrapped roll/pitch/heading differences, as the runs' errors are measured).
+   It is the error a converged adjustment of this model has on
    *these* data (this draw of the sensor noise): a run beyond it is held back by its solve, its
    starting point (the G/I and the features matched on it) or its up-sampling, while in a run
    near it that is large against the bound the model itself gives that error on these data:
@@ -53,20 +54,15 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from georefine.adjustment.gnss_imu import (
-    GnssErrorEstimate,
-    GnssImuResult,
-    ImuErrorEstimate,
-    euler_rate_inverse,
-    trajectory_sigma,
-)
+from georefine.adjustment.gnss_imu import GnssErrorEstimate, GnssImuResult, ImuErrorEstimate, trajectory_sigma
 from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.upsampling import rebuild_high_rate
 from georefine.errors import InputError
-from georefine.geometry.rotation import log_so3, rph_from_R_n_b
+from georefine.evaluation.trajectory import wrap_angle
+from georefine.geometry.rotation import rph_from_R_n_b
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import read_objects
 from georefine.lidar.planes import read_features
@@ -244,11 +240,12 @@ def _figures(P: Problem, gil, nav: NavigationData, tcfg, truth_state: dict[str, 
         return _Figures(times, sigma_rph, grid.knot_times, np.full((grid.n_knots, 3), np.nan))
     P.solve(SolverOptions(max_iterations=OPTIMUM_ITERATIONS, function_tolerance=OPTIMUM_TOLERANCE,
                           initial_lambda=OPTIMUM_LAMBDA, reuse_factor_from=OPTIMUM_REUSE_FACTOR))
-    R_true, p_true = truth_state[blocks.attitude], truth_state[blocks.position]
-    delta = log_so3(np.swapaxes(R_true, 1, 2) @ P.values(blocks.attitude))  # right perturbation, body frame
-    rph = rph_from_R_n_b(np.swapaxes(nav.frame.R_w_n_at(p_true), 1, 2) @ R_true)
-    error = np.einsum("kij,kj->ki", euler_rate_inverse(rph), delta)
-    return _Figures(times, sigma_rph, grid.knot_times, error)
+    # As the runs' errors are measured (evaluation.trajectory): the difference of the NED roll,
+    # pitch and heading of each trajectory at its own position, wrapped.
+    rph_true, rph_opt = (rph_from_R_n_b(np.swapaxes(nav.frame.R_w_n_at(state[blocks.position]), 1, 2)
+                                        @ state[blocks.attitude])
+                         for state in (truth_state, {name: P.values(name) for name in P.blocks}))
+    return _Figures(times, sigma_rph, grid.knot_times, wrap_angle(rph_opt - rph_true))
 
 
 def _mdeg(x: np.ndarray) -> np.ndarray:
