@@ -28,7 +28,7 @@ from georefine.lidar.time_offset import search_time_offset
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.sampled import Trajectory
 from georefine.workflows.lidar import GNSS_PULL_RATIO, warn_plane_misfit
-from georefine.workflows.time_offset import warn_time_offset
+from georefine.workflows.time_offset import offset_unobservable, warn_time_offset
 
 SPEED = 50.0
 R_W_N = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # NED -> ENU
@@ -120,6 +120,39 @@ def test_passes_flown_one_way_cannot_show_an_offset():
     assert not found.adopted and found.offset_s == 0.0
     one = search_time_offset(first, poses, poses.span, np.zeros(3), np.eye(3), speed_max_m_s=SPEED)
     assert not one.adopted and one.candidates == 0 and "one strip" in one.reason
+
+
+def _track(t: np.ndarray, heading_deg) -> np.ndarray:
+    """Velocity (ENU, m/s) at ``t``: 30 m/s along ``heading_deg`` (clockwise from north), ±1 m/s of noise."""
+    h = np.radians(np.broadcast_to(heading_deg, t.shape))
+    v = np.column_stack([30 * np.sin(h), 30 * np.cos(h), np.zeros_like(t)])
+    return v + np.random.default_rng(3).normal(0, 1.0, v.shape)
+
+
+@pytest.mark.parametrize("headings, observable", [
+    ((90.0,), False),  # one strip
+    ((90.0, 100.0), False),  # two strips flown one way, 10 degrees apart
+    ((90.0, 270.0), True),  # opposite passes: twice the shift
+    ((90.0, 0.0), True),  # crossing: 1.4 times
+    ((90.0, 95.0, 0.0), True),
+])
+def test_only_strips_with_different_tracks_show_an_offset(headings, observable):
+    """An offset moves each strip along its own track: strips flown one way disagree by nothing."""
+    times = np.concatenate([np.linspace(100 * i, 100 * i + 40, 500) for i in range(len(headings))])
+    strips = np.repeat(np.arange(1, len(headings) + 1), 500)
+    heading_at = lambda t: np.asarray(headings)[np.minimum(t // 100, len(headings) - 1).astype(int)]  # noqa: E731
+    reason = offset_unobservable(times, strips, lambda t: _track(t, heading_at(t)))
+    assert (reason is None) == observable, reason
+    if not observable:
+        assert ("one strip" if len(headings) == 1 else "flown one way") in reason
+
+
+def test_a_strip_that_does_not_move_shows_no_offset():
+    """A hover has no track: with one moving strip beside it the offset stays held."""
+    times = np.concatenate([np.linspace(0, 40, 300), np.linspace(100, 140, 300)])
+    strips = np.repeat([1, 2], 300)
+    velocity = lambda t: np.where((t < 50)[:, None], _track(t, 90.0), 0.1 * _track(t, 270.0))  # noqa: E731
+    assert "one strip" in offset_unobservable(times, strips, velocity)
 
 
 def test_a_shifted_plan_moves_every_time_and_no_record():

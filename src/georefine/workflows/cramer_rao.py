@@ -285,9 +285,10 @@ def cramer_rao_bound(project_dir: str | Path, run_dir: str | Path, optimum: bool
     ``project_dir`` (see the module docstring), for the passes whose strips the run matched; with
     ``optimum``, the model's optimum from the truth (its figures NaN without); with ``with_gi``,
     the same for the G/I. The optimum is the dearest part: on the tests' single pass the bound
-    alone took about 17 s, the G/I/L's optimum 64 s more (38 Cauchy-reweighted steps, each
-    factorised; 30 s less by conjugate gradients, :data:`OPTIMUM_REUSE_FACTOR`), the G/I's bound
-    and optimum 11 s.
+    alone took about 17 s, the G/I/L's optimum about 30 s more (29 Cauchy-reweighted steps,
+    those after the first by conjugate gradients, :data:`OPTIMUM_REUSE_FACTOR`; 38 steps and 64 s
+    each factorised while the single pass still estimated the LiDAR time offset), the G/I's
+    bound and optimum 11 s.
 
     Raises
     ------

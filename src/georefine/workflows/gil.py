@@ -38,7 +38,13 @@ from georefine.progress import Progress, no_progress
 from georefine.trajectory.spline import KnotGrid
 from georefine.workflows.delivered import build_delivered_problem
 from georefine.workflows.navigation import NavigationData
-from georefine.workflows.time_offset import EDGE_MARGIN_S, OFFSET_BLOCK, TimeOffsetStart, add_time_offset
+from georefine.workflows.time_offset import (
+    EDGE_MARGIN_S,
+    OFFSET_BLOCK,
+    TimeOffsetStart,
+    add_time_offset,
+    offset_unobservable,
+)
 
 __all__ = ["GilProblem", "LidarAdjustment", "add_posterior", "build_gil_problem", "step_adjust_gil"]
 
@@ -48,7 +54,9 @@ class LidarAdjustment:
     """Result of one G/I/L adjustment (``built``: the problem, for :func:`add_posterior`).
 
     ``time_offset_s`` is the LiDAR time offset the adjustment ends with (estimated, or the one its
-    features used); ``time_offset_start`` where it started; the sigmas come with the posterior.
+    features used); ``time_offset_start`` where it started; the sigmas come with the posterior;
+    ``time_offset_held``: why an offset the configuration estimates was held (its strips cannot
+    show one, :func:`~georefine.workflows.time_offset.offset_unobservable`), or None.
     """
 
     result: GnssImuResult
@@ -61,6 +69,7 @@ class LidarAdjustment:
     time_offset_start: TimeOffsetStart | None = None
     time_offset_sigma_s: float | None = None
     time_offset_gnss_sigma_s: float | None = None  # what GNSS errors lasting a pass add (gnss_offset_sigma)
+    time_offset_held: str | None = None
 
 
 def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
@@ -90,7 +99,8 @@ class GilProblem:
 
     ``built``: the G/I problem with the plane observations in it; ``features_used`` and
     ``objects_used``: the features and objects it observes; ``boresight``: the name of the
-    boresight block, or None; ``estimates_offset``: whether it estimates the LiDAR time offset;
+    boresight block, or None; ``estimates_offset``: whether it estimates the LiDAR time offset,
+    ``offset_held``: why not though the configuration asks for it (its strips cannot show one);
     ``high_rate``: a delivered trajectory's faster motion (§4.9), else None; ``lidar_groups`` and
     ``lidar_blocks``: what the LiDAR adds to the G/I problem (the plane observations, the
     boresight's and time offset's priors; the objects, boresight and time offset blocks), so that
@@ -106,6 +116,7 @@ class GilProblem:
     high_rate: object = None
     lidar_groups: tuple[str, ...] = ()
     lidar_blocks: tuple[str, ...] = ()
+    offset_held: str | None = None
 
 
 def build_gil_problem(
@@ -148,7 +159,11 @@ def build_gil_problem(
     grid = built.grid
     if time_offset is None:
         time_offset = TimeOffsetStart(cfg.scanner.time_offset_s, cfg.scanner.time_offset_s)
-    timing = add_time_offset(P, cfg, time_offset)
+    held = None
+    if cfg.processing.lidar.time_offset.estimate:  # only strips with different tracks show an offset
+        matched = (objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end)
+        held = offset_unobservable(features.time[matched], features.strip[matched], spline.velocity)
+    timing = add_time_offset(P, cfg, time_offset, held)
     margin = EDGE_MARGIN_S if timing["time_offset"] else 0.0  # an estimated offset moves the feature times
     sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start + margin)
                          & (features.time <= grid.t_end - margin))
@@ -178,7 +193,7 @@ def build_gil_problem(
     )
     return GilProblem(built, int(sel.size), int(used_objects.size), boresight, bool(timing["time_offset"]),
                       time_offset, high_rate, tuple(g.name for g in P.groups if g.name not in gi_groups),
-                      tuple(n for n in P.blocks if n not in gi_blocks))
+                      tuple(n for n in P.blocks if n not in gi_blocks), held)
 
 
 def step_adjust_gil(
@@ -228,5 +243,5 @@ def step_adjust_gil(
     if gil.estimates_offset:
         offset += float(P.values(OFFSET_BLOCK)[0, 0])
     adj = LidarAdjustment(result, gil.features_used, gil.objects_used, bs_deg, None, built,
-                          time_offset_s=offset, time_offset_start=gil.time_offset)
+                          time_offset_s=offset, time_offset_start=gil.time_offset, time_offset_held=gil.offset_held)
     return add_posterior(adj) if covariance else adj

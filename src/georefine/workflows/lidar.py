@@ -121,6 +121,9 @@ class WorkflowResult:
             gnss = self.gil.time_offset_gnss_sigma_s
             lines.append(f"  LiDAR time offset: {self.gil.time_offset_s:+.5f} s ± {self.gil.time_offset_sigma_s * 1e3:.3f} ms"
                          + (f" (± {gnss * 1e3:.2f} ms from GNSS errors that last a pass)" if gnss else ""))
+        if self.gil is not None and self.gil.time_offset_held is not None:
+            lines.append(f"  LiDAR time offset: held at {self.gil.time_offset_s:+.5f} s, not estimated: "
+                         f"{self.gil.time_offset_held}")
         lines += precision_lines(m.pass_precision)
         if m.resumed:
             lines.append("  resumed from the cache: " + ", ".join(m.resumed))
@@ -509,6 +512,7 @@ def _adjustment_report(nav: NavigationData, adj: GnssImuResult, boresight: Lidar
             "sigma_ms": None if sigma is None else sigma * 1e3,
             "gnss_sigma_ms": None if gnss is None or not np.isfinite(gnss) else gnss * 1e3,
             "prior_s": None if boresight.time_offset_start is None else boresight.time_offset_start.prior_s,
+            "held": boresight.time_offset_held,
         }
     return report
 
