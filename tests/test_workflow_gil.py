@@ -228,6 +228,19 @@ def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_pat
     assert f"{rp['G/I/L']['avg_sd_m'] * 1e3:.1f}" in page and page.count("data:image/png;base64,") >= 4
 
 
+@pytest.mark.slow
+def test_a_single_pass_holds_the_time_offset_that_both_passes_estimate(full_run, gil_single_pass):
+    """One strip cannot show a LiDAR time offset (it moves all its views alike): the single pass
+    holds it where it started and says why; both passes, flown opposite ways, estimate it."""
+    both = json.loads((full_run / "gil" / "adjustment.json").read_text())["lidar_time_offset"]
+    one = json.loads((gil_single_pass / "gil" / "adjustment.json").read_text())["lidar_time_offset"]
+    assert both["held"] is None and both["sigma_ms"] > 0
+    assert one["held"].startswith("one strip only") and one["sigma_ms"] is None
+    assert one["estimate_s"] == one["configured_s"]
+    last = json.loads((gil_single_pass / "metrics.json").read_text())["outer_iterations"][-1]
+    assert last["time_offset_s"] == last["time_offset_start_s"] == one["configured_s"]
+
+
 def test_rerun_resumes_unchanged_steps_and_recomputes_changed_ones(sparse_project, tmp_path):
     import os
 

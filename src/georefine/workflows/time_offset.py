@@ -108,7 +108,10 @@ def offset_unobservable(times: np.ndarray, strips: np.ndarray, velocity, samples
             mean = np.mean(v[moving] / speed[moving, None], axis=0)
             directions.append(mean / max(float(np.linalg.norm(mean)), 1e-12))
     if len(directions) < 2:
-        return "one strip only: a time offset moves all its views alike"
+        if np.unique(strips).size < 2:
+            return "one strip only: a time offset moves all its views alike"
+        return (f"one strip flown faster than {MOVING_M_S:g} m/s only: a time offset moves all its views alike, "
+                "and a strip without a track none")
     d = np.asarray(directions)
     spread = float(np.degrees(np.arccos(np.clip(np.min(d @ d.T), -1.0, 1.0))))
     if spread < MIN_TRACK_ANGLE_DEG:
