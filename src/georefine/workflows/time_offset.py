@@ -68,7 +68,7 @@ def search_and_shift(nav, trajectory: Trajectory, frame_poses, features: PlanarF
     speed = np.linalg.norm(np.diff(trajectory.p_w_b, axis=0), axis=1) / np.diff(trajectory.time)
     result = search_time_offset(features, poses, poses.span, p_b_s, R_b_s,
                                 speed_max_m_s=float(np.percentile(speed, 99.5)), configured_s=configured_s,
-                                range_s=tcfg.search_range_s)
+                                range_s=tcfg.search_range_s, feature_spacing_m=cfg.processing.planes.seed_spacing_m)
     if not result.adopted:
         log.info("LiDAR time offset search: %s", result.describe())
         return result, features
