@@ -28,7 +28,7 @@ default 2 m, :mod:`georefine.lidar.planes`), not within ``4 d_max``: a feature w
 other strip did not seed has its counterparts at the next nodes, 2 m away, and with a radius of
 1.6 m a shift of about 1 m brought them in. On a simulated corridor flown at 30 m/s (300 m,
 truth 0) that made the score lowest near the truth (0.720 at +2 ms, with the true trajectory)
-and highest at ±14-18 ms (0.805), and the search adopted -16 ms in three of six such projects;
+and highest at ±14-18 ms (0.805), and the search adopted ±16 ms in all four such projects of the scenario matrix;
 with the wider radius the score peaks at the truth (0.995 against 0.942 at -30 ms). A candidate moves every
 counterpart into ``w`` (one compiled pass, :meth:`PoseInterpolator.transform_with_directions`),
 builds a k-d tree over them and queries it; on ``corridor-tiny`` (3000 features scored against
