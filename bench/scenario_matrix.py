@@ -176,7 +176,8 @@ def bounds(work: Path, key: str, rec: dict) -> dict:
     """``rec`` with the Cramér-Rao bound of both runs (``rec[kind]["bound"]``, per pass) where it has
     none and the runs and the project are still there (the bound needs no scans)."""
     project = work / "projects" / key
-    for kind, run_dir in (("both", work / "runs" / key), ("single", work / "runs" / f"{key}_single")):
+    for kind in ("both", "single"):
+        run_dir = run_dir_of(work, key, kind)
         if has_bounds(rec, kind) or not (run_dir / "features" / "features.csv").is_file():
             continue
         if not (project / "truth" / "scenario.yaml").is_file():
@@ -185,43 +186,43 @@ def bounds(work: Path, key: str, rec: dict) -> dict:
     return rec
 
 
-def redo(work: Path, s, seed: int, length: float, key: str, rec: dict, kind: str) -> dict:
-    """``rec`` with its ``kind`` run (``both`` or ``single``) done again, its bound dropped."""
-    t = time.perf_counter()
-    project = simulate(work, s, seed, length, key)
+def run_dir_of(work: Path, key: str, kind: str) -> Path:
+    """Where the ``kind`` run (``both`` or ``single``) of scenario ``key`` goes."""
+    return work / "runs" / (key if kind == "both" else f"{key}_single")
+
+
+def solution(work: Path, project: Path, key: str, kind: str) -> dict:
+    """Run ``kind`` (both passes, or the first pass alone) and evaluate it against the truth."""
     strips = [p["strip_id"] for p in yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["passes"]]
-    run_dir = work / "runs" / (key if kind == "both" else f"{key}_single")
-    used = strips if kind == "both" else strips[:1]
+    run_dir = run_dir_of(work, key, kind)
     done = run(project, run_dir, None if kind == "both" else str(strips[0]))
-    rec[kind] = {**evaluate(project, run_dir, used), **done}
-    rec["wall_s"] = rec.get("wall_s", 0.0) + time.perf_counter() - t
-    shutil.rmtree(project / "scans", ignore_errors=True)
-    return rec
+    return {**evaluate(project, run_dir, strips if kind == "both" else strips[:1]), **done}
 
 
 def one(work: Path, s, seed: int, length: float, draw: int = 0, with_bounds: bool = True,
         again: str | None = None) -> dict:
+    """Scenario ``s``'s draw: kept, or simulated and run; with ``again`` (``--redo``) that
+    solution of a kept one run again and its bound dropped; the bounds added where missing."""
     key = key_of(s, draw)
     path = work / "results" / f"{key}.json"
-    if path.is_file():
+    kept = path.is_file()
+    if kept and again is None:
         rec = json.loads(path.read_text())
-        if again is not None:
-            rec = redo(work, s, seed, length, key, rec, again)
-            path.write_text(json.dumps(rec, indent=1))
         if with_bounds and not all(has_bounds(rec, kind) for kind in ("both", "single")):
             rec = bounds(work, key, rec)
             path.write_text(json.dumps(rec, indent=1))
         return rec
     t = time.perf_counter()
     project = simulate(work, s, seed, length, key)
-    strips = [p["strip_id"] for p in yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["passes"]]
-    both = run(project, work / "runs" / key, None)
-    single = run(project, work / "runs" / f"{key}_single", str(strips[0]))
-    rec = {"scenario": dict(zip(("imu", "flight", "gnss", "latitude", "vibration"), s)), "seed": seed,
-           "draw": draw, "length_m": length,
-           "both": {**evaluate(project, work / "runs" / key, strips), **both},
-           "single": {**evaluate(project, work / "runs" / f"{key}_single", strips[:1]), **single},
-           "wall_s": time.perf_counter() - t}
+    if kept:
+        rec = json.loads(path.read_text())
+        rec[again] = solution(work, project, key, again)
+        rec["wall_s"] = rec.get("wall_s", 0.0) + time.perf_counter() - t
+    else:
+        rec = {"scenario": dict(zip(("imu", "flight", "gnss", "latitude", "vibration"), s)), "seed": seed,
+               "draw": draw, "length_m": length,
+               **{kind: solution(work, project, key, kind) for kind in ("both", "single")}}
+        rec["wall_s"] = time.perf_counter() - t
     if with_bounds:
         rec = bounds(work, key, rec)
     path.parent.mkdir(parents=True, exist_ok=True)
