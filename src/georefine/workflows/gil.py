@@ -159,14 +159,13 @@ def build_gil_problem(
     grid = built.grid
     if time_offset is None:
         time_offset = TimeOffsetStart(cfg.scanner.time_offset_s, cfg.scanner.time_offset_s)
+    matched = (objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end)
     held = None
-    if cfg.processing.lidar.time_offset.estimate:  # only strips with different tracks show an offset
-        matched = (objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end)
+    if lcfg.time_offset.estimate:  # only strips with different tracks show an offset
         held = offset_unobservable(features.time[matched], features.strip[matched], spline.velocity)
     timing = add_time_offset(P, cfg, time_offset, held)
     margin = EDGE_MARGIN_S if timing["time_offset"] else 0.0  # an estimated offset moves the feature times
-    sel = np.flatnonzero((objects.feature_object >= 0) & (features.time >= grid.t_start + margin)
-                         & (features.time <= grid.t_end - margin))
+    sel = np.flatnonzero(matched & (features.time >= grid.t_start + margin) & (features.time <= grid.t_end - margin))
     if sel.size > lcfg.max_features:
         # Whole objects, the same ones in every outer iteration as far as the re-matching allows
         # (ranked by a min-hash of keys fixed by strip, channel and seed voxel), not a fresh random
