@@ -24,11 +24,11 @@ from georefine.geometry.rotation import R_n_b_from_rph
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import PlanarFeatures
 from georefine.lidar.tiles import StripPlan, Tile, shift_plan
-from georefine.lidar.time_offset import search_time_offset
+from georefine.lidar.time_offset import offset_unobservable, search_time_offset
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.sampled import Trajectory
 from georefine.workflows.lidar import GNSS_PULL_RATIO, warn_plane_misfit
-from georefine.workflows.time_offset import offset_unobservable, warn_time_offset
+from georefine.workflows.time_offset import warn_time_offset
 
 SPEED = 50.0
 R_W_N = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # NED -> ENU
@@ -170,6 +170,10 @@ def test_passes_flown_one_way_cannot_show_an_offset():
     found = search_time_offset(PlanarFeatures.concatenate([first, copy]), poses, poses.span, np.zeros(3), np.eye(3),
                                speed_max_m_s=SPEED, range_s=3.0)
     assert not found.adopted and found.offset_s == 0.0
+    assert found.candidates == 0 and "flown one way" in found.reason, found  # not searched: the adjustment's test
+    # The two passes (all stamped a second early) have opposite tracks: the search runs and finds it.
+    both = search_time_offset(feats, poses, poses.span, np.zeros(3), np.eye(3), speed_max_m_s=SPEED, range_s=3.0)
+    assert both.adopted and both.candidates > 0 and abs(both.best_s - 1.0) < 1e-3, both
     one = search_time_offset(first, poses, poses.span, np.zeros(3), np.eye(3), speed_max_m_s=SPEED)
     assert not one.adopted and one.candidates == 0 and "one strip" in one.reason
 

@@ -35,8 +35,9 @@ builds a k-d tree over them and queries it; on ``corridor-tiny`` (3000 features 
 30,000 in the coarse scan, 80,000 in the fine one, 353 candidates) the search takes a third of
 the time it took with numpy's per-feature matrices: 11-16 s against 39 s on two busy cores.
 The candidate is adopted when its fine score clearly beats the configured offset's (by
-``min_gain``): otherwise the configured offset stays, as it does when the strips cannot show a
-shift (passes all flown in one direction, too few features).
+``min_gain``): otherwise the configured offset stays. Nothing is searched where the strips
+cannot show a shift (:func:`offset_unobservable`: one strip, or strips all flown one way, whose
+scan found nothing in 10-20 s), the same test by which the adjustment holds the offset.
 
 Written by hand: no library scores a rigid time shift of a continuous-time pose against
 plane-to-plane agreement; the neighbour search is scipy's cKDTree.
@@ -55,7 +56,13 @@ from georefine.lidar.planes import PlanarFeatures
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TimeOffsetSearch", "georeference_features", "search_time_offset", "time_offset_score"]
+__all__ = ["MIN_TRACK_ANGLE_DEG", "MOVING_M_S", "TimeOffsetSearch", "georeference_features", "offset_unobservable",
+           "search_time_offset", "time_offset_score"]
+
+MIN_TRACK_ANGLE_DEG = 30.0
+"""Strips whose tracks differ by less than this cannot show a time offset (:func:`offset_unobservable`)."""
+MOVING_M_S = 5.0
+"""Slower than this a strip has no track (hover, turn on the spot): its features show no offset."""
 
 _MIN_TILT_DEG = 10.0  # features on planes tilted more than this take part ...
 _MIN_TILTED = 200  # ... when there are at least this many of them
@@ -221,6 +228,59 @@ def _pool(features: PlanarFeatures, max_pool: int, rng: np.random.Generator) -> 
     return features.select(pool)
 
 
+def offset_unobservable(times: np.ndarray, strips: np.ndarray, velocity, samples: int = 2000) -> str | None:
+    """Why features at ``times`` of ``strips`` cannot show the LiDAR time offset, or None when they can.
+
+    An offset ``delta`` moves every point of a strip along its track by ``v delta``; the strips
+    disagree by ``delta (v_1 - v_2)``, so only strips whose tracks differ see it (opposite passes
+    twice the shift, crossing ones 1.4 times; the module docstring).
+    With one strip, or strips whose mean horizontal directions all lie within
+    :data:`MIN_TRACK_ANGLE_DEG`, what the planes say about the offset comes from the attitude
+    changing during it, a second-order effect that modelling errors of the planes outweigh: on a
+    simulated single pass (tactical IMU, 30 m/s at 300 m) the robust adjustment took an offset
+    whose truth was 0 past 45 ms, nine of its prior's sigmas, and the pitch with it from 1.0 to 2.2
+    mdeg, where the bound was 0.7 (BENCHMARKS.md). ``velocity``: ``t -> v_w`` (m/s, ``w``
+    horizontal in its first two axes); at most ``samples`` times per strip are used.
+    """
+    times, strips = np.asarray(times, dtype=float), np.asarray(strips)
+    directions = []
+    for strip in np.unique(strips):
+        t = times[strips == strip]
+        t = t[np.linspace(0, t.size - 1, min(samples, t.size)).astype(int)]
+        v = np.asarray(velocity(t), dtype=float)[:, :2]
+        speed = np.linalg.norm(v, axis=1)
+        moving = speed > MOVING_M_S
+        if np.any(moving):
+            mean = np.mean(v[moving] / speed[moving, None], axis=0)
+            directions.append(mean / max(float(np.linalg.norm(mean)), 1e-12))
+    if len(directions) < 2:
+        if np.unique(strips).size < 2:
+            return "one strip only: a time offset moves all its views alike"
+        return (f"one strip flown faster than {MOVING_M_S:g} m/s only: a time offset moves all its views alike, "
+                "and a strip without a track none")
+    d = np.asarray(directions)
+    spread = float(np.degrees(np.arccos(np.clip(np.min(d @ d.T), -1.0, 1.0))))
+    if spread < MIN_TRACK_ANGLE_DEG:
+        return (f"the strips were flown one way (their tracks within {spread:.0f} degrees): "
+                "a time offset moves all their views alike")
+    return None
+
+
+def _velocity(poses, span: tuple[float, float], h: float = 0.5):
+    """``t -> v_w`` from ``poses`` by central differences over ``2 h`` seconds, times clamped to ``span``.
+
+    Enough to tell the strips' tracks apart (:func:`offset_unobservable`) at times the configured
+    offset may still leave seconds off, or outside the trajectory.
+    """
+    lo, hi = span[0] + h, span[1] - h
+
+    def velocity(t: np.ndarray) -> np.ndarray:
+        t = np.clip(np.asarray(t, dtype=float), lo, max(lo, hi))
+        return (poses(t + h)[0] - poses(t - h)[0]) / (2.0 * h)
+
+    return velocity
+
+
 def search_time_offset(
     features: PlanarFeatures, poses, span: tuple[float, float], p_b_s: np.ndarray, R_b_s: np.ndarray,
     *, speed_max_m_s: float, configured_s: float = 0.0, range_s: float = 20.0, max_features: int = 3000,
@@ -260,9 +320,13 @@ def search_time_offset(
         which estimates it from a prior 5 ms wide around the configured one.
     """
     rng = np.random.default_rng(seed)
-    if len(features) == 0 or np.unique(features.strip).size < 2:  # the views of one strip move alike
+    if len(features) == 0:
+        return TimeOffsetSearch(configured_s, configured_s, float("nan"), float("nan"), False, 0, 0, 0.0,
+                                "no planar features")
+    unobservable = offset_unobservable(features.time, features.strip, _velocity(poses, span))
+    if unobservable is not None:  # one strip, or strips flown one way: the views move alike
         return TimeOffsetSearch(configured_s, configured_s, float("nan"), float("nan"), False, len(features), 0,
-                                0.0, "one strip only: a time offset moves all its views alike")
+                                0.0, unobservable)
     full = _pool(features, 5 * max_pool, rng)  # the fine scan's counterparts
     in_coarse = np.sort(rng.permutation(len(full))[:max_pool])
     sub = full.select(in_coarse)  # the coarse scan's

@@ -34,6 +34,7 @@ from georefine.geometry.rotation import rph_from_R_n_b
 from georefine.lidar.correspondences import PlanarObjects
 from georefine.lidar.feature_sample import feature_keys, stable_object_subset
 from georefine.lidar.planes import PlanarFeatures
+from georefine.lidar.time_offset import offset_unobservable
 from georefine.progress import Progress, no_progress
 from georefine.trajectory.spline import KnotGrid
 from georefine.workflows.delivered import build_delivered_problem
@@ -43,7 +44,6 @@ from georefine.workflows.time_offset import (
     OFFSET_BLOCK,
     TimeOffsetStart,
     add_time_offset,
-    offset_unobservable,
 )
 
 __all__ = ["GilProblem", "LidarAdjustment", "add_posterior", "build_gil_problem", "step_adjust_gil"]
@@ -56,7 +56,7 @@ class LidarAdjustment:
     ``time_offset_s`` is the LiDAR time offset the adjustment ends with (estimated, or the one its
     features used); ``time_offset_start`` where it started; the sigmas come with the posterior;
     ``time_offset_held``: why an offset the configuration estimates was held (its strips cannot
-    show one, :func:`~georefine.workflows.time_offset.offset_unobservable`), or None.
+    show one, :func:`~georefine.lidar.time_offset.offset_unobservable`), or None.
     """
 
     result: GnssImuResult

@@ -7,7 +7,8 @@ when another offset makes the strips agree clearly better, goes on from it with 
 states the figures. With ``estimate`` every G/I/L adjustment carries the offset as a parameter of the plane
 observations, with a prior around the configured or searched value; the next outer iteration
 extracts its features at the estimate, and the final georeferencing uses the last one. Only
-strips flown in different directions show an offset (:func:`offset_unobservable`): with one
+strips flown in different directions show an offset
+(:func:`~georefine.lidar.time_offset.offset_unobservable`): with one
 strip, or strips all flown one way, the offset stays where it started, and the run says so.
 docs/ARCHITECTURE.md §4.5.
 
@@ -33,16 +34,12 @@ from georefine.trajectory.sampled import Trajectory
 
 log = logging.getLogger(__name__)
 
-__all__ = ["OFFSET_BLOCK", "TimeOffsetStart", "add_time_offset", "gnss_offset_sigma", "offset_unobservable",
-           "search_and_shift", "warn_time_offset"]
+__all__ = ["OFFSET_BLOCK", "TimeOffsetStart", "add_time_offset", "gnss_offset_sigma", "search_and_shift",
+           "warn_time_offset"]
 
 OFFSET_BLOCK = "lidar_time_offset"
 EDGE_MARGIN_S = 0.5
 """Features closer than this to the trajectory's ends stay out of an adjustment that moves their times."""
-MIN_TRACK_ANGLE_DEG = 30.0
-"""Strips whose tracks differ by less than this cannot show a time offset (:func:`offset_unobservable`)."""
-MOVING_M_S = 5.0
-"""Slower than this a strip has no track (hover, turn on the spot): its features show no offset."""
 
 
 @dataclass(frozen=True)
@@ -82,51 +79,13 @@ def search_and_shift(nav, trajectory: Trajectory, frame_poses, features: PlanarF
     return result, replace(shifted, time=t, centre_w=centre_w, normal_w=normal_w)
 
 
-def offset_unobservable(times: np.ndarray, strips: np.ndarray, velocity, samples: int = 2000) -> str | None:
-    """Why features at ``times`` of ``strips`` cannot show the LiDAR time offset, or None when they can.
-
-    An offset ``delta`` moves every point of a strip along its track by ``v delta``; the strips
-    disagree by ``delta (v_1 - v_2)``, so only strips whose tracks differ see it (opposite passes
-    twice the shift, crossing ones 1.4 times; the search's argument, :mod:`georefine.lidar.time_offset`).
-    With one strip, or strips whose mean horizontal directions all lie within
-    :data:`MIN_TRACK_ANGLE_DEG`, what the planes say about the offset comes from the attitude
-    changing during it, a second-order effect that modelling errors of the planes outweigh: on a
-    simulated single pass (tactical IMU, 30 m/s at 300 m) the robust adjustment took an offset
-    whose truth was 0 past 45 ms, nine of its prior's sigmas, and the pitch with it from 1.0 to 2.2
-    mdeg, where the bound was 0.7 (BENCHMARKS.md). ``velocity``: ``t -> v_w`` (m/s, ``w``
-    horizontal in its first two axes); at most ``samples`` times per strip are used.
-    """
-    times, strips = np.asarray(times, dtype=float), np.asarray(strips)
-    directions = []
-    for strip in np.unique(strips):
-        t = times[strips == strip]
-        t = t[np.linspace(0, t.size - 1, min(samples, t.size)).astype(int)]
-        v = np.asarray(velocity(t), dtype=float)[:, :2]
-        speed = np.linalg.norm(v, axis=1)
-        moving = speed > MOVING_M_S
-        if np.any(moving):
-            mean = np.mean(v[moving] / speed[moving, None], axis=0)
-            directions.append(mean / max(float(np.linalg.norm(mean)), 1e-12))
-    if len(directions) < 2:
-        if np.unique(strips).size < 2:
-            return "one strip only: a time offset moves all its views alike"
-        return (f"one strip flown faster than {MOVING_M_S:g} m/s only: a time offset moves all its views alike, "
-                "and a strip without a track none")
-    d = np.asarray(directions)
-    spread = float(np.degrees(np.arccos(np.clip(np.min(d @ d.T), -1.0, 1.0))))
-    if spread < MIN_TRACK_ANGLE_DEG:
-        return (f"the strips were flown one way (their tracks within {spread:.0f} degrees): "
-                "a time offset moves all their views alike")
-    return None
-
-
 def add_time_offset(problem: Problem, cfg, start: TimeOffsetStart, unobservable: str | None = None
                     ) -> dict[str, str | None]:
     """The offset's block and prior in ``problem``; the PlaneObservation's block names.
 
     The offset block holds the correction to ``start.features_s`` (0 to begin with); its prior
     centres the total on ``start.prior_s``. None of it when the configuration does not estimate
-    the offset, or with ``unobservable`` (:func:`offset_unobservable`'s reason, logged).
+    the offset, or with ``unobservable`` (:func:`~georefine.lidar.time_offset.offset_unobservable`'s reason, logged).
     """
     tcfg = cfg.processing.lidar.time_offset
     if not tcfg.estimate:
