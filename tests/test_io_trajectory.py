@@ -15,18 +15,16 @@ from georefine.io.trajectory import (
     SbetCompanion,
     SbetData,
     SmrmsgData,
-    TrajectoryTable,
     read_sbet,
     read_sbet_companion,
     read_smrmsg,
-    read_trajectory_csv,
     sbet_companion_path,
     smrmsg_path,
     write_sbet,
     write_sbet_companion,
     write_smrmsg,
-    write_trajectory_csv,
 )
+from georefine.io.trajectory_csv import TrajectoryTable, read_trajectory_csv, write_trajectory_csv
 
 T0 = 1_400_000_000.0
 WEEK = 2314

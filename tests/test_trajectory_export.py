@@ -43,10 +43,10 @@ from georefine.io.trajectory import (
     read_sbet,
     read_sbet_companion,
     read_smrmsg,
-    read_trajectory_csv,
     smrmsg_path,
     write_sbet,
 )
+from georefine.io.trajectory_csv import read_trajectory_csv
 from georefine.workflows.products import accuracy_from_sigmas, write_csv_product, write_sbet_product
 
 T0 = 1_399_708_800.0 + 3 * 86400.0 + 0.25  # GPS week 2314, Wednesday

@@ -18,7 +18,8 @@ import yaml
 from cli_helpers import run_georefine as _georefine
 from georefine.evaluation.trajectory import consistency
 from georefine.evaluation.trajectory_files import compare_sbet_files
-from georefine.io.trajectory import read_sbet, read_sbet_companion, read_smrmsg, read_trajectory_csv
+from georefine.io.trajectory import read_sbet, read_sbet_companion, read_smrmsg
+from georefine.io.trajectory_csv import read_trajectory_csv
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows import load_navigation, run_trajectory
 

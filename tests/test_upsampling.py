@@ -16,7 +16,8 @@ from georefine.evaluation.trajectory import consistency
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import log_so3
-from georefine.io.trajectory import read_sbet, read_trajectory_csv
+from georefine.io.trajectory import read_sbet
+from georefine.io.trajectory_csv import read_trajectory_csv
 from georefine.sim.flight import FlightConfig, VibrationConfig, simulate_flight
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.highrate import high_pass, reconstruct_high_rate, significant_content

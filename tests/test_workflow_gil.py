@@ -27,7 +27,8 @@ from georefine.evaluation.summary import RunEvaluation
 from georefine.io.files import make_output_folder
 from georefine.io.las import read_las
 from georefine.io.run_metrics import WorkflowMetrics
-from georefine.io.trajectory import read_sbet, read_trajectory_csv
+from georefine.io.trajectory import read_sbet
+from georefine.io.trajectory_csv import read_trajectory_csv
 from georefine.lidar.correspondences import (
     read_objects,
 )

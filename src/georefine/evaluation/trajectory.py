@@ -440,7 +440,7 @@ def consistency(
     sigma_rph_rad
         Standard deviations of roll, pitch, heading (rad): ``(N, 3)`` on the comparison's
         common times, or ``(M, 3)`` at ``sigma_time_gps`` (e.g.
-        :attr:`~georefine.io.trajectory.TrajectoryTable.sigma_rpy_rad`). For a reference
+        :attr:`~georefine.io.trajectory_csv.TrajectoryTable.sigma_rpy_rad`). For a reference
         that is not the truth pass the combined ``sqrt(sigma_est^2 + sigma_ref^2)``.
     sigma_time_gps
         ``(M,)`` times of ``sigma_rph_rad`` on the comparison's time scale; sigmas are then

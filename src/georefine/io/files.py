@@ -259,6 +259,16 @@ def calendar_from_gps_seconds(time_gps: np.ndarray, decimals: int = 3) -> tuple[
 # ---------------------------------------------------------------------------
 
 
+def finite_array(arr, shape: tuple[int, ...], name: str) -> np.ndarray:
+    """``arr`` as contiguous float64 of ``shape``; ValueError naming ``name`` otherwise or if not all finite."""
+    a = np.ascontiguousarray(arr, dtype=np.float64)
+    if a.shape != shape:
+        raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name} contains non-finite values")
+    return a
+
+
 def read_text_lines(path: PathLike) -> list[str]:
     """Read a text file as a list of lines without line ends.
 

@@ -1,4 +1,6 @@
-"""Trajectory files: Applanix SBET (binary) and a documented trajectory CSV.
+"""Trajectory files: Applanix SBET (binary), its companion file and POSPac accuracy file.
+
+The trajectory CSV is in :mod:`georefine.io.trajectory_csv`.
 
 SBET (smoothed best estimate of trajectory)
     Headerless sequence of 136-byte records, 17 little-endian float64 each, in
@@ -50,18 +52,6 @@ Accuracy file (POSPac ``smrmsg``; :func:`read_smrmsg`, :func:`write_smrmsg`)
     (:func:`smrmsg_path`): ``sbet_<name>.out`` -> ``smrmsg_<name>.out``, any
     other SBET name -> ``smrmsg_<stem>.out`` (``trajectory.sbet`` ->
     ``smrmsg_trajectory.out``).
-
-Trajectory CSV
-    Columns ``time,x,y,z,roll_deg,pitch_deg,heading_deg`` then optionally
-    ``sigma_x_m,sigma_y_m,sigma_z_m`` and/or
-    ``sigma_roll_mdeg,sigma_pitch_mdeg,sigma_heading_mdeg``.
-    ``time``: GPS seconds; ``x,y,z``: position of the IMU (body origin) in the
-    output CRS (metres; easting, northing, ellipsoidal height for a projected
-    CRS); roll/pitch/heading: NED Euler angles (Z-Y-X) in degrees, heading from
-    true north (not grid north), in [0, 360). Comment lines start with ``#``;
-    the writer records the CRS as ``# crs: <text>`` and the GPS week of the
-    first row as ``# gps_week: <week>`` (the week the SBET beside it counts
-    its seconds from).
 """
 
 from __future__ import annotations
@@ -75,19 +65,16 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.io.files import (
+    finite_array,
     SECONDS_PER_WEEK,
     PathLike,
     atomic_output,
-    data_lines,
-    parse_float_rows,
     raise_if_not_increasing,
-    read_text_lines,
     unwrap_seconds_of_week,
     week_from_gps_seconds,
 )
 
-__all__ = ["SbetData", "read_sbet", "write_sbet", "TrajectoryTable", "read_trajectory_csv",
-           "write_trajectory_csv", "SBET_FIELDS", "SBET_RECORD_SIZE", "SbetCompanion", "sbet_companion_path",
+__all__ = ["SbetData", "read_sbet", "write_sbet", "SBET_FIELDS", "SBET_RECORD_SIZE", "SbetCompanion", "sbet_companion_path",
            "read_sbet_companion", "write_sbet_companion", "SmrmsgData", "read_smrmsg", "write_smrmsg",
            "smrmsg_path", "SMRMSG_FIELDS", "SMRMSG_RECORD_SIZE"]
 
@@ -100,13 +87,30 @@ _SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
 SBET_RECORD_SIZE = _SBET_DTYPE.itemsize  # 136 bytes
 
 
-def _as(arr, shape: tuple[int, ...], name: str) -> np.ndarray:
-    a = np.ascontiguousarray(arr, dtype=np.float64)
-    if a.shape != shape:
-        raise ValueError(f"{name} must have shape {shape}, got {a.shape}")
-    if not np.all(np.isfinite(a)):
-        raise ValueError(f"{name} contains non-finite values")
-    return a
+def _read_float64_records(path: Path, fields: tuple[str, ...], what: str, unit: str) -> np.ndarray:
+    """``(n, len(fields))`` little-endian float64 records of a binary file (SBET, smrmsg).
+
+    Raises :class:`InputError` for a missing file, a size that is not whole records (naming the
+    incomplete one), no records (``what``), and the first non-finite value (record and field).
+    """
+    size_record = 8 * len(fields)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError as exc:
+        raise InputError("file not found", path=path) from exc
+    n, rest = divmod(size, size_record)
+    if rest:
+        raise InputError("incomplete record", path=path, line=n + 1, record_kind="record",
+                         expected=f"{size_record} {unit}", found=f"{rest} bytes")
+    if n == 0:
+        raise InputError(f"no {what}", path=path, expected="at least one record", found="empty file")
+    values = np.fromfile(path, dtype="<f8", count=n * len(fields)).reshape(n, len(fields))
+    bad = ~np.isfinite(values)
+    if bad.any():
+        i, j = np.argwhere(bad)[0]
+        raise InputError("non-finite value", path=path, line=int(i) + 1, field=fields[j],
+                         record_kind="record", expected="a finite number", found=f"{values[i, j]}")
+    return values
 
 
 @dataclass(frozen=True)
@@ -149,9 +153,9 @@ class SbetData:
             raise ValueError(f"time_gps must be 1-D, got shape {t.shape}")
         n = t.shape[0]
         for name in ("time_gps", "lat_rad", "lon_rad", "h_m", "roll_rad", "pitch_rad", "heading_rad", "wander_rad"):
-            object.__setattr__(self, name, _as(getattr(self, name), (n,), name))
+            object.__setattr__(self, name, finite_array(getattr(self, name), (n,), name))
         for name in ("velocity_wander", "accel_b", "angular_rate_b"):
-            object.__setattr__(self, name, _as(getattr(self, name), (n, 3), name))
+            object.__setattr__(self, name, finite_array(getattr(self, name), (n, 3), name))
         if n > 1 and np.any(np.diff(self.time_gps) <= 0):
             raise ValueError("time_gps must be strictly increasing")
         if np.any(np.abs(self.lat_rad) > np.pi / 2):
@@ -192,23 +196,8 @@ def read_sbet(path: PathLike, gps_week: int | None = None) -> SbetData:
         both times).
     """
     path = Path(path)
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError as exc:
-        raise InputError("file not found", path=path) from exc
-    n, rest = divmod(size, SBET_RECORD_SIZE)
-    if rest:
-        raise InputError("incomplete record", path=path, line=n + 1, record_kind="record",
-                         expected=f"{SBET_RECORD_SIZE} bytes per record", found=f"{rest} bytes")
-    if n == 0:
-        raise InputError("no SBET records", path=path, expected="at least one record", found="empty file")
-    rec = np.fromfile(path, dtype=_SBET_DTYPE, count=n)
-    values = rec.view("<f8").reshape(n, 17)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        i, j = np.argwhere(bad)[0]
-        raise InputError("non-finite value", path=path, line=int(i) + 1, field=SBET_FIELDS[j],
-                         record_kind="record", expected="a finite number", found=f"{values[i, j]}")
+    values = _read_float64_records(path, SBET_FIELDS, "SBET records", "bytes per record")
+    n = values.shape[0]
     tag = values[:, 0]
     if tag[0] >= SECONDS_PER_WEEK:
         t = tag.copy()
@@ -401,9 +390,9 @@ class SmrmsgData:
         if t.ndim != 1:
             raise ValueError(f"time_gps must be 1-D, got shape {t.shape}")
         n = t.shape[0]
-        object.__setattr__(self, "time_gps", _as(t, (n,), "time_gps"))
+        object.__setattr__(self, "time_gps", finite_array(t, (n,), "time_gps"))
         for name in ("sigma_ned_m", "sigma_velocity_ned_m_s", "sigma_rph_rad"):
-            value = _as(getattr(self, name), (n, 3), name)
+            value = finite_array(getattr(self, name), (n, 3), name)
             if np.any(value < 0):
                 raise ValueError(f"{name} must not be negative")
             object.__setattr__(self, name, value)
@@ -457,22 +446,8 @@ def read_smrmsg(path: PathLike, gps_week: int | None = None) -> SmrmsgData:
         RMS (record and field), non-increasing time (record and both times).
     """
     path = Path(path)
-    try:
-        size = path.stat().st_size
-    except FileNotFoundError as exc:
-        raise InputError("file not found", path=path) from exc
-    n, rest = divmod(size, SMRMSG_RECORD_SIZE)
-    if rest:
-        raise InputError("incomplete record", path=path, line=n + 1, record_kind="record",
-                         expected=f"{SMRMSG_RECORD_SIZE} bytes per record (10 float64)", found=f"{rest} bytes")
-    if n == 0:
-        raise InputError("no accuracy records", path=path, expected="at least one record", found="empty file")
-    values = np.fromfile(path, dtype="<f8", count=n * 10).reshape(n, 10)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        i, j = np.argwhere(bad)[0]
-        raise InputError("non-finite value", path=path, line=int(i) + 1, field=SMRMSG_FIELDS[j],
-                         record_kind="record", expected="a finite number", found=f"{values[i, j]}")
+    values = _read_float64_records(path, SMRMSG_FIELDS, "accuracy records", "bytes per record (10 float64)")
+    n = values.shape[0]
     negative = values[:, 1:] < 0
     if negative.any():
         i, j = np.argwhere(negative)[0]
@@ -490,144 +465,3 @@ def read_smrmsg(path: PathLike, gps_week: int | None = None) -> SmrmsgData:
     raise_if_not_increasing(path, t, np.arange(1, n + 1), "time", "record", formatter=lambda x: f"{x:.6f}")
     _log.info("read %d accuracy records from %s", n, path)
     return SmrmsgData(t, values[:, 1:4], values[:, 4:7], values[:, 7:10] / ARCMIN_PER_RAD)
-
-
-# ---------------------------------------------------------------------------
-# Trajectory CSV
-# ---------------------------------------------------------------------------
-
-_CSV_REQUIRED = ("time", "x", "y", "z", "roll_deg", "pitch_deg", "heading_deg")
-_CSV_SIGMA_POS = ("sigma_x_m", "sigma_y_m", "sigma_z_m")
-_CSV_SIGMA_ATT = ("sigma_roll_mdeg", "sigma_pitch_mdeg", "sigma_heading_mdeg")
-
-
-@dataclass(frozen=True)
-class TrajectoryTable:
-    """Trajectory in an output CRS with NED attitude (see the module docstring).
-
-    Attributes
-    ----------
-    time_gps
-        (N,) GPS seconds, strictly increasing.
-    xyz
-        (N,3) position in the output CRS, m.
-    rpy_rad
-        (N,3) roll, pitch, heading (NED, Z-Y-X), rad.
-    sigma_xyz_m
-        (N,3) position standard deviations, m, or None.
-    sigma_rpy_rad
-        (N,3) attitude standard deviations, rad, or None.
-    crs
-        The output CRS as text (e.g. "EPSG:25832"), or None.
-    """
-
-    time_gps: np.ndarray
-    xyz: np.ndarray
-    rpy_rad: np.ndarray
-    sigma_xyz_m: np.ndarray | None = None
-    sigma_rpy_rad: np.ndarray | None = None
-    crs: str | None = None
-
-    def __post_init__(self) -> None:
-        t = np.asarray(self.time_gps)
-        if t.ndim != 1:
-            raise ValueError(f"time_gps must be 1-D, got shape {t.shape}")
-        n = t.shape[0]
-        object.__setattr__(self, "time_gps", _as(t, (n,), "time_gps"))
-        for name in ("xyz", "rpy_rad", "sigma_xyz_m", "sigma_rpy_rad"):
-            value = getattr(self, name)
-            if value is not None:
-                object.__setattr__(self, name, _as(value, (n, 3), name))
-        if n > 1 and np.any(np.diff(self.time_gps) <= 0):
-            raise ValueError("time_gps must be strictly increasing")
-
-    def __len__(self) -> int:
-        return self.time_gps.shape[0]
-
-
-def read_trajectory_csv(path: PathLike) -> TrajectoryTable:
-    """Read a trajectory CSV (columns in the module docstring).
-
-    Raises
-    ------
-    InputError
-        Missing/unknown/incomplete columns (header line), bad value (line and
-        field), non-increasing time, negative sigma, no rows.
-    """
-    path = Path(path)
-    lines = read_text_lines(path)
-    crs = None
-    for s in lines:
-        if s.startswith("#") and s[1:].strip().lower().startswith("crs:"):
-            crs = s[1:].strip()[4:].strip() or None
-            break
-    rows, numbers = data_lines(lines, 0)
-    if not rows:
-        raise InputError("no trajectory rows", path=path, expected="a header and data lines", found="none")
-    header_line = int(numbers[0])
-    header = tuple(t.strip() for t in rows[0].split(","))
-    groups = [g for g in (_CSV_SIGMA_POS, _CSV_SIGMA_ATT) if g[0] in header or any(c in header for c in g)]
-    expected = _CSV_REQUIRED + tuple(c for g in groups for c in g)
-    if header != expected:
-        raise InputError(
-            "unexpected trajectory CSV header", path=path, line=header_line,
-            expected=repr(",".join(expected)) + f" (required {','.join(_CSV_REQUIRED)}; optional groups "
-            f"{','.join(_CSV_SIGMA_POS)} and {','.join(_CSV_SIGMA_ATT)})",
-            found=repr(rows[0]),
-        )
-    rows, numbers = rows[1:], numbers[1:]
-    if not rows:
-        raise InputError("no trajectory rows", path=path, expected="data lines after the header", found="none")
-    v = parse_float_rows(path, rows, numbers, header, delimiter=",")
-    raise_if_not_increasing(path, v[:, 0], numbers, "time")
-    if v.shape[1] > 7:
-        neg = v[:, 7:] < 0
-        if neg.any():
-            i, j = np.argwhere(neg)[0]
-            raise InputError("negative standard deviation", path=path, line=int(numbers[i]), field=header[7 + j],
-                             expected=">= 0", found=f"{v[i, 7 + j]:g}")
-    sig_pos = sig_att = None
-    col = 7
-    for g in groups:
-        block = v[:, col:col + 3]
-        if g is _CSV_SIGMA_POS:
-            sig_pos = block
-        else:
-            sig_att = np.radians(block / 1000.0)
-        col += 3
-    return TrajectoryTable(v[:, 0], v[:, 1:4], np.radians(v[:, 4:7]), sig_pos, sig_att, crs)
-
-
-def write_trajectory_csv(
-    path: PathLike, table: TrajectoryTable, *, protect: tuple[PathLike, ...] = ()
-) -> Path:
-    """Write a trajectory CSV, atomically.
-
-    Formats: time ``%.6f``, x/y/z ``%.4f``, angles ``%.8f`` deg (heading wrapped
-    to [0, 360)), sigmas ``%.5f`` m / ``%.4f`` mdeg.
-    """
-    rpy = np.degrees(table.rpy_rad)
-    rpy[:, 2] = np.mod(rpy[:, 2], 360.0)
-    rpy[:, 2][rpy[:, 2] >= 360.0] = 0.0  # mod can round up to exactly 360
-    columns, blocks = list(_CSV_REQUIRED), [table.time_gps, table.xyz, rpy]
-    fmts = ["%.6f"] + ["%.4f"] * 3 + ["%.8f"] * 3
-    if table.sigma_xyz_m is not None:
-        columns += _CSV_SIGMA_POS
-        blocks.append(table.sigma_xyz_m)
-        fmts += ["%.5f"] * 3
-    if table.sigma_rpy_rad is not None:
-        columns += _CSV_SIGMA_ATT
-        blocks.append(np.degrees(table.sigma_rpy_rad) * 1000.0)
-        fmts += ["%.4f"] * 3
-    fmt = ",".join(fmts) + "\n"
-    values = np.column_stack(blocks)
-    with atomic_output(path, "w", protect=protect) as fh:
-        fh.write("# Georefine trajectory: time = GPS s; x,y,z = IMU position in the output CRS (m); "
-                 "roll/pitch/heading = NED Z-Y-X Euler angles (deg, heading from true north)\n")
-        if table.crs:
-            fh.write(f"# crs: {table.crs}\n")
-        if len(table):
-            fh.write(f"# gps_week: {int(week_from_gps_seconds(table.time_gps[0])[0])}\n")
-        fh.write(",".join(columns) + "\n")
-        fh.writelines(fmt % tuple(r) for r in values.tolist())
-    return Path(path)

@@ -27,16 +27,14 @@ from georefine.io.trajectory import (
     SbetCompanion,
     SbetData,
     SmrmsgData,
-    TrajectoryTable,
     read_sbet,
     read_sbet_companion,
-    read_trajectory_csv,
     smrmsg_path,
     write_sbet,
     write_sbet_companion,
     write_smrmsg,
-    write_trajectory_csv,
 )
+from georefine.io.trajectory_csv import TrajectoryTable, read_trajectory_csv, write_trajectory_csv
 
 log = logging.getLogger(__name__)
 
