@@ -167,7 +167,7 @@ def _copy(tmp_path: Path) -> Path:
         ("lidar/planes.py", "from georefine.lidargrammetry.render import render_lidargram", "a sibling package"),
         ("evaluation/plots.py", "from georefine.trajectory.spline import _evaluate", "private name"),
         ("adjustment/robust.py", "from georefine.trajectory._ekf_kernels import forward", "private module"),
-        ("config.py", "def f():\n    from georefine.demo.corridor import run_demo\n", "a higher layer"),
+        ("config/yaml_io.py", "def f():\n    from georefine.demo.corridor import run_demo\n", "a higher layer"),
         ("trajectory/ekf.py", "from georefine.io.imu import ImuData", "reads and writes no files"),
     ],
 )

@@ -1,4 +1,5 @@
-"""Configuration: the ``project.yaml`` model and helpers to load, override and write YAML.
+"""Configuration: the ``project.yaml`` model (the YAML helpers are in :mod:`georefine.config.yaml_io`,
+the lidargrammetry settings in :mod:`georefine.config.lidargrammetry`).
 
 Every model forbids unknown keys (a typo is an error, never silently ignored), carries the
 unit in each field name, and documents its default once, here. The resolved configuration is
@@ -11,30 +12,65 @@ Lever arms are in the body frame ``b`` (forward-right-down), metres.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
-import yaml
 from pydantic import (
-    BaseModel,
-    ConfigDict,
     Field,
-    ValidationError,
     field_validator,
     model_validator,
 )
 
+from georefine.config.base import StrictModel, Vector3
+from georefine.config.lidargrammetry import PAIR_KINDS, LidargrammetryConfig, PairKind
+from georefine.config.yaml_io import (
+    apply_overrides,
+    deep_merge,
+    override_fields,
+    read_yaml,
+    validate_model,
+    write_yaml,
+)
 from georefine.errors import ConfigError
 
-Vector3 = tuple[float, float, float]
-
-
-class StrictModel(BaseModel):
-    """Base of all configuration models: unknown keys are errors, values are validated on assignment."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, frozen=False)
+__all__ = [
+    "ChannelConfig",
+    "CrsConfig",
+    "FilterConfig",
+    "GnssCorrelatedError",
+    "GnssFileConfig",
+    "ImuErrorSpec",
+    "ImuFileConfig",
+    "LidarAdjustmentConfig",
+    "LidargrammetryConfig",
+    "MatchingConfig",
+    "PAIR_KINDS",
+    "PairKind",
+    "PhotosFileConfig",
+    "PlaneExtractionConfig",
+    "ProcessingConfig",
+    "ProjectConfig",
+    "ReferenceConfig",
+    "ReferencePoint",
+    "ScaleConfig",
+    "ScannerFileConfig",
+    "StrictModel",
+    "TimeOffsetConfig",
+    "TrajectoryAdjustmentConfig",
+    "TrajectoryPriorConfig",
+    "Vector3",
+    "apply_overrides",
+    "boresight_matrix",
+    "check_output_epsg",
+    "deep_merge",
+    "default_channels",
+    "load_project",
+    "override_fields",
+    "read_yaml",
+    "validate_model",
+    "write_yaml",
+]
 
 
 class ReferencePoint(StrictModel):
@@ -440,121 +476,6 @@ class TrajectoryAdjustmentConfig(StrictModel):
         return self
 
 
-PAIR_KINDS = ("photo-photo", "photo-lidargram", "lidargram-lidargram")
-"""Kinds of image pairs the lidargrammetric matching can try (:class:`LidargrammetryConfig`)."""
-
-PairKind = Literal["photo-photo", "photo-lidargram", "lidargram-lidargram"]
-
-
-class LidargrammetryConfig(StrictModel):
-    """Lidargrammetric co-matching and co-adjustment of photos and LiDAR (paper 004; docs/ARCHITECTURE.md §4.8).
-
-    Defaults: a photo block of 5-10 cm GSD over a helicopter ALS cloud, the values the
-    ``block`` demo is tuned and benchmarked with. The ``georefine lidargrams``, ``match`` and
-    ``coadjust`` options override single fields (option given > ``project.yaml`` > default).
-    """
-
-    # A-priori orientation (the bundle's priors; docs/ARCHITECTURE.md §4.8).
-    photo_sigma_position_m: float = Field(
-        0.1, gt=0.0, description="A-priori sigma of the photo positions when eop.csv gives none.")
-    photo_sigma_rotation_deg: float = Field(
-        0.02, gt=0.0, description="A-priori sigma of the photo omega, phi, kappa when eop.csv gives none.")
-    lidargram_sigma_position_m: float = Field(
-        1.0, gt=0.0, description="A-priori sigma of a lidargram's position: the LiDAR trajectory's accuracy.")
-    lidargram_sigma_rotation_deg: tuple[float, float, float] = Field(
-        (0.01, 0.01, 0.1),
-        description="A-priori sigma of a lidargram's rotation about the camera axes x, y, z; one value stands "
-        "for all three. The default is an INS without GNSS for minutes: gravity keeps roll and pitch, the "
-        "heading drifts (on the jammed block demo a 0.01 deg prior on all three held the heading back).",
-    )
-    # Lidargrams (georefine.lidargrammetry.render).
-    lidargram_scale: float = Field(
-        0.5, gt=0.0, le=4.0, description="Lidargram resolution relative to the photos' (paper: 2.5-3 GSD point spacing).")
-    per_strip: bool = Field(
-        True, description="One lidargram per photo and strip (each belongs to one trajectory); else one of all strips.")
-    point_spacing_m: float | None = Field(
-        None, gt=0.0, description="Point spacing of the cloud for the splat size; None: from the cloud's density.")
-    splat_scale: float = Field(2.0, gt=0.0, description="Splat diameter in units of the point spacing.")
-    fill_holes: bool = Field(True, description="Fill pixels between splats from their neighbours.")
-    min_coverage: float = Field(
-        0.3, ge=0.0, le=1.0, description="Lidargrams with fewer of their pixels showing a point are dropped.")
-    # Matching (georefine.lidargrammetry.matching).
-    matcher: Literal["sift", "xfeat", "lightglue"] = Field(
-        "sift", description="Keypoints and matching: sift (OpenCV), xfeat or lightglue (the deep extra).")
-    pair_kinds: tuple[PairKind, ...] = Field(
-        ("photo-photo", "photo-lidargram"),
-        description="Pair kinds matched. Lidargram-lidargram pairs are left out by default: two lidargrams of "
-        "one station have no base, two of one strip repeat the same trajectory error.",
-    )
-    max_pair_distance_m: float = Field(
-        150.0, gt=0.0, description="Images whose approximate centres are farther apart are not matched.")
-    clahe_clip_limit: float = Field(2.0, gt=0.0, description="Contrast equalisation (CLAHE) before detection.")
-    clahe_tiles: int = Field(8, ge=1, description="CLAHE tiles per image side.")
-    sift_max_features: int = Field(8000, ge=1, description="SIFT keypoints per image.")
-    sift_contrast_threshold: float = Field(0.02, gt=0.0, description="SIFT's contrast threshold.")
-    sift_ratio: float = Field(0.9, gt=0.0, le=1.0, description="Lowe's ratio test of SIFT matches (both directions).")
-    deep_max_features: int = Field(6000, ge=1, description="Keypoints per image of XFeat and of LightGlue's extractor.")
-    lightglue_features: Literal["disk", "aliked"] = Field("disk", description="LightGlue's keypoints and descriptors.")
-    extractor_weights: str | None = Field(
-        None, description="DISK/ALIKED weight file (.pth) for lightglue, relative to the project folder.")
-    lightglue_weights: str | None = Field(
-        None, description="LightGlue weight file (.pth) for lightglue, relative to the project folder.")
-    verification_threshold_px: float = Field(
-        2.0, gt=0.0, description="Epipolar distance of verified matches (robust fundamental matrix).")
-    min_verified_matches: int = Field(
-        15, ge=8, description="Pairs with fewer verified matches keep none.")
-    # Ties and co-adjustment (georefine.lidargrammetry.bundle).
-    max_initial_reprojection_px: float = Field(
-        15.0, gt=0.0, description="Tie observations farther from their initial point's projection are dropped.")
-    use_depth: bool = Field(
-        True, description="Observe the depth a lidargram shows at each tie keypoint (off: the paper's image-only "
-        "formulation).")
-    tie_sigma_px: float = Field(1.0, gt=0.0, description="Sigma of tie keypoints.")
-    depth_sigma_m: float = Field(0.05, gt=0.0, description="Sigma of lidargram depths at tie keypoints.")
-    measurement_sigma_px: float = Field(0.5, gt=0.0, description="Sigma of control and check point measurements.")
-    tie_loss: Literal["huber", "cauchy", "none"] = Field("huber", description="Robust loss of ties and depths.")
-    tie_loss_scale: float = Field(2.0, gt=0.0, description="Huber delta / Cauchy c in units of sigma.")
-    # Refined cloud (georefine.lidargrammetry.reintersect; cases 1 and 2).
-    feather: bool = Field(
-        True, description="Weight a point's lidargrams by the distance of the point from their border.")
-    interpolation_neighbours: int = Field(
-        8, ge=1, description="Points no lidargram shows move as this many nearest shown points of their strip ...")
-    interpolation_max_distance_m: float = Field(
-        5.0, gt=0.0, description="... if the nearest is within this; farther points stay unchanged.")
-
-    @field_validator("lidargram_sigma_rotation_deg", mode="before")
-    @classmethod
-    def _one_or_three_sigmas(cls, v: Any) -> Any:
-        if isinstance(v, (int, float)) and not isinstance(v, bool):
-            return (v, v, v)
-        if isinstance(v, (list, tuple)) and len(v) == 1:
-            return (v[0], v[0], v[0])
-        if isinstance(v, (list, tuple)) and len(v) != 3:
-            raise ValueError(f"give one or three sigmas (about camera x, y, z), got {len(v)}")
-        return v
-
-    @field_validator("lidargram_sigma_rotation_deg")
-    @classmethod
-    def _positive_sigmas(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
-        if min(v) <= 0.0:
-            raise ValueError(f"sigmas must be positive, got {list(v)}")
-        return v
-
-    @field_validator("pair_kinds")
-    @classmethod
-    def _some_pair_kinds(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        if not v:
-            raise ValueError("give at least one pair kind of " + ", ".join(PAIR_KINDS))
-        return tuple(dict.fromkeys(v))
-
-    @model_validator(mode="after")
-    def _lightglue_weights(self) -> "LidargrammetryConfig":
-        if self.matcher == "lightglue" and (self.extractor_weights is None or self.lightglue_weights is None):
-            raise ValueError("LightGlue needs local weight files: set extractor_weights and lightglue_weights "
-                             "(nothing is downloaded)")
-        return self
-
-
 class ScaleConfig(StrictModel):
     """Bounded memory of the per-point stages (docs/ARCHITECTURE.md §4.7).
 
@@ -629,176 +550,9 @@ def boresight_matrix(boresight_deg: Vector3) -> np.ndarray:
     return R_n_b_from_rph(r, p, y)
 
 
-# ---------------------------------------------------------------------------------------------
-# YAML helpers
-
-
-def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping; errors name the file and line."""
-    path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"cannot read file: {exc.strerror}", path=path) from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        raise ConfigError(f"invalid YAML: {getattr(exc, 'problem', exc)}", path=path, line=line) from exc
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError("top level must be a mapping", path=path, expected="key: value pairs", found=type(data).__name__)
-    return data
-
-
-def _line_of_key(path: Path, loc: tuple) -> int | None:
-    """Best-effort 1-based line of a nested key path in a YAML file (for error messages)."""
-    try:
-        node = yaml.compose(path.read_text(encoding="utf-8"))
-    except Exception:  # noqa: BLE001 - only used to enrich an error message
-        return None
-    for key in loc:
-        if node is None:
-            return None
-        if isinstance(node, yaml.MappingNode):
-            found = None
-            for k, v in node.value:
-                if k.value == str(key):
-                    found = (k, v)
-                    break
-            if found is None:
-                return node.start_mark.line + 1
-            if key == loc[-1]:
-                return found[0].start_mark.line + 1
-            node = found[1]
-        elif isinstance(node, yaml.SequenceNode) and isinstance(key, int) and key < len(node.value):
-            node = node.value[key]
-        else:
-            return node.start_mark.line + 1
-    return node.start_mark.line + 1 if node is not None else None
-
-
-def validate_model(model: type[BaseModel], data: dict[str, Any], path: str | Path | None = None) -> BaseModel:
-    """Validate ``data`` against ``model``; the first error becomes a :class:`ConfigError`."""
-    try:
-        return model.model_validate(data)
-    except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = tuple(err.get("loc", ()))
-        field = ".".join(str(x) for x in loc) or None
-        line = _line_of_key(Path(path), loc) if path is not None and loc else None
-        if err.get("type") == "extra_forbidden":
-            message = "unknown key"
-            expected = "one of " + ", ".join(sorted(_known_keys(model, loc[:-1]))) if loc else None
-            raise ConfigError(message, path=path, line=line, field=field, expected=expected, found=repr(loc[-1])) from exc
-        found = err.get("input")  # a whole section (a model-level rule) is named by its field, not printed
-        raise ConfigError(
-            err.get("msg", "invalid value"), path=path, line=line, field=field,
-            found=None if isinstance(found, dict) else repr(found),
-        ) from exc
-
-
-def _known_keys(model: type[BaseModel], loc: tuple) -> list[str]:
-    current: Any = model
-    for key in loc:
-        if isinstance(key, int):
-            continue
-        field = getattr(current, "model_fields", {}).get(key)
-        if field is None:
-            return []
-        ann = field.annotation
-        for cand in getattr(ann, "__args__", (ann,)):
-            inner = getattr(cand, "__args__", (cand,))
-            for c in (cand, *inner):
-                if isinstance(c, type) and issubclass(c, BaseModel):
-                    current = c
-                    break
-    return list(getattr(current, "model_fields", {}).keys())
-
-
 def load_project(project_dir: str | Path) -> ProjectConfig:
     """Load ``PROJECT/project.yaml`` (validated; unknown keys are errors)."""
     path = Path(project_dir) / "project.yaml"
     if not path.is_file():
         raise ConfigError("no project.yaml in the project folder", path=path)
     return validate_model(ProjectConfig, read_yaml(path), path)  # type: ignore[return-value]
-
-
-def apply_overrides(data: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
-    """Apply ``key.sub=value`` overrides (values parsed as YAML scalars/lists) to a nested dict.
-
-    Returns a new dict; ``data`` is not modified.
-    """
-    import copy
-
-    out = copy.deepcopy(data)
-    for item in overrides:
-        if "=" not in item:
-            raise ConfigError("override must look like key.sub=value", field="overrides", found=repr(item))
-        key, _, raw = item.partition("=")
-        parts = [p for p in key.strip().split(".") if p]
-        if not parts:
-            raise ConfigError("override has an empty key", field="overrides", found=repr(item))
-        try:
-            value = yaml.safe_load(raw) if raw.strip() else None
-        except yaml.YAMLError as exc:
-            raise ConfigError("override value is not valid YAML", field=key, found=repr(raw)) from exc
-        node = out
-        for p in parts[:-1]:
-            child = node.get(p)
-            if child is None:
-                child = node[p] = {}
-            if not isinstance(child, dict):
-                raise ConfigError("cannot set a sub-key of a scalar", field=key, found=repr(child))
-            node = child
-        node[parts[-1]] = value
-    return out
-
-
-def override_fields(section: StrictModel, values: Mapping[str, Any], *, name: str) -> StrictModel:
-    """A copy of a configuration section with ``values`` (field name to value) set, validated together.
-
-    Parameters
-    ----------
-    section
-        The section as loaded (e.g. ``config.processing.lidargrammetry``).
-    values
-        The fields to set (e.g. from command-line options); ``None`` values are set as ``None``.
-    name
-        The section's place in ``project.yaml`` (``"processing.lidargrammetry"``); errors name
-        ``name.field``.
-
-    Raises
-    ------
-    ConfigError
-        An unknown field or a value the section refuses.
-    """
-    data = {**section.model_dump(), **dict(values)}
-    try:
-        return validate_model(type(section), data)  # type: ignore[return-value]
-    except ConfigError as exc:
-        raise ConfigError(exc.message, field=f"{name}.{exc.field}" if exc.field else name,
-                          expected=exc.expected, found=exc.found) from exc.__cause__
-
-
-def deep_merge(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
-    """Recursive dict merge (``update`` wins); returns a new dict."""
-    out = dict(base)
-    for k, v in update.items():
-        if isinstance(v, dict) and isinstance(out.get(k), dict):
-            out[k] = deep_merge(out[k], v)
-        else:
-            out[k] = v
-    return out
-
-
-def write_yaml(path: str | Path, data: dict[str, Any] | BaseModel) -> None:
-    """Write YAML atomically (temporary name, then rename)."""
-    from georefine.io.files import atomic_output
-
-    if isinstance(data, BaseModel):
-        data = data.model_dump(mode="json")
-    with atomic_output(path, "w") as fh:
-        fh.write(yaml.safe_dump(data, sort_keys=False, default_flow_style=None))
