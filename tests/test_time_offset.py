@@ -27,7 +27,7 @@ from georefine.lidar.tiles import StripPlan, Tile, shift_plan
 from georefine.lidar.time_offset import offset_unobservable, search_time_offset
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.sampled import Trajectory
-from georefine.workflows.lidar import GNSS_PULL_RATIO, warn_plane_misfit
+from georefine.workflows.outer_checks import GNSS_PULL_RATIO, warn_plane_misfit
 from georefine.workflows.time_offset import warn_time_offset
 
 SPEED = 50.0
@@ -251,7 +251,7 @@ def test_planes_that_pull_the_trajectory_off_the_gnss_are_a_warning(caplog):
     fits = SimpleNamespace(result=SimpleNamespace(solve=_solve({"gnss": 0.57, "planes": 2.0})))
     pulls = SimpleNamespace(result=SimpleNamespace(solve=_solve({"gnss": 0.55 * GNSS_PULL_RATIO * 1.5, "planes": 26.0})))
     records = (SimpleNamespace(attitude_change_mdeg=66.9), SimpleNamespace(attitude_change_mdeg=17.4))
-    with caplog.at_level(logging.WARNING, logger="georefine.workflows.lidar"):
+    with caplog.at_level(logging.WARNING, logger="georefine.workflows.outer_checks"):
         warn_plane_misfit(gi, fits, records)
         assert not caplog.records
         warn_plane_misfit(gi, pulls, records)

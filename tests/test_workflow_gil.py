@@ -382,12 +382,12 @@ def test_outer_iterations_that_do_not_converge_are_reported_with_their_figures(c
     """The last allowed outer iteration still moving the trajectory is a warning with the changes, not silence."""
     from georefine.config import LidarAdjustmentConfig
     from georefine.io.run_metrics import OuterIteration
-    from georefine.workflows.lidar import outer_converged, warn_unconverged
+    from georefine.workflows.outer_checks import outer_converged, warn_unconverged
 
     lcfg = LidarAdjustmentConfig(outer_iterations=3)
     moving = [OuterIteration(k, 15_555_953, 57_841, 200_000, 56_725, change, 3e-4, 0, {})
               for k, change in ((1, 57.7), (2, 2.6), (3, 2.43))]
-    with caplog.at_level(logging.WARNING, logger="georefine.workflows.lidar"):
+    with caplog.at_level(logging.WARNING, logger="georefine.workflows.outer_checks"):
         warn_unconverged(moving, lcfg)
     text = caplog.text
     assert "did not converge" in text and "2.43 mdeg" in text and "57.70 mdeg, 2.60 mdeg" in text
@@ -395,6 +395,6 @@ def test_outer_iterations_that_do_not_converge_are_reported_with_their_figures(c
     caplog.clear()
     settled = [*moving[:2], dataclasses.replace(moving[2], attitude_change_mdeg=0.9)]
     assert outer_converged(settled[-1], lcfg) and not outer_converged(moving[-1], lcfg)
-    with caplog.at_level(logging.WARNING, logger="georefine.workflows.lidar"):
+    with caplog.at_level(logging.WARNING, logger="georefine.workflows.outer_checks"):
         warn_unconverged(settled, lcfg)
     assert caplog.text == ""

@@ -38,7 +38,6 @@ from georefine.adjustment.upsampling import (
 )
 from georefine.config import ProjectConfig, boresight_matrix, load_project, write_yaml
 from georefine.geometry.frames import OutputCRS
-from georefine.geometry.rotation import log_so3
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
@@ -48,8 +47,14 @@ from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
-from georefine.workflows.delivered import step_delivered, warn_delivered_pull
+from georefine.workflows.delivered import step_delivered
 from georefine.workflows.gil import LidarAdjustment, add_posterior, step_adjust_gil
+from georefine.workflows.outer_checks import (
+    outer_converged,
+    trajectory_change,
+    warn_plane_misfit,
+    warn_unconverged,
+)
 from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
@@ -74,26 +79,6 @@ __all__ = [  # steps 3-5 live in georefine.workflows.strips and .gil; named here
     "FeatureCounts", "LidarAdjustment", "StripFile", "WorkflowResult", "add_posterior", "precompute_gnss_imu",
     "read_strips", "run_workflow", "step_adjust_gil", "step_features", "trajectory_change",
 ]
-
-
-def trajectory_change(a, b, *, statistic: str = "rms") -> tuple[float, float]:
-    """Attitude (mdeg) and position (m) difference of two splines at ``a``'s knots.
-
-    ``statistic="rms"`` (the outer-iteration criterion) or ``"max"``. The RMS, not the maximum:
-    re-extracted and re-matched features differ a little from one outer iteration to the next,
-    which moves single knots by a few mdeg without changing the trajectory as a whole.
-    """
-    t = a.grid.knot_times
-    t = t[(t >= b.grid.t_start) & (t <= b.grid.t_end)]
-    pa, Ra = a.pose(t)
-    pb, Rb = b.pose(t)
-    dth = np.linalg.norm(log_so3(np.swapaxes(Ra, 1, 2) @ Rb), axis=1)
-    dp = np.linalg.norm(pa - pb, axis=1)
-    if statistic == "max":
-        return float(np.degrees(dth.max()) * 1e3), float(dp.max())
-    if statistic != "rms":
-        raise ValueError(f"statistic must be 'rms' or 'max', found {statistic!r}")
-    return float(np.degrees(np.sqrt(np.mean(dth**2))) * 1e3), float(np.sqrt(np.mean(dp**2)))
 
 
 @dataclass(frozen=True)
@@ -383,61 +368,6 @@ def _vibrating(nav: NavigationData, gi: GnssImuResult) -> bool:
     log.info("vibration: %.0f %% of the rebuilt IMU readings stand out of the noise; every outer iteration "
              "on the configured knots (no coarse first iteration)", 100 * share)
     return True
-
-
-def outer_converged(record: OuterIteration, lcfg) -> bool:
-    """Whether an outer iteration changed the trajectory less than both thresholds."""
-    return (record.attitude_change_mdeg < lcfg.convergence_attitude_mdeg
-            and record.position_change_m < lcfg.convergence_position_m)
-
-
-def warn_unconverged(records: list[OuterIteration], lcfg) -> None:
-    """Warn, with the figures, when the last allowed outer iteration still moved the trajectory too much."""
-    last = records[-1]
-    if outer_converged(last, lcfg):
-        return
-    log.warning(
-        "the G/I/L outer iterations did not converge: after %d (processing.lidar.outer_iterations) the last one "
-        "still moved the trajectory by %.2f mdeg and %.1f mm RMS (thresholds %.2f mdeg and %.1f mm; changes "
-        "before it: %s); it used %s of %s features extracted (processing.lidar.max_features)",
-        len(records), last.attitude_change_mdeg, last.position_change_m * 1e3, lcfg.convergence_attitude_mdeg,
-        lcfg.convergence_position_m * 1e3,
-        ", ".join(f"{r.attitude_change_mdeg:.2f} mdeg" for r in records[:-1]) or "none",
-        f"{last.features_used:,}", f"{last.features:,}",
-    )
-
-
-GNSS_PULL_RATIO = 2.0
-"""Warn when the G/I/L adjustment's GNSS residuals (RMS in sigmas) exceed the G/I adjustment's by
-this factor: the planes pull the trajectory off the GNSS, so LiDAR and navigation disagree about
-something the model does not hold. Measured on ``corridor-tiny``: 1.04 in a clean run and with a
-3 s time offset found and estimated; 6.1 with that offset left uncorrected, where the robust
-sigma0 of the planes hardly moved (0.89 to 1.05: the matching keeps only the features that
-agree locally, and the adjustment bends the trajectory to them)."""
-
-
-def warn_plane_misfit(gi: GnssImuResult, adj: LidarAdjustment, records: tuple[OuterIteration, ...],
-                      nav: NavigationData | None = None) -> None:
-    """Warn, with the figures, when the planes pull the trajectory off the GNSS (:data:`GNSS_PULL_RATIO`),
-    or a delivered trajectory beyond its stated accuracy (:func:`~georefine.workflows.delivered.warn_delivered_pull`)."""
-    if getattr(adj.result, "sbet_errors", None) is not None:
-        if nav is not None:
-            warn_delivered_pull(nav, adj.result, records)
-        return
-    try:
-        before, after, planes = gi.solve.group("gnss"), adj.result.solve.group("gnss"), adj.result.solve.group("planes")
-    except KeyError:
-        return
-    if not after.rms > GNSS_PULL_RATIO * before.rms:
-        return
-    log.warning(
-        "the LiDAR planes pull the trajectory off the GNSS: GNSS residuals %.2f sigma RMS with the planes against "
-        "%.2f without (warning above %.1fx); planes RMS %.1f sigma, %d of %d features down-weighted; outer "
-        "iterations changed the trajectory by %s. The model does not fit: check scanner.time_offset_s "
-        "(processing.lidar.time_offset), the boresight, the lever arms and the scanner channels",
-        after.rms, before.rms, GNSS_PULL_RATIO, planes.rms, planes.n_downweighted, planes.n_observations,
-        ", ".join(f"{r.attitude_change_mdeg:.2f}" for r in records) + " mdeg",
-    )
 
 
 def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterIterations,

@@ -1,0 +1,98 @@
+"""What the outer iterations of the G/I/L measure and warn about (docs/ARCHITECTURE.md §4.4).
+
+The change of the trajectory from one outer iteration to the next (the convergence test), the
+warning when the last allowed one still moved it, and the warning when the planes pull the
+trajectory off the GNSS: a model that does not fit says so with its figures.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from georefine.adjustment.gnss_imu import GnssImuResult
+from georefine.geometry.rotation import log_so3
+from georefine.io.run_metrics import OuterIteration
+from georefine.workflows.delivered import warn_delivered_pull
+from georefine.workflows.gil import LidarAdjustment
+from georefine.workflows.navigation import NavigationData
+
+log = logging.getLogger(__name__)
+
+__all__ = ["GNSS_PULL_RATIO", "outer_converged", "trajectory_change", "warn_plane_misfit", "warn_unconverged"]
+
+
+def trajectory_change(a, b, *, statistic: str = "rms") -> tuple[float, float]:
+    """Attitude (mdeg) and position (m) difference of two splines at ``a``'s knots.
+
+    ``statistic="rms"`` (the outer-iteration criterion) or ``"max"``. The RMS, not the maximum:
+    re-extracted and re-matched features differ a little from one outer iteration to the next,
+    which moves single knots by a few mdeg without changing the trajectory as a whole.
+    """
+    t = a.grid.knot_times
+    t = t[(t >= b.grid.t_start) & (t <= b.grid.t_end)]
+    pa, Ra = a.pose(t)
+    pb, Rb = b.pose(t)
+    dth = np.linalg.norm(log_so3(np.swapaxes(Ra, 1, 2) @ Rb), axis=1)
+    dp = np.linalg.norm(pa - pb, axis=1)
+    if statistic == "max":
+        return float(np.degrees(dth.max()) * 1e3), float(dp.max())
+    if statistic != "rms":
+        raise ValueError(f"statistic must be 'rms' or 'max', found {statistic!r}")
+    return float(np.degrees(np.sqrt(np.mean(dth**2))) * 1e3), float(np.sqrt(np.mean(dp**2)))
+
+
+def outer_converged(record: OuterIteration, lcfg) -> bool:
+    """Whether an outer iteration changed the trajectory less than both thresholds."""
+    return (record.attitude_change_mdeg < lcfg.convergence_attitude_mdeg
+            and record.position_change_m < lcfg.convergence_position_m)
+
+
+def warn_unconverged(records: list[OuterIteration], lcfg) -> None:
+    """Warn, with the figures, when the last allowed outer iteration still moved the trajectory too much."""
+    last = records[-1]
+    if outer_converged(last, lcfg):
+        return
+    log.warning(
+        "the G/I/L outer iterations did not converge: after %d (processing.lidar.outer_iterations) the last one "
+        "still moved the trajectory by %.2f mdeg and %.1f mm RMS (thresholds %.2f mdeg and %.1f mm; changes "
+        "before it: %s); it used %s of %s features extracted (processing.lidar.max_features)",
+        len(records), last.attitude_change_mdeg, last.position_change_m * 1e3, lcfg.convergence_attitude_mdeg,
+        lcfg.convergence_position_m * 1e3,
+        ", ".join(f"{r.attitude_change_mdeg:.2f} mdeg" for r in records[:-1]) or "none",
+        f"{last.features_used:,}", f"{last.features:,}",
+    )
+
+
+GNSS_PULL_RATIO = 2.0
+"""Warn when the G/I/L adjustment's GNSS residuals (RMS in sigmas) exceed the G/I adjustment's by
+this factor: the planes pull the trajectory off the GNSS, so LiDAR and navigation disagree about
+something the model does not hold. Measured on ``corridor-tiny``: 1.04 in a clean run and with a
+3 s time offset found and estimated; 6.1 with that offset left uncorrected, where the robust
+sigma0 of the planes hardly moved (0.89 to 1.05: the matching keeps only the features that
+agree locally, and the adjustment bends the trajectory to them)."""
+
+
+def warn_plane_misfit(gi: GnssImuResult, adj: LidarAdjustment, records: tuple[OuterIteration, ...],
+                      nav: NavigationData | None = None) -> None:
+    """Warn, with the figures, when the planes pull the trajectory off the GNSS (:data:`GNSS_PULL_RATIO`),
+    or a delivered trajectory beyond its stated accuracy (:func:`~georefine.workflows.delivered.warn_delivered_pull`)."""
+    if getattr(adj.result, "sbet_errors", None) is not None:
+        if nav is not None:
+            warn_delivered_pull(nav, adj.result, records)
+        return
+    try:
+        before, after, planes = gi.solve.group("gnss"), adj.result.solve.group("gnss"), adj.result.solve.group("planes")
+    except KeyError:
+        return
+    if not after.rms > GNSS_PULL_RATIO * before.rms:
+        return
+    log.warning(
+        "the LiDAR planes pull the trajectory off the GNSS: GNSS residuals %.2f sigma RMS with the planes against "
+        "%.2f without (warning above %.1fx); planes RMS %.1f sigma, %d of %d features down-weighted; outer "
+        "iterations changed the trajectory by %s. The model does not fit: check scanner.time_offset_s "
+        "(processing.lidar.time_offset), the boresight, the lever arms and the scanner channels",
+        after.rms, before.rms, GNSS_PULL_RATIO, planes.rms, planes.n_downweighted, planes.n_observations,
+        ", ".join(f"{r.attitude_change_mdeg:.2f}" for r in records) + " mdeg",
+    )
