@@ -548,7 +548,7 @@ def test_a_factor_that_needed_many_conjugate_gradient_iterations_is_replaced_nex
     from georefine.adjustment import solver
 
     events = []
-    pcg, factorize = solver._pcg_step, solver.SparseCholesky.factorize
+    pcg, factorize = solver.pcg_step, solver.SparseCholesky.factorize
 
     def counted_pcg(normal, lam, factor):
         delta, _ = pcg(normal, lam, factor)
@@ -559,7 +559,7 @@ def test_a_factor_that_needed_many_conjugate_gradient_iterations_is_replaced_nex
         events.append("factor")
         return factorize(self, *args, **kwargs)
 
-    monkeypatch.setattr(solver, "_pcg_step", counted_pcg)
+    monkeypatch.setattr(solver, "pcg_step", counted_pcg)
     monkeypatch.setattr(solver.SparseCholesky, "factorize", counted_factorize)
     rng = np.random.default_rng(21)
     R_true = random_rotations(rng, 400)
@@ -572,7 +572,7 @@ def test_a_factor_that_needed_many_conjugate_gradient_iterations_is_replaced_nex
     assert result.converged and result.iterations >= 4, result.termination
     pairs = list(zip(events, events[1:]))
     assert events[0] == "factor" and "cg" in events
-    if reported > solver._PCG_STALE_ITERATIONS:
+    if reported > solver.PCG_STALE_ITERATIONS:
         assert ("cg", "cg") not in pairs
     else:
         assert ("cg", "cg") in pairs

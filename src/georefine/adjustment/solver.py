@@ -17,7 +17,7 @@ Each iteration
        reused while the pattern of ``N`` stays the same), and the step applied through the
        retraction. From ``SolverOptions.reuse_factor_from`` unknowns on, the steps after the
        first are first tried by conjugate gradients preconditioned with the last factor
-       (:func:`_pcg_step`, ``N`` not formed); a new factorisation when they do not
+       (:func:`~georefine.adjustment.pcg.pcg_step`, ``N`` not formed); a new factorisation when they do not
        converge, or right away after a step that needed many of them (the factor has aged).
     5. Gain ratio ``rho = (F(x) - F(x')) / (L(0) - L(delta))`` with the model decrease
        ``L(0) - L(delta) = 1/2 delta^T (lambda D delta - g)`` (for an inexact step from
@@ -62,8 +62,9 @@ from georefine.adjustment.blocks import (
     ObservationGroup,
     ParameterBlock,
 )
-from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler, lower_triangle, normal_equations
+from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler
 from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky, available_backends
+from georefine.adjustment.pcg import PCG_STALE_ITERATIONS, NormalSystem, pcg_step
 from georefine.adjustment.robust import irls_weights
 from georefine.adjustment.statistics import (
     GroupStatistics,
@@ -123,7 +124,7 @@ class SolverOptions:
         (:func:`~georefine.adjustment.linalg.available_backends`).
     reuse_factor_from
         Problems with at least this many unknowns solve the steps after the first by conjugate
-        gradients preconditioned with the last Cholesky factor (see :func:`_pcg_step`), and
+        gradients preconditioned with the last Cholesky factor (see :func:`~georefine.adjustment.pcg.pcg_step`), and
         factorise again only when those do not converge; 0: always, a huge number: never.
     polish
         When the cost-change test is first met by a step whose damping exceeded ``_POLISH_LAMBDA``,
@@ -258,101 +259,13 @@ def _assemble_jacobian(
     return assembler.assemble(pieces, (evaluation.n_rows, layout.n_cols)), r
 
 
-@dataclass
-class _Normal:
-    """``J``, ``g = J^T r`` and Marquardt's ``D``; ``N = J^T J`` and its lower triangle formed when asked for."""
-
-    J: sp.csr_matrix
-    g: np.ndarray
-    diag: np.ndarray  # diag(J^T J)
-    D: np.ndarray
-    seconds: float
-    _N: sp.csr_matrix | None = None
-    _N_lower: sp.csr_matrix | None = None
-
-    def N(self) -> sp.csr_matrix:
-        if self._N is None:
-            t0 = time.perf_counter()
-            self._N, _ = normal_equations(self.J, np.zeros(self.J.shape[0]))
-            self.seconds += time.perf_counter() - t0
-        return self._N
-
-    def N_lower(self) -> sp.csr_matrix:
-        if self._N_lower is None:
-            self._N_lower = lower_triangle(self.N())
-        return self._N_lower
-
-
-def _normal_equations(evaluation: _Evaluation, layout: ColumnLayout, assembler: JacobianAssembler) -> _Normal:
+def _normal_equations(evaluation: _Evaluation, layout: ColumnLayout, assembler: JacobianAssembler) -> NormalSystem:
     t0 = time.perf_counter()
     J, r = _assemble_jacobian(evaluation, layout, assembler)
     g = np.asarray(J.T @ r)
     diag = np.bincount(J.indices, weights=J.data * J.data, minlength=layout.n_cols)
     D = np.clip(diag, _MIN_DIAGONAL, _MAX_DIAGONAL)
-    return _Normal(J, g, diag, D, time.perf_counter() - t0)
-
-
-_PCG_TOLERANCE = 1e-3
-"""Conjugate-gradient steps stop when the preconditioned residual norm ``sqrt(r^T M^-1 r)`` has
-fallen to this fraction of the right-hand side's. An inexact step is still judged by its gain
-ratio against the Gauss-Newton model; on the last outer iteration of a 60-minute G/I/L
-adjustment (712,317 unknowns) 1e-3 ended 0.0008 mdeg RMS (0.0017 mdeg at most) from the
-solution by factorisations alone, at the same cost to 6 digits."""
-
-_PCG_MAX_ITERATIONS = 25
-"""A step whose conjugate gradients need more is solved by a fresh factorisation instead. One
-iteration (a solve with the factor, a product with ``J`` and ``J^T``) took 0.55 s on that G/I/L
-matrix, a factorisation with ``N`` formed 20 s: 25 iterations stay below it."""
-
-_PCG_STALE_ITERATIONS = _PCG_MAX_ITERATIONS // 2
-"""After a step whose conjugate gradients needed more than this, the next step is factorised
-without trying them: the factor ages with every step (other weights, another linearisation
-point), and on the first G/I/L outer iterations of the 60-minute and 10-minute flights every
-step after one of 15 to 25 iterations failed to converge in 25 (three such attempts of about
-10 s each on the 60-minute flight, two on the 10-minute one)."""
-
-
-def _pcg_step(normal: _Normal, lam: float, factor) -> tuple[np.ndarray | None, int]:
-    """``(N + lambda D) delta = -g`` by conjugate gradients preconditioned with an earlier factor.
-
-    The factor is that of an earlier iteration's ``N' + lambda' D'``: the same observations
-    with other robust weights, another linearisation point and another damping. Were only the
-    weights and the damping different, the generalised eigenvalues against the current matrix
-    would lie between the smallest and largest ratios of the row weights and dampings; the new
-    linearisation point adds to that. Measured on the 60-minute G/I/L: 8 to 24 iterations, and
-    one step that did not converge in 25 right after the first factorisation. ``N`` itself is
-    never formed: each iteration multiplies by ``J`` and ``J^T`` (``J``'s non-zeros are a
-    fraction of ``N``'s and of the factor's). Returns ``(None, iterations)`` when the tolerance
-    is not reached within :data:`_PCG_MAX_ITERATIONS`.
-    """
-    J, damp = normal.J, lam * normal.D
-    b = -normal.g
-    x = np.zeros_like(b)
-    r = b.copy()
-    z = factor.solve(r)
-    rz = float(r @ z)
-    if not rz > 0.0:
-        return (x if rz == 0.0 else None), 0
-    stop = _PCG_TOLERANCE**2 * rz
-    p = z.copy()
-    for k in range(1, _PCG_MAX_ITERATIONS + 1):
-        q = J.T @ (J @ p) + damp * p
-        pq = float(p @ q)
-        if not pq > 0.0:
-            return None, k
-        a = rz / pq
-        x += a * p
-        r -= a * q
-        z = factor.solve(r)
-        rz_new = float(r @ z)
-        if not np.isfinite(rz_new):
-            return None, k
-        if rz_new <= stop:
-            return x, k
-        p *= rz_new / rz
-        p += z
-        rz = rz_new
-    return None, _PCG_MAX_ITERATIONS
+    return NormalSystem(J, g, diag, D, time.perf_counter() - t0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -372,7 +285,7 @@ class LMOutcome:
     result: SolveResult
     values: dict[str, np.ndarray]
     col_start: dict[str, np.ndarray]
-    _normal: _Normal | None
+    _normal: NormalSystem | None
     _evaluation: _Evaluation | None
     _layout: ColumnLayout
     factorizer: SparseCholesky | None = None  # its symbolic analysis fits the normal matrix too
@@ -399,7 +312,7 @@ class LMOutcome:
             self.jacobian()
         N = self._normal.N()
         if not keep_jacobian and not self._jacobian_freed:
-            self._normal = _Normal(sp.csr_matrix((0, 0)), np.zeros(0), np.zeros(0), np.zeros(0), 0.0, N)  # J freed
+            self._normal = NormalSystem(sp.csr_matrix((0, 0)), np.zeros(0), np.zeros(0), np.zeros(0), 0.0, N)  # J freed
             self._jacobian_freed = True
         return N
 
@@ -478,8 +391,8 @@ def run_levenberg_marquardt(
         iterations += 1
         t0 = time.perf_counter()
         delta, exact = None, True
-        if reuse and factor is not None and pcg_iterations <= _PCG_STALE_ITERATIONS:
-            delta, pcg_iterations = _pcg_step(normal, lam, factor)
+        if reuse and factor is not None and pcg_iterations <= PCG_STALE_ITERATIONS:
+            delta, pcg_iterations = pcg_step(normal, lam, factor)
             exact = delta is None
             log("iter %3d: conjugate gradients %s after %d iterations", iterations,
                 "converged" if delta is not None else "did not converge", pcg_iterations)
