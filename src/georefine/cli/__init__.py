@@ -47,6 +47,7 @@ def main(
         level=logging.INFO if verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
+        force=True,  # this command's stderr, also when the application runs again in one process (the tests)
     )
     # laspy logs a read error before raising it; the reader turns it into the command's one line
     logging.getLogger("laspy").setLevel(logging.CRITICAL)
