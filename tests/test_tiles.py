@@ -9,7 +9,12 @@ features per tile and georeferenced output are checked against the whole strip, 
 from __future__ import annotations
 
 import math
+import os
 import pickle
+import signal
+import subprocess
+import sys
+import time
 
 import laspy
 import numpy as np
@@ -264,6 +269,40 @@ def test_a_local_cluster_starts_with_its_first_task_not_on_entering():
         assert list(runner.map(pow, [(3, 2)])) == [9] and runner._client is not None
         assert runner.workers == 2  # now from the running cluster
     assert runner._client is None  # closed on leaving
+
+
+_STOPPED_CHILD = """
+import sys, time
+from georefine.tasks import TaskRunner
+with TaskRunner("threads", workers=1) as runner:
+    assert list(runner.map(pow, [(2, 3)])) == [8]
+    print("ready", flush=True)
+    sys.stdin.readline()  # the parent stops this process, resumes it, then writes a line
+    time.sleep(3.0)  # the scheduler's periodic checks run on the resumed clock
+    print(list(runner.map(pow, [(3, 3)])), flush=True)
+"""
+
+
+@pytest.mark.skipif(not hasattr(signal, "SIGSTOP"), reason="needs POSIX job control")
+def test_a_run_whose_process_was_stopped_goes_on_after_it_resumes():
+    """A suspended machine or a paused job: the local cluster keeps its worker. With the
+    scheduler's time-to-live of workers (here 1 s, at least ten heartbeats: 5 s, instead of 5
+    minutes) a process stopped for longer lost its only worker on resuming, and its next task
+    waited for ever."""
+    env = dict(os.environ, DASK_DISTRIBUTED__SCHEDULER__WORKER_TTL="1s")
+    child = subprocess.Popen([sys.executable, "-c", _STOPPED_CHILD], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        assert child.stdout.readline().strip() == "ready", child.stderr.read()
+        child.send_signal(signal.SIGSTOP)
+        time.sleep(12.0)
+        child.send_signal(signal.SIGCONT)
+        out, err = child.communicate("go\n", timeout=90)
+    finally:
+        if child.poll() is None:
+            child.kill()
+            child.communicate()
+    assert child.returncode == 0 and out.strip() == "[27]", err[-3000:]
 
 
 def test_map_keeps_the_order_and_reports_progress():

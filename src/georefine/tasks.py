@@ -126,13 +126,19 @@ class TaskRunner:
         # its warnings and errors still show. Spawned workers inherit the configuration.
         dask.config.set({"logging.distributed": "warning", "distributed.admin.system-monitor.gil.enabled": False})
         logging.getLogger("distributed").setLevel(max(logging.WARNING, logging.getLogger("distributed").level))
-        if self.scheduler == "threads":
-            self._cluster = LocalCluster(n_workers=1, threads_per_worker=self._workers, processes=False,
-                                         dashboard_address=":0")
-        elif self.scheduler == "processes":
-            kw = {} if self._memory_limit is None else {"memory_limit": self._memory_limit}
-            self._cluster = LocalCluster(n_workers=self._workers, threads_per_worker=1, processes=True,
-                                         dashboard_address=":0", **kw)
+        # A local cluster's scheduler does not drop the workers it has not heard from for a while
+        # (``worker-ttl``, 5 minutes by default): they live and die with this process. A run whose
+        # process was stopped for longer (a suspended machine, a paused job) lost them on resuming
+        # and then waited for ever, or failed with "No valid workers found". A dead worker process
+        # is still noticed by its nanny and its closed connections.
+        with dask.config.set({"distributed.scheduler.worker-ttl": None}):
+            if self.scheduler == "threads":
+                self._cluster = LocalCluster(n_workers=1, threads_per_worker=self._workers, processes=False,
+                                             dashboard_address=":0")
+            elif self.scheduler == "processes":
+                kw = {} if self._memory_limit is None else {"memory_limit": self._memory_limit}
+                self._cluster = LocalCluster(n_workers=self._workers, threads_per_worker=1, processes=True,
+                                             dashboard_address=":0", **kw)
         try:
             self._client = Client(self._cluster if self._cluster is not None else self.scheduler,
                                   set_as_default=False, timeout=self._timeout)
