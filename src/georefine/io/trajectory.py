@@ -83,8 +83,7 @@ _log = logging.getLogger(__name__)
 SBET_FIELDS = ("time", "latitude", "longitude", "altitude", "x_velocity", "y_velocity", "z_velocity",
                "roll", "pitch", "platform_heading", "wander_angle", "x_acceleration", "y_acceleration",
                "z_acceleration", "x_angular_rate", "y_angular_rate", "z_angular_rate")
-_SBET_DTYPE = np.dtype([(name, "<f8") for name in SBET_FIELDS])
-SBET_RECORD_SIZE = _SBET_DTYPE.itemsize  # 136 bytes
+SBET_RECORD_SIZE = 8 * len(SBET_FIELDS)  # 136 bytes: little-endian float64 (_read_float64_records)
 
 
 def _read_float64_records(path: Path, fields: tuple[str, ...], what: str, unit: str) -> np.ndarray:
@@ -359,8 +358,7 @@ def _week_of_sbet(path: Path, gps_week: int | None, first: float) -> int:
 
 SMRMSG_FIELDS = ("time", "north_position_rms", "east_position_rms", "down_position_rms", "north_velocity_rms",
                  "east_velocity_rms", "down_velocity_rms", "roll_rms", "pitch_rms", "heading_rms")
-_SMRMSG_DTYPE = np.dtype([(name, "<f8") for name in SMRMSG_FIELDS])
-SMRMSG_RECORD_SIZE = _SMRMSG_DTYPE.itemsize  # 80 bytes
+SMRMSG_RECORD_SIZE = 8 * len(SMRMSG_FIELDS)  # 80 bytes
 ARCMIN_PER_RAD = 180.0 * 60.0 / np.pi
 
 
