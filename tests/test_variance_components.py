@@ -124,6 +124,35 @@ def test_pools_take_the_rest_from_the_exact_redundancy():
                                _fresh_covariance(problem2, result2.variance_factor), rtol=1e-10)
 
 
+def test_redundancy_spent_before_the_adjustment_is_taken_off_its_group():
+    """Observations of which a share of the noise was taken out before the adjustment (the IMU
+    windows cleaned of a vibration fitted to the same readings) fit better than their sigma by
+    the degrees of freedom spent; with ``consumed_redundancy`` counted, the solve's redundancy and
+    the group's component take them off and the factor is that of the noise again."""
+    rng = np.random.default_rng(12)
+    m, spent = 3000, 900
+    factors = []
+    for counted in (False, True):
+        A = rng.normal(size=(m, 3))
+        noise = rng.normal(scale=2.0, size=m)
+        noise[:spent] = 0.0  # what the cleaning took: these rows' noise
+        a = Linear("a", A, A @ np.array([1.0, 2.0, 3.0]) + noise, 2.0)
+        if counted:
+            a.consumed_redundancy = float(spent)
+        B = rng.normal(size=(400, 3))
+        b = Linear("b", B, B @ np.array([1.0, 2.0, 3.0]) + rng.normal(scale=0.5, size=400), 0.5)
+        problem = Problem()
+        problem.add_block("x", np.zeros((1, 3)))
+        problem.add_group(a)
+        problem.add_group(b)
+        result = problem.solve()
+        assert result.redundancy == m + 400 - 3 - (spent if counted else 0)
+        comp_a = next(c for c in problem.use_variance_components([("a",)]) if c.groups == ("a",))
+        factors.append(comp_a.factor)
+    assert factors[0] == pytest.approx((m - spent) / m, rel=0.1)  # uncounted: 0.7, the sigma too small
+    assert factors[1] == pytest.approx(1.0, rel=0.1)
+
+
 @pytest.mark.parametrize("backend", available_backends())
 def test_where_every_scale_is_one_the_posterior_is_the_unscaled_one(backend):
     rng = np.random.default_rng(10)

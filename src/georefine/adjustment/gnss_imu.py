@@ -60,6 +60,11 @@ class GnssImuData:
         What an IMU sample is (``ImuData.kind``): the value at its time tag, or the mean over
         the interval that ends there. It decides how the windows are modelled
         (:mod:`georefine.adjustment.observations.imu`).
+    imu_cleaning : (N, 6) or None
+        Readings cleaned of the rebuilt vibration (up-sampling, docs/ARCHITECTURE.md §4.6): what
+        the cleaning took out of unit white noise per sample (gyro, then accelerometer axes;
+        :func:`georefine.adjustment.upsampling.without_high_rate`), for the redundancy it
+        consumed (:func:`cleaning_redundancy`); None for readings as measured.
     """
 
     frame: LocalFrame
@@ -76,6 +81,7 @@ class GnssImuData:
     imu_acc_sigma: np.ndarray | None = None
     gnss_correlated: GnssCorrelatedError | None = None
     imu_kind: Literal["rates", "increments"] = "rates"
+    imu_cleaning: np.ndarray | None = None
 
 
 GNSS_ERROR_BLOCK = "gnss_error"
@@ -227,6 +233,36 @@ def _densities(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> dict[str,
     }
 
 
+def cleaning_redundancy(data: GnssImuData, inside: np.ndarray, window_s: float, densities: dict,
+                        sigma_gyro: np.ndarray, sigma_acc: np.ndarray) -> float:
+    """The redundancy of the IMU windows that the cleaning of the readings consumed.
+
+    The cleaning (up-sampling, docs/ARCHITECTURE.md §4.6) subtracts from the readings what a
+    filter fitted to these same readings keeps: the vibration lines' bins of the rebuilt
+    high-frequency motion, and near the segments' ends all of it. With the lines goes the sensor
+    noise in their bins: the cleaned windows fit better than their weights say, by as many
+    degrees of freedom as the filter took. Uncounted, the variance factor of the navigation
+    sensors fell below 1 while the attitude error stayed (the G/I/L's IMU windows with a
+    navigation-grade unit on a vibrating platform fitted at 0.48 per row; BENCHMARKS.md,
+    Operating conditions). The expected loss of ``sum w r^2`` is ``tr(W A S Sigma S^T A^T)``
+    (``S`` the filter, ``A`` the window means, ``Sigma`` the sample noise, ``W`` the window
+    weights); ``data.imu_cleaning`` is ``S`` applied to unit white noise (one seeded draw), so
+    the sum below is an unbiased estimate of it, with a relative standard deviation of about
+    ``sqrt(2 / estimate)`` (1 % for 18,000). It slightly overcounts where the filter's bins
+    overlap what the spline follows (its 2.5-5 Hz transition for 0.1 s knots), which ``tr(H)``
+    counts already. 0 for readings as measured.
+    """
+    if data.imu_cleaning is None:
+        return 0.0
+    u = data.imu_cleaning[inside]
+    per_sample = np.sqrt(data.imu_rate_hz)  # density -> sample sigma
+    w = make_imu_windows(data.imu_time[inside], u[:, :3] * densities["gyro_noise"] * per_sample,
+                         u[:, 3:] * densities["acc_noise"] * per_sample, data.imu_rate_hz, window_s, kind=data.imu_kind)
+    sg = np.broadcast_to(np.asarray(sigma_gyro, dtype=float), (len(w),))[:, None]
+    sa = np.broadcast_to(np.asarray(sigma_acc, dtype=float), (len(w),))[:, None]
+    return float(np.sum((w.gyro / sg) ** 2) + np.sum((w.acc / sa) ** 2))
+
+
 def build_gnss_imu_problem(
     data: GnssImuData,
     spec: ImuErrorSpec,
@@ -258,6 +294,7 @@ def build_gnss_imu_problem(
         sigma_g = np.hypot(sigma_g, windows.gyro_bridged_sigma)
     if windows.acc_bridged_sigma is not None:
         sigma_a = np.hypot(sigma_a, windows.acc_bridged_sigma)
+    consumed = cleaning_redundancy(data, inside, cfg.imu_window_s, d, sigma_g, sigma_a)
     bias_grid = BiasGrid.covering(span[0], span[1], cfg.bias_knot_interval_s)
 
     blocks = TrajectoryBlocks()
@@ -292,6 +329,7 @@ def build_gnss_imu_problem(
         ImuObservation(
             grid, windows, data.frame, bias_grid, bias_grid, sigma_acc=sigma_a, sigma_gyro=sigma_g,
             nodes=cfg.quadrature_nodes if np.any(windows.n_samples > 1) else 1, blocks=blocks,
+            consumed_redundancy=consumed,
         )
     )
     problem.add_group(BiasRandomWalk("acc_bias_random_walk", "acc_bias", bias_grid, q=d["acc_rw"]))

@@ -249,8 +249,9 @@ class Problem:
             factor = solver.factorize(N, check_pivots=False)
             check_by_solve(factor, lambda v: N @ v)
             traces, sds = group_traces(J, rows, factor, probes=probes, seed=seed, which=which)
+        spent = {g.name: float(getattr(g, "consumed_redundancy", 0.0)) for g in self.groups}
         comps = variance_components(names, rows, omega, traces, sds, post.result.redundancy, pools=pools,
-                                    min_redundancy=min_redundancy)
+                                    min_redundancy=min_redundancy, consumed=[spent.get(n, 0.0) for n in names])
         scales = {c.scale for c in comps}
         if len(scales) == 1:
             s = scales.pop()

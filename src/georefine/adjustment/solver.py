@@ -36,7 +36,8 @@ Termination (Ceres Solver's criteria)
     ``lambda`` exceeds 1e16 without an acceptable step.
 
 Statistics (:class:`SolveResult`) refer to the final estimate and its robust weights ``w``:
-redundancy ``r = rows - unknowns``; a-posteriori variance factor
+redundancy ``r = rows - unknowns`` (less what the groups spent before the adjustment,
+``consumed_redundancy``: readings cleaned of a signal fitted to themselves); a-posteriori variance factor
 ``sigma0^2 = sum w r^2 / redundancy``; per group the RMS of the (unweighted) whitened
 residuals, the share of the cost, and ``sum w r^2 / rows`` as an *approximate* variance factor
 of the group (the exact one divides by the group's share of the redundancy,
@@ -183,8 +184,9 @@ class _Evaluation:
     def n_rows(self) -> int:
         return sum(g.linearization.residuals.size for g in self.groups)
 
-    def variance_factor(self, n_unknowns: int) -> float:
-        """A-posteriori ``sigma0^2 = sum w r^2 / redundancy`` (NaN without redundancy)."""
+    def variance_factor(self, n_unknowns: float) -> float:
+        """A-posteriori ``sigma0^2 = sum w r^2 / redundancy`` (NaN without redundancy);
+        ``n_unknowns`` includes the degrees of freedom spent before (``consumed_redundancy``)."""
         redundancy = self.n_rows - n_unknowns
         return sum(g.sum_wr2 for g in self.groups) / redundancy if redundancy > 0 else math.nan
 
@@ -343,6 +345,9 @@ def run_levenberg_marquardt(
     t_start = time.perf_counter()
     log = logger.info if options.verbose else logger.debug
     layout = ColumnLayout.build(blocks)
+    # Degrees of freedom of the observations spent before the adjustment (readings cleaned of a
+    # signal fitted to themselves; ImuObservation.consumed_redundancy): as many unknowns more.
+    spent = layout.n_cols + sum(float(getattr(g, "consumed_redundancy", 0.0)) for g in groups)
     values: dict[str, np.ndarray] = {}
     for name, block in blocks.items():
         arr = block.values.copy()
@@ -455,7 +460,7 @@ def run_levenberg_marquardt(
             nu = 2.0
             reference = cost + actual
             if options.relative_to_fit and current.n_rows > layout.n_cols:  # the step's sigma0^2, if > 1
-                reference /= max(1.0, current.variance_factor(layout.n_cols))
+                reference /= max(1.0, current.variance_factor(spent))
             converged = actual <= options.function_tolerance * reference
             if converged and options.polish and not polishing and lam > _POLISH_LAMBDA:
                 polishing, converged = True, False
@@ -546,7 +551,8 @@ def _statistics(
         )
         n_obs += ge.n_observations
     n_rows = evaluation.n_rows
-    redundancy = n_rows - layout.n_cols
+    spent = layout.n_cols + sum(float(getattr(g, "consumed_redundancy", 0.0)) for g in groups)
+    redundancy = int(round(n_rows - spent))
     return SolveResult(
         termination=termination,
         iterations=iterations,
@@ -559,7 +565,7 @@ def _statistics(
         n_observations=n_obs,
         n_residuals=n_rows,
         redundancy=redundancy,
-        variance_factor=evaluation.variance_factor(layout.n_cols),
+        variance_factor=evaluation.variance_factor(spent),
         groups=tuple(stats),
         timings=timings,
         backend=backend,

@@ -11,7 +11,10 @@ and estimates a spline on knots ``knot_interval_s`` apart. This module closes th
    stands out of the sensor noise (spectral lines; scaled back by ``1 + s``), for the next
    adjustment's windows. Without this a vibration that no knot can follow reaches the windows
    as aliased noise, tens of times the sensor noise; removing the noise too would leave
-   windows that fit better than their weights say, and a meaningless variance factor.
+   windows that fit better than their weights say, and a meaningless variance factor. The
+   noise in the lines' bins goes with them: the cleaned data carry what the same filter takes
+   out of unit white noise (``GnssImuData.imu_cleaning``), and the adjustment counts those
+   degrees of freedom as spent (:func:`georefine.adjustment.gnss_imu.cleaning_redundancy`).
 
 :func:`adjust_upsampled` runs ``solve -> rebuild -> re-solve on the cleaned windows -> rebuild``
 ``processing.trajectory.upsampling_iterations`` times -- not at all when hardly any of the
@@ -72,31 +75,38 @@ def high_rate_share(data: GnssImuData, result: GnssImuResult) -> float:
     return _significant(data, result)[2]
 
 
-def _significant(data: GnssImuData, result: GnssImuResult) -> tuple[np.ndarray, np.ndarray, float]:
+def _significant(data: GnssImuData, result: GnssImuResult, noise: bool = False
+                 ) -> tuple[np.ndarray, np.ndarray, float] | tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """The significant part of ``result.high_rate``'s readings (gyro, accelerometer) and its share.
 
     The share is the larger of gyro and accelerometer of RMS(significant) / RMS(all rebuilt
     readings), away from the segments' ends (:meth:`~HighRateMotion.edges`, where all of it is
     taken): near 0 when the high-frequency content is sensor noise alone, near 1 when it
-    is vibration. Empty readings and 0 without a rebuilt motion.
+    is vibration. Empty readings and 0 without a rebuilt motion. With ``noise``, also (N, 6) what
+    the same filter takes out of unit white noise (:meth:`~HighRateMotion.removed_noise`).
     """
     hf = result.high_rate
     if hf is None or hf.time.size == 0:
-        return np.zeros((0, 3)), np.zeros((0, 3)), 0.0
+        return (np.zeros((0, 3)), np.zeros((0, 3)), 0.0) + ((np.zeros((0, 6)),) if noise else ())
     all_omega, all_f = hf.reading_corrections(data.frame, result.spline)
-    d_omega, d_f = hf.significant_part(all_omega, all_f, data.imu_rate_hz)
+    if noise:
+        d_omega, d_f, removed = hf.removed_noise(all_omega, all_f, data.imu_rate_hz)
+    else:
+        d_omega, d_f = hf.significant_part(all_omega, all_f, data.imu_rate_hz)
     inner = ~hf.edges(data.imu_rate_hz)
-    if not np.any(inner):  # segments shorter than a block: no share to measure
-        return d_omega, d_f, 0.0
-    share = max(float(np.sqrt(np.mean(d_omega[inner]**2) / max(np.mean(all_omega[inner]**2), 1e-300))),
-                float(np.sqrt(np.mean(d_f[inner]**2) / max(np.mean(all_f[inner]**2), 1e-300))))
-    return d_omega, d_f, share
+    share = 0.0  # segments shorter than a block: no share to measure
+    if np.any(inner):
+        share = max(float(np.sqrt(np.mean(d_omega[inner]**2) / max(np.mean(all_omega[inner]**2), 1e-300))),
+                    float(np.sqrt(np.mean(d_f[inner]**2) / max(np.mean(all_f[inner]**2), 1e-300))))
+    return (d_omega, d_f, share) + ((removed,) if noise else ())
 
 
 def _clean(data: GnssImuData, result: GnssImuResult) -> tuple[GnssImuData, float]:
     """:func:`without_high_rate` and the share of the rebuilt readings that was taken out
-    (:func:`_significant`)."""
-    d_omega, d_f, share = _significant(data, result)
+    (:func:`_significant`). The cleaned data carry what the cleaning took out of unit white noise
+    (``imu_cleaning``, per sample; zero outside the rebuilt span): the redundancy it consumed.
+    """
+    d_omega, d_f, share, removed = _significant(data, result, noise=True)
     hf = result.high_rate
     if hf is None or hf.time.size == 0:
         return data, share
@@ -108,7 +118,9 @@ def _clean(data: GnssImuData, result: GnssImuResult) -> tuple[GnssImuData, float
     acc = data.imu_acc.copy()
     gyro[sel] -= (1.0 + np.asarray(e.gyro_scale)) * d_omega
     acc[sel] -= (1.0 + np.asarray(e.acc_scale)) * d_f
-    return replace(data, imu_gyro=gyro, imu_acc=acc), share
+    cleaning = np.zeros((data.imu_time.size, 6))
+    cleaning[sel] = removed
+    return replace(data, imu_gyro=gyro, imu_acc=acc, imu_cleaning=cleaning), share
 
 
 MIN_SIGNIFICANT_SHARE = 0.1

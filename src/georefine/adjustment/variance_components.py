@@ -144,20 +144,25 @@ def group_traces(J: sp.csr_matrix, row_counts: Sequence[int], factor: Factorizat
 def variance_components(names: Sequence[str], row_counts: Sequence[int], sum_wr2: Sequence[float],
                         traces: np.ndarray, trace_sds: np.ndarray, redundancy: float, *,
                         pools: Sequence[Sequence[str]] | None = None,
-                        min_redundancy: float = MIN_REDUNDANCY) -> tuple[VarianceComponent, ...]:
+                        min_redundancy: float = MIN_REDUNDANCY,
+                        consumed: Sequence[float] | None = None) -> tuple[VarianceComponent, ...]:
     """The components and their factors.
 
     ``pools`` None: one component per group with at least ``min_redundancy``, the rest pooled.
     ``pools`` given: one component per pool (names of groups; those absent are ignored) and one
     for the groups in none. ``traces`` may be NaN (not estimated) for the groups of one
     component: its redundancy is then the adjustment's ``redundancy`` (rows - unknowns, exact)
-    less the others', and it carries their estimates' standard deviation. Each ``scale`` is the factor floored at 1; a component
+    less the others', and it carries their estimates' standard deviation. ``consumed``: per group,
+    degrees of freedom spent before the adjustment (``ImuObservation.consumed_redundancy``),
+    taken off its redundancy (``redundancy`` already excludes them). Each ``scale`` is the factor floored at 1; a component
     with less than one unit of redundancy keeps the a-priori weights (scale 1): nothing in the
     data measures its fit.
     """
     m = np.asarray(row_counts, dtype=float)
     omega = np.asarray(sum_wr2, dtype=float)
     r = m - np.asarray(traces, dtype=float)
+    if consumed is not None:
+        r = r - np.asarray(consumed, dtype=float)
     sds = np.asarray(trace_sds, dtype=float)
     present = [i for i in range(len(names)) if m[i] > 0]
     if pools is None:

@@ -414,9 +414,12 @@ class TrajectoryAdjustmentConfig(StrictModel):
         "georeference with it (up-sampling, docs/ARCHITECTURE.md §4.6).",
     )
     upsampling_iterations: int = Field(
-        1, ge=0, le=5,
+        2, ge=0, le=5,
         description="With upsampling: times the G/I adjustment is solved again with the rebuilt "
-        "high-frequency motion taken out of the IMU windows (each G/I/L outer iteration does so anyway).",
+        "high-frequency motion taken out of the IMU windows (each G/I/L outer iteration does so anyway). "
+        "Two: the first re-solve's windows are cleaned with the motion rebuilt from a spline that "
+        "followed the raw windows' aliased vibration, and keep part of it; the second's fit as the "
+        "G/I/L's do, so the G/I's variance factor measures the sensors, not that leftover.",
     )
     bias_knot_interval_s: float = Field(10.0, gt=0.0, description="Knot spacing of the piecewise-linear biases.")
     gnss_error_knot_interval_s: float = Field(

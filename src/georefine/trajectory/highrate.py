@@ -94,7 +94,8 @@ def high_pass(t: np.ndarray, y: np.ndarray, knot_interval_s: float) -> np.ndarra
     return y - (B @ coef).reshape(y.shape)
 
 
-def significant_content(x: np.ndarray, factor: float = LINE_FACTOR, block: int = STFT_SAMPLES) -> np.ndarray:
+def significant_content(x: np.ndarray, factor: float = LINE_FACTOR, block: int = STFT_SAMPLES,
+                        also: np.ndarray | None = None) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """The part of uniformly sampled ``x`` (N, C) that stands out of its noise, spectrally.
 
     Short-time Fourier transform (``scipy.signal.stft``, Hann blocks of ``block`` samples, half
@@ -103,18 +104,26 @@ def significant_content(x: np.ndarray, factor: float = LINE_FACTOR, block: int =
     ``factor`` times it are kept (``istft``). Vibration lines pass whole, white noise does not:
     removing them from the readings takes out the vibration and leaves the noise the window
     weights assume.
+
+    ``also`` (N, C): another signal put through the same bins (the same linear filter), returned
+    second: what the filter takes out of a known noise (:meth:`HighRateMotion.removed_noise`).
     """
     from scipy.signal import istft, stft
 
     n = x.shape[0]
     nper = min(block, n)
     if nper < 64:
-        return np.zeros_like(x)
+        return np.zeros_like(x) if also is None else (np.zeros_like(x), np.zeros_like(also))
     _, _, Z = stft(x.T, nperseg=nper, noverlap=nper // 2, window="hann")
     power = np.abs(Z) ** 2
     noise = np.median(power, axis=1, keepdims=True) / np.log(2.0)
-    _, y = istft(np.where(power > factor * noise, Z, 0.0), nperseg=nper, noverlap=nper // 2, window="hann")
-    return y[:, :n].T
+    keep = power > factor * noise
+    _, y = istft(np.where(keep, Z, 0.0), nperseg=nper, noverlap=nper // 2, window="hann")
+    if also is None:
+        return y[:, :n].T
+    _, _, Za = stft(also.T, nperseg=nper, noverlap=nper // 2, window="hann")
+    _, ya = istft(np.where(keep, Za, 0.0), nperseg=nper, noverlap=nper // 2, window="hann")
+    return y[:, :n].T, ya[:, :n].T
 
 
 def _integral(t: np.ndarray, y: np.ndarray) -> np.ndarray:
@@ -208,13 +217,36 @@ class HighRateMotion:
     def significant_part(self, d_omega: np.ndarray, d_f: np.ndarray, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
         """What :meth:`significant_corrections` keeps of the corrections ``d_omega``, ``d_f``
         (:meth:`reading_corrections`, for a caller that has them already)."""
+        return self._significant(d_omega, d_f, rate_hz, None)[:2]
+
+    def removed_noise(self, d_omega: np.ndarray, d_f: np.ndarray, rate_hz: float, seed: int = 0
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`significant_part`, and (N, 6) what the same filter takes out of unit white noise.
+
+        The filter is linear once its bins are chosen: the rebuild high-passes the readings'
+        residual (:func:`high_pass`), the test keeps the lines' bins, and near the segments'
+        ends all of it (:meth:`edges`). Put through it, seeded white noise of unit variance per
+        sample and channel (gyro x, y, z, accelerometer x, y, z) gives the share of the sensor
+        noise that the cleaned readings no longer hold: the windows' residuals lose those
+        degrees of freedom (:func:`georefine.adjustment.gnss_imu.cleaning_redundancy`).
+        """
+        return self._significant(d_omega, d_f, rate_hz, np.random.default_rng(seed))
+
+    def _significant(self, d_omega, d_f, rate_hz, rng):
         both = np.hstack([d_omega, d_f])
         out = np.zeros_like(both)
+        noise = None if rng is None else np.zeros_like(both)
         for s in _segments(self.time, rate_hz):
-            out[s] = significant_content(both[s])
+            if rng is None:
+                out[s] = significant_content(both[s])
+                continue
+            u = high_pass(self.time[s], rng.standard_normal(both[s].shape), self.knot_interval_s)
+            out[s], noise[s] = significant_content(both[s], also=u)
+            edge = self.edges(rate_hz)[s]
+            noise[s][edge] = u[edge]
         edges = self.edges(rate_hz)
         out[edges] = both[edges]
-        return out[:, :3], out[:, 3:]
+        return out[:, :3], out[:, 3:], noise
 
     def edges(self, rate_hz: float, block: int = STFT_SAMPLES) -> np.ndarray:
         """(N,) bool: the samples within half a short-time Fourier block of their segment's ends,

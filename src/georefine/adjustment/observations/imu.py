@@ -152,6 +152,11 @@ class ImuObservation:
     nodes
         Gauss-Legendre nodes per window of increments (1 for single samples). Windows of
         rates are averaged at their samples (module docstring).
+    consumed_redundancy
+        Degrees of freedom of the windows that were spent before the adjustment: readings
+        cleaned of a vibration rebuilt from themselves
+        (:func:`georefine.adjustment.gnss_imu.cleaning_redundancy`). The solver and the
+        variance components subtract it from the redundancy.
     """
 
     grid: KnotGrid
@@ -169,6 +174,7 @@ class ImuObservation:
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
     name: str = "imu"
+    consumed_redundancy: float = 0.0
 
     def __post_init__(self) -> None:
         w = self.windows
