@@ -236,15 +236,14 @@ class HighRateMotion:
         both = np.hstack([d_omega, d_f])
         out = np.zeros_like(both)
         noise = None if rng is None else np.zeros_like(both)
+        edges = self.edges(rate_hz)
         for s in _segments(self.time, rate_hz):
             if rng is None:
                 out[s] = significant_content(both[s])
                 continue
             u = high_pass(self.time[s], rng.standard_normal(both[s].shape), self.knot_interval_s)
             out[s], noise[s] = significant_content(both[s], also=u)
-            edge = self.edges(rate_hz)[s]
-            noise[s][edge] = u[edge]
-        edges = self.edges(rate_hz)
+            noise[s][edges[s]] = u[edges[s]]
         out[edges] = both[edges]
         return out[:, :3], out[:, 3:], noise
 
