@@ -345,9 +345,7 @@ def run_levenberg_marquardt(
     t_start = time.perf_counter()
     log = logger.info if options.verbose else logger.debug
     layout = ColumnLayout.build(blocks)
-    # Degrees of freedom of the observations spent before the adjustment (readings cleaned of a
-    # signal fitted to themselves; ImuObservation.consumed_redundancy): as many unknowns more.
-    spent = layout.n_cols + sum(float(getattr(g, "consumed_redundancy", 0.0)) for g in groups)
+    spent = _spent(layout, groups)
     values: dict[str, np.ndarray] = {}
     for name, block in blocks.items():
         arr = block.values.copy()
@@ -493,7 +491,7 @@ def run_levenberg_marquardt(
     if backend_used == "auto":
         backend_used = available_backends()[0]
     result = _statistics(
-        groups, current, layout, termination, iterations, accepted_steps, initial_cost, history, lam,
+        groups, current, layout, spent, termination, iterations, accepted_steps, initial_cost, history, lam,
         Timings(t_eval, t_asm, t_fac, time.perf_counter() - t_start), backend_used, n_factorisations, n_pcg_steps,
     )
     log("LM end: %s", result.summary())
@@ -527,9 +525,16 @@ def robust_sigma0(median_s: float, dof: float) -> float:
     return math.sqrt(median_s / chdtri(dof, 0.5)) if math.isfinite(median_s) else math.nan
 
 
+def _spent(layout: ColumnLayout, groups) -> float:
+    """Unknowns plus the degrees of freedom the observations spent before the adjustment
+    (readings cleaned of a signal fitted to themselves, ``ImuObservation.consumed_redundancy``):
+    what the redundancy and the variance factor subtract from the rows."""
+    return layout.n_cols + sum(float(getattr(g, "consumed_redundancy", 0.0)) for g in groups)
+
+
 def _statistics(
-    groups, evaluation: _Evaluation, layout: ColumnLayout, termination, iterations, accepted, initial_cost,
-    history, lam, timings: Timings, backend: str, factorisations: int = 0, iterative_steps: int = 0,
+    groups, evaluation: _Evaluation, layout: ColumnLayout, spent: float, termination, iterations, accepted,
+    initial_cost, history, lam, timings: Timings, backend: str, factorisations: int = 0, iterative_steps: int = 0,
 ) -> SolveResult:
     total_cost = evaluation.cost
     stats, n_obs = [], 0
@@ -551,7 +556,6 @@ def _statistics(
         )
         n_obs += ge.n_observations
     n_rows = evaluation.n_rows
-    spent = layout.n_cols + sum(float(getattr(g, "consumed_redundancy", 0.0)) for g in groups)
     redundancy = int(round(n_rows - spent))
     return SolveResult(
         termination=termination,

@@ -76,29 +76,29 @@ def high_rate_share(data: GnssImuData, result: GnssImuResult) -> float:
 
 
 def _significant(data: GnssImuData, result: GnssImuResult, noise: bool = False
-                 ) -> tuple[np.ndarray, np.ndarray, float] | tuple[np.ndarray, np.ndarray, float, np.ndarray]:
+                 ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray | None]:
     """The significant part of ``result.high_rate``'s readings (gyro, accelerometer) and its share.
 
     The share is the larger of gyro and accelerometer of RMS(significant) / RMS(all rebuilt
     readings), away from the segments' ends (:meth:`~HighRateMotion.edges`, where all of it is
     taken): near 0 when the high-frequency content is sensor noise alone, near 1 when it
-    is vibration. Empty readings and 0 without a rebuilt motion. With ``noise``, also (N, 6) what
-    the same filter takes out of unit white noise (:meth:`~HighRateMotion.removed_noise`).
+    is vibration. Empty readings and 0 without a rebuilt motion. Last, with ``noise``, (N, 6) what
+    the same filter takes out of unit white noise (:meth:`~HighRateMotion.removed_noise`), else None.
     """
     hf = result.high_rate
     if hf is None or hf.time.size == 0:
-        return (np.zeros((0, 3)), np.zeros((0, 3)), 0.0) + ((np.zeros((0, 6)),) if noise else ())
+        return np.zeros((0, 3)), np.zeros((0, 3)), 0.0, (np.zeros((0, 6)) if noise else None)
     all_omega, all_f = hf.reading_corrections(data.frame, result.spline)
     if noise:
         d_omega, d_f, removed = hf.removed_noise(all_omega, all_f, data.imu_rate_hz)
     else:
-        d_omega, d_f = hf.significant_part(all_omega, all_f, data.imu_rate_hz)
+        (d_omega, d_f), removed = hf.significant_part(all_omega, all_f, data.imu_rate_hz), None
     inner = ~hf.edges(data.imu_rate_hz)
     share = 0.0  # segments shorter than a block: no share to measure
     if np.any(inner):
         share = max(float(np.sqrt(np.mean(d_omega[inner]**2) / max(np.mean(all_omega[inner]**2), 1e-300))),
                     float(np.sqrt(np.mean(d_f[inner]**2) / max(np.mean(all_f[inner]**2), 1e-300))))
-    return (d_omega, d_f, share) + ((removed,) if noise else ())
+    return d_omega, d_f, share, removed
 
 
 def _clean(data: GnssImuData, result: GnssImuResult) -> tuple[GnssImuData, float]:

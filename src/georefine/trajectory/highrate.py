@@ -114,16 +114,17 @@ def significant_content(x: np.ndarray, factor: float = LINE_FACTOR, block: int =
     nper = min(block, n)
     if nper < 64:
         return np.zeros_like(x) if also is None else (np.zeros_like(x), np.zeros_like(also))
-    _, _, Z = stft(x.T, nperseg=nper, noverlap=nper // 2, window="hann")
+    def spectrum(signal):
+        return stft(signal.T, nperseg=nper, noverlap=nper // 2, window="hann")[2]
+
+    def kept(Z):
+        return istft(np.where(keep, Z, 0.0), nperseg=nper, noverlap=nper // 2, window="hann")[1][:, :n].T
+
+    Z = spectrum(x)
     power = np.abs(Z) ** 2
     noise = np.median(power, axis=1, keepdims=True) / np.log(2.0)
     keep = power > factor * noise
-    _, y = istft(np.where(keep, Z, 0.0), nperseg=nper, noverlap=nper // 2, window="hann")
-    if also is None:
-        return y[:, :n].T
-    _, _, Za = stft(also.T, nperseg=nper, noverlap=nper // 2, window="hann")
-    _, ya = istft(np.where(keep, Za, 0.0), nperseg=nper, noverlap=nper // 2, window="hann")
-    return y[:, :n].T, ya[:, :n].T
+    return kept(Z) if also is None else (kept(Z), kept(spectrum(also)))
 
 
 def _integral(t: np.ndarray, y: np.ndarray) -> np.ndarray:
