@@ -127,15 +127,22 @@ def project(tmp_path_factory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def delivered_files(project, tmp_path_factory) -> Path:
+    """The scans georeferenced with the truth SBET, as a vendor delivers them (``pts/strip_*.laz``): read only."""
+    d = tmp_path_factory.mktemp("vendor")
+    run_georeference(project, project / "truth" / "trajectory.sbet", d / "pts")
+    return d
+
+
 def _scanner(project: Path) -> dict:
     return yaml.safe_load((project / "project.yaml").read_text())["scanner"]
 
 
-def test_imported_strips_are_the_scans_to_the_files_resolution(project, tmp_path):
-    pts = run_georeference(project, project / "truth" / "trajectory.sbet", tmp_path / "pts")
-    assert len(pts.strips) == 2
+def test_imported_strips_are_the_scans_to_the_files_resolution(project, delivered_files, tmp_path):
     sc = _scanner(project)
-    files = sorted((tmp_path / "pts").glob("strip_*.laz"))
+    files = sorted((delivered_files / "pts").glob("strip_*.laz"))
+    assert [f.name for f in files] == ["strip_1.laz", "strip_2.laz"]
     res = import_strips(files, project / "truth" / "trajectory.sbet", tmp_path / "imp",
                         lever_arm_m=tuple(sc["lever_arm_m"]), boresight_deg=tuple(sc["boresight_deg"]))
     assert res.epsg == 25832 and res.strip_ids == (1, 2)
@@ -205,13 +212,6 @@ def test_the_planes_correct_a_delivered_heading_error(project, tmp_path):
 def _georefine(cwd: Path, *args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "georefine", *args], cwd=cwd, capture_output=True, text=True,
                           env=dict(os.environ, COLUMNS="300"), timeout=600)
-
-
-@pytest.fixture(scope="module")
-def delivered_files(project, tmp_path_factory) -> Path:
-    d = tmp_path_factory.mktemp("vendor")
-    run_georeference(project, project / "truth" / "trajectory.sbet", d / "pts")
-    return d
 
 
 def _refused(proc, *words):
