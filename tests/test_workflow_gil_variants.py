@@ -65,7 +65,8 @@ def test_boresight_error_of_005_deg_is_recovered_from_both_passes(project, gi_ca
     cfg = yaml.safe_load((wrong / "project.yaml").read_text())
     true_bs = np.array(cfg["scanner"]["boresight_deg"], dtype=float)
     cfg["scanner"]["boresight_deg"] = (true_bs + [0.05, 0.0, 0.0]).tolist()  # a 0.05 deg roll error
-    cfg["processing"] = {"lidar": {"estimate_boresight": True}}
+    # No time offset search: the boresight is what this test is about (test_time_offset.py covers it).
+    cfg["processing"] = {"lidar": {"estimate_boresight": True, "time_offset": {"search": False}}}
     (wrong / "project.yaml").write_text(yaml.safe_dump(cfg))
     res = run_workflow(wrong, tmp_path / "out", points=False, cache_dir=_cache(gi_cache, tmp_path / "cache"))
     err_mdeg = (res.gil.boresight_deg - true_bs) * 1e3
