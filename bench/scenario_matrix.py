@@ -42,7 +42,10 @@ the true trajectory: the error this draw of the noise allows) and the G/I's boun
 fails the checks says whether the optima fail them too (``optima fail``: the model gives that
 error on this draw, whether by chance or by a defect of its own; not the run's solve or start).
 
-Results are kept per scenario in ``WORK/results/NAME.json``: a rerun skips scenarios done
+Results are kept per scenario in ``WORK/results/NAME.json`` (those of the last whole run of the
+one-at-a-time design are in ``bench/results/scenario_matrix_oat``: ``python bench/scenario_matrix.py
+bench/results/scenario_matrix_oat --length 1200 --report-only --markdown`` prints its tables, with
+``--draws 3`` the scenarios drawn three times): a rerun skips scenarios done
 (delete the file to redo one), so the matrix can be run in parts. ``--redo single`` (or
 ``both``) runs that solution of kept scenarios again, and its bound, and keeps the other: for a
 change that only one of them can feel (the LiDAR time offset, which one strip cannot show, is
