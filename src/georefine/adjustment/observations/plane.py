@@ -64,8 +64,10 @@ import numpy as np
 from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
+    knot_sum,
     orientation_jacobians,
     position_jacobians,
+    single_element,
 )
 from georefine.adjustment.robust import RobustLoss
 from georefine.trajectory.spline import KnotGrid, eval_orientation, position_basis
@@ -354,9 +356,9 @@ class PlaneObservation:
         """Current ``(R_b_s (3,3), p_b_s (3,))``: from the blocks when named, else the fixed ones."""
         R_b_s, p_b_s = self.R_b_s, self.p_b_s
         if self.boresight is not None:
-            R_b_s = _single_element(values, self.boresight, (3, 3))
+            R_b_s = single_element(values, self.boresight, (3, 3))
         if self.lever_arm is not None:
-            p_b_s = _single_element(values, self.lever_arm, (3,))
+            p_b_s = single_element(values, self.lever_arm, (3,))
         return R_b_s, p_b_s
 
     def object_planes(self, values: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
@@ -380,9 +382,9 @@ class PlaneObservation:
         """Times (F,) the features are georeferenced at: their stamps plus the current time offset and drift."""
         t = self.time
         if self.time_offset is not None:
-            t = t + _single_element(values, self.time_offset, (1,))[0]
+            t = t + single_element(values, self.time_offset, (1,))[0]
         if self.time_drift is not None:
-            t = t + _single_element(values, self.time_drift, (1,))[0] * (self.time - self.time_reference)
+            t = t + single_element(values, self.time_drift, (1,))[0] * (self.time - self.time_reference)
         return t
 
     def _located(self, values: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -413,10 +415,7 @@ class PlaneObservation:
         """
         P, V, A, R, W = self.blocks.knots(values)
         t, k, _, w0 = located if located is not None else self._located(values)
-        p = (
-            w0[:, 0:1] * P[k] + w0[:, 1:2] * V[k] + w0[:, 2:3] * A[k]
-            + w0[:, 3:4] * P[k + 1] + w0[:, 4:5] * V[k + 1] + w0[:, 5:6] * A[k + 1]
-        )
+        p = knot_sum(P, V, A, k, w0)
         ev = eval_orientation(self.grid, R, W, t, rate=jacobians and self._timed(), jacobians=jacobians)
         R_b_s, p_b_s = self.calibration(values)
         x_b = p_b_s + self.centre_s @ R_b_s.T  # feature centre relative to the IMU, body frame
@@ -469,11 +468,7 @@ class PlaneObservation:
             jac.append(JacobianBlock(self.lever_arm, rows[:, :1], zeros, (n_b * w_d[:, None])[:, None, :]))
         if self._timed():
             P, V, A, _, _ = self.blocks.knots(values)
-            w1 = position_basis(u_t, self.grid.dt, 1)
-            v = (
-                w1[:, 0:1] * P[k_t] + w1[:, 1:2] * V[k_t] + w1[:, 2:3] * A[k_t]
-                + w1[:, 3:4] * P[k_t + 1] + w1[:, 4:5] * V[k_t + 1] + w1[:, 5:6] * A[k_t + 1]
-            )
+            v = knot_sum(P, V, A, k_t, position_basis(u_t, self.grid.dt, 1))
             # d r / d t: velocity along n for the centre, the body rate turning lever and axes.
             dr_dt = np.einsum("nri,ni->nr", np.cross(lever_b, n_b[:, None, :]), ev.omega_wb_b)
             dr_dt[:, 0] += _dot(n, v)
@@ -485,10 +480,3 @@ class PlaneObservation:
                                          dr_dt * (self.time - self.time_reference)[:, None, None]))
         return Linearization(r.ravel(), jac, self._obs)
 
-
-def _single_element(values: Mapping[str, np.ndarray], name: str, shape: tuple[int, ...]) -> np.ndarray:
-    """The one element of a calibration block (``(1,) + shape``)."""
-    arr = np.asarray(values[name], dtype=float)
-    if arr.shape != (1,) + shape:
-        raise ValueError(f"block {name!r} must have shape {(1,) + shape}, found {arr.shape}")
-    return arr[0]
