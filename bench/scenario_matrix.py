@@ -66,28 +66,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from georefine.errors import ConfigError
 from georefine.evaluation.trajectory_files import truth_pass_accuracy
+from georefine.sim.conditions import FLIGHT, GNSS, IMU, LATITUDE, VIBRATION, condition_overrides
 from georefine.workflows.cramer_rao import cramer_rao_bound
 
-IMU = ("mems", "tactical", "navigation")
-FLIGHT = {
-    "slow-low": [],
-    "fast-high": ["flight.altitude_agl_m=300", "flight.speed_mps=30", "scanner.pulse_rate_hz=300000"],
-}
-GNSS = {
-    "ppk-5hz": [],
-    "ppk-1hz": ["gnss.rate_hz=1", "gnss.sigma_north_m=0.02", "gnss.sigma_east_m=0.02", "gnss.sigma_up_m=0.04",
-                "gnss.gm_sigma_horizontal_m=0.03", "gnss.gm_sigma_up_m=0.06"],
-    "outage": None,  # 60 s inside pass 1: set from the flight plan (outage_override)
-}
-LATITUDE = {
-    "mid": [],
-    "south": ["reference_point.lat_deg=-33.9", "reference_point.lon_deg=18.6", "reference_point.h_m=100",
-              "output_epsg=32734"],
-    "high": ["reference_point.lat_deg=69.6", "reference_point.lon_deg=18.9", "reference_point.h_m=50",
-             "output_epsg=32634"],
-}
-VIBRATION = {"off": [], "on": ["flight.vibration.enabled=true"]}
 OUTAGE_S = (10.0, 60.0, 10.0)  # starts this long into pass 1, lasts at most this, ends at least this before the pass
 
 
@@ -105,34 +88,16 @@ def name_of(s) -> str:
     return "_".join(s)
 
 
-def outage_override(overrides: list[str], imu: str) -> str:
-    """``gnss.outages=[[a, b]]`` for an outage inside pass 1 of this flight (``OUTAGE_S``): GNSS is lost
-    and regained during the pass, whatever the corridor length."""
-    from georefine.geometry.frames import LocalFrame
-    from georefine.sim.flight import simulate_flight
-    from georefine.sim.scenarios import resolve_scenario
-    from georefine.sim.scene import build_scene
-
-    cfg = resolve_scenario("corridor", seed_overrides=overrides, imu_grade=imu)
-    rp = cfg.reference_point
-    scene = build_scene(cfg.scene, np.random.default_rng(0))
-    traj = simulate_flight(cfg.flight, LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m), cfg.scene.length_m,
-                           scene.terrain_height)
-    _, start, end = traj.passes[0]
-    a = start + OUTAGE_S[0]
-    b = min(a + OUTAGE_S[1], end - OUTAGE_S[2])
-    if b - a < 10.0:
-        raise SystemExit(f"pass 1 lasts {end - start:.0f} s: too short for an outage inside it (--length)")
-    return f"gnss.outages=[[{a:.1f}, {b:.1f}]]"
-
-
 def simulate(work: Path, s, seed: int, length: float, key: str) -> Path:
     imu, flight, gnss, lat, vib = s
     out = work / "projects" / key
     if (out / "truth" / "scenario.yaml").is_file() and (out / "scans").is_dir():  # the strips go once a run is done
         return out
-    overrides = [f"scene.length_m={length:g}", *FLIGHT[flight], *LATITUDE[lat], *VIBRATION[vib]]
-    overrides += [outage_override(overrides, imu)] if gnss == "outage" else GNSS[gnss]
+    try:
+        overrides = condition_overrides("corridor", imu, flight, gnss, lat, vib, seed,
+                                        base=[f"scene.length_m={length:g}"], outage_s=OUTAGE_S)
+    except ConfigError as exc:
+        raise SystemExit(f"{key}: {exc} (--length)") from None
     if out.exists():
         shutil.rmtree(out)
     out.parent.mkdir(parents=True, exist_ok=True)

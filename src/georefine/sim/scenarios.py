@@ -342,6 +342,38 @@ def simulate_project(
     return SimulationResult(out=out, **{k: v for k, v in result.items()})
 
 
+def outage_inside_pass(cfg: ScenarioConfig, seed: int, *, strip: int = 1, start_after_s: float = 10.0,
+                       length_s: float = 60.0, margin_s: float = 10.0, min_length_s: float = 10.0) -> str:
+    """The override ``gnss.outages=[[a, b]]`` of a GNSS outage inside pass ``strip`` of this flight.
+
+    The outage starts ``start_after_s`` into the pass and lasts ``length_s``, or less so that it
+    ends ``margin_s`` before the pass does: GNSS is lost and regained during the pass, whatever
+    the corridor's length. The pass times are those :func:`simulate_project` flies with ``cfg``
+    and ``seed`` (the scene's terrain shapes the flight).
+
+    Raises
+    ------
+    ConfigError
+        The pass is too short for an outage of ``min_length_s`` there.
+    """
+    rp = cfg.reference_point
+    rng_scene = np.random.default_rng(np.random.SeedSequence(seed).spawn(6)[0])
+    scene = build_scene(cfg.scene, rng_scene)
+    traj = simulate_flight(cfg.flight, LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m), cfg.scene.length_m,
+                           scene.terrain_height)
+    spans = {sid: (t0, t1) for sid, t0, t1 in traj.passes}
+    if strip not in spans:
+        raise ConfigError("no such pass", field="strip", expected=f"one of {sorted(spans)}", found=str(strip))
+    start, end = spans[strip]
+    a = start + start_after_s
+    b = min(a + length_s, end - margin_s)
+    if b - a < min_length_s:
+        raise ConfigError("pass too short for an outage inside it", field="scene.length_m",
+                          expected=f"a pass of at least {start_after_s + min_length_s + margin_s:.0f} s",
+                          found=f"pass {strip} of {end - start:.0f} s")
+    return f"gnss.outages=[[{a:.1f}, {b:.1f}]]"
+
+
 def _replace_empty_dir(tmp: Path, out: Path) -> None:
     out.rmdir()
     tmp.rename(out)
