@@ -31,6 +31,7 @@ from shared_projects import built_once, run_readme_example
 SLOW_FIRST = (
     "test_coadjust.py",
     "test_workflow_gil.py",
+    "test_operating_matrix.py",
     "test_trajectory_gi.py",
     "test_workflow_gil_variants.py",
     "test_readme_tiny.py",
