@@ -40,9 +40,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from georefine.errors import ConfigError
 from georefine.evaluation.trajectory_files import truth_pass_accuracy
 from georefine.sim.conditions import condition_overrides
-from georefine.sim.scenarios import simulate_project
+from georefine.sim.scenarios import flight_passes, resolve_scenario, simulate_project
 from georefine.workflows.lidar import run_workflow
 
 pytestmark = pytest.mark.slow
@@ -84,13 +85,18 @@ def _rows(matrix):
 
 
 def test_the_outage_lies_inside_pass_1():
-    from georefine.sim.scenarios import resolve_scenario
-
     overrides = condition_overrides("corridor-tiny", "mems", "slow-low", "outage", "high", "on", SEED,
                                     outage_s=(5.0, 20.0, 5.0))
     cfg = resolve_scenario("corridor-tiny", seed_overrides=overrides, imu_grade="mems")
     (a, b), = cfg.gnss.outages
     assert 10.0 <= b - a <= 20.0
+    # Inside pass 1 of the flight the simulation flies, with 5 s of GNSS on either side.
+    (_, start, end), *_ = flight_passes(cfg, SEED)
+    assert a == pytest.approx(start + 5.0, abs=0.05) and b <= end - 5.0 + 0.05
+    with pytest.raises(ConfigError, match="pass too short"):
+        condition_overrides("corridor-tiny", "mems", "slow-low", "outage", "mid", "off", SEED, outage_s=(10.0, 60.0, 40.0))
+    with pytest.raises(ConfigError, match="unknown level"):
+        condition_overrides("corridor-tiny", "mems", "slow-low", "ppk-2hz", "mid", "off", SEED)
 
 
 def test_gil_is_never_worse_than_gi_and_fixes_heading(matrix):

@@ -342,6 +342,18 @@ def simulate_project(
     return SimulationResult(out=out, **{k: v for k, v in result.items()})
 
 
+def flight_passes(cfg: ScenarioConfig, seed: int) -> tuple[tuple[int, float, float], ...]:
+    """``(strip_id, t_start, t_end)`` of the passes :func:`simulate_project` flies with ``cfg`` and
+    ``seed`` (s from the start of the data), without simulating the sensors."""
+    rp = cfg.reference_point
+    # The scene's stream is the first child of the seed, as in the simulation (children do not
+    # depend on how many are spawned); the terrain shapes the flight.
+    scene = build_scene(cfg.scene, np.random.default_rng(np.random.SeedSequence(seed).spawn(1)[0]))
+    traj = simulate_flight(cfg.flight, LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m), cfg.scene.length_m,
+                           scene.terrain_height)
+    return tuple((int(sid), float(t0), float(t1)) for sid, t0, t1 in traj.passes)
+
+
 def outage_inside_pass(cfg: ScenarioConfig, seed: int, *, strip: int = 1, start_after_s: float = 10.0,
                        length_s: float = 60.0, margin_s: float = 10.0, min_length_s: float = 10.0) -> str:
     """The override ``gnss.outages=[[a, b]]`` of a GNSS outage inside pass ``strip`` of this flight.
@@ -356,12 +368,7 @@ def outage_inside_pass(cfg: ScenarioConfig, seed: int, *, strip: int = 1, start_
     ConfigError
         The pass is too short for an outage of ``min_length_s`` there.
     """
-    rp = cfg.reference_point
-    rng_scene = np.random.default_rng(np.random.SeedSequence(seed).spawn(6)[0])
-    scene = build_scene(cfg.scene, rng_scene)
-    traj = simulate_flight(cfg.flight, LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m), cfg.scene.length_m,
-                           scene.terrain_height)
-    spans = {sid: (t0, t1) for sid, t0, t1 in traj.passes}
+    spans = {sid: (t0, t1) for sid, t0, t1 in flight_passes(cfg, seed)}
     if strip not in spans:
         raise ConfigError("no such pass", field="strip", expected=f"one of {sorted(spans)}", found=str(strip))
     start, end = spans[strip]
