@@ -28,7 +28,7 @@ Measured (seed 77, mdeg, G/I -> G/I/L, roll / pitch / yaw): tactical both passes
 3.46 -> 4.22 / 1.44 / 0.60 and 3.04 / 6.04 / 31.86 -> 4.06 / 1.82 / 0.64, single pass -> 3.01 /
 0.51 / 0.97; MEMS with the outage 3.21 / 2.79 / 28.78 -> 0.56 / 1.09 / 1.62 and 2.84 / 3.78 /
 81.66 -> 0.49 / 1.37 / 1.60, single pass -> 1.01 / 1.35 / 1.54. Error/sigma pooled over the six
-passes: G/I 0.69 / 1.01 / 1.42, G/I/L 0.68 / 1.01 / 0.87 (0.34-1.81 pass by pass); beyond three
+passes: G/I 0.69 / 1.01 / 1.42, G/I/L 0.68 / 1.01 / 0.87 (0.31-1.81 pass by pass); beyond three
 sigma 0.1 % of the G/I/L pitch epochs, none else. About 4 minutes of one core (simulations 40-50
 s, the fast-high run of both passes the longest, 2 minutes).
 Marked slow; CI runs it.
