@@ -401,3 +401,57 @@ def test_outer_iterations_that_do_not_converge_are_reported_with_their_figures(c
     with caplog.at_level(logging.WARNING, logger="georefine.workflows.outer_checks"):
         warn_unconverged(settled, lcfg)
     assert caplog.text == ""
+
+
+def _gps_seconds(las) -> np.ndarray:
+    """GPS seconds of a file laspy read: adjusted standard time (the global encoding's bit) plus 1e9."""
+    adjusted = int(las.header.global_encoding.gps_time_type) == 1
+    return np.asarray(las.gps_time) + (1e9 if adjusted else 0.0)
+
+
+@pytest.mark.slow
+def test_a_points_identifier_leads_to_its_scan_return(project, full_run, tmp_path):
+    """ULPI values (record numbers across the run's point files) lead to the scan records behind
+    them: time and scanner-frame vector as laspy reads them from the scan file. A cloud that is not
+    every record of its scans in order is refused, naming the file."""
+    from georefine.workflows.returns import returns_of_points
+
+    points = sorted((full_run / "points").glob("strip_*.laz"))
+    scans = sorted((project / "scans").glob("strip_*.laz"))
+    counts = [laspy.open(p).header.point_count for p in points]
+    rng = np.random.default_rng(5)
+    ids = np.r_[rng.integers(0, sum(counts), 500), 0, counts[0] - 1, counts[0], sum(counts) - 1, 17, 17]
+    ret = returns_of_points(points, scans, ids)
+    # The points carry the time offset the run estimated (one constant), the scans their own times.
+    estimate = json.loads((full_run / "gil" / "adjustment.json").read_text())["lidar_time_offset"]["estimate_s"]
+    assert ret.offset_s == pytest.approx({1: estimate, 2: estimate}, abs=1e-6)
+    start = np.r_[0, np.cumsum(counts)]
+    for f, (pts, scan) in enumerate(zip(points, scans)):
+        mine = (ids >= start[f]) & (ids < start[f + 1])
+        rec = ids[mine] - start[f]
+        las, pl = laspy.read(scan), laspy.read(pts)
+        np.testing.assert_array_equal(ret.record[mine], rec)
+        assert np.all(ret.strip_id[mine] == pl.point_source_id[0])
+        np.testing.assert_array_equal(ret.time_gps[mine], _gps_seconds(pl)[rec])
+        np.testing.assert_allclose(ret.time_gps[mine] - _gps_seconds(las)[rec], estimate, atol=1e-6)
+        np.testing.assert_array_equal(ret.x_s[mine], np.column_stack([las.x, las.y, las.z])[rec])
+        np.testing.assert_array_equal(ret.channel[mine], np.asarray(las.scanner_channel)[rec])
+    # A strip without its first record, and one in another order, are not their scans.
+    pl = laspy.read(points[0])
+    short = tmp_path / "short.las"  # uncompressed: quicker to write
+    pl[1:].write(short)
+    with pytest.raises(InputError, match="does not hold every record") as err:
+        returns_of_points([short], scans, [3])
+    assert str(short) in str(err.value)
+    swapped = tmp_path / "swapped.las"
+    order = np.arange(counts[0])
+    order[[10, 20]] = [20, 10]
+    pl[order].write(swapped)
+    returns_of_points([swapped], scans, [9, 11])  # records the swap left alone
+    with pytest.raises(InputError, match="not its scan's") as err:
+        returns_of_points([swapped], scans, [9, 10])
+    assert "record 11" in str(err.value) and "gps_time" in str(err.value)
+    with pytest.raises(InputError, match="outside the cloud"):
+        returns_of_points(points, scans, [sum(counts)])
+    with pytest.raises(InputError, match="no scan file"):
+        returns_of_points(points[1:], scans[:1], [0])
