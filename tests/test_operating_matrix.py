@@ -27,9 +27,9 @@ held to the acceptance of the matrix:
 Measured (seed 77, mdeg, G/I -> G/I/L, roll / pitch / yaw): tactical both passes 4.37 / 9.54 /
 3.46 -> 4.22 / 1.44 / 0.60 and 3.04 / 6.04 / 31.86 -> 4.06 / 1.82 / 0.64, single pass -> 3.01 /
 0.51 / 0.97; MEMS with the outage 3.21 / 2.79 / 28.78 -> 0.56 / 1.09 / 1.62 and 2.84 / 3.78 /
-81.66 -> 0.49 / 1.37 / 1.60, single pass -> 1.01 / 1.35 / 1.54. Error/sigma pooled over the six
-passes: G/I 0.69 / 1.01 / 1.42, G/I/L 0.68 / 1.01 / 0.87 (0.31-1.81 pass by pass); beyond three
-sigma 0.1 % of the G/I/L pitch epochs, none else. About 4 minutes of one core (simulations 40-50
+81.66 -> 0.49 / 1.37 / 1.60, single pass -> 1.01 / 1.35 / 1.54. Error/sigma pooled over the
+passes (the G/I's four, the G/I/L's six): G/I 0.66 / 0.96 / 1.48, G/I/L 0.68 / 1.01 / 0.87 (0.31-1.81
+pass by pass); beyond three sigma 0.1 % of the G/I/L pitch epochs, none else. About 4 minutes of one core (simulations 40-50
 s, the fast-high run of both passes the longest, 2 minutes).
 Marked slow; CI runs it.
 """
@@ -111,8 +111,10 @@ def test_gil_is_never_worse_than_gi_and_fixes_heading(matrix):
 
 def test_stated_sigmas_are_honest_pooled_over_the_passes(matrix):
     for sol in ("gi", "gil"):
+        # The single pass's G/I is the run of both passes' G/I (shared): counted once.
         rows = [(acc[sol].z_rms, acc[sol].beyond_3_sigma, acc[sol].epochs)
-                for runs in matrix.values() for passes in runs.values() for acc in passes]
+                for runs in matrix.values() for kind, passes in runs.items() for acc in passes
+                if sol == "gil" or kind == "both"]
         z = np.array([r[0] for r in rows])
         beyond = np.array([r[1] for r in rows])
         n = np.array([r[2] for r in rows], dtype=float)[:, None]
