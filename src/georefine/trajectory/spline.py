@@ -215,11 +215,15 @@ def eval_position(
     """
     k, u = grid.locate(t)
     _check_knots(grid, P=P, V=V, A=A)
-    w = position_basis(u, grid.dt, order)
-    return (
-        w[:, 0:1] * P[k] + w[:, 1:2] * V[k] + w[:, 2:3] * A[k]
-        + w[:, 3:4] * P[k + 1] + w[:, 4:5] * V[k + 1] + w[:, 5:6] * A[k + 1]
-    )
+    return knot_sum(P, V, A, k, position_basis(u, grid.dt, order))
+
+
+def knot_sum(P: np.ndarray, V: np.ndarray, A: np.ndarray, k: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``sum_j w[:, j] x_j`` over the six position knot states of interval ``k`` (N, 3): the position
+    (or a derivative) for weights ``w`` (N, 6) of :func:`position_basis`, for callers that located
+    their times once (the observation groups)."""
+    return (w[:, 0:1] * P[k] + w[:, 1:2] * V[k] + w[:, 2:3] * A[k]
+            + w[:, 3:4] * P[k + 1] + w[:, 4:5] * V[k + 1] + w[:, 5:6] * A[k + 1])
 
 
 # ------------------------------------------------------------------------ orientation

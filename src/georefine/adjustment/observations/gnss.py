@@ -27,7 +27,7 @@ from georefine.adjustment.observations.trajectory_blocks import (
 )
 from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.rotation import skew
-from georefine.trajectory.spline import KnotGrid, eval_orientation, position_basis
+from georefine.trajectory.spline import KnotGrid, eval_orientation, knot_sum, position_basis
 
 
 @dataclass
@@ -90,10 +90,7 @@ class GnssPositionObservation:
 
     def _model(self, P, V, A, R, W, jacobians):
         k, w0 = self._k, self._w0
-        p = (
-            w0[:, 0:1] * P[k] + w0[:, 1:2] * V[k] + w0[:, 2:3] * A[k]
-            + w0[:, 3:4] * P[k + 1] + w0[:, 4:5] * V[k + 1] + w0[:, 5:6] * A[k + 1]
-        )
+        p = knot_sum(P, V, A, k, w0)
         ev = eval_orientation(self.grid, R, W, self.time, rate=False, jacobians=jacobians)
         return p + ev.R_w_b @ self.p_b_a, ev
 

@@ -46,7 +46,7 @@ from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.earth import WGS84_A
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import skew
-from georefine.trajectory.spline import KnotGrid, eval_orientation, position_basis
+from georefine.trajectory.spline import KnotGrid, eval_orientation, knot_sum, position_basis
 
 
 @dataclass(frozen=True)
@@ -209,14 +209,7 @@ class ImuObservation:
     def _node_terms(self, values, jacobians):
         P, V, A, R, W = self.blocks.knots(values)
         k, (w0, w1, w2) = self._k, self._basis
-
-        def combine(w):
-            return (
-                w[:, 0:1] * P[k] + w[:, 1:2] * V[k] + w[:, 2:3] * A[k]
-                + w[:, 3:4] * P[k + 1] + w[:, 4:5] * V[k + 1] + w[:, 5:6] * A[k + 1]
-            )
-
-        p, v, a = combine(w0), combine(w1), combine(w2)
+        p, v, a = (knot_sum(P, V, A, k, w) for w in (w0, w1, w2))
         ev = eval_orientation(self.grid, R, W, self._t, rate=True, jacobians=jacobians)
         g = self.frame.gravity_w(p)
         omega_ie = self.frame.omega_ie_w

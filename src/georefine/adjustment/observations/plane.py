@@ -64,13 +64,12 @@ import numpy as np
 from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
-    knot_sum,
     orientation_jacobians,
     position_jacobians,
     single_element,
 )
 from georefine.adjustment.robust import RobustLoss
-from georefine.trajectory.spline import KnotGrid, eval_orientation, position_basis
+from georefine.trajectory.spline import KnotGrid, eval_orientation, knot_sum, position_basis
 
 __all__ = [
     "FeatureFrames",

@@ -76,13 +76,6 @@ def orientation_jacobians(
     ]
 
 
-def knot_sum(P: np.ndarray, V: np.ndarray, A: np.ndarray, k: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``sum_j w[:, j] x_j`` over the six position knot states of interval ``k`` (N, 3): the position
-    (or a derivative) for weights ``w`` (N, 6) of :func:`~georefine.trajectory.spline.position_basis`."""
-    return (w[:, 0:1] * P[k] + w[:, 1:2] * V[k] + w[:, 2:3] * A[k]
-            + w[:, 3:4] * P[k + 1] + w[:, 4:5] * V[k + 1] + w[:, 5:6] * A[k + 1])
-
-
 def single_element(values, name: str, shape: tuple[int, ...]) -> np.ndarray:
     """The one element of a calibration block (``(1,) + shape``: boresight, lever arm, time offset)."""
     arr = np.asarray(values[name], dtype=float)

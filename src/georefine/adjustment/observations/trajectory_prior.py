@@ -43,7 +43,7 @@ from georefine.adjustment.observations.trajectory_blocks import (
 )
 from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.rotation import log_so3, right_jacobian_inv
-from georefine.trajectory.spline import KnotGrid, eval_orientation, position_basis
+from georefine.trajectory.spline import KnotGrid, eval_orientation, knot_sum, position_basis
 
 __all__ = ["GaussMarkovPrior", "TrajectoryPoseObservation"]
 
@@ -99,10 +99,7 @@ class TrajectoryPoseObservation:
     def _model(self, values, jacobians):
         P, V, A, R, W = self.blocks.knots(values)
         k, w0 = self._k, self._w0
-        p = (
-            w0[:, 0:1] * P[k] + w0[:, 1:2] * V[k] + w0[:, 2:3] * A[k]
-            + w0[:, 3:4] * P[k + 1] + w0[:, 4:5] * V[k + 1] + w0[:, 5:6] * A[k + 1]
-        )
+        p = knot_sum(P, V, A, k, w0)
         ev = eval_orientation(self.grid, R, W, self.time, rate=False, jacobians=jacobians)
         phi = log_so3(ev.R_w_b @ np.swapaxes(self.R_ref, 1, 2))
         j, lam = self._j, self._lam[:, None]
