@@ -15,6 +15,7 @@ covering selection on ``corridor-tiny``):
 
 from __future__ import annotations
 
+from georefine.errors import ConfigError
 from georefine.sim.scenarios import ScenarioConfig, outage_inside_pass, resolve_scenario
 
 __all__ = ["FLIGHT", "GNSS", "IMU", "LATITUDE", "VIBRATION", "condition_overrides"]
@@ -53,8 +54,6 @@ def condition_overrides(scenario: str, imu: str, flight: str, gnss: str, latitud
     ConfigError
         An unknown level, or a pass too short for the outage.
     """
-    from georefine.errors import ConfigError
-
     for factor, level, levels in (("imu", imu, IMU), ("flight", flight, FLIGHT), ("gnss", gnss, GNSS),
                                   ("latitude", latitude, LATITUDE), ("vibration", vibration, VIBRATION)):
         if level not in levels:

@@ -26,6 +26,7 @@ import numpy as np
 from georefine.errors import InputError
 from georefine.io.las import read_las_info, read_las_range
 from georefine.io.las_encode import LAZ_CHUNK_POINTS
+from georefine.workflows.strips import strip_id_of
 
 __all__ = ["LidarReturns", "returns_of_points"]
 
@@ -51,10 +52,6 @@ class LidarReturns:
 
     def __len__(self) -> int:
         return int(self.record.size)
-
-
-def _strip_id(path: Path) -> int:
-    return int(read_las_range(path, 0, 1).point_source_id[0])
 
 
 def _read_records(path: Path, records: np.ndarray):
@@ -96,7 +93,7 @@ def returns_of_points(point_files: list[Path], scan_files: list[Path], ids: np.n
         bad = ids[(ids < 0) | (ids >= start[-1])][0]
         raise InputError("point identifier outside the cloud", field="ulpi",
                          expected=f"0 .. {start[-1] - 1} ({len(point_files)} files)", found=str(int(bad)))
-    scans = {_strip_id(p): p for p in scan_files}
+    scans = {strip_id_of(p): p for p in scan_files}
     out_strip = np.empty(ids.size, np.int64)
     out_record = np.empty(ids.size, np.int64)
     out_time, out_x, out_ch = np.empty(ids.size), np.empty((ids.size, 3)), np.empty(ids.size, np.uint8)
@@ -106,7 +103,7 @@ def returns_of_points(point_files: list[Path], scan_files: list[Path], ids: np.n
         mine = np.flatnonzero(file_of == f)
         if mine.size == 0:
             continue
-        sid = _strip_id(path)
+        sid = strip_id_of(path)
         scan = scans.get(sid)
         if scan is None:
             raise InputError("no scan file for this strip", path=path, field="point_source_id",

@@ -34,7 +34,7 @@ from georefine.workflows.navigation import NavigationData
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FeatureCounts", "StripFile", "read_strips", "step_features", "sort_features"]
+__all__ = ["FeatureCounts", "StripFile", "read_strips", "step_features", "sort_features", "strip_id_of"]
 
 
 @dataclass(frozen=True)
@@ -76,6 +76,11 @@ class StripFile:
         return self.plan.point_count
 
 
+def strip_id_of(path: Path) -> int:
+    """A strip file's id: the ``point_source_id`` of its first record."""
+    return int(read_las_range(path, 0, 1).point_source_id[0])
+
+
 def read_strips(nav: NavigationData, strips: list[int] | None = None, *, slots: int = 1) -> list[StripFile]:
     """Index the project's strips (optionally only those with the given ``point_source_id``).
 
@@ -96,7 +101,7 @@ def read_strips(nav: NavigationData, strips: list[int] | None = None, *, slots: 
         path = nav.root / rel
         if read_las_info(path).point_count == 0:
             raise InputError("strip has no points", path=path)
-        sid = int(read_las_range(path, 0, 1).point_source_id[0])
+        sid = strip_id_of(path)
         if strips is not None and sid not in strips:
             continue
         ti = time_index(path)
