@@ -42,6 +42,7 @@ import numpy as np
 from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
+    checked_rows,
     orientation_jacobians,
     position_jacobians,
     single_element,
@@ -68,15 +69,7 @@ def beam_whitening(beam_w: np.ndarray, sigma_range: np.ndarray, sigma_across: np
 
 
 def _rows(name: str, value, n: int, width: int | None) -> np.ndarray:
-    arr = np.asarray(value, dtype=float)
-    if width is None and arr.ndim == 0:
-        arr = np.full(n, float(arr))
-    shape = (n,) if width is None else (n, width)
-    if arr.shape != shape:
-        raise ValueError(f"LidarPointObservation: {name} must have shape {shape}, found {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"LidarPointObservation: {name} contains NaN or inf")
-    return arr
+    return checked_rows("LidarPointObservation", name, value, n, width)
 
 
 @dataclass

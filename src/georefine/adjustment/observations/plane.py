@@ -64,6 +64,7 @@ import numpy as np
 from georefine.adjustment.blocks import JacobianBlock, Linearization
 from georefine.adjustment.observations.trajectory_blocks import (
     TrajectoryBlocks,
+    checked_rows,
     orientation_jacobians,
     position_jacobians,
     single_element,
@@ -198,16 +199,7 @@ def plane_parameters(
 
 
 def _as_rows(name: str, value, n: int, width: int | None = 3) -> np.ndarray:
-    """Cast to float (n, width) or (n,) (scalars broadcast for (n,)) and check finiteness."""
-    arr = np.asarray(value, dtype=float)
-    shape = (n,) if width is None else (n, width)
-    if width is None and arr.ndim == 0:
-        arr = np.full(n, float(arr))
-    if arr.shape != shape:
-        raise ValueError(f"PlaneObservation: {name} must have shape {shape}, found {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"PlaneObservation: {name} contains NaN or inf")
-    return arr
+    return checked_rows("PlaneObservation", name, value, n, width)
 
 
 def _check_orthonormal(label: str, vectors: dict[str, np.ndarray]) -> None:

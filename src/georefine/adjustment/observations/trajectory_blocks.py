@@ -76,6 +76,20 @@ def orientation_jacobians(
     ]
 
 
+def checked_rows(owner: str, name: str, value, n: int, width: int | None = 3) -> np.ndarray:
+    """``value`` as float ``(n, width)``, or ``(n,)`` when ``width`` is None (a scalar broadcasts
+    then), finite; else a ValueError naming ``owner`` and ``name``."""
+    arr = np.asarray(value, dtype=float)
+    shape = (n,) if width is None else (n, width)
+    if width is None and arr.ndim == 0:
+        arr = np.full(n, float(arr))
+    if arr.shape != shape:
+        raise ValueError(f"{owner}: {name} must have shape {shape}, found {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{owner}: {name} contains NaN or inf")
+    return arr
+
+
 def single_element(values, name: str, shape: tuple[int, ...]) -> np.ndarray:
     """The one element of a calibration block (``(1,) + shape``: boresight, lever arm, time offset)."""
     arr = np.asarray(values[name], dtype=float)
