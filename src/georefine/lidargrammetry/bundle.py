@@ -47,7 +47,7 @@ from georefine.geometry.camera import Camera
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "coadjust", "intersect_points",
+__all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "coadjust", "control_point_stats", "intersect_points",
            "stations_per_point"]
 
 CASES = {
@@ -171,6 +171,27 @@ def _rms(values: np.ndarray) -> float:
     return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
 
 
+def control_point_stats(cameras, R_w_c: np.ndarray, p_w_c: np.ndarray, control: ControlData, *,
+                        all_check: bool = False) -> tuple[dict[str, PointStats | None], np.ndarray]:
+    """Control and check points intersected with the given photo poses and compared with their
+    surveyed coordinates: ``({"control": ..., "check": ...}, X (m, 3))``. With ``all_check`` every
+    point is a check point and ``"control"`` is None (case 3: no control point is used)."""
+    X, n_rays = intersect_points(cameras, R_w_c, p_w_c, control.image, control.point, control.uv, len(control.ids))
+    stats: dict[str, PointStats | None] = {}
+    check_mask = np.ones(len(control.ids), dtype=bool) if all_check else ~control.is_control
+    for label, mask in (("control", control.is_control), ("check", check_mask)):
+        pts = np.flatnonzero(mask & (n_rays >= 2))
+        if (all_check and label == "control") or pts.size == 0:
+            stats[label] = None
+            continue
+        meas = np.isin(control.point, pts)
+        grp = ReprojectionObservation("tmp", cameras, control.image[meas], control.point[meas], control.uv[meas])
+        uv, _ = grp.predict({"image_rotation": R_w_c, "image_position": p_w_c, "points": X})
+        stats[label] = PointStats(int(pts.size), np.sqrt(np.mean((X[pts] - control.xyz_w[pts]) ** 2, axis=0)),
+                                  _rms(np.linalg.norm(uv - control.uv[meas], axis=1)))
+    return stats, X
+
+
 # ---------------------------------------------------------------------------- the adjustment
 def coadjust(
     images: BlockImages,
@@ -221,25 +242,8 @@ def coadjust(
                  tie_loss_scale=tie_loss_scale, options=options, depth_sigma_m=depth_sigma_m)
     R, p = out["R"], out["p"]
     extra["precision"] = _precision(images, out, control, ~control.is_control)
-    # Control/check points: intersected with the adjusted photos, compared with the given coordinates.
-    X, n_rays = intersect_points(images.cameras, R, p, control.image, control.point, control.uv, len(control.ids))
-    stats = {}
     # Case 3 uses no control point: all of them are check points (paper 004, Tables 3 and 6).
-    check_mask = np.ones(len(control.ids), dtype=bool) if case == 3 else ~control.is_control
-    for label, mask in (("control", control.is_control), ("check", check_mask)):
-        pts = np.flatnonzero(mask & (n_rays >= 2))
-        if case == 3 and label == "control":
-            stats[label] = None
-            continue
-        if pts.size == 0:
-            stats[label] = None
-            continue
-        meas = np.isin(control.point, pts)
-        grp = ReprojectionObservation("tmp", images.cameras, control.image[meas], control.point[meas],
-                                      control.uv[meas])
-        uv, _ = grp.predict({"image_rotation": R, "image_position": p, "points": X})
-        stats[label] = PointStats(int(pts.size), np.sqrt(np.mean((X[pts] - control.xyz_w[pts]) ** 2, axis=0)),
-                                  _rms(np.linalg.norm(uv - control.uv[meas], axis=1)))
+    stats, X = control_point_stats(images.cameras, R, p, control, all_check=case == 3)
     tie_grp = ReprojectionObservation("tmp", images.cameras, tie_image, tie_point, tie_uv)
     uv, front = tie_grp.predict({"image_rotation": R, "image_position": p, "points": out["ties"]})
     err = np.linalg.norm(uv - tie_uv, axis=1)

@@ -476,18 +476,7 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
     lgs, n, cameras, station, is_lg, R0, p0, images = (blk.lgs, blk.n_photos, blk.cameras, blk.station,
                                                        blk.is_lidargram, blk.R0, blk.p0, blk.images)
     t = _time.perf_counter()
-    cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
-    # The clouds lie anywhere: named by their resolved paths, so that another spelling of the same
-    # files (relative, absolute) keeps the matches.
-    key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
-                        [file_stamp(Path(f).resolve()) for f in cloud.files], _method(st, matcher),
-                        st.model_dump(mode="json", include=_MATCH_FIELDS), len(lgs), MATCHING_VERSION)
-    matches = cache.load("matches", key) if cache is not None else None
-    if matches is None:
-        matches = match_block(images, cameras, station, is_lg, p0[:, :2], blk.masks, st, matcher=matcher,
-                              progress=progress, runner=runner)
-        if cache is not None:
-            cache.store("matches", key, matches)
+    matches = block_matches(opened, cloud, blk, cache_dir, progress, runner)
     timings["matching"] = _time.perf_counter() - t
     keep, xyz0, depth = _ties(lgs, R0, p0, cameras, station, matches, cloud, n, st.max_initial_reprojection_px)
     tr = matches.tracks
@@ -498,12 +487,7 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
                              np.broadcast_to(np.asarray(st.lidargram_sigma_rotation_deg, dtype=float), (len(lgs), 3))])
     names = blk.names
     block = BlockImages(names, tuple(cameras), is_lg, R0, p0, sig_p, sig_r, station)
-    idx = pp.eop.index()
-    gi = {g: k for k, g in enumerate(pp.gcps.ids)}
-    ip = pp.image_points
-    control = ControlData(pp.gcps.ids, pp.crs.to_w(pp.frame, pp.gcps.xyz) if len(pp.gcps) else np.zeros((0, 3)),
-                          pp.gcps.sigma, pp.gcps.is_control, np.array([idx[x] for x in ip.images], dtype=np.int64),
-                          np.array([gi[x] for x in ip.ids], dtype=np.int64), ip.uv)
+    control = control_data(pp)
     t = _time.perf_counter()
     result = coadjust(block, tr.image[keep], tr.track[keep], tr.uv[keep], xyz0, control, case,
                       tie_depth_m=depth[keep] if st.use_depth else None, tie_sigma_px=st.tie_sigma_px,
@@ -554,6 +538,39 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
         bundle=result)
     write_json(out / "metrics.json", metrics.to_dict())
     return metrics
+
+
+def block_matches(opened: _Opened, cloud: CloudIndex, blk: _Block, cache_dir, progress: Progress,
+                  runner: TaskRunner) -> BlockMatches:
+    """:func:`match_block` on the block's photos and lidargrams, through the step cache ``cache_dir`` (or None).
+
+    Keyed by the photos, the point files, the matcher, the settings the matches depend on and the
+    number of lidargrams: co-adjustment cases 1 and 2 and the hybrid adjustment of one cloud match once.
+    """
+    st, matcher, pp = opened.settings, opened.matcher, opened.pp
+    cache = StepCache(Path(cache_dir)) if cache_dir is not None else None
+    # The clouds lie anywhere: named by their resolved paths, so that another spelling of the same
+    # files (relative, absolute) keeps the matches.
+    key = StepCache.key("coadjust-matches", [file_stamp(pp.folder / x, pp.root) for x in pp.eop.images],
+                        [file_stamp(Path(f).resolve()) for f in cloud.files], _method(st, matcher),
+                        st.model_dump(mode="json", include=_MATCH_FIELDS), len(blk.lgs), MATCHING_VERSION)
+    matches = cache.load("matches", key) if cache is not None else None
+    if matches is None:
+        matches = match_block(blk.images, blk.cameras, blk.station, blk.is_lidargram, blk.p0[:, :2], blk.masks, st,
+                              matcher=matcher, progress=progress, runner=runner)
+        if cache is not None:
+            cache.store("matches", key, matches)
+    return matches
+
+
+def control_data(pp: PhotoProject) -> ControlData:
+    """The project's control and check points in ``w`` with their photo measurements."""
+    idx = pp.eop.index()
+    gi = {g: k for k, g in enumerate(pp.gcps.ids)}
+    ip = pp.image_points
+    return ControlData(pp.gcps.ids, pp.crs.to_w(pp.frame, pp.gcps.xyz) if len(pp.gcps) else np.zeros((0, 3)),
+                       pp.gcps.sigma, pp.gcps.is_control, np.array([idx[x] for x in ip.images], dtype=np.int64),
+                       np.array([gi[x] for x in ip.ids], dtype=np.int64), ip.uv)
 
 
 _MATCH_FIELDS = {"lidargram_scale", "per_strip", "point_spacing_m", "splat_scale", "fill_holes", "min_coverage",
