@@ -437,3 +437,40 @@ def coadjust(
                  f"(median {pl.median_verified:.0f} verified matches), {m.tracks} tie points")
     stdout.print(f"  results in {out}")
 
+
+
+@app.command()
+def hybrid(
+    project: Path = typer.Argument(..., help="Project folder with GNSS, IMU, scans and a photos section."),
+    out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
+    case: int = typer.Option(2, "--case", help="1: photo block first, then fixed; 2: photos and trajectory together."),
+    planes: bool = typer.Option(
+        True, "--planes/--no-planes",
+        help="Start from the G/I/L adjustment and keep its plane observations (off: from the G/I adjustment)."),
+    method: Optional[str] = typer.Option(None, "--method", help=_METHOD_HELP),
+    features: Optional[str] = typer.Option(None, "--lightglue-features", help="LightGlue's features: disk or aliked."),
+    extractor_weights: Optional[Path] = typer.Option(None, "--extractor-weights", help="DISK/ALIKED weights (.pth)."),
+    lightglue_weights: Optional[Path] = typer.Option(None, "--lightglue-weights", help="LightGlue weights (.pth)."),
+    fresh: bool = typer.Option(False, "--fresh", help="Recompute every step instead of resuming from OUT/.cache."),
+    scheduler: str = scheduler_option(),
+    force: bool = force_option(),
+) -> None:
+    """One adjustment of GNSS, IMU, LiDAR and photos: lidargram ties on the continuous-time trajectory.
+
+    Lidargram keypoints observe the trajectory through the LiDAR returns they show; the photos
+    observe the same tie points. Writes gi/ (and with planes gil/, features/), preliminary/points
+    (the cloud the lidargrams are rendered from), hybrid/ (the adjusted trajectory and
+    adjustment.json), points/*.laz (every point re-georeferenced, same order as the scans),
+    eop_photos.csv, metrics.json and the resolved configuration. Options given override
+    processing.lidargrammetry of project.yaml.
+    """
+    with user_errors():
+        output_ok(out, force)
+        from georefine.workflows.hybrid import run_hybrid
+
+        overrides = _matcher(method, features, extractor_weights, lightglue_weights)
+        with progress() as report:
+            m = run_hybrid(project, out, case=case, planes=planes, overrides=overrides, resume=not fresh,
+                           progress=report, scheduler=scheduler)
+    stdout.print(m.summary())
+    stdout.print(f"  results in {out}")

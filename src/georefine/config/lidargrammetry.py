@@ -84,6 +84,13 @@ class LidargrammetryConfig(StrictModel):
     measurement_sigma_px: float = Field(0.5, gt=0.0, description="Sigma of control and check point measurements.")
     tie_loss: Literal["huber", "cauchy", "none"] = Field("huber", description="Robust loss of ties and depths.")
     tie_loss_scale: float = Field(2.0, gt=0.0, description="Huber delta / Cauchy c in units of sigma.")
+    # LiDAR returns observing tie points (georefine.workflows.hybrid).
+    return_sigma_across_px: float = Field(
+        1.0, gt=0.0, description="Sigma across the beam of a LiDAR return observing a tie point, in lidargram "
+        "pixels (the keypoint's localisation and the pixel footprint; hybrid adjustment).")
+    return_sigma_range_m: float = Field(
+        0.05, gt=0.0, description="Sigma along the beam of a LiDAR return observing a tie point, beside the "
+        "ranging noise: the keypoint's surface point beside the return where the surface slopes (hybrid adjustment).")
     # Refined cloud (georefine.lidargrammetry.reintersect; cases 1 and 2).
     feather: bool = Field(
         True, description="Weight a point's lidargrams by the distance of the point from their border.")
