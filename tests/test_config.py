@@ -218,7 +218,7 @@ def test_bad_lidargrammetry_value_in_project_yaml_names_field_and_line(tmp_path)
     _project_with(tmp_path, {"lidargram_sigma_position_m": 0})
     with pytest.raises(ConfigError, match=r"lidargram_sigma_position_m.*greater than 0"):
         load_project(tmp_path)
-    _project_with(tmp_path, {"matcher": "lightglue"})
+    _project_with(tmp_path, {"matcher": "lightglue", "lightglue_weights": "lg.pth"})  # one file without the other
     with pytest.raises(ConfigError, match=r"field 'processing.lidargrammetry'.*weight files"):
         load_project(tmp_path)
 

