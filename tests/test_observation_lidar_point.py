@@ -27,7 +27,8 @@ def random_group(rng, grid, n=30, m=8, **calibration):
     return LidarPointObservation(
         grid, np.sort(rng.uniform(0.05, grid.t_end - 0.05, n)), x_s, rng.integers(0, m, n),
         beam_w=_unit(rng.normal(size=(n, 3))), sigma_range=rng.uniform(0.005, 0.02, n),
-        sigma_across=rng.uniform(0.01, 0.05, n), p_b_s=P_B_S, R_b_s=R_B_S, **calibration)
+        sigma_across=rng.uniform(0.01, 0.05, n), p_b_s=P_B_S, R_b_s=R_B_S, offset_w=rng.normal(0.0, 0.1, (n, 3)),
+        **calibration)
 
 
 @pytest.mark.parametrize("seed", SEEDS)
@@ -58,6 +59,20 @@ def test_lidar_point_jacobians(seed, calibration):
     assert chk.max_rel_error < 1e-6, chk
 
 
+def test_the_offset_moves_the_observed_point_and_nothing_else():
+    rng = np.random.default_rng(4)
+    grid = KnotGrid(0.0, 0.1, 12)
+    values = random_knots(rng, 12) | {"points": rng.uniform(0, 200, (8, 3))}
+    with_offset = random_group(np.random.default_rng(5), grid)
+    without = random_group(np.random.default_rng(5), grid)
+    without.offset_w = np.zeros_like(with_offset.offset_w)
+    np.testing.assert_allclose(with_offset.georeference(values) - without.georeference(values), with_offset.offset_w,
+                               atol=1e-9)
+    a, b = with_offset.linearize(values), without.linearize(values)
+    for ja, jb in zip(a.jacobians, b.jacobians):
+        np.testing.assert_array_equal(ja.values, jb.values)
+
+
 def test_whitening_is_the_inverse_square_root_of_the_beam_covariance():
     rng = np.random.default_rng(3)
     u = _unit(rng.normal(size=(20, 3)))
@@ -80,6 +95,7 @@ def test_validation():
                             ({"sigma_range": 0.0}, "must be positive"),
                             ({"point_index": [-1]}, "non-negative integers"),
                             ({"x_s": [[0, np.nan, 1.0]]}, "NaN"),
+                            ({"offset_w": [[0.0, 0.1]]}, "offset_w must have shape"),
                             ({"R_b_s": np.diag([1.0, 1.0, -1.0])}, "not a rotation")]:
         with pytest.raises(ValueError, match=message):
             LidarPointObservation(grid, **(ok | change))

@@ -21,10 +21,12 @@ boresight and LiDAR time offset where ``processing.lidar`` estimates them).
 3. lidargrams rendered from it at the photos' poses, matched with the photos
    (:func:`~georefine.workflows.lidargrammetry.match_block`, cached), the tracks' lidargram
    keypoints turned into the LiDAR returns they show;
-4. the hybrid adjustment, as co-adjustment case 1 (the photo block adjusted on its own with its
-   control points, then held fixed) or case 2 (photos, trajectory and control together);
-   case 3 of paper 004 (photos refined with the LiDAR as control, no control point) refines
-   no cloud and is not offered;
+4. the hybrid adjustment, as co-adjustment case 1 (the default: the photo block adjusted on
+   its own with its control points, then held fixed) or case 2 (photos, trajectory and control
+   together); case 3 of paper 004 (photos refined with the LiDAR as control, no control point)
+   refines no cloud and is not offered. Case 1 is the default because on the jammed ``block``
+   it was as good or better in both the cloud and the check points: case 2 lets what is left
+   of the LiDAR's error pull on the photos (BENCHMARKS.md, "The hybrid adjustment");
 5. every point re-georeferenced with the adjusted trajectory (``OUT/points``, same files and
    record order as the scans): no re-intersection and no interpolation between lidargrams;
 6. ``OUT/hybrid`` (trajectory products, ``adjustment.json``), ``OUT/eop_photos.csv``,
@@ -92,7 +94,7 @@ from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HYBRID_CASES", "HybridTies", "HybridResult", "hybrid_ties", "run_hybrid"]
+__all__ = ["HYBRID_CASES", "HybridTies", "HybridResult", "hybrid_ties", "photo_lidargram_matches", "run_hybrid"]
 
 HYBRID_CASES = {
     1: "photo block adjusted with its control points, then fixed; trajectory adjusted to it",
@@ -110,7 +112,8 @@ class HybridTies:
 
     ``photo_image``, ``photo_point``, ``photo_uv``: photo keypoints observing tie points (index
     into ``xyz0``); ``lidar_point``: the tie point each LiDAR return observes, ``returns`` those
-    returns, ``beam_w`` their unit beam in ``w`` and ``sigma_across_m`` their sigma across it;
+    returns, ``beam_w`` their unit beam in ``w``, ``sigma_across_m`` their sigma across it and
+    ``offset_w`` the keypoint's surface point beside the return (``LidarPointObservation``);
     ``xyz0`` the tie points' starting coordinates (the returns' preliminary positions, else the
     photos' intersection).
     """
@@ -122,6 +125,7 @@ class HybridTies:
     returns: LidarReturns
     beam_w: np.ndarray
     sigma_across_m: np.ndarray
+    offset_w: np.ndarray
     xyz0: np.ndarray
 
     @property
@@ -130,14 +134,15 @@ class HybridTies:
 
 
 def hybrid_ties(blk, matches, keep: np.ndarray, xyz0: np.ndarray, point_files: list[Path], scan_files: list[Path],
-                nav: NavigationData, start: GnssImuResult, R_b_s: np.ndarray, p_b_s: np.ndarray,
-                across_px: float) -> HybridTies:
+                nav: NavigationData, start: GnssImuResult, R_b_s: np.ndarray, across_px: float) -> HybridTies:
     """The tracks' kept observations (``keep``, :func:`~georefine.workflows.lidargrammetry._ties`)
     as photo keypoints and LiDAR returns.
 
     A lidargram keypoint becomes the return its pixel shows (one per track and return: the
-    lidargrams of one strip rendered at neighbouring photos often show the same return); its
-    sigma across the beam is ``across_px`` times the pixel's footprint (depth over focal length).
+    lidargrams of one strip rendered at neighbouring photos often show the same return), offset
+    by the keypoint's distance from the return's exact projection, in the image plane at the
+    return's depth; its sigma across the beam is ``across_px`` times the pixel's footprint
+    (depth over focal length).
     A tie point is kept when its observations determine it with redundancy: two photo
     keypoints, two returns, or one of each (``2 n_photo + 3 n_return >= 5``).
     """
@@ -148,14 +153,27 @@ def hybrid_ties(blk, matches, keep: np.ndarray, xyz0: np.ndarray, point_files: l
     ph, lg = obs[~is_lg], obs[is_lg]
     ulpi = np.full(lg.size, -1, np.int64)
     foot = np.full(lg.size, np.nan)
+    offset = np.zeros((lg.size, 3))
     for k, o in enumerate(lg):
         g = blk.lgs[tr.image[o] - n][0]
         ulpi[k] = g.ulpi_at(tr.uv[o][None])[0]
+        if ulpi[k] < 0:
+            continue
         c, r = np.floor(tr.uv[o]).astype(int)
-        foot[k] = float(g.depth[r, c]) / g.camera.fx_px
+        z = float(g.depth[r, c])  # the shown return's depth
+        foot[k] = z / g.camera.fx_px
+        # The keypoint's surface point beside the return: the keypoint's offset from the
+        # return's exact projection, in the image plane at the return's depth.
+        du, dv = tr.uv[o] - g.point_uv[np.searchsorted(g.point_index, ulpi[k])]
+        offset[k] = g.R_w_c @ np.array([du * z / g.camera.fx_px, dv * z / g.camera.fy_px, 0.0])
     ok = (ulpi >= 0) & np.isfinite(foot)
-    pairs, first = np.unique(np.column_stack([tr.track[lg[ok]], ulpi[ok]]), axis=0, return_index=True)
+    keys = np.column_stack([tr.track[lg[ok]], ulpi[ok]])
+    pairs, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     foot = foot[ok][first]
+    # One observation per track and return; the lidargrams that show it give their offsets' mean.
+    inverse = inverse.reshape(-1)
+    offset = np.stack([np.bincount(inverse, offset[ok][:, j], minlength=len(pairs)) for j in range(3)], axis=1)
+    offset /= np.maximum(np.bincount(inverse, minlength=len(pairs)), 1)[:, None]
     n_ph = np.bincount(tr.track[ph], minlength=tr.n_tracks)
     n_ret = np.bincount(pairs[:, 0], minlength=tr.n_tracks) if len(pairs) else np.zeros(tr.n_tracks, np.int64)
     used = np.isfinite(xyz0[:, 0]) & (2 * n_ph + 3 * n_ret >= 5)
@@ -163,7 +181,7 @@ def hybrid_ties(blk, matches, keep: np.ndarray, xyz0: np.ndarray, point_files: l
     remap[used] = np.arange(used.sum())
     ph = ph[used[tr.track[ph]]]
     pairs_used = used[pairs[:, 0]] if len(pairs) else np.zeros(0, bool)
-    pairs, foot = pairs[pairs_used], foot[pairs_used]
+    pairs, foot, offset = pairs[pairs_used], foot[pairs_used], offset[pairs_used]
     if len(pairs) == 0:
         raise InputError("no lidargram keypoint of a tie point shows a LiDAR return", field="processing.lidargrammetry",
                          expected="photo-lidargram matches (see `georefine match`)")
@@ -173,7 +191,7 @@ def hybrid_ties(blk, matches, keep: np.ndarray, xyz0: np.ndarray, point_files: l
     beam = np.einsum("nij,nj->ni", R_w_b, returns.x_s @ R_b_s.T)
     beam /= np.linalg.norm(beam, axis=1, keepdims=True)
     return HybridTies(tr.image[ph], remap[tr.track[ph]], tr.uv[ph], remap[pairs[:, 0]], returns, beam,
-                      across_px * foot, xyz0[used])
+                      across_px * foot, offset, xyz0[used])
 
 
 @dataclass(frozen=True)
@@ -194,6 +212,7 @@ class HybridResult:
     precision: dict
     photo_block_adjustment: dict | None
     trajectory: dict
+    matches: dict = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
     gi: GnssImuResult | None = None
     result: GnssImuResult | None = None
@@ -207,7 +226,7 @@ class HybridResult:
             "check_points": None if self.check_points is None else self.check_points.to_dict(),
             "tie_rms": self.tie_rms, "adjustment": self.adjustment, "precision": self.precision,
             "photo_block_adjustment": self.photo_block_adjustment, "trajectory": self.trajectory,
-            "timings_s": self.timings_s,
+            "photo_lidargram_matches": self.matches, "timings_s": self.timings_s,
         }
 
     def summary(self) -> str:
@@ -220,9 +239,30 @@ class HybridResult:
                 x, y, z = st.rmse_xyz_m
                 lines.append(f"  {label} points ({st.n}): RMSE X/Y/Z {x:.3f} / {y:.3f} / {z:.3f} m, "
                              f"RE {st.reprojection_px:.2f} px")
+        m = self.matches
+        if m:
+            lines.append(f"  photo-lidargram pairs: {m['pairs']}, median {m['median']:.0f} verified matches; "
+                         f"across stations {m['cross_station_pairs']}, median {m['cross_station_median']:.0f}")
         lines.append(f"  ties: photos {self.tie_rms['photos_px']:.2f} px, LiDAR returns "
                      f"{self.tie_rms['returns_m'] * 1e3:.0f} mm RMS")
         return "\n".join(lines)
+
+
+def photo_lidargram_matches(blk, matches) -> dict:
+    """Verified matches per photo-lidargram pair: median, pairs, and the same across stations
+    (a lidargram rendered at another photo's pose: the pairs that tie the block together)."""
+    lg = np.asarray(blk.is_lidargram, dtype=bool)
+    same, cross = [], []
+    for m in matches.pairs:
+        if lg[m.a] == lg[m.b]:
+            continue
+        (same if blk.station[m.a] == blk.station[m.b] else cross).append(len(m))
+
+    def med(v):
+        return float(np.median(v)) if v else float("nan")
+
+    return {"pairs": len(same) + len(cross), "median": med(same + cross), "cross_station_pairs": len(cross),
+            "cross_station_median": med(cross), "same_station_median": med(same)}
 
 
 def _photo_priors(pp, st) -> tuple[np.ndarray, np.ndarray]:
@@ -329,7 +369,8 @@ def _build(nav: NavigationData, start: GnssImuResult, gil: LidarAdjustment | Non
     group = LidarPointObservation(
         built.grid, ties.returns.time_gps - nav.t0_gps, ties.returns.x_s, rows[ties.lidar_point], ties.beam_w,
         np.hypot(planes_cfg.range_sigma_m, st.return_sigma_range_m), ties.sigma_across_m,
-        np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight, time_offset=offset_block,
+        np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, offset_w=ties.offset_w, boresight=boresight,
+        time_offset=offset_block,
         blocks=built.blocks, loss=make_loss(st.tie_loss, st.tie_loss_scale), name="lidar_ties")
     P.add_group(group)
     return _Built(built, rows, boresight, offset_start, group)
@@ -378,12 +419,28 @@ def _tie_rms(P: Problem, hb: _Built) -> dict[str, float]:
             "returns_m_median": float(np.median(d_ret))}
 
 
-def run_hybrid(project_dir: str | Path, out: str | Path, *, case: int = 2, planes: bool = True,
+MISFIT_FACTOR = 4.0
+"""A group of the hybrid problem's photogrammetric observations fitting worse than this variance
+factor (the robust losses' sigma0^2) is reported: wrong matches or weights that do not describe them."""
+
+
+def _warn_misfit(solve) -> None:
+    """Warnings, with the figures, where the adjustment says the model does not fit."""
+    if solve.termination == "max_iterations":
+        log.warning("the hybrid adjustment stopped at its iteration limit (%d) before converging", solve.iterations)
+    for g in solve.groups:
+        if g.name in IMAGE_POOL and np.isfinite(g.variance_factor) and g.variance_factor > MISFIT_FACTOR:
+            log.warning("%s fit at a variance factor of %.1f (%d residuals): the matches or their sigmas "
+                        "(processing.lidargrammetry tie_sigma_px, return_sigma_*) do not describe the data",
+                        g.name, g.variance_factor, g.n_residuals)
+
+
+def run_hybrid(project_dir: str | Path, out: str | Path, *, case: int = 1, planes: bool = True,
                overrides: Mapping[str, Any] | None = None, matcher=None, resume: bool = True,
                progress: Progress = no_progress, scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> HybridResult:
     """Steps 1-6 of the module docstring on a project with GNSS, IMU, scans and photos.
 
-    ``case``: 1 or 2 (:data:`HYBRID_CASES`); ``planes``: start from the G/I/L adjustment and keep
+    ``case``: 1 (default) or 2 (:data:`HYBRID_CASES`); ``planes``: start from the G/I/L adjustment and keep
     its plane observations in the hybrid one; off, the G/I adjustment without planes (a scanner
     too sparse for planar features: ``georefine run`` stops there with "no planar features");
     ``overrides``: fields of ``processing.lidargrammetry``; ``matcher``: a matcher object
@@ -449,7 +506,7 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     R_b_s = boresight_matrix(tuple(gil.boresight_deg) if gil is not None and gil.boresight_deg is not None
                              else cfg.scanner.boresight_deg)
     ties = hybrid_ties(blk, matches, keep, xyz0, point_files, [s.path for s in inputs.strips], nav, start, R_b_s,
-                       np.asarray(cfg.scanner.lever_arm_m, dtype=float), st.return_sigma_across_px)
+                       st.return_sigma_across_px)
     control = control_data(pp)
     t = _time.perf_counter()
     R, p, pre, pre_precision = pp.R_w_c, pp.p_w_c, None, {}
@@ -461,6 +518,7 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     R, p = P.values("image_rotation"), P.values("image_position")
     n_tie = int((hb.rows >= 0).sum())
     tie_rms = _tie_rms(P, hb)
+    _warn_misfit(result.solve)
     timings["hybrid_adjustment"] = _time.perf_counter() - t
     t = _time.perf_counter()
     result, precision = _posterior(nav, hb, result, n_tie, control, case)
@@ -495,8 +553,11 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
              "sigma_position_m_median": np.median(result.sigma_position_m, axis=0).tolist()}
     metrics = HybridResult(
         case, planes, len(pp.eop), len(blk.lgs), ties.n_points, len(ties.photo_image), len(ties.returns),
-        stats["control"], stats["check"], tie_rms, result.solve.to_dict(), precision, pre, sigma, timings,
-        gi=gi, result=result)
+        stats["control"], stats["check"], tie_rms, result.solve.to_dict(), precision, pre, sigma,
+        photo_lidargram_matches(blk, matches), timings, gi=gi, result=result)
+    for sub in ("gil", "features"):  # stage_read_inputs makes them; without planes they stay empty
+        if (inputs.out / sub).is_dir() and not any((inputs.out / sub).iterdir()):
+            (inputs.out / sub).rmdir()
     write_json(inputs.out / "metrics.json", metrics.to_dict())
     write_yaml(inputs.out / "config.resolved.yaml",
                cfg.model_copy(update={"processing": cfg.processing.model_copy(update={"lidargrammetry": st})}))

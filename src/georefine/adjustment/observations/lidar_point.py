@@ -6,11 +6,15 @@ point ``X`` (in ``w``), which the photos observe too by reprojection
 (:class:`~georefine.adjustment.observations.reprojection.ReprojectionObservation`). The return
 was georeferenced through the trajectory at ``t``, so
 
-``r = L (p_w_b(t) + R_w_b(t) (p_b_s + R_b_s x_s) - X)``
+``r = L (p_w_b(t) + R_w_b(t) (p_b_s + R_b_s x_s) + d - X)``
 
 is an observation of the spline trajectory, the mounting calibration and the tie point at
 once: the relation that lets photos correct the trajectory within a lidargram's footprint,
-where paper 004 moves each lidargram rigidly.
+where paper 004 moves each lidargram rigidly. ``d`` (``offset_w``, constant, zero by default)
+is what separates the keypoint's surface point from the return its pixel shows, as far as the
+lidargram knows it: the keypoint's offset from the return's exact projection, in the image
+plane at the return's depth (a pixel of a sparse cloud's lidargram shows a return up to half a
+point spacing away).
 
 Weights: the return's ranging noise ``sigma_range`` along the beam ``u`` (a unit vector in
 ``w``, from the preliminary georeferencing) and ``sigma_across`` perpendicular to it, which
@@ -96,6 +100,9 @@ class LidarPointObservation:
         Lever arm (m) and boresight, used when the ``lever_arm`` / ``boresight`` block is None.
     points
         Euclidean block ``(M, 3)`` of tie points in ``w``.
+    offset_w : (N, 3), optional
+        Constant offset ``d`` from the return to the observed surface point, in ``w`` (m); zero
+        when None.
     boresight, lever_arm, time_offset
         Optional blocks ``(1, 3, 3)`` so3, ``(1, 3)`` and ``(1, 1)`` (s).
     blocks
@@ -116,6 +123,7 @@ class LidarPointObservation:
     p_b_s: np.ndarray
     R_b_s: np.ndarray
     points: str = "points"
+    offset_w: np.ndarray | None = None
     boresight: str | None = None
     lever_arm: str | None = None
     time_offset: str | None = None
@@ -135,6 +143,7 @@ class LidarPointObservation:
                              f"trajectory's span {self.grid.t_start:.3f} .. {self.grid.t_end:.3f} s")
         self.x_s = _rows("x_s", self.x_s, n, 3)
         self.beam_w = _rows("beam_w", self.beam_w, n, 3)
+        self.offset_w = np.zeros((n, 3)) if self.offset_w is None else _rows("offset_w", self.offset_w, n, 3)
         if np.any(np.abs(np.linalg.norm(self.beam_w, axis=1) - 1.0) > _UNIT_TOL):
             raise ValueError("LidarPointObservation: beam_w must be unit vectors")
         self.sigma_range = _rows("sigma_range", self.sigma_range, n, None)
@@ -174,7 +183,8 @@ class LidarPointObservation:
         return t, k, u, position_basis(u, self.grid.dt, 0)
 
     def georeference(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
-        """The returns in ``w`` (N, 3) with the current trajectory, calibration and time offset."""
+        """The returns in ``w`` (N, 3) with the current trajectory, calibration and time offset,
+        plus ``offset_w``: the surface points they observe."""
         return self._model(values, self._located(values), jacobians=False)[-1]
 
     def _model(self, values, located, jacobians: bool):
@@ -184,7 +194,7 @@ class LidarPointObservation:
         ev = eval_orientation(self.grid, R, W, t, rate=jacobians and self.time_offset is not None, jacobians=jacobians)
         R_b_s, p_b_s = self.calibration(values)
         x_b = p_b_s + self.x_s @ R_b_s.T
-        return ev, R_b_s, x_b, p + np.einsum("nij,nj->ni", ev.R_w_b, x_b)
+        return ev, R_b_s, x_b, p + np.einsum("nij,nj->ni", ev.R_w_b, x_b) + self.offset_w
 
     def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
         """Whitened residuals (3 rows per return) and Jacobian blocks; see the module docstring."""
