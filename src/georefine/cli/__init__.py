@@ -443,10 +443,13 @@ def coadjust(
 def hybrid(
     project: Path = typer.Argument(..., help="Project folder with GNSS, IMU, scans and a photos section."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
-    case: int = typer.Option(2, "--case", help="1: photo block first, then fixed; 2: photos and trajectory together."),
+    case: int = typer.Option(1, "--case", help="1: photo block first, then fixed; 2: photos and trajectory together."),
     planes: bool = typer.Option(
         True, "--planes/--no-planes",
         help="Start from the G/I/L adjustment and keep its plane observations (off: from the G/I adjustment)."),
+    keypoint_offset: bool = typer.Option(
+        False, "--keypoint-offset",
+        help="A return observes the keypoint's surface point beside it, not itself (sparse clouds)."),
     method: Optional[str] = typer.Option(None, "--method", help=_METHOD_HELP),
     features: Optional[str] = typer.Option(None, "--lightglue-features", help="LightGlue's features: disk or aliked."),
     extractor_weights: Optional[Path] = typer.Option(None, "--extractor-weights", help="DISK/ALIKED weights (.pth)."),
@@ -468,7 +471,8 @@ def hybrid(
         output_ok(out, force)
         from georefine.workflows.hybrid import run_hybrid
 
-        overrides = _matcher(method, features, extractor_weights, lightglue_weights)
+        overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
+                     **_given(return_keypoint_offset=True if keypoint_offset else None)}
         with progress() as report:
             m = run_hybrid(project, out, case=case, planes=planes, overrides=overrides, resume=not fresh,
                            progress=report, scheduler=scheduler)

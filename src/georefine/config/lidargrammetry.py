@@ -94,6 +94,10 @@ class LidargrammetryConfig(StrictModel):
     return_sigma_range_m: float = Field(
         0.05, gt=0.0, description="Sigma along the beam of a LiDAR return observing a tie point, beside the "
         "ranging noise: the keypoint's surface point beside the return where the surface slopes (hybrid adjustment).")
+    return_keypoint_offset: bool = Field(
+        False, description="Observe the keypoint's surface point beside the return its lidargram pixel shows (the "
+        "keypoint's offset from the return's projection, at the return's depth) instead of the return itself: "
+        "better on sparse clouds, worse on dense ones, where splats widen edges (hybrid adjustment; BENCHMARKS.md).")
     # Refined cloud (georefine.lidargrammetry.reintersect; cases 1 and 2).
     feather: bool = Field(
         True, description="Weight a point's lidargrams by the distance of the point from their border.")
