@@ -80,15 +80,21 @@ from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, StepRunner
 from georefine.workflows.gil import LidarAdjustment, build_gil_problem
 from georefine.workflows.lidar import (
-    _features_and_objects,
-    _lidar_stages,
-    _untimed,
+    features_and_objects,
+    lidar_stages,
+    untimed,
     stage_gi_products,
     stage_gnss_imu,
     stage_points,
     stage_read_inputs,
 )
-from georefine.workflows.lidargrammetry import _block_images, _open, _ties, block_matches, control_data
+from georefine.workflows.lidargrammetry import (
+    block_images,
+    block_matches,
+    control_data,
+    open_block,
+    tie_observations,
+)
 from georefine.workflows.navigation import NavigationData, write_trajectory_products
 from georefine.workflows.photo_block import read_cloud
 from georefine.workflows.returns import LidarReturns, returns_of_points
@@ -139,8 +145,8 @@ class HybridTies:
 def hybrid_ties(blk, matches, keep: np.ndarray, xyz0: np.ndarray, point_files: list[Path], scan_files: list[Path],
                 nav: NavigationData, start: GnssImuResult, R_b_s: np.ndarray, across_px: float,
                 keypoint_offset: bool = False) -> HybridTies:
-    """The tracks' kept observations (``keep``, :func:`~georefine.workflows.lidargrammetry._ties`)
-    as photo keypoints and LiDAR returns.
+    """The tracks' kept observations (``keep``,
+    :func:`~georefine.workflows.lidargrammetry.tie_observations`) as photo keypoints and LiDAR returns.
 
     A lidargram keypoint becomes the return its pixel shows (one per track and return: the
     lidargrams of one strip rendered at neighbouring photos often show the same return); its
@@ -479,7 +485,7 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     t = _time.perf_counter()
     # Settings, matcher and photos checked before anything is read or written; then the photo
     # poses in the trajectory's frame, where the hybrid problem lives.
-    opened = _open(root, out, overrides, matcher)
+    opened = open_block(root, out, overrides, matcher)
     inputs = stage_read_inputs(steps, root, out, None, runner)
     nav = inputs.nav
     pp = opened.pp
@@ -491,10 +497,10 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     stage_gi_products(inputs, gi)
     start, gil, plane_data = gi, None, None
     if planes:
-        gil, key, _ = _lidar_stages(steps, inputs, gi, key, progress)
+        gil, key, _ = lidar_stages(steps, inputs, gi, key, progress)
         start = gil.result
         strips = [s.shifted(gil.time_offset_s) for s in inputs.strips]
-        features, objects, _, _ = _features_and_objects(nav, start, strips, 0, _untimed, progress, runner)
+        features, objects, _, _ = features_and_objects(nav, start, strips, 0, untimed, progress, runner)
         plane_data = (features, objects)
     timings["trajectory"] = _time.perf_counter() - t
     # The preliminary cloud: every record of every scan, in order (returns_of_points relies on it).
@@ -506,12 +512,12 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     timings["preliminary_georeferencing"] = _time.perf_counter() - t
     t = _time.perf_counter()
     cloud = read_cloud(point_files, pp, runner=runner, progress=progress)
-    blk = _block_images(pp, cloud, st, progress, runner)
+    blk = block_images(pp, cloud, st, progress, runner)
     timings["lidargrams"] = _time.perf_counter() - t
     t = _time.perf_counter()
     matches = block_matches(opened, cloud, blk, inputs.out / ".cache", progress, runner)
     timings["matching"] = _time.perf_counter() - t
-    keep, xyz0, _ = _ties(blk.lgs, blk.R0, blk.p0, blk.cameras, blk.station, matches, cloud, blk.n_photos,
+    keep, xyz0, _ = tie_observations(blk.lgs, blk.R0, blk.p0, blk.cameras, blk.station, matches, cloud, blk.n_photos,
                           st.max_initial_reprojection_px)
     cfg = nav.config
     R_b_s = boresight_matrix(tuple(gil.boresight_deg) if gil is not None and gil.boresight_deg is not None

@@ -178,12 +178,12 @@ class Posterior:
 
 
 @contextmanager
-def _untimed(name: str) -> Iterator[None]:
+def untimed(name: str) -> Iterator[None]:
     """A ``timed`` that records nothing: a recomputation inside another step's time."""
     yield
 
 
-def _features_and_objects(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner,
+def features_and_objects(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner,
                           search: bool = False):
     """Steps 3-4 from ``current``: planar features per view and their matching into objects.
 
@@ -215,7 +215,7 @@ def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, p
     ``strip_files`` are at the offset the features are extracted at; ``prior_s`` centres the
     offset's prior (default: the search's result in the first iteration, else that offset).
     """
-    features, objects, counts, found = _features_and_objects(nav, current, strip_files, it, timed, progress, runner,
+    features, objects, counts, found = features_and_objects(nav, current, strip_files, it, timed, progress, runner,
                                                              search=_searches(nav, it))
     start_s = found.offset_s if found is not None else strip_files[0].time_offset_s
     start = TimeOffsetStart(start_s, start_s if prior_s is None else prior_s)
@@ -386,7 +386,7 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
             strips = inputs.strips if _searches(nav, it) else [s.shifted(last.time_offset_start_s) for s in inputs.strips]
             features, objects, _, _ = steps.cached(
                 "gil_features", outer.key,
-                lambda: _features_and_objects(nav, outer.start, strips, it, _untimed, progress, inputs.runner,
+                lambda: features_and_objects(nav, outer.start, strips, it, untimed, progress, inputs.runner,
                                               search=_searches(nav, it)),
                 decode=lambda fo: (*fo, None, None), store=False,
             )
@@ -403,7 +403,7 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
     return Posterior(gil, features, objects, key)
 
 
-def _lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, key: str,
+def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, key: str,
                   progress: Progress) -> tuple[LidarAdjustment, str, tuple[OuterIteration, ...]]:
     """Steps 3-5 and the G/I/L products: the adjustment with its posterior, its key, the outer iterations.
 
@@ -584,7 +584,7 @@ def _run_stages(steps: StepRunner, project_dir, out, strips, lidar: bool, points
     stage_gi_products(inputs, gi)
     final, gil, records = gi, None, ()
     if lidar:
-        gil, key, records = _lidar_stages(steps, inputs, gi, key, progress)
+        gil, key, records = lidar_stages(steps, inputs, gi, key, progress)
         final = gil.result
     with steps.timed("final_georeferencing"):
         written = stage_points(steps, inputs, final, gil, key, progress) if points else ()

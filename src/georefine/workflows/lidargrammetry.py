@@ -256,7 +256,7 @@ def _match_sift(block: tuple[list[Keypoints], list[Camera]], a: int, b: int, rat
                       min_matches=min_matches)
 
 
-def _ties(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: CloudIndex, n_photos: int,
+def tie_observations(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatches, cloud: CloudIndex, n_photos: int,
           max_initial_px: float):
     """Tie observations, initial points (ULPI points, read from the cloud's blocks, else photo
     intersections), lidargram depths."""
@@ -333,7 +333,8 @@ class _Opened:
         return cloud
 
 
-def _open(project_dir, out, overrides: Mapping[str, Any] | None, matcher=None, *, matching: bool = True) -> _Opened:
+def open_block(project_dir, out, overrides: Mapping[str, Any] | None, matcher=None, *,
+               matching: bool = True) -> _Opened:
     """Settings and matcher (the given one, else the settings'), the photo project and the output
     folder (outside the project), checked before a cluster starts or anything is read or written."""
     root = Path(project_dir)
@@ -356,7 +357,7 @@ def _lidargram_name(cloud: CloudIndex, strip: int, photo: str) -> str:
     return f"LG_{cloud.files[strip].stem if strip >= 0 else 'all'}_{Path(photo).stem}.png"
 
 
-def _block_images(pp: PhotoProject, cloud: CloudIndex, st: LidargrammetryConfig, progress: Progress,
+def block_images(pp: PhotoProject, cloud: CloudIndex, st: LidargrammetryConfig, progress: Progress,
                   runner: TaskRunner) -> _Block:
     lgs = render_lidargrams(pp, cloud, st, progress=progress, runner=runner)
     n = len(pp.eop)
@@ -387,7 +388,7 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
     from georefine.lidargrammetry.render import save_lidargram
 
     names = []
-    opened = _open(project_dir, out, overrides, matching=False)
+    opened = open_block(project_dir, out, overrides, matching=False)
     st, pp, out = opened.settings, opened.pp, opened.out
     with runner_for(scheduler) as runner:
         cloud = opened.read_cloud(points, runner, progress)
@@ -422,11 +423,11 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
 
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    opened = _open(project_dir, out, overrides, matcher)
+    opened = open_block(project_dir, out, overrides, matcher)
     st, matcher, pp, out = opened.settings, opened.matcher, opened.pp, opened.out
     with runner_for(scheduler) as runner:
         cloud = opened.read_cloud(points, runner, progress)
-        blk = _block_images(pp, cloud, st, progress, runner)
+        blk = block_images(pp, cloud, st, progress, runner)
         (out / "lidargrams").mkdir(exist_ok=True)
         for (lg, _, _), name in zip(blk.lgs, blk.names[blk.n_photos:]):
             save_lidargram(lg, out / "lidargrams", Path(name).stem)
@@ -490,7 +491,7 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     """
     if case not in CASES:
         raise InputError("unknown case", field="case", expected="1, 2 or 3", found=str(case))
-    opened = _open(project_dir, out, overrides, matcher)
+    opened = open_block(project_dir, out, overrides, matcher)
     with runner_for(scheduler) as runner:
         return _coadjust(opened, points, case, cache_dir, progress, runner)
 
@@ -504,14 +505,15 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
     cloud = opened.read_cloud(points, runner, progress)
     timings["read"] = _time.perf_counter() - t
     t = _time.perf_counter()
-    blk = _block_images(pp, cloud, st, progress, runner)
+    blk = block_images(pp, cloud, st, progress, runner)
     timings["lidargrams"] = _time.perf_counter() - t
     lgs, n, cameras, station, is_lg, R0, p0, images = (blk.lgs, blk.n_photos, blk.cameras, blk.station,
                                                        blk.is_lidargram, blk.R0, blk.p0, blk.images)
     t = _time.perf_counter()
     matches = block_matches(opened, cloud, blk, cache_dir, progress, runner)
     timings["matching"] = _time.perf_counter() - t
-    keep, xyz0, depth = _ties(lgs, R0, p0, cameras, station, matches, cloud, n, st.max_initial_reprojection_px)
+    keep, xyz0, depth = tie_observations(lgs, R0, p0, cameras, station, matches, cloud, n,
+                                         st.max_initial_reprojection_px)
     tr = matches.tracks
     sig_p = np.r_[pp.eop.sigma_xyz if pp.eop.sigma_xyz is not None else np.full((n, 3), st.photo_sigma_position_m),
                   np.full((len(lgs), 3), st.lidargram_sigma_position_m)]
