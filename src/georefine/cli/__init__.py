@@ -438,7 +438,6 @@ def coadjust(
     stdout.print(f"  results in {out}")
 
 
-
 @app.command()
 def hybrid(
     project: Path = typer.Argument(..., help="Project folder with GNSS, IMU, scans and a photos section."),

@@ -184,7 +184,7 @@ def untimed(name: str) -> Iterator[None]:
 
 
 def features_and_objects(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner,
-                          search: bool = False):
+                         search: bool = False):
     """Steps 3-4 from ``current``: planar features per view and their matching into objects.
 
     With ``search`` the LiDAR time offset is searched between extraction and matching
@@ -216,7 +216,7 @@ def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, p
     offset's prior (default: the search's result in the first iteration, else that offset).
     """
     features, objects, counts, found = features_and_objects(nav, current, strip_files, it, timed, progress, runner,
-                                                             search=_searches(nav, it))
+                                                            search=_searches(nav, it))
     start_s = found.offset_s if found is not None else strip_files[0].time_offset_s
     start = TimeOffsetStart(start_s, start_s if prior_s is None else prior_s)
     with timed(f"gil_adjustment_{it}"):
@@ -387,7 +387,7 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
             features, objects, _, _ = steps.cached(
                 "gil_features", outer.key,
                 lambda: features_and_objects(nav, outer.start, strips, it, untimed, progress, inputs.runner,
-                                              search=_searches(nav, it)),
+                                             search=_searches(nav, it)),
                 decode=lambda fo: (*fo, None, None), store=False,
             )
 
@@ -404,7 +404,7 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
 
 
 def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, key: str,
-                  progress: Progress) -> tuple[LidarAdjustment, str, tuple[OuterIteration, ...]]:
+                 progress: Progress) -> tuple[LidarAdjustment, str, tuple[OuterIteration, ...]]:
     """Steps 3-5 and the G/I/L products: the adjustment with its posterior, its key, the outer iterations.
 
     Its own function so that what only steps 3-5 need -- the last problem (with its
