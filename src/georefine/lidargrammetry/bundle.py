@@ -47,7 +47,8 @@ from georefine.geometry.camera import Camera
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "coadjust", "control_point_stats", "intersect_points",
+__all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "check_point_consistency", "coadjust",
+           "control_point_stats", "intersect_points",
            "stations_per_point"]
 
 CASES = {
@@ -334,10 +335,17 @@ def _precision(images: BlockImages, sol: dict, control: ControlData, check_mask:
             out[kind] = {"images": int(ok.sum()), "sigma_position_m_median": np.median(sp[ok], axis=0).tolist(),
                          "sigma_rotation_deg_median": deg(np.median(sr[ok], axis=0)).tolist()}
     if "sigma_points" in sol and check_mask.any():
-        e = sol["points"][check_mask] - control.xyz_w[check_mask]
-        s = np.sqrt(sol["sigma_points"][check_mask] ** 2 + control.sigma_m[check_mask] ** 2)
-        out["check_points"] = {"n": int(check_mask.sum()),
-                               "sigma_xyz_m_rms": np.sqrt(np.mean(sol["sigma_points"][check_mask] ** 2, axis=0)).tolist(),
-                               "error_xyz_m_rms": np.sqrt(np.mean(e**2, axis=0)).tolist(),
-                               "normalised_rms": float(np.sqrt(np.mean((e / s) ** 2)))}
+        out["check_points"] = check_point_consistency(sol["points"][check_mask], sol["sigma_points"][check_mask],
+                                                      control.xyz_w[check_mask], control.sigma_m[check_mask])
     return out
+
+
+def check_point_consistency(xyz: np.ndarray, sigma: np.ndarray, surveyed: np.ndarray, survey_sigma: np.ndarray) -> dict:
+    """Adjusted check points ``xyz`` with posterior ``sigma`` against their ``surveyed`` coordinates:
+    RMS sigma and error per axis, and ``normalised_rms``, the RMS over points and axes of the error
+    over ``sqrt(sigma^2 + survey_sigma^2)`` (about 1 when the sigmas are honest)."""
+    e = xyz - surveyed
+    s = np.sqrt(sigma**2 + survey_sigma**2)
+    return {"n": int(len(xyz)), "sigma_xyz_m_rms": np.sqrt(np.mean(sigma**2, axis=0)).tolist(),
+            "error_xyz_m_rms": np.sqrt(np.mean(e**2, axis=0)).tolist(),
+            "normalised_rms": float(np.sqrt(np.mean((e / s) ** 2)))}

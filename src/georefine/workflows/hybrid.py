@@ -74,7 +74,13 @@ from georefine.errors import InputError
 from georefine.geometry.rotation import rph_from_R_n_b
 from georefine.io import photos as pio
 from georefine.io.files import write_json
-from georefine.lidargrammetry.bundle import ControlData, PointStats, control_point_stats, stations_per_point
+from georefine.lidargrammetry.bundle import (
+    ControlData,
+    PointStats,
+    check_point_consistency,
+    control_point_stats,
+    stations_per_point,
+)
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, StepRunner
@@ -333,12 +339,8 @@ def _check_precision(P: Problem, n_tie: int, control: ControlData, scale_by_vf: 
     except (NotPositiveDefiniteError, ValueError) as exc:
         log.warning("no posterior precision of the check points: %s", exc)
         return {}
-    sig = np.sqrt(np.einsum("kii->ki", cov))
-    e = P.values("points")[n_tie + chk] - control.xyz_w[chk]
-    s = np.sqrt(sig**2 + control.sigma_m[chk] ** 2)
-    return {"n": int(chk.size), "sigma_xyz_m_rms": np.sqrt(np.mean(sig**2, axis=0)).tolist(),
-            "error_xyz_m_rms": np.sqrt(np.mean(e**2, axis=0)).tolist(),
-            "normalised_rms": float(np.sqrt(np.mean((e / s) ** 2)))}
+    return check_point_consistency(P.values("points")[n_tie + chk], np.sqrt(np.einsum("kii->ki", cov)),
+                                   control.xyz_w[chk], control.sigma_m[chk])
 
 
 def _photo_block(pp, st, ties: HybridTies, control: ControlData) -> tuple[np.ndarray, np.ndarray, dict, dict]:
