@@ -175,24 +175,22 @@ class ImuObservation:
     loss: RobustLoss | None = None
     name: str = "imu"
     consumed_redundancy: float = 0.0
+    sample_rule: bool = True
 
     def __post_init__(self) -> None:
         w = self.windows
         n = len(w)
-        if w.kind == "rates":  # the mean at the samples: node i is sample i, weight 1/n (0 past a short window's end)
-            i = np.arange(int(w.n_samples.max()))[:, None]
-            step = (w.t_end - w.t_start) / w.n_samples
-            t_nodes = w.t_start + (np.minimum(i, w.n_samples - 1) + 0.5) * step
-            q = np.where(i < w.n_samples, 1.0 / w.n_samples, 0.0)
+        # The nodes of all windows in one flat list: node i belongs to window self._win[i] with
+        # weight self._q[i] (module docstring, Down-sampling).
+        split = _knot_inside(self.grid, w.t_start, w.t_end)
+        if w.kind == "rates":
+            t_nodes, q, win = _sample_mean_nodes(w.t_start, w.t_end, w.n_samples, split,
+                                                 self.nodes if self.sample_rule else 0)
         else:
-            x, qg = np.polynomial.legendre.leggauss(self.nodes)
-            mid, half = 0.5 * (w.t_start + w.t_end), 0.5 * (w.t_end - w.t_start)
-            t_nodes = mid + half * x[:, None]
-            q = np.broadcast_to(0.5 * qg[:, None], (self.nodes, n))
-        self._nodes = t_nodes.shape[0]
-        # node-major: node i of all windows is a contiguous slice
-        self._t = np.clip(t_nodes, self.grid.t_start, self.grid.t_end).ravel()
-        self._q = np.ascontiguousarray(q)  # (nodes, W) weights
+            t_nodes, q, win = _interval_mean_nodes(w.t_start, w.t_end, split, self.nodes)
+        self._t = np.clip(t_nodes, self.grid.t_start, self.grid.t_end)
+        self._q = q
+        self._win = win
         k, u = self.grid.locate(self._t)
         self._k = k
         self._basis = [position_basis(u, self.grid.dt, order) for order in (0, 1, 2)]
@@ -204,6 +202,11 @@ class ImuObservation:
         self._rows_f, self._rows_g = rows[:, :3], rows[:, 3:]
         self._obs = np.repeat(np.arange(2 * n), 3)
         self._n = n
+
+    @property
+    def n_nodes(self) -> int:
+        """Points at which the model is evaluated: the cost of a linearisation."""
+        return self._t.size
 
     # ---------------------------------------------------------------- model
     def _node_terms(self, values, jacobians):
@@ -227,7 +230,8 @@ class ImuObservation:
         return dict(p=p, g=g, ev=ev, Rt=Rt, Rt_x=Rt_x, Rt_W=Rt_W, rate=rate, s_a=s_a, s_g=s_g, f=f_node, w=w_node)
 
     def _average(self, node_values: np.ndarray) -> np.ndarray:
-        return np.einsum("in,ind->nd", self._q, node_values.reshape(self._nodes, self._n, 3))
+        weighted = node_values * self._q[:, None]
+        return np.column_stack([np.bincount(self._win, weights=weighted[:, c], minlength=self._n) for c in range(3)])
 
     def predict(self, values: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Modelled window means ``(acc (W,3), gyro (W,3))``."""
@@ -246,7 +250,7 @@ class ImuObservation:
         return Linearization(r, jac, self._obs)
 
     def _jacobians(self, t) -> list[JacobianBlock]:
-        n, out = self._n, []
+        out = []
         omega_ie = self.frame.omega_ie_w
         g = t["g"]
         gamma = np.linalg.norm(g, axis=1)
@@ -255,42 +259,117 @@ class ImuObservation:
         Da, Dg = np.diag(1.0 + t["s_a"]), np.diag(1.0 + t["s_g"])
         ev = t["ev"]
         eye = np.eye(3)
-        for i in range(self._nodes):
-            sl = slice(i * n, (i + 1) * n)
-            ca = (self._q[i] / self._sa)[:, None, None]
-            cg = (self._q[i] / self._sg)[:, None, None]
-            Rt = t["Rt"][sl]
-            DRt = Da @ Rt
-            M_a = ca * DRt
-            M_v = ca * DRt @ (2.0 * skew(omega_ie))
-            M_p = -ca * DRt @ G[sl]
-            k = self._k[sl]
-            w0, w1, w2 = (b[sl] for b in self._basis)
-            for j, name in enumerate(self.blocks.position_states):
-                val = M_a * w2[:, j, None, None] + M_v * w1[:, j, None, None] + M_p * w0[:, j, None, None]
-                out.append(JacobianBlock(name, self._rows_f, k if j < 3 else k + 1, val))
-            jac_i = _slice_jacobians(ev.jacobians, sl)
-            out += orientation_jacobians(self.blocks, self._rows_f, jac_i, ca * Da @ skew(t["Rt_x"][sl]))
-            out += orientation_jacobians(
-                self.blocks, self._rows_g, jac_i, cg * Dg @ skew(t["Rt_W"][sl]), cg * np.broadcast_to(Dg, (n, 3, 3))
-            )
-            for name, rows, jb, lb, c in (
-                (self.acc_bias, self._rows_f, self._jb_a[sl], self._lb_a[sl], ca),
-                (self.gyro_bias, self._rows_g, self._jb_g[sl], self._lb_g[sl], cg),
-            ):
-                out.append(JacobianBlock(name, rows, jb, c * (1.0 - lb)[:, None, None] * eye))
-                out.append(JacobianBlock(name, rows, jb + 1, c * lb[:, None, None] * eye))
-            zeros = np.zeros(n, dtype=np.int64)
-            if self.acc_scale:
-                d = t["Rt_x"][sl]
-                out.append(JacobianBlock(self.acc_scale, self._rows_f, zeros, ca * (d[:, :, None] * eye)))
-            if self.gyro_scale:
-                d = t["rate"][sl]
-                out.append(JacobianBlock(self.gyro_scale, self._rows_g, zeros, cg * (d[:, :, None] * eye)))
+        win = self._win
+        ca = (self._q / self._sa[win])[:, None, None]
+        cg = (self._q / self._sg[win])[:, None, None]
+        rows_f, rows_g = self._rows_f[win], self._rows_g[win]
+        M_a = ca * (Da @ t["Rt"])
+        M_v = M_a @ (2.0 * skew(omega_ie))
+        M_p = -M_a @ G
+        k = self._k
+        w0, w1, w2 = self._basis
+        for j, name in enumerate(self.blocks.position_states):
+            val = M_a * w2[:, j, None, None] + M_v * w1[:, j, None, None] + M_p * w0[:, j, None, None]
+            out.append(JacobianBlock(name, rows_f, k if j < 3 else k + 1, val))
+        out += orientation_jacobians(self.blocks, rows_f, ev.jacobians, ca * Da @ skew(t["Rt_x"]))
+        out += orientation_jacobians(
+            self.blocks, rows_g, ev.jacobians, cg * Dg @ skew(t["Rt_W"]), cg * np.broadcast_to(Dg, (win.size, 3, 3))
+        )
+        for name, rows, jb, lb, c in (
+            (self.acc_bias, rows_f, self._jb_a, self._lb_a, ca),
+            (self.gyro_bias, rows_g, self._jb_g, self._lb_g, cg),
+        ):
+            out.append(JacobianBlock(name, rows, jb, c * (1.0 - lb)[:, None, None] * eye))
+            out.append(JacobianBlock(name, rows, jb + 1, c * lb[:, None, None] * eye))
+        zeros = np.zeros(win.size, dtype=np.int64)
+        if self.acc_scale:
+            d = t["Rt_x"]
+            out.append(JacobianBlock(self.acc_scale, rows_f, zeros, ca * (d[:, :, None] * eye)))
+        if self.gyro_scale:
+            d = t["rate"]
+            out.append(JacobianBlock(self.gyro_scale, rows_g, zeros, cg * (d[:, :, None] * eye)))
         return out
 
 
-def _slice_jacobians(jac, sl):
-    from georefine.trajectory.spline import OrientationJacobians
+def discrete_gauss_rule(n: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss rule of ``m`` nodes for the mean over the points ``0, 1, ..., n-1``.
 
-    return OrientationJacobians(jac.k[sl], jac.dR[sl], None if jac.domega is None else jac.domega[sl])
+    Returns nodes ``x`` (m,), real numbers in ``[0, n-1]``, and weights ``q`` (m,) summing to 1
+    such that ``sum q f(x) = mean_i f(i)`` for every polynomial ``f`` of degree ``<= 2m - 1``.
+    Golub-Welsch on the recurrence of the discrete Chebyshev (Gram) polynomials, monic
+    ``p_{k+1}(x) = (x - (n-1)/2) p_k(x) - beta_k p_{k-1}(x)``,
+    ``beta_k = k^2 (n^2 - k^2) / (4 (4k^2 - 1))`` (Abramowitz and Stegun 22.17; Gautschi,
+    *Orthogonal Polynomials*, 2004, §1.5). With ``m >= n`` the points themselves, weight ``1/n``.
+    """
+    if n < 1 or m < 1:
+        raise ValueError(f"need n >= 1 and m >= 1, got n={n}, m={m}")
+    if m >= n:
+        return np.arange(n, dtype=float), np.full(n, 1.0 / n)
+    k = np.arange(1, m, dtype=float)
+    off = np.sqrt(k**2 * (n**2 - k**2) / (4.0 * (4.0 * k**2 - 1.0)))
+    J = np.diag(np.full(m, 0.5 * (n - 1))) + np.diag(off, 1) + np.diag(off, -1)
+    x, V = np.linalg.eigh(J)
+    return x, V[0] ** 2
+
+
+def _knot_inside(grid: KnotGrid, t_start: np.ndarray, t_end: np.ndarray) -> np.ndarray:
+    """The knot strictly inside each window ``(t_start, t_end)``, NaN where none is (windows are at
+    most a quarter of a knot interval long, so never more than one)."""
+    k = np.floor((t_end - grid.t_start) / grid.dt - 1e-9)
+    knot = grid.t_start + k * grid.dt
+    return np.where((knot > t_start + 1e-9 * grid.dt) & (k >= 1) & (k <= grid.n_knots - 2), knot, np.nan)
+
+
+def _sample_mean_nodes(t_start: np.ndarray, t_end: np.ndarray, n_samples: np.ndarray, split: np.ndarray, m: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nodes, weights and windows (flat) of the mean over each window's samples.
+
+    A window's samples lie at ``t_start + (i + 1/2) (t_end - t_start) / n``; those on either side
+    of a knot inside it (``split``) form two pieces, each in one polynomial piece of the spline. A
+    piece of ``c`` samples gets the ``m``-node discrete Gauss rule over them
+    (:func:`discrete_gauss_rule`: the mean of a polynomial of degree ``<= 2m - 1`` at the samples,
+    exactly), weighted ``c / n``; with ``m == 0`` every sample is a node (no split needed).
+    """
+    n_samples = np.asarray(n_samples, dtype=np.int64)
+    step = (t_end - t_start) / n_samples
+    if m == 0:
+        split = np.full(n_samples.size, np.nan)
+    # samples before the knot: those whose time tag t_start + (i + 1/2) step lies below it
+    before = np.ceil((np.nan_to_num(split, nan=np.inf) - t_start) / step - 0.5 - 1e-9)
+    cut = np.clip(np.where(np.isnan(split), n_samples, before), 0, n_samples).astype(np.int64)
+    two = np.flatnonzero((cut > 0) & (cut < n_samples))
+    win = np.concatenate([np.arange(n_samples.size), two])
+    first = np.concatenate([np.zeros(n_samples.size, dtype=np.int64), cut[two]])
+    count = np.concatenate([np.where(cut > 0, cut, n_samples), n_samples[two] - cut[two]])
+    t_out, q_out, w_out = [], [], []
+    for c in np.unique(count):
+        sel = np.flatnonzero(count == c)
+        x, q = discrete_gauss_rule(int(c), int(m) if m else int(c))
+        ws = win[sel]
+        t_out.append(t_start[ws][:, None] + (first[sel][:, None] + x[None, :] + 0.5) * step[ws][:, None])
+        q_out.append(q[None, :] * (c / n_samples[ws])[:, None])
+        w_out.append(np.repeat(ws[:, None], x.size, axis=1))
+    order = np.argsort(np.concatenate([a.ravel() for a in w_out]), kind="stable")  # window by window
+    return (np.concatenate([a.ravel() for a in t_out])[order], np.concatenate([a.ravel() for a in q_out])[order],
+            np.concatenate([a.ravel() for a in w_out])[order])
+
+
+def _interval_mean_nodes(t_start: np.ndarray, t_end: np.ndarray, split: np.ndarray, m: int
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Nodes, weights and windows (flat) of the continuous mean over each window: ``m``-node
+    Gauss-Legendre over each piece between the window's limits and a knot inside it (``split``),
+    weighted by the piece's share of the window."""
+    x, qg = np.polynomial.legendre.leggauss(m)
+    has = ~np.isnan(split)
+    n = t_start.size
+    two = np.flatnonzero(has)
+    win = np.concatenate([np.arange(n), two])
+    a = np.concatenate([t_start, split[two]])
+    b = np.concatenate([np.where(has, split, t_end), t_end[two]])
+    mid, half = 0.5 * (a + b), 0.5 * (b - a)
+    share = (b - a) / (t_end - t_start)[win]
+    t = mid[:, None] + half[:, None] * x[None, :]
+    q = 0.5 * qg[None, :] * share[:, None]
+    w = np.repeat(win, m)
+    order = np.argsort(w, kind="stable")  # window by window
+    return t.ravel()[order], q.ravel()[order], w[order]
