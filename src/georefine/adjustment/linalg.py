@@ -16,8 +16,20 @@ Four backends, chosen by :func:`cholesky` (``backend="auto"`` takes the first av
     in CSC (``uplo="U"``); the permutation for the pivot check comes from ``solve(sys=7)``
     (``x = P b``). CVXOPT is GPL-3 (as is CHOLMOD's supernodal module, which scikit-sparse uses
     too); it is an optional dependency, never required.
+``"qdldl"``
+    QDLDL (``qdldl.Solver``, OSQP's ``LDL^T`` with AMD ordering, Apache-2.0), a default installed
+    dependency: a plain wheel, and the one default backend that hands out its factor
+    (``factors()``: ``L``, ``D`` and the permutation), which the posterior's selected inversion
+    needs (:mod:`georefine.adjustment.selected_inverse`). Simplicial and up-looking; the
+    numeric refactorisation of one pattern (``update``) keeps the ordering and the elimination
+    tree. Measured on the corridor's G/I normal matrix (24,009 unknowns, 1.1 M non-zeros in
+    ``L``): 65 ms analysis and factorisation, 29 ms refactorisation, against cholespy's 93 ms
+    for every factorisation, scikit-sparse's 41 ms and CVXOPT's 21 ms refactorisations. The
+    upper triangle in CSC is the lower one in CSR: handed over without conversion
+    (``upper=True``). Right-hand sides one vector at a time. It factorises quasi-definite
+    matrices without complaint, so positive definiteness is tested on ``D``.
 ``"cholespy"``
-    cholespy (``cholespy.CholeskySolverD``), the default installed dependency. It wraps
+    cholespy (``cholespy.CholeskySolverD``), a default installed dependency. It wraps
     CHOLMOD too: the matrix is copied into a CHOLMOD matrix with ``stype = -1``, i.e. **only
     the lower triangle (row >= column) is read and the strictly upper part is silently
     ignored** -- passing only the upper triangle gives a wrong factor without any error. The
@@ -77,7 +89,7 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_BACKEND_ORDER = ("cholmod", "cvxopt", "cholespy", "scipy")
+_BACKEND_ORDER = ("cholmod", "cvxopt", "qdldl", "cholespy", "scipy")
 _INT32_MAX = np.iinfo(np.int32).max
 
 
@@ -107,6 +119,8 @@ def available_backends() -> tuple[str, ...]:
         found.append("cholmod")
     if importlib.util.find_spec("cvxopt") is not None:
         found.append("cvxopt")
+    if importlib.util.find_spec("qdldl") is not None:
+        found.append("qdldl")
     if importlib.util.find_spec("cholespy") is not None:
         found.append("cholespy")
     found.append("scipy")
@@ -125,8 +139,8 @@ def cholesky(A: sp.spmatrix | sp.sparray, *, lower: bool = False, backend: str =
     lower
         Whether ``A`` holds only the lower triangle.
     backend
-        ``"auto"``, ``"cholmod"``, ``"cvxopt"``, ``"cholespy"`` or ``"scipy"`` (see the module
-        docstring).
+        ``"auto"``, ``"cholmod"``, ``"cvxopt"``, ``"qdldl"``, ``"cholespy"`` or ``"scipy"`` (see
+        the module docstring).
 
     Returns
     -------
@@ -148,15 +162,15 @@ class SparseCholesky:
 
     ``factorize(A)`` analyses the pattern on the first call (and whenever the pattern changes)
     and then only refactorises numerically, for the backends that separate the two
-    (``"cholmod"``, ``"cvxopt"``); cholespy and SuperLU always start afresh. A factorisation
-    returned by the ``"cvxopt"`` backend shares its numeric storage with this object: it is
-    valid until the next ``factorize`` call (the Levenberg-Marquardt loop solves once per
-    factorisation); the other backends return independent objects.
+    (``"cholmod"``, ``"cvxopt"``, ``"qdldl"``); cholespy and SuperLU always start afresh. A
+    factorisation returned by the ``"cvxopt"`` or ``"qdldl"`` backend shares its numeric storage
+    with this object: it is valid until the next ``factorize`` call (the Levenberg-Marquardt
+    loop solves once per factorisation); the other backends return independent objects.
 
     Parameters
     ----------
     backend
-        ``"auto"``, ``"cholmod"``, ``"cvxopt"``, ``"cholespy"`` or ``"scipy"``.
+        ``"auto"``, ``"cholmod"``, ``"cvxopt"``, ``"qdldl"``, ``"cholespy"`` or ``"scipy"``.
     """
 
     def __init__(self, backend: str = "auto") -> None:
@@ -228,11 +242,11 @@ class SparseCholesky:
         )
         if not same:
             self._symbolic = None
-            analyse = _cholmod_analyse if backend == "cholmod" else _cvxopt_analyse
+            analyse = {"cholmod": _cholmod_analyse, "cvxopt": _cvxopt_analyse, "qdldl": _qdldl_analyse}[backend]
             self._symbolic = (backend, analyse(A_lower, n))
             self._pattern = (A_lower.indptr.copy(), A_lower.indices.copy())
             self.analyses += 1
-        numeric = _cholmod_numeric if backend == "cholmod" else _cvxopt_numeric
+        numeric = {"cholmod": _cholmod_numeric, "cvxopt": _cvxopt_numeric, "qdldl": _qdldl_numeric}[backend]
         try:
             return numeric(self._symbolic[1], A_lower, n, check_pivots)
         except NotPositiveDefiniteError:
@@ -429,6 +443,83 @@ def _cvxopt_numeric(symbolic: _CvxoptSymbolic, A_lower: sp.csr_matrix, n: int, c
         perm = np.array(p).reshape(-1).astype(np.int64)
         check_pivot_ratios(np.array(cholmod.diag(symbolic.factor)).reshape(-1), A_lower.diagonal()[perm], n)
     return _CvxoptFactorization(backend="cvxopt", n=n, _factor=symbolic.factor)
+
+
+@dataclass
+class _QdldlSymbolic:
+    solver: Any  # qdldl.Solver: analysed (AMD, elimination tree) and factorised once
+    fresh: bool = True  # its factor is of the matrix it was analysed with
+
+
+def _upper_csc(A_lower: sp.csr_matrix, n: int) -> sp.csc_matrix:
+    """The lower triangle in CSR read as the upper triangle in CSC (same arrays, no conversion)."""
+    return sp.csc_matrix((A_lower.data, A_lower.indices, A_lower.indptr), shape=(n, n), copy=False)
+
+
+def _qdldl_call(call, n: int):
+    try:
+        return call()
+    except (RuntimeError, ValueError) as exc:  # a missing diagonal entry, a zero pivot
+        raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is not positive definite ({exc})") from exc
+
+
+def _qdldl_analyse(A_lower: sp.csr_matrix, n: int) -> _QdldlSymbolic:
+    import qdldl
+
+    return _QdldlSymbolic(_qdldl_call(lambda: qdldl.Solver(_upper_csc(A_lower, n), upper=True), n))
+
+
+@dataclass
+class _QdldlFactorization(_BaseFactorization):
+    _solver: Any
+
+    def _solve(self, b: np.ndarray) -> np.ndarray:
+        if b.ndim == 1:
+            return np.asarray(self._solver.solve(b), dtype=np.float64)
+        return np.column_stack([self._solver.solve(np.ascontiguousarray(b[:, k])) for k in range(b.shape[1])])
+
+    def factor(self) -> tuple[sp.csc_matrix, np.ndarray]:
+        """``(L, perm)`` with ``A[perm][:, perm] = L L^T``: QDLDL's ``(I + L) D (I + L)^T`` as ``LL^T``
+        (column ``j`` scaled by ``sqrt(D_j)``, the diagonal first in every column, rows sorted)."""
+        L, D, P = self._solver.factors()
+        return ldl_to_cholesky(sp.csc_matrix(L), np.asarray(D, dtype=np.float64)), np.asarray(P, dtype=np.int64)
+
+
+def ldl_to_cholesky(L_strict: sp.csc_matrix, D: np.ndarray) -> sp.csc_matrix:
+    """``(I + L) diag(sqrt(D))`` in CSC with the diagonal the first entry of every column, rows sorted."""
+    n = L_strict.shape[0]
+    L_strict.sort_indices()
+    counts = np.diff(L_strict.indptr)
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(counts + 1, out=indptr[1:])
+    diag_at = indptr[:-1]
+    off = np.ones(indptr[-1], dtype=bool)
+    off[diag_at] = False
+    indices = np.empty(indptr[-1], dtype=np.int64)
+    data = np.empty(indptr[-1], dtype=np.float64)
+    root = np.sqrt(D)
+    indices[diag_at] = np.arange(n)
+    data[diag_at] = root
+    indices[off] = L_strict.indices
+    data[off] = L_strict.data * np.repeat(root, counts)
+    return sp.csc_matrix((data, indices, indptr), shape=(n, n))
+
+
+def _qdldl_numeric(symbolic: _QdldlSymbolic, A_lower: sp.csr_matrix, n: int, check_pivots: bool = True
+                   ) -> Factorization:
+    solver = symbolic.solver
+    if not symbolic.fresh:  # same pattern, new values: QDLDL keeps its ordering and elimination tree
+        _qdldl_call(lambda: solver.update(_upper_csc(A_lower, n), upper=True), n)
+    symbolic.fresh = False
+    # QDLDL factorises quasi-definite matrices too: a negative D is a matrix that is not
+    # positive definite; tiny positive ones are tested as the other backends' pivots.
+    _, D, P = solver.factors()
+    D = np.asarray(D)
+    if not np.all(D > 0) or not np.all(np.isfinite(D)):
+        raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is not positive definite")
+    if check_pivots:
+        check_pivot_ratios(np.sqrt(D), A_lower.diagonal()[np.asarray(P)], n)
+    return _QdldlFactorization(backend="qdldl", n=n, _solver=solver)
 
 
 @dataclass

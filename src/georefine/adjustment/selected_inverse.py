@@ -21,9 +21,9 @@ No library in our dependency list exposes it (CHOLMOD has none; MUMPS and PSelIn
 wheels), so it is a numba loop here, :func:`_takahashi`: one pass over the columns, each row
 pair found by walking the two sorted columns side by side.
 
-The factor ``L`` comes from CHOLMOD through scikit-sparse (``Factor.L()``) or CVXOPT
-(``cholmod.getfactor``, which turns its argument into a symbolic factor, so the factorisation
-used here is its own; only on request, see :func:`selected_inverse`). With cholespy or SuperLU
+The factor ``L`` comes from QDLDL (``factors()``: its ``LDL^T`` rescaled to ``LL^T``, the
+default install), from CHOLMOD through scikit-sparse (``Factor.L()``) or from CVXOPT
+(``cholmod.getfactor``, which turns its argument into a symbolic factor). With cholespy or SuperLU
 (no access to ``L``), or where solving is the cheaper, :func:`selected_inverse` returns no
 inverse and the caller solves for unit columns.
 """
@@ -66,22 +66,26 @@ of 1-2 s (the recursion won, 2 s); on G/I/L matrices 8.1 (10 minutes: 22.0 s aga
 the recursion lost, 30 s against 14 s of solves) and 6.2 (60 minutes: 156 s against 25 s)."""
 
 
-def _probe_solves(factor: Factorization) -> float:
-    """Seconds that :data:`EXPECTED_COLUMNS` unit-column solves take, timed on :data:`PROBE_COLUMNS`.
+def _probe_solves(factor: Factorization, columns: int = EXPECTED_COLUMNS) -> float:
+    """Seconds that ``columns`` unit-column solves take, timed on :data:`PROBE_COLUMNS`.
 
-    The forward half (``solve_half``) where the factor has it, as the covariance blocks use it.
+    The forward half where the factor has it (``solve_half``; CVXOPT's sparse
+    ``solve_unit_columns_half``), as the covariance blocks use it.
     """
     cols = np.linspace(0, factor.n - 1, min(PROBE_COLUMNS, factor.n)).astype(np.int64)
-    E = np.zeros((factor.n, cols.size))
-    E[cols, np.arange(cols.size)] = 1.0
-    solve = getattr(factor, "solve_half", factor.solve)
+    sparse_half = getattr(factor, "solve_unit_columns_half", None)
     t = time.perf_counter()
-    solve(E)
-    return (time.perf_counter() - t) / cols.size * EXPECTED_COLUMNS
+    if sparse_half is not None:
+        sparse_half(cols)
+    else:
+        E = np.zeros((factor.n, cols.size))
+        E[cols, np.arange(cols.size)] = 1.0
+        getattr(factor, "solve_half", factor.solve)(E)
+    return (time.perf_counter() - t) / cols.size * columns
 
 
-def _recursion_pays(factor: Factorization, work: float, solve_s: float) -> bool:
-    """Whether the recursion (``work`` multiply-adds) beats :data:`EXPECTED_COLUMNS` unit-column solves.
+def _recursion_pays(factor: Factorization, work: float, solve_s: float, columns: int = EXPECTED_COLUMNS) -> bool:
+    """Whether the recursion (``work`` multiply-adds) beats ``columns`` unit-column solves (``solve_s``).
 
     Which one wins depends on the factor's supernodes: on a G/I normal matrix (narrow band,
     small supernodes) the recursion took 2 s against 27 s of solves at 30 minutes of flight; on a
@@ -92,7 +96,7 @@ def _recursion_pays(factor: Factorization, work: float, solve_s: float) -> bool:
     """
     recursion_s = NS_PER_WORK_UNIT * 1e-9 * work
     log.debug("selected inverse: recursion ~%.1f s (sum |S_j|^2 = %.3g), %d unit-column solves ~%.1f s (%d unknowns)",
-              recursion_s, work, EXPECTED_COLUMNS, solve_s, factor.n)
+              recursion_s, work, columns, solve_s, factor.n)
     return recursion_s < solve_s
 
 
@@ -207,19 +211,26 @@ class SelectedInverse:
 
 def selected_inverse(
     A: sp.spmatrix | sp.sparray, *, backend: str = "auto", solver: SparseCholesky | None = None,
-    always: bool = False,
+    always: bool = False, columns: int = EXPECTED_COLUMNS,
 ) -> tuple[SelectedInverse | None, Factorization | None]:
     """Factorise the symmetric positive definite ``A`` and invert it on the factor's pattern.
 
-    Returns ``(inverse, None)``; or ``(None, factor)`` when the recursion would cost more than
-    solving for unit columns with ``factor`` (:func:`_recursion_pays`), or when the backend is
-    not scikit-sparse's CHOLMOD and ``always`` is not set (CVXOPT's sparse substitutions, which
-    the probe does not time, stay; cholespy and SciPy give no access to their factor).
+    Returns ``(inverse, None)``; or ``(None, factor)`` when solving for ``columns`` unit columns
+    with ``factor`` is the cheaper (:func:`_recursion_pays`) and ``always`` is not set, or when
+    the backend gives no access to its factor (cholespy, SciPy). Per backend:
+
+    * QDLDL (``factors()``, a copy of ``L`` and ``D``): always the recursion. Its solves take one
+      right-hand side at a time, without BLAS; on the corridor's G/I normal matrix the recursion
+      took 0.12 s where 1,100 unit-column solves took 1.5 s with cholespy.
+    * scikit-sparse's CHOLMOD: the probe of :func:`_probe_solves` first, then ``Factor.L()``.
+    * CVXOPT: the same probe, timed on its sparse forward substitutions (what the covariance
+      blocks would use); ``cholmod.getfactor`` turns the factorisation symbolic, so where the
+      recursion then does not pay the matrix is factorised again for the solves.
 
     ``backend`` as :func:`~georefine.adjustment.linalg.cholesky`. ``solver``: a
     :class:`~georefine.adjustment.linalg.SparseCholesky` whose symbolic analysis may fit ``A``
     (that of the adjustment's iterations); it is reused when it does. ``always``: invert even
-    where solving would be cheaper.
+    where solving would be cheaper. ``columns``: how many unit columns the caller would solve for.
 
     Raises
     ------
@@ -235,26 +246,27 @@ def selected_inverse(
     factor = solver.factorize(A, check_pivots=False)
     factor_s = time.perf_counter() - t
 
-    def solving() -> tuple[None, Factorization]:
-        check_by_solve(factor, lambda v: A @ v)
-        return None, factor
+    def solving(f: Factorization = factor) -> tuple[None, Factorization]:
+        check_by_solve(f, lambda v: A @ v)
+        return None, f
 
-    if factor.backend != "cholmod" and not (always and factor.backend == "cvxopt"):
-        # CVXOPT's factorisations solve for unit columns by sparse forward substitutions
-        # (``solve_unit_columns_half``), which the probe below does not time: with the recursion
-        # chosen by it, the demo's G/I/L posterior took 104 s instead of 30 s. So the recursion
-        # runs on CVXOPT's factor only when asked for (``always``).
+    if factor.backend not in ("cholmod", "cvxopt", "qdldl"):
         return solving()
     solve_s = None
-    if not always:
-        # Before the factor is copied out (a G/I/L factor at 60 minutes of flight is GBs): when
-        # all the solves cost less than a few factorisations, the scalar recursion cannot win.
-        solve_s = _probe_solves(factor)
-        if solve_s < MIN_SOLVES_PER_FACTORISATION * factor_s:
+    if factor.backend != "qdldl" and not always:
+        solve_s = _probe_solves(factor, columns)
+        # With scikit-sparse, before the factor is copied out (a G/I/L factor at 60 minutes of
+        # flight is GBs): when all the solves cost less than a few factorisations, the scalar
+        # recursion cannot win. CVXOPT's probe (a batch of sparse substitutions) underrates what
+        # the covariance blocks then cost (0.86 s against 0.22 s predicted on the corridor's G/I),
+        # so there the recursion's work decides, from the factor.
+        if factor.backend == "cholmod" and solve_s < MIN_SOLVES_PER_FACTORISATION * factor_s:
             log.debug("selected inverse: %d unit-column solves ~%.1f s, factorisation %.1f s: solving",
-                      EXPECTED_COLUMNS, solve_s, factor_s)
+                      columns, solve_s, factor_s)
             return solving()
-    if factor.backend == "cholmod":
+    if factor.backend == "qdldl":
+        L, perm = factor.factor()
+    elif factor.backend == "cholmod":
         from sksparse import cholmod
 
         try:
@@ -262,28 +274,34 @@ def selected_inverse(
         except cholmod.CholmodError as exc:  # a factor CHOLMOD itself marks as not positive definite
             raise NotPositiveDefiniteError(f"normal matrix ({factor.n} unknowns) is not positive definite") from exc
         perm = np.asarray(factor._factor.P(), dtype=np.int64)
-        check_pivot_ratios(L.diagonal(), A.diagonal()[perm], factor.n)
-        if solve_s is not None and not _recursion_pays(factor, _work(L), solve_s):
-            return None, factor
-    else:  # CVXOPT, asked for
+    else:  # CVXOPT
         from cvxopt import cholmod, matrix
 
         p = matrix(np.arange(factor.n, dtype=np.float64))
         cholmod.solve(factor._factor, p, sys=7)  # x = P b: the pivot order
         perm = np.array(p).reshape(-1).astype(np.int64)
         colptr, rowind, values = cholmod.getfactor(factor._factor).CCS  # leaves the factor symbolic
-        solver.forget()
         n = factor.n
         L = sp.csc_matrix((np.array(values).reshape(-1), np.array(rowind).reshape(-1),
                            np.array(colptr).reshape(-1)), shape=(n, n))
-        check_pivot_ratios(L.diagonal(), A.diagonal()[perm], n)
+    check_pivot_ratios(L.diagonal(), A.diagonal()[perm], factor.n)
+    if solve_s is not None and not _recursion_pays(factor, _work(L), solve_s, columns):
+        if factor.backend == "cvxopt":  # its numeric factor is gone: analyse and factorise again for the solves
+            solver.forget()
+            return solving(solver.factorize(A, check_pivots=False))
+        return solving()
+    if factor.backend == "cvxopt":
+        solver.forget()  # the factor handed out is symbolic now
     L.sort_indices()
     if L.nnz and np.any(L.indices[L.indptr[:-1]] != np.arange(L.shape[0])):
         raise NotPositiveDefiniteError("selected inverse: the factor has a column without its diagonal entry")
     L.data = np.ascontiguousarray(L.data, dtype=np.float64)
     z = np.empty_like(L.data)
+    t = time.perf_counter()
     if not _takahashi(L.indptr, L.indices, L.data, z):
         raise RuntimeError("selected inverse: the factor's pattern is not closed under elimination")
+    log.debug("selected inverse: %s factor of %d unknowns, %d non-zeros, recursion %.2f s",
+              factor.backend, factor.n, L.nnz, time.perf_counter() - t)
     return SelectedInverse(L, perm, z), None
 
 
