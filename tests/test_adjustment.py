@@ -22,6 +22,7 @@ from georefine.adjustment.linalg import (
     cholesky,
     marginal_covariance_blocks,
 )
+from georefine.adjustment.pcg import NormalSystem
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import CauchyLoss, HuberLoss, TrivialLoss, make_loss
 from georefine.adjustment.selected_inverse import SelectedInverse, selected_inverse
@@ -232,7 +233,8 @@ def test_linear_least_squares_matches_lstsq(seed):
     np.testing.assert_allclose(problem.covariance("x", scale_by_variance_factor=False)[0], cov_ref / s0, rtol=1e-8)
 
 
-@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt", "cholespy", "scipy") if b in available_backends()])
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt", "qdldl", "cholespy", "scipy")
+                                     if b in available_backends()])
 def test_marginal_covariance_blocks_batches_match_dense_inverse(backend):
     """Whole solves (cholespy, SciPy) or their forward half (CHOLMOD dense, CVXOPT sparse): the same blocks."""
     rng = np.random.default_rng(3)
@@ -306,6 +308,34 @@ def test_assembler_reuses_its_structure_and_notices_a_new_pattern():
     np.testing.assert_allclose(assembler.assemble(fewer, shape).toarray(), dense_fewer, atol=1e-12)
 
 
+@pytest.mark.parametrize("seed", SEEDS)
+def test_normal_pattern_fills_scipys_lower_gram_matrix(seed):
+    """lower(J^T J) filled into the kept pattern equals SciPy's product, empty columns keep an
+    explicit zero diagonal, the damped copy adds on the diagonal only, and the pattern is reused
+    for new values of the same structure."""
+    rng = np.random.default_rng(seed)
+    shape = (120, 45)
+    pieces, _ = _random_pieces(rng, shape)
+    assembler = assembly.JacobianAssembler()
+    J = assembler.assemble(pieces, shape)
+    P = assembler.normal_pattern(J)
+    L = P.lower(J)
+    np.testing.assert_allclose(L.toarray(), np.tril((J.T @ J).toarray()), rtol=1e-13, atol=1e-13)
+    assert np.all(L.indices[P.diagonal] == np.arange(shape[1]))  # every diagonal entry, the last of its row
+    d = rng.uniform(size=shape[1])
+    np.testing.assert_allclose(P.lower(J, d).toarray(), L.toarray() + np.diag(d), atol=1e-13)
+    again, _ = _random_pieces(np.random.default_rng(seed), shape)  # same structure, other values
+    for p in again:
+        p.values[...] = rng.normal(size=p.values.shape)
+    J2 = assembler.assemble(again, shape)
+    assert assembler.normal_pattern(J2) is P
+    np.testing.assert_allclose(P.lower(J2).toarray(), np.tril((J2.T @ J2).toarray()), rtol=1e-12, atol=1e-12)
+    system = NormalSystem(J2, J2.T @ np.ones(shape[0]), np.zeros(shape[1]), np.ones(shape[1]), 0.0, pattern=P)
+    np.testing.assert_allclose(system.N().toarray(), (J2.T @ J2).toarray(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(system.damped_lower(0.5).toarray(), np.tril((J2.T @ J2).toarray()) + 0.5 * np.eye(shape[1]),
+                               rtol=1e-12, atol=1e-12)
+
+
 def test_lower_triangle_is_scipys_tril():
     rng = np.random.default_rng(14)
     A = sp.random(300, 300, density=0.05, random_state=rng, format="csr")
@@ -330,9 +360,10 @@ def _banded_spd(rng, n_elements: int, dim: int, reach: int) -> sp.csr_matrix:
     return (B @ B.T + sp.eye(n) * 0.1).tocsr()
 
 
-@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt") if b in available_backends()])
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt", "qdldl") if b in available_backends()])
 def test_selected_inverse_matches_dense_inverse(backend):
-    """Takahashi's recursion on a supernodal factor (block-banded, dense global rows) gives the exact blocks."""
+    """Takahashi's recursion on a supernodal (CHOLMOD) or simplicial LDL^T (QDLDL) factor of a block-banded
+    matrix with dense global rows gives the exact blocks."""
     rng = np.random.default_rng(11)
     A = _banded_spd(rng, 400, 3, 4)
     inv = np.linalg.inv(A.toarray())
@@ -346,7 +377,7 @@ def test_selected_inverse_matches_dense_inverse(backend):
             np.testing.assert_allclose(blocks[k], expected, atol=1e-10 * np.abs(inv).max())
 
 
-@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt") if b in available_backends()])
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt", "qdldl") if b in available_backends()])
 def test_selected_inverse_solves_for_entries_off_the_factor_pattern(backend, monkeypatch):
     """Leaves coupled only through a hub: their mutual entries of A^-1 lie off L's pattern and are solved for."""
     solved = []
@@ -381,12 +412,12 @@ def test_selected_inverse_is_none_without_access_to_the_factor():
     assert si is None and factor.backend == "scipy"
 
 
-@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt") if b in available_backends()])
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt", "qdldl") if b in available_backends()])
 @pytest.mark.parametrize(("ns_per_unit", "min_ratio"), [(1e-9, 0.0), (1e9, 0.0), (1e-9, 1e9)])
 def test_covariance_is_the_same_whether_inverted_or_solved(backend, ns_per_unit, min_ratio, monkeypatch):
     """The cost model picks the recursion (cheap) or unit-column solves (dear by the count of the
-    recursion's products, or by the probe against the factorisation; always with CVXOPT unless
-    asked); the blocks are the same."""
+    recursion's products, or with scikit-sparse by the probe against the factorisation); QDLDL always
+    inverts; the blocks are the same, also where CVXOPT's factor went symbolic and is factorised again."""
     from georefine.adjustment import selected_inverse as module
 
     monkeypatch.setattr(module, "NS_PER_WORK_UNIT", ns_per_unit)
@@ -395,7 +426,7 @@ def test_covariance_is_the_same_whether_inverted_or_solved(backend, ns_per_unit,
     A = _banded_spd(rng, 200, 3, 3)
     si, factor = selected_inverse(A, backend=backend)
     starts = np.array([0, 300, 597])
-    if ns_per_unit < 1 and min_ratio == 0.0 and backend == "cholmod":
+    if backend == "qdldl" or (ns_per_unit < 1 and (min_ratio == 0.0 or backend == "cvxopt")):
         assert si is not None and factor is None
         blocks = si.blocks(starts, 3)
     else:
@@ -405,7 +436,36 @@ def test_covariance_is_the_same_whether_inverted_or_solved(backend, ns_per_unit,
     for k, s in enumerate(starts):
         np.testing.assert_allclose(blocks[k], inv[s : s + 3, s : s + 3], atol=1e-10 * np.abs(inv).max())
 
-@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt") if b in available_backends()])
+
+def test_selected_inverse_agrees_with_solves_to_1e_8_on_a_gnss_imu_matrix():
+    """The posterior of a trajectory-like system (block band, bias-like elements coupling many knots,
+    global unknowns): the recursion's diagonal blocks equal unit-column solves to 1e-8 relative."""
+    rng = np.random.default_rng(17)
+    A = _banded_spd(rng, 600, 15, 1)
+    # bias-like elements: 6 unknowns every 25 knots, coupled to all of them
+    n0 = A.shape[0]
+    extra = 6 * 24
+    rows, cols, vals = [], [], []
+    for j in range(24):
+        for k in range(25 * j, min(600, 25 * (j + 2))):
+            r = np.repeat(np.arange(n0 + 6 * j, n0 + 6 * j + 6), 15)
+            c = np.tile(np.arange(15 * k, 15 * k + 15), 6)
+            rows += [r, c]
+            cols += [c, r]
+            v = rng.normal(scale=0.1, size=r.size)
+            vals += [v, v]
+    C = sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n0 + extra,) * 2)
+    A = (sp.block_diag([A, sp.eye(extra) * 50.0]) + C).tocsr()
+    starts = np.concatenate([np.arange(0, 9000, 15 * 50), n0 + 6 * np.arange(24)])
+    ref = marginal_covariance_blocks(cholesky(A, backend="cholespy"), starts, 6)
+    for backend in [b for b in ("cholmod", "cvxopt", "qdldl") if b in available_backends()]:
+        si, _ = selected_inverse(A, backend=backend, always=True)
+        blocks = si.blocks(starts, 6)
+        rel = np.abs(blocks - ref).max(axis=(1, 2)) / np.abs(ref).max(axis=(1, 2))
+        assert rel.max() < 1e-8, (backend, rel.max())
+
+
+@pytest.mark.parametrize("backend", [b for b in ("cholmod", "cvxopt", "qdldl") if b in available_backends()])
 @pytest.mark.parametrize(("ns_per_unit", "min_ratio"), [(1e-9, 0.0), (1e9, 0.0), (1e-9, 1e9)])
 def test_selected_inverse_rejects_a_singular_matrix_on_every_path(backend, ns_per_unit, min_ratio, monkeypatch):
     """A gauge left free (a null space): refused whether the recursion runs (pivots of the copied factor) or
@@ -700,6 +760,55 @@ def test_polish_takes_a_weak_direction_to_its_optimum():
     assert out[True][1] <= out[False][1] + 3, out
 
 
+@pytest.mark.parametrize("seed", SEEDS)
+def test_predicted_stop_saves_the_last_evaluations_within_the_tolerance(seed, monkeypatch):
+    """A near-linear fit: the plain test evaluates the steps whose actual change it then finds too
+    small; ``predicted_stop`` stops on the model's prediction before evaluating them. The estimates
+    differ by less than the tolerance allows (a cost change of 1e-6 is a step of 1.4e-3 sigma), and
+    the polish with the least damping still happens (on the model)."""
+    import georefine.adjustment.solver as solver_module
+
+    calls = []
+    original = solver_module._evaluate
+    monkeypatch.setattr(solver_module, "_evaluate",
+                        lambda groups, values, jacobians, robust: calls.append(jacobians) or original(
+                            groups, values, jacobians, robust))
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(0.0, 4.0, 400)
+    y = 2.5 * np.exp(-0.3 * x) + 0.7 + rng.normal(scale=0.02, size=x.size)
+    out = {}
+    for predicted in (False, True):
+        calls.clear()
+        problem = Problem()
+        problem.add_block("theta", np.array([[2.4, -0.29, 0.71]]))
+        problem.add_group(ExpCurveGroup(x, y, 0.02))
+        result = problem.solve(SolverOptions(function_tolerance=1e-6, initial_lambda=1e-6, predicted_stop=predicted))
+        assert result.termination == "function_tolerance" and result.converged
+        out[predicted] = (problem.values("theta")[0].copy(), len(calls), result.final_cost)
+    assert out[True][1] < out[False][1], out
+    assert abs(out[True][2] - out[False][2]) <= 1e-6 * out[False][2]
+    cov = problem.covariance("theta")[0]
+    d = out[True][0] - out[False][0]
+    assert d @ np.linalg.solve(cov, d) < 1e-4  # far below a sigma
+
+
+def test_predicted_stop_does_not_trust_a_model_no_step_has_borne_out():
+    """From far away the first steps are rejected or badly predicted: the predicted test waits for an
+    accepted step with a gain near 1, and the solve ends where the plain one does."""
+    rng = np.random.default_rng(3)
+    t = np.linspace(0.0, 4.0, 80)
+    y = 2.5 * np.exp(-0.8 * t) + 0.7 + rng.normal(scale=0.02, size=t.size)
+    out = {}
+    for predicted in (False, True):
+        problem = Problem()
+        problem.add_block("theta", np.array([[10.0, -0.05, -5.0]]))
+        problem.add_group(ExpCurveGroup(t, y, 0.02))
+        result = problem.solve(SolverOptions(function_tolerance=1e-10, predicted_stop=predicted))
+        assert result.converged
+        out[predicted] = problem.values("theta")[0].copy()
+    np.testing.assert_allclose(out[True], out[False], rtol=1e-5)
+
+
 def test_relative_to_fit_changes_nothing_where_the_variance_factor_is_below_one():
     """Weights a fifth looser than the noise (variance factor about 0.7): the same steps, the same estimate."""
     rng = np.random.default_rng(23)
@@ -883,7 +992,7 @@ def test_backends_agree_on_the_same_system():
     B = rng.normal(size=(400, 7))
     ref = np.linalg.solve(A.toarray(), B)
     backends = linalg.available_backends()
-    assert "cholespy" in backends and backends[-1] == "scipy"
+    assert "cholespy" in backends and "qdldl" in backends and backends[-1] == "scipy"
     for backend in backends:
         for lower in (False, True):
             M = sp.tril(A, format="csr") if lower else A
@@ -895,7 +1004,7 @@ def test_backends_agree_on_the_same_system():
                 f.solve(np.ones(399))
     # Full solve: same estimate with either backend
     estimates = []
-    for backend in _installed("cholmod", "cvxopt", "cholespy", "scipy"):
+    for backend in _installed("cholmod", "cvxopt", "qdldl", "cholespy", "scipy"):
         r = np.random.default_rng(9)
         R_true = random_rotations(r, 12)
         g_abs, g_rel = _rotation_chain(r, R_true, 0.02, 0.01, np.array([0, 11]))
@@ -915,7 +1024,7 @@ def _installed(*names):
     return [b for b in names if b in linalg.available_backends()]
 
 
-@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "cholespy", "scipy"))
+@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "qdldl", "cholespy", "scipy"))
 def test_backends_reject_indefinite_matrices(backend):
     A = sp.csr_matrix(np.array([[2.0, 3.0, 0.0], [3.0, 2.0, 0.0], [0.0, 0.0, 1.0]]))
     with pytest.raises(NotPositiveDefiniteError):
@@ -924,7 +1033,7 @@ def test_backends_reject_indefinite_matrices(backend):
         cholesky(A, backend="mumps")
 
 
-@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "cholespy", "scipy"))
+@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "qdldl", "cholespy", "scipy"))
 def test_backends_reject_numerically_singular_matrices(backend):
     """A missing datum: rounding leaves a tiny positive pivot, which must not pass as a factor."""
     rng = np.random.default_rng(12)
@@ -935,7 +1044,7 @@ def test_backends_reject_numerically_singular_matrices(backend):
         cholesky(A, backend=backend)
 
 
-@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "cholespy", "scipy"))
+@pytest.mark.parametrize("backend", _installed("cholmod", "cvxopt", "qdldl", "cholespy", "scipy"))
 def test_sparse_cholesky_reuses_the_analysis_while_the_pattern_holds(backend):
     rng = np.random.default_rng(13)
     A = _random_spd(rng, 300)
@@ -944,7 +1053,7 @@ def test_sparse_cholesky_reuses_the_analysis_while_the_pattern_holds(backend):
     for scale in (1.0, 2.0, 5.0):  # LM: N + lambda D, same pattern, new values
         M = A + sp.diags(scale * A.diagonal())
         np.testing.assert_allclose(solver.factorize(M).solve(B), np.linalg.solve(M.toarray(), B), rtol=1e-9, atol=1e-12)
-    separate = backend in ("cholmod", "cvxopt")
+    separate = backend in ("cholmod", "cvxopt", "qdldl")
     assert solver.analyses == (1 if separate else 0)
     A2 = _random_spd(rng, 300)  # another pattern: analysed anew
     np.testing.assert_allclose(solver.factorize(A2).solve(B), np.linalg.solve(A2.toarray(), B), rtol=1e-9, atol=1e-12)

@@ -381,10 +381,10 @@ def euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
 
 def trajectory_solver_options(cfg: TrajectoryAdjustmentConfig, **overrides) -> SolverOptions:
     """Solver options of the trajectory adjustments (G/I, delivered trajectory, G/I/L with its own
-    ``overrides``): ``cfg``'s limits, and the cost-change test against a fitting model's cost
-    (``relative_to_fit``, docs/ARCHITECTURE.md §4.4)."""
+    ``overrides``): ``cfg``'s limits, the cost-change test against a fitting model's cost
+    (``relative_to_fit``) and on the predicted change (``predicted_stop``; docs/ARCHITECTURE.md §4.4)."""
     options = SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance,
-                            initial_lambda=cfg.initial_lambda, relative_to_fit=True)
+                            initial_lambda=cfg.initial_lambda, relative_to_fit=True, predicted_stop=True)
     return replace(options, **overrides)
 
 

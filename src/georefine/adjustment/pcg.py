@@ -17,14 +17,19 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from georefine.adjustment.assembly import lower_triangle, normal_equations
+from georefine.adjustment.assembly import NormalPattern, lower_triangle, normal_equations
 
 __all__ = ["PCG_MAX_ITERATIONS", "PCG_STALE_ITERATIONS", "PCG_TOLERANCE", "NormalSystem", "pcg_step"]
 
 
 @dataclass
 class NormalSystem:
-    """``J``, ``g = J^T r`` and Marquardt's ``D``; ``N = J^T J`` and its lower triangle formed when asked for."""
+    """``J``, ``g = J^T r`` and Marquardt's ``D``; ``N = J^T J`` and its lower triangle formed when asked for.
+
+    With ``pattern`` (the :class:`~georefine.adjustment.assembly.NormalPattern` of ``J``'s
+    structure, kept by the solve's assembler) the lower triangle is filled into its fixed
+    pattern, and the damped matrices share that pattern; without it SciPy forms ``N``.
+    """
 
     J: sp.csr_matrix
     g: np.ndarray
@@ -33,19 +38,40 @@ class NormalSystem:
     seconds: float
     _N: sp.csr_matrix | None = None
     _N_lower: sp.csr_matrix | None = None
+    pattern: NormalPattern | None = None
 
     def N(self) -> sp.csr_matrix:
+        """The full symmetric ``N`` (CSR)."""
         if self._N is None:
             t0 = time.perf_counter()
-            self._N, _ = normal_equations(self.J, np.zeros(self.J.shape[0]))
+            if self.pattern is not None:
+                L = self.N_lower()
+                self._N = (L + sp.triu(L.T, k=1, format="csr")).tocsr()
+            else:
+                self._N, _ = normal_equations(self.J, np.zeros(self.J.shape[0]))
             self.seconds += time.perf_counter() - t0
         return self._N
 
     def N_lower(self) -> sp.csr_matrix:
+        """The lower triangle of ``N`` with the diagonal (CSR)."""
         if self._N_lower is None:
-            self._N_lower = lower_triangle(self.N())
+            if self.pattern is not None:
+                self._N_lower = self.pattern.lower(self.J)
+            else:
+                self._N_lower = lower_triangle(self.N())
         return self._N_lower
 
+    def damped_lower(self, lam: float) -> sp.csr_matrix:
+        """The lower triangle of ``N + lam D`` (in ``N``'s pattern where there is one)."""
+        L = self.N_lower()
+        if self.pattern is None:
+            return L + sp.diags(lam * self.D, format="csr")
+        data = L.data.copy()
+        data[self.pattern.diagonal] += lam * self.D
+        A = sp.csr_matrix((data, L.indices, L.indptr), shape=L.shape, copy=False)
+        A.has_sorted_indices = True
+        A.has_canonical_format = True
+        return A
 
 
 PCG_TOLERANCE = 1e-3
