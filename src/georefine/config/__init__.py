@@ -405,9 +405,21 @@ class TrajectoryAdjustmentConfig(StrictModel):
     imu_window_s: float = Field(
         0.02, gt=0.0, le=1.0, description="IMU samples are averaged over windows of this length (down-sampling)."
     )
+    gnss_imu_knot_interval_s: float | None = Field(
+        0.4, gt=0.0, le=1.0,
+        description="Knot spacing of the GNSS/IMU adjustment (step 2) and of the trajectory it delivers; the "
+        "G/I/L and the hybrid adjustment use knot_interval_s. Alone, the GNSS/IMU adjustment does not notice "
+        "coarser knots: roll/pitch/yaw on the corridor at 0.4 s / 0.1 s within 1 % of 0.1 s / 0.02 s (yaw "
+        "1 % lower) at a quarter of the unknowns, the motion faster than the knots rebuilt by up-sampling "
+        "(BENCHMARKS.md, IMU down- and up-sampling; Georefine against gtsam). null: knot_interval_s.",
+    )
+    gnss_imu_window_s: float | None = Field(
+        0.1, gt=0.0, le=1.0,
+        description="IMU window of the GNSS/IMU adjustment (with gnss_imu_knot_interval_s). null: imu_window_s.",
+    )
     quadrature_nodes: int = Field(
-        3, ge=1, le=5, description="Gauss-Legendre nodes per IMU window of increments (windows of rates are "
-        "modelled at their samples, docs/ARCHITECTURE.md §4.6).")
+        3, ge=1, le=5, description="Nodes per IMU window: Gauss-Legendre over a window of increments, the "
+        "discrete Gauss rule over the samples of a window of rates (docs/ARCHITECTURE.md §4.6).")
     upsampling: bool = Field(
         True,
         description="Rebuild the motion faster than the knots from the raw, error-corrected IMU and "
@@ -471,12 +483,27 @@ class TrajectoryAdjustmentConfig(StrictModel):
         # The quintic position spline has 3 free states per axis and knot interval, the
         # orientation spline 2; each IMU window observes one value per axis. With fewer than
         # four windows per interval (GNSS adds < 1) the normal equations are singular.
-        if self.knot_interval_s < 4.0 * self.imu_window_s - 1e-12:
-            raise ValueError(
-                f"imu_window_s ({self.imu_window_s}) must be at most a quarter of knot_interval_s "
-                f"({self.knot_interval_s}): each knot interval needs >= 4 IMU windows"
-            )
+        for knot, window, names in (
+            (self.knot_interval_s, self.imu_window_s, ("knot_interval_s", "imu_window_s")),
+            (self.gnss_imu().knot_interval_s, self.gnss_imu().imu_window_s,
+             ("gnss_imu_knot_interval_s", "gnss_imu_window_s")),
+        ):
+            if knot < 4.0 * window - 1e-12:
+                raise ValueError(
+                    f"{names[1]} ({window}) must be at most a quarter of {names[0]} "
+                    f"({knot}): each knot interval needs >= 4 IMU windows"
+                )
         return self
+
+    def gnss_imu(self) -> "TrajectoryAdjustmentConfig":
+        """This configuration with the GNSS/IMU adjustment's knots and windows as ``knot_interval_s``
+        and ``imu_window_s`` (what step 2 builds its problem with)."""
+        upd = {}
+        if self.gnss_imu_knot_interval_s is not None:
+            upd["knot_interval_s"] = self.gnss_imu_knot_interval_s
+        if self.gnss_imu_window_s is not None:
+            upd["imu_window_s"] = self.gnss_imu_window_s
+        return self.model_copy(update=upd) if upd else self
 
 
 class ScaleConfig(StrictModel):

@@ -83,16 +83,17 @@ from georefine.lidargrammetry.bundle import (
 )
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
+from georefine.trajectory.spline import KnotGrid
 from georefine.workflows.cache import StepCache, StepRunner
 from georefine.workflows.gil import LidarAdjustment, build_gil_problem
 from georefine.workflows.lidar import (
     features_and_objects,
     lidar_stages,
-    untimed,
     stage_gi_products,
     stage_gnss_imu,
     stage_points,
     stage_read_inputs,
+    untimed,
 )
 from georefine.workflows.lidargrammetry import (
     block_images,
@@ -378,7 +379,9 @@ def _build(nav: NavigationData, start: GnssImuResult, gil: LidarAdjustment | Non
         built, boresight = g.built, g.boresight
         offset_block = OFFSET_BLOCK if g.estimates_offset else None
     else:
-        spline = start.spline
+        spline = start.spline  # the G/I's, on its own knots: resampled to the G/I/L's (as build_gil_problem does)
+        if abs(spline.grid.dt - tcfg.knot_interval_s) > 1e-6 * tcfg.knot_interval_s:
+            spline = spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, tcfg.knot_interval_s))
         data = without_high_rate(nav.gnss, start)
         built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), start.imu_errors,
                                  start.gnss_error)
