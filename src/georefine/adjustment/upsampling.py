@@ -135,13 +135,16 @@ def adjust_upsampled(
     rebuild: Callable[[GnssImuData, GnssImuResult], GnssImuProblem],
     solve: Callable[[GnssImuProblem], GnssImuResult],
     iterations: int,
+    restart: Callable[[GnssImuResult], GnssImuResult] | None = None,
 ) -> GnssImuResult:
     """Iterate up-sampling from a first ``result`` (solved on ``data``'s raw windows).
 
     ``rebuild(data, previous)`` builds the next problem on ``data`` started at ``previous``
-    (spline and IMU errors); ``solve`` solves it. Returns the last result with its
-    ``high_rate`` motion; ``timings_s['solve']`` sums the solves, ``timings_s['upsampling']``
-    is the time spent rebuilding and cleaning.
+    (spline and IMU errors); ``solve`` solves it. ``restart(result)``, if given, is called once
+    when the first test finds content to take out, before any re-solve: it solves again on the
+    raw windows (the G/I on the G/I/L's finer knots), and the iteration goes on from its result.
+    Returns the last result with its ``high_rate`` motion; ``timings_s['solve']`` sums the
+    solves, ``timings_s['upsampling']`` is the time spent rebuilding and cleaning.
     """
     t = _time.perf_counter()
     hf = rebuild_high_rate(data, result)
@@ -158,6 +161,21 @@ def adjust_upsampled(
         if share < MIN_SIGNIFICANT_SHARE:
             log.info("up-sampling: nothing to take out of the IMU windows; no re-solve")
             break
+        if restart is not None:
+            solve_s = result.timings_s.get("solve", 0.0)
+            restarted = restart(result)
+            result = replace(restarted, timings_s=dict(restarted.timings_s,
+                                                       solve=restarted.timings_s.get("solve", 0.0) + solve_s))
+            restart = None
+            t = _time.perf_counter()
+            hf = rebuild_high_rate(data, result)
+            result = replace(result, high_rate=hf)
+            cleaned, share = _clean(data, result)
+            extra += _time.perf_counter() - t
+            log.info("up-sampling %d, restarted: %.1f %% of the rebuilt readings stand out of the IMU noise",
+                     i + 1, 100 * share)
+            if share < MIN_SIGNIFICANT_SHARE:
+                break
         solve_s = result.timings_s.get("solve", 0.0)
         solved = solve(rebuild(cleaned, result))
         solved = replace(solved, timings_s=dict(solved.timings_s, solve=solved.timings_s.get("solve", 0.0) + solve_s))

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 import time as _time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -177,6 +177,7 @@ def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Prog
     """Step 2: fit the spline to the smoothed filter and adjust GNSS + IMU (on the knots and IMU
     windows of ``processing.trajectory.gnss_imu_knot_interval_s`` and ``gnss_imu_window_s``)."""
     tcfg = nav.config.processing.trajectory.gnss_imu()
+    t_start = _time.perf_counter()
     t_first = max(float(filt.time[0]), float(nav.gnss.gnss_time[0]))
     t_last = min(float(filt.time[-1]), float(nav.gnss.gnss_time[-1]))
     grid = knot_grid(t_first, t_last, tcfg.knot_interval_s)
@@ -195,6 +196,7 @@ def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Prog
         grid, filt.time[sel], filt.p_w_b[sel], R, filt.v_w_b[sel], omega_wb if omega_wb.shape[0] == R.shape[0] else None,
         t0_gps=nav.t0_gps,
     )
+    t_fit = _time.perf_counter()
     built = build_gnss_imu_problem(nav.gnss, nav.config.imu.errors, tcfg, spline0)
     # Start the IMU errors from the filter's estimates.
     tb = built.bias_grid.times
@@ -204,27 +206,51 @@ def step_adjust_gnss_imu(nav: NavigationData, filt: FilterResult, progress: Prog
         built.problem.set_values("acc_scale", np.asarray(filt.scale_acc, dtype=float).reshape(1, 3))
         built.problem.set_values("gyro_scale", np.asarray(filt.scale_gyro, dtype=float).reshape(1, 3))
 
+    start = {"start": t_fit - t_start, "build": _time.perf_counter() - t_fit}  # the fit, the problem
+
     def report(it) -> None:
         progress("G/I adjustment", min(getattr(it, "iteration", 0), tcfg.max_iterations), tcfg.max_iterations)
 
     if not tcfg.upsampling:
         result = solve_gnss_imu(built, progress=report)
         _warn_on_imu_misfit(result)
-        return result
+        return replace(result, timings_s={**start, **result.timings_s})
     last = {}
 
+    # Where the up-sampling finds motion faster than the knots standing out of the IMU noise
+    # (vibration, or a navigation-grade unit's smooth motion between coarse knots), the G/I starts
+    # again on the G/I/L's knots and windows and re-solves there. On 0.4 s knots the cleaning takes
+    # the motion above the knots' cubic B-splines (1.25 Hz), a band the adjustment's quintic and
+    # cubic Hermite splines follow too, so the redundancy it spends is counted twice: a vibrating
+    # navigation-grade corridor's G/I had a variance factor of 9.3 with every group at 1.0-1.05,
+    # against 1.8 on 0.1 s knots.
+    fine = nav.config.processing.trajectory
+
+    def on_fine_knots(spline):
+        if abs(spline.grid.dt - fine.knot_interval_s) <= 1e-6 * fine.knot_interval_s:
+            return spline
+        return spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, fine.knot_interval_s))
+
     def rebuild(data, previous):
-        last["built"] = start_imu_errors(build_gnss_imu_problem(data, nav.config.imu.errors, tcfg, previous.spline),
+        last["built"] = start_imu_errors(build_gnss_imu_problem(data, nav.config.imu.errors, fine,
+                                                                on_fine_knots(previous.spline)),
                                          previous.imu_errors, previous.gnss_error)
         return last["built"]
+
+    def restart(coarse):
+        log.info("G/I: motion faster than the %.3g s knots stands out of the IMU noise; adjusting again on "
+                 "%.3g s knots", tcfg.knot_interval_s, fine.knot_interval_s)
+        return solve(rebuild(nav.gnss, coarse))
 
     def solve(b):
         return solve_gnss_imu(b, progress=report, covariance=False)
 
     first = solve(built)
     last["built"] = built
-    result = adjust_upsampled(nav.gnss, first, rebuild, solve, tcfg.upsampling_iterations)
-    return with_posterior(last["built"], result)
+    result = adjust_upsampled(nav.gnss, first, rebuild, solve, tcfg.upsampling_iterations,
+                              restart=restart if fine.knot_interval_s < tcfg.knot_interval_s - 1e-9 else None)
+    result = with_posterior(last["built"], result)
+    return replace(result, timings_s={**start, **result.timings_s})
 
 
 IMU_MISFIT_FACTOR = 10.0
