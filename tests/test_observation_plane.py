@@ -16,7 +16,7 @@ from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.testing import check_jacobians
 from georefine.errors import InputError
 from georefine.geometry.rotation import R_n_b_from_rph, exp_so3, log_so3
-from georefine.trajectory.spline import KnotGrid, eval_orientation, eval_position
+from georefine.trajectory.spline import KnotGrid, eval_orientation, eval_position, locate_near
 
 SEEDS = [0, 1, 2]
 B = TrajectoryBlocks()
@@ -340,3 +340,38 @@ def test_cauchy_loss_rejects_wrong_assignments(seed):
     rng.bit_generator.state = state
     _, _, _, bs_err_ls, _, _ = adjust(sim, rng, object_index=obj, loss=None)
     assert np.linalg.norm(bs_err_ls) > 20 * MDEG
+
+
+def test_a_moving_time_offset_keeps_the_jacobian_structure():
+    """An offset change of a few ms moves features across knots; they stay in their stamps'
+    intervals (the polynomial continued: locate_near), so the Jacobian's elements do not change and
+    the solver keeps its analysis. Beyond half an interval they move to the next interval."""
+    rng = np.random.default_rng(5)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    group = random_group(rng, grid, time_offset="tau")
+    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
+
+    def elements(tau):
+        lin = group.linearize(values | {"tau": np.array([[tau]])}, True)
+        return [jb.elements.copy() for jb in lin.jacobians]
+
+    k_stamp, _ = grid.locate(group.time)
+    crossing = grid.locate(np.clip(group.time + 0.03, grid.t_start, grid.t_end))[0] != k_stamp
+    assert crossing.any()  # some features change interval at +30 ms
+    for a, b in zip(elements(0.0), elements(0.03)):
+        np.testing.assert_array_equal(a, b)
+    moved = elements(0.07)  # more than half an interval: relocated
+    assert any(not np.array_equal(a, b) for a, b in zip(elements(0.0), moved))
+
+
+def test_locate_near_continues_the_interval_within_half_of_it():
+    grid = KnotGrid(1.0, 0.1, 6)
+    t = np.array([1.02, 1.19, 1.31, 1.45])
+    k0, _ = grid.locate(t)
+    k, u = locate_near(grid, t + 0.04, k0)
+    np.testing.assert_array_equal(k, k0)  # 1.23 stays in [1.1, 1.2) continued: u = 1.3
+    np.testing.assert_allclose(u, (t + 0.04 - (1.0 + 0.1 * k0)) / 0.1)
+    k, u = locate_near(grid, t + 0.09, k0)  # 1.28 is 0.8 of an interval past 1.2: relocated
+    assert k[1] == k0[1] + 1 and 0.0 <= u[1] <= 1.0

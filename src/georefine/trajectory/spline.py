@@ -380,7 +380,8 @@ def evaluate_terms(terms: _Terms, idx, R0, u, dt: float, rate: bool, jacobians: 
 
 
 def eval_orientation(
-    grid: KnotGrid, R: np.ndarray, W: np.ndarray, t: np.ndarray, rate: bool = True, jacobians: bool = False
+    grid: KnotGrid, R: np.ndarray, W: np.ndarray, t: np.ndarray, rate: bool = True, jacobians: bool = False,
+    located: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> OrientationEval:
     """Attitude, body rate and their Jacobians of the cumulative cubic Hermite spline.
 
@@ -395,6 +396,10 @@ def eval_orientation(
         Times (s) in the grid's span.
     rate, jacobians : bool
         Evaluate the body rate; the Jacobians (of the rate too if ``rate``).
+    located : ((N,) int, (N,) float), optional
+        The intervals and normalised times to use instead of ``grid.locate(t)``: a normalised time
+        a little outside ``[0, 1]`` continues that interval's polynomial (a caller that keeps its
+        Jacobian's structure while its times move, :mod:`georefine.adjustment.observations.plane`).
 
     Returns
     -------
@@ -420,7 +425,7 @@ def eval_orientation(
     The total Jacobians chain these through ``dphi_i / d(knot state)``. Cost (numpy, one
     core): ~0.5 µs per time without, ~1.5 µs with Jacobians (~700 bytes of output per time).
     """
-    k, u = grid.locate(t)
+    k, u = grid.locate(t) if located is None else located
     _check_knots(grid, R=R, W=W)
     if k.size >= grid.n_intervals:  # per-interval terms once, gathered per time
         terms = interval_terms(R[:-1], R[1:], W[:-1], W[1:], grid.dt, jacobians)
@@ -448,6 +453,24 @@ def eval_orientation(
             if rate:
                 jac.domega[sl] = part.jacobians.domega
     return OrientationEval(R_out, omega, jac)
+
+
+def locate_near(grid: KnotGrid, t: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Intervals and normalised times of ``t`` that keep the intervals ``k`` (of nearby earlier
+    times) while ``t`` stays within half an interval of them; beyond, :meth:`KnotGrid.locate`.
+
+    The normalised time then lies in ``[-0.5, 1.5]``: the interval's polynomial continued a little
+    beyond its knots, which every evaluation here accepts (``eval_orientation(located=...)``,
+    ``position_basis``). An observation whose times move with an estimated time offset keeps its
+    Jacobian's structure this way, and the solver its analysis of it.
+    """
+    k = np.asarray(k, dtype=np.int64)
+    u = (t - (grid.t_start + k * grid.dt)) / grid.dt
+    away = np.flatnonzero((u < -0.5) | (u > 1.5))
+    if away.size:
+        k = k.copy()
+        k[away], u[away] = grid.locate(t[away])
+    return k, u
 
 
 def _check_knots(grid: KnotGrid, **arrays: np.ndarray) -> None:

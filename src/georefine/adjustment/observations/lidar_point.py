@@ -53,7 +53,7 @@ from georefine.adjustment.observations.trajectory_blocks import (
 )
 from georefine.adjustment.robust import RobustLoss
 from georefine.geometry.rotation import skew
-from georefine.trajectory.spline import KnotGrid, eval_orientation, knot_sum, position_basis
+from georefine.trajectory.spline import KnotGrid, eval_orientation, knot_sum, locate_near, position_basis
 
 __all__ = ["LidarPointObservation", "beam_whitening"]
 
@@ -179,7 +179,7 @@ class LidarPointObservation:
             return self.time, self._k, None, self._w0
         tau = single_element(values, self.time_offset, (1,))[0]
         t = np.clip(self.time + tau, self.grid.t_start, self.grid.t_end)
-        k, u = self.grid.locate(t)
+        k, u = locate_near(self.grid, t, self._k)  # the stamps' intervals: J keeps its structure
         return t, k, u, position_basis(u, self.grid.dt, 0)
 
     def georeference(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -189,9 +189,10 @@ class LidarPointObservation:
 
     def _model(self, values, located, jacobians: bool):
         P, V, A, R, W = self.blocks.knots(values)
-        t, k, _, w0 = located
+        t, k, u, w0 = located
         p = knot_sum(P, V, A, k, w0)
-        ev = eval_orientation(self.grid, R, W, t, rate=jacobians and self.time_offset is not None, jacobians=jacobians)
+        ev = eval_orientation(self.grid, R, W, t, rate=jacobians and self.time_offset is not None, jacobians=jacobians,
+                              located=None if u is None else (k, u))
         R_b_s, p_b_s = self.calibration(values)
         x_b = p_b_s + self.x_s @ R_b_s.T
         return ev, R_b_s, x_b, p + np.einsum("nij,nj->ni", ev.R_w_b, x_b) + self.offset_w
