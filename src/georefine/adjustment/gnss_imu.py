@@ -384,7 +384,8 @@ def trajectory_solver_options(cfg: TrajectoryAdjustmentConfig, **overrides) -> S
     ``overrides``): ``cfg``'s limits, the cost-change test against a fitting model's cost
     (``relative_to_fit``) and on the predicted change (``predicted_stop``; docs/ARCHITECTURE.md §4.4)."""
     options = SolverOptions(max_iterations=cfg.max_iterations, function_tolerance=cfg.function_tolerance,
-                            initial_lambda=cfg.initial_lambda, relative_to_fit=True, predicted_stop=True)
+                            initial_lambda=cfg.initial_lambda, relative_to_fit=True, predicted_stop=True,
+                            linear_solver=cfg.linear_solver)
     return replace(options, **overrides)
 
 

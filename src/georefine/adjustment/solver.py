@@ -364,7 +364,7 @@ def run_levenberg_marquardt(
         arr = block.values.copy()
         arr.setflags(write=False)
         values[name] = arr
-    t_eval = t_asm = t_fac = 0.0
+    t_eval = t_asm = t_fac = t_norm = 0.0
 
     current = _evaluate(groups, values, True, options.robust)
     t_eval += current.seconds
@@ -419,7 +419,9 @@ def run_levenberg_marquardt(
         else:
             try:
                 factor = None  # free the old factor first (a G/I/L factor of an hour's flight is GBs)
+                t_n = time.perf_counter()
                 A = normal.damped_lower(lam)
+                t_norm += time.perf_counter() - t_n
                 # The damping keeps every pivot above lam * D (SparseCholesky.factorize): no singularity test.
                 factor = factorizer.factorize(A, lower=True, check_pivots=lam < _PIVOT_SAFE_LAMBDA)
                 del A
@@ -524,7 +526,8 @@ def run_levenberg_marquardt(
         backend_used = available_backends()[0]
     result = _statistics(
         groups, current, layout, spent, termination, iterations, accepted_steps, initial_cost, history, lam,
-        Timings(t_eval, t_asm, t_fac, time.perf_counter() - t_start), backend_used, n_factorisations, n_pcg_steps,
+        Timings(t_eval, t_asm, t_fac - t_norm, time.perf_counter() - t_start, t_norm), backend_used, n_factorisations,
+        n_pcg_steps,
     )
     log("LM end: %s", result.summary())
     factor = None

@@ -76,12 +76,15 @@ class GroupStatistics:
 
 @dataclass(frozen=True)
 class Timings:
-    """Wall-clock seconds: group evaluation, sparse assembly (J, J^T J), factorisation+solve, total."""
+    """Wall-clock seconds: group evaluation (residuals and Jacobians), sparse assembly of ``J``,
+    factorisation and solve (conjugate-gradient steps included), total; and the normal matrix
+    ``lower(J^T J)`` with its damping (``normal_s``, not part of the factorisation's)."""
 
     evaluation_s: float
     assembly_s: float
     factorization_s: float
     total_s: float
+    normal_s: float = 0.0
 
 
 @dataclass(frozen=True)

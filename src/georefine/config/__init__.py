@@ -440,6 +440,11 @@ class TrajectoryAdjustmentConfig(StrictModel):
     gnss_loss: Literal["huber", "cauchy", "none"] = "huber"
     gnss_loss_scale: float = Field(3.0, gt=0.0, description="Huber delta / Cauchy c in units of sigma.")
     max_iterations: int = Field(30, ge=1)
+    linear_solver: Literal["auto", "cholmod", "cvxopt", "qdldl", "cholespy", "scipy"] = Field(
+        "auto",
+        description="Sparse Cholesky backend of the trajectory adjustments (docs/ARCHITECTURE.md §4.4): auto takes "
+        "scikit-sparse's CHOLMOD, CVXOPT's (the fast extra), QDLDL (installed), cholespy, SciPy, the first installed.",
+    )
     initial_lambda: float = Field(
         1e-9, gt=0.0,
         description="Initial Levenberg-Marquardt damping of the G/I adjustment, relative to diag(N). The "
