@@ -330,6 +330,13 @@ def test_normal_pattern_fills_scipys_lower_gram_matrix(seed):
     J2 = assembler.assemble(again, shape)
     assert assembler.normal_pattern(J2) is P
     np.testing.assert_allclose(P.lower(J2).toarray(), np.tril((J2.T @ J2).toarray()), rtol=1e-12, atol=1e-12)
+    dup = J2[np.repeat(np.arange(shape[0]), 3)]  # rows repeated: the symbolic passes skip the copies
+    dup.sort_indices()
+    dup_scaled = sp.diags(rng.uniform(0.5, 2.0, dup.shape[0])) @ dup
+    dup_scaled = sp.csr_matrix(dup_scaled)
+    dup_scaled.sort_indices()
+    np.testing.assert_allclose(assembly.NormalPattern(dup_scaled).lower(dup_scaled).toarray(),
+                               np.tril((dup_scaled.T @ dup_scaled).toarray()), rtol=1e-12, atol=1e-12)
     system = NormalSystem(J2, J2.T @ np.ones(shape[0]), np.zeros(shape[1]), np.ones(shape[1]), 0.0, pattern=P)
     np.testing.assert_allclose(system.N().toarray(), (J2.T @ J2).toarray(), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(system.damped_lower(0.5).toarray(), np.tril((J2.T @ J2).toarray()) + 0.5 * np.eye(shape[1]),

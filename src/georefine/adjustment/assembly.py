@@ -239,14 +239,16 @@ class NormalPattern:
     """The lower triangle of ``N = J^T J`` for one sparsity pattern of ``J``, filled without forming ``J^T``.
 
     Built once per pattern of ``J`` (a Levenberg-Marquardt solve keeps it: see
-    :class:`JacobianAssembler`): the columns of ``J`` as lists of entries (a CSC view of the CSR
-    pattern) and the CSR pattern of ``lower(N)`` (:func:`_lower_gram_pattern`, numba). Each
-    :meth:`lower` is then one numba pass (:func:`_lower_gram_fill`) that multiplies only the pairs
-    of entries of a row of ``J`` that land on or below the diagonal, straight into the fixed
-    pattern. SciPy's product forms ``J^T`` (a copy), counts and fills the whole symmetric ``N``
-    (two passes over twice the pairs), and the lower triangle is then cut from it: 60 ms
-    against 14 ms on the corridor's G/I Jacobian (24,009 unknowns). Written by hand because no
-    library in our dependency list fills a Gram matrix into a kept pattern.
+    :class:`JacobianAssembler`). Consecutive rows of ``J`` with the same columns form a group (the
+    three axes of an IMU window or of a GNSS epoch); the columns of ``J`` are kept as lists of the
+    groups they are in (a CSC view of the groups' first rows, :func:`_column_lists`), and the CSR
+    pattern of ``lower(N)`` is found from them (:func:`_lower_gram_pattern`). Each :meth:`lower`
+    is then one numba pass (:func:`_lower_gram_fill`) over the pairs of columns of every group
+    that land on or below the diagonal, a dot product over the group's rows each, straight into
+    the fixed pattern. SciPy's product forms ``J^T`` (a copy), counts and fills the whole
+    symmetric ``N`` (two passes over twice the pairs), and the lower triangle is then cut from it.
+    Written by hand because no library in our dependency list fills a Gram matrix into a kept
+    pattern.
     """
 
     def __init__(self, J: sp.csr_matrix) -> None:
@@ -256,27 +258,27 @@ class NormalPattern:
         self.J_indptr = J.indptr
         self.J_indices = J.indices
         n = J.shape[1]
-        # Entries column by column, rows ascending (32-bit where they fit: 8 bytes per entry of J kept)
-        small = J.nnz < _INT32_MAX and J.shape[0] < _INT32_MAX
-        rows = np.repeat(np.arange(J.shape[0], dtype=np.int32 if small else np.int64), np.diff(J.indptr))
-        self.col_entry = np.argsort(J.indices, kind="stable").astype(np.int32 if small else np.int64)
-        self.col_row = rows[self.col_entry]
-        del rows
+        J_indptr, J_indices = J.indptr.astype(np.int64), J.indices.astype(np.int64)
+        self.group_size = _row_groups(J_indptr, J_indices)  # per row: rows in its group if it starts one, else 0
+        first = self.group_size > 0
+        counts_per_col = np.bincount(J_indices, weights=np.repeat(first, np.diff(J_indptr)), minlength=n)
         self.col_ptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(J.indices, minlength=n), out=self.col_ptr[1:])
-        counts = _lower_gram_counts(self.col_ptr, self.col_row, J.indptr.astype(np.int64), J.indices.astype(np.int64), n)
+        np.cumsum(counts_per_col.astype(np.int64), out=self.col_ptr[1:])
+        small = J.nnz < _INT32_MAX and J.shape[0] < _INT32_MAX  # 32-bit lists where they fit
+        self.col_entry = np.empty(self.col_ptr[-1], dtype=np.int32 if small else np.int64)
+        self.col_row = np.empty(self.col_ptr[-1], dtype=np.int32 if small else np.int64)
+        _column_lists(J_indptr, J_indices, self.group_size, self.col_ptr, self.col_entry, self.col_row)
+        counts = _lower_gram_counts(self.col_ptr, self.col_row, J_indptr, J_indices, n)
         indptr = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(counts, out=indptr[1:])
         indices = np.empty(indptr[-1], dtype=np.int64)
-        _lower_gram_pattern(self.col_ptr, self.col_row, J.indptr.astype(np.int64), J.indices.astype(np.int64),
-                            indptr, indices)
+        _lower_gram_pattern(self.col_ptr, self.col_row, J_indptr, J_indices, indptr, indices)
         index_dtype = np.int32 if max(n, indptr[-1]) < _INT32_MAX else np.int64
         self.indptr = indptr.astype(index_dtype)
         self.indices = indices.astype(index_dtype)
-        self.diagonal = (indptr[1:] - 1).astype(np.int64)  # the last entry of each row (empty rows: see _check)
+        self.diagonal = (indptr[1:] - 1).astype(np.int64)  # the diagonal: the last entry of every row
         for shared in (self.indptr, self.indices):
             shared.setflags(write=False)
-        self._empty_rows = np.flatnonzero(np.diff(indptr) == 0)
 
     def fits(self, J: sp.csr_matrix) -> bool:
         """Whether ``J`` has the pattern this was built for."""
@@ -290,15 +292,54 @@ class NormalPattern:
         entries in ``J`` have an explicit zero there), plus ``diagonal_add`` on the diagonal."""
         n = self.shape_J[1]
         data = np.empty(self.indices.size, dtype=np.float64)
-        _lower_gram_fill(self.col_ptr, self.col_row, self.col_entry, self.J_indptr.astype(np.int64, copy=False),
-                         self.J_indices, np.ascontiguousarray(J.data, dtype=np.float64), self.indptr, self.indices,
-                         data, np.zeros(n))
+        _lower_gram_fill(self.col_ptr, self.col_row, self.col_entry, self.group_size,
+                         self.J_indptr.astype(np.int64, copy=False), self.J_indices,
+                         np.ascontiguousarray(J.data, dtype=np.float64), self.indptr, self.indices, data, np.zeros(n))
         if diagonal_add is not None:
             data[self.diagonal] += diagonal_add
         N = sp.csr_matrix((data, self.indices, self.indptr), shape=(n, n), copy=False)
         N.has_sorted_indices = True
         N.has_canonical_format = True
         return N
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_groups(indptr, indices):  # pragma: no cover - numba
+    """Runs of consecutive rows with the same columns: the run's length at its first row, 0 elsewhere."""
+    m = indptr.size - 1
+    size = np.zeros(m, dtype=np.int64)
+    first = 0
+    for r in range(m):
+        same = r > 0
+        if same:
+            a, b = indptr[r - 1], indptr[r]
+            length = indptr[r + 1] - b
+            if length != b - a:
+                same = False
+            else:
+                for q in range(length):
+                    if indices[a + q] != indices[b + q]:
+                        same = False
+                        break
+        if not same:
+            first = r
+        size[first] += 1
+    return size
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_lists(indptr, indices, group_size, col_ptr, col_entry, col_row):  # pragma: no cover - numba
+    """The groups each column is in (their first rows, ascending, and the column's entry in that row):
+    a counting sort of the groups' first rows."""
+    cursor = col_ptr[:-1].copy()
+    for r in range(indptr.size - 1):
+        if group_size[r] == 0:
+            continue
+        for q in range(indptr[r], indptr[r + 1]):
+            c = indices[q]
+            col_entry[cursor[c]] = q
+            col_row[cursor[c]] = r
+            cursor[c] += 1
 
 
 @numba.njit(cache=True, nogil=True)
@@ -345,19 +386,28 @@ def _lower_gram_pattern(col_ptr, col_row, indptr, indices, out_ptr, out_ind):  #
 
 
 @numba.njit(cache=True, nogil=True)
-def _lower_gram_fill(col_ptr, col_row, col_entry, indptr, indices, data, out_ptr, out_ind, out,
+def _lower_gram_fill(col_ptr, col_row, col_entry, group_size, indptr, indices, data, out_ptr, out_ind, out,
                      acc):  # pragma: no cover - numba
-    """``out`` = values of ``lower(J^T J)`` on its pattern; ``acc`` (n zeros) is scratch, zeroed again."""
+    """``out`` = values of ``lower(J^T J)`` on its pattern; ``acc`` (n zeros) is scratch, zeroed again.
+
+    The rows of a group have the same columns and follow each other: row ``r + t`` of a group
+    starting at ``r`` holds its entries at ``indptr[r] + t * L``, ``L`` the row length."""
     n = out_ptr.size - 1
     for i in range(n):
         for p in range(col_ptr[i], col_ptr[i + 1]):
             r = col_row[p]
-            a = data[col_entry[p]]
-            for q in range(indptr[r], indptr[r + 1]):
+            base = indptr[r]
+            length = indptr[r + 1] - base
+            size = group_size[r]
+            e = col_entry[p]
+            for q in range(base, indptr[r + 1]):
                 j = indices[q]
                 if j > i:
                     break
-                acc[j] += a * data[q]
+                v = 0.0
+                for t in range(size):
+                    v += data[e + t * length] * data[q + t * length]
+                acc[j] += v
         for q in range(out_ptr[i], out_ptr[i + 1]):
             j = out_ind[q]
             out[q] = acc[j]
