@@ -15,11 +15,13 @@ overrides apply to every case.
 Printed per case: corridor length, flight duration, unknowns, LM iterations (trial /
 accepted), wall time of the solve alone and of the whole adjustment (spline fit, problem,
 solve and posterior covariances), time per minute of flight and per iteration, the ratio
-of the time per minute to the first case (1.0 = linear), and peak RSS.
+of the time per minute to the first case (1.0 = linear), and peak RSS; then every phase of step 2
+(spline start, problem, residuals and Jacobians, assembly, normal matrix, factorisation,
+posterior sigma, up-sampling) and the log-log slope of each against the duration.
 
 Usage::
 
-    python bench/trajectory_scaling.py [--durations 5 10 20] [--seed 42] [--keep DIR]
+    python bench/trajectory_scaling.py [--durations 5 10 20] [--seed 42] [--keep DIR] [--backend qdldl]
 """
 
 from __future__ import annotations
@@ -65,13 +67,20 @@ def corridor_length_for(duration_s: float) -> float:
     return round(length, 1)
 
 
-def adjust(project: str) -> dict:
+PHASES = ("start", "build", "evaluation", "assembly", "normal", "factorisation", "covariance", "upsampling")
+"""Phases of step 2 timed apart (as in bench/trajectory_vs_gtsam.py)."""
+
+
+def adjust(project: str, backend: str = "auto") -> dict:
     """Child process: filter and G/I adjustment of one project; timings, sizes and peak RSS."""
     import psutil
+    import scipy.signal  # noqa: F401  (imported before the timing, as every other module)
 
     from georefine import workflows
 
     nav = workflows.load_navigation(project)
+    tcfg = nav.config.processing.trajectory
+    nav.config.processing.__dict__["trajectory"] = tcfg.model_copy(update={"linear_solver": backend})
     t = time.perf_counter()
     filt = workflows.step_initialise(nav)
     t_filter = time.perf_counter() - t
@@ -80,7 +89,13 @@ def adjust(project: str) -> dict:
     adj = workflows.step_adjust_gnss_imu(nav, filt)
     t_adjust = time.perf_counter() - t
     s = adj.solve
+    lm = s.timings
+    phases = {"start": adj.timings_s["start"], "build": adj.timings_s["build"], "evaluation": lm.evaluation_s,
+              "assembly": lm.assembly_s, "normal": lm.normal_s, "factorisation": lm.factorization_s,
+              "covariance": adj.timings_s["covariance"], "upsampling": adj.timings_s.get("upsampling", 0.0)}
     return {
+        "phases": phases,
+        "backend": s.backend,
         "filter_s": t_filter,
         "adjust_s": t_adjust,
         "solve_s": adj.timings_s["solve"],
@@ -101,6 +116,7 @@ def main() -> None:
     ap.add_argument("--durations", type=float, nargs="+", default=[5.0, 10.0, 20.0], help="flight minutes")
     ap.add_argument("--seed", type=int, default=42)
     ap.add_argument("--keep", type=Path, default=None, help="simulate into / reuse the projects in this folder")
+    ap.add_argument("--backend", default="auto", help="sparse Cholesky backend (processing.trajectory.linear_solver)")
     args = ap.parse_args()
 
     from georefine.sim.scenarios import simulate_project
@@ -122,7 +138,7 @@ def main() -> None:
                       flush=True)
             truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
             with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
-                r = pool.submit(adjust, str(project)).result()
+                r = pool.submit(adjust, str(project), args.backend).result()
             r.update(minutes=minutes, length_m=length, duration_min=truth["duration_s"] / 60.0)
             rows.append(r)
             print(f"  {minutes:g} min: adjustment {r['adjust_s']:.1f} s ({r['termination']})", flush=True)
@@ -147,8 +163,15 @@ def main() -> None:
     print("adjust = spline fit + problem + solve + cov (posterior covariances); '/min' per minute of flight; "
           "'ratio to first' = time per minute relative to the first row (1.00 = linear); "
           "RSS before the adjustment and peak of the child process")
+    print(f"\nphases of step 2 (s; backend {rows[0]['backend']}; 'adjust' above is their sum without up-sampling, "
+          "plus what lies between them)")
+    print(f"{'min':>6}" + "".join(f" {p:>13}" for p in PHASES))
+    for r in rows:
+        print(f"{r['minutes']:6g}" + "".join(f" {r['phases'][p]:13.3f}" for p in PHASES))
     if len(rows) > 1:
         d = np.log([r["duration_min"] for r in rows])
+        print(f"{'slope':>6}" + "".join(f" {np.polyfit(d, np.log([max(r['phases'][p], 1e-6) for r in rows]), 1)[0]:13.2f}"
+                                        for p in PHASES) + "   (log-log against duration; 1 = linear)")
         for key in ("solve_s", "covariance_s", "adjust_s"):
             slope = np.polyfit(d, np.log([r[key] for r in rows]), 1)[0]
             per_it = np.polyfit(d, np.log([r[key] / r["iterations"] for r in rows]), 1)[0] if key == "solve_s" else None

@@ -419,10 +419,7 @@ def trajectory_sigma(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid,
     ``covariance_interval_s`` (at most ``max_covariance_knots`` knots): ``(times, sigma_rph, sigma_p, sigma_v)``.
 
     The covariance is scaled by the a-posteriori variance factor, or by ``scale`` when given."""
-    step = max(1, int(round(cfg.covariance_interval_s / grid.dt)), int(np.ceil(grid.n_knots / cfg.max_covariance_knots)))
-    knots = np.arange(0, grid.n_knots, step)
-    if knots[-1] != grid.n_knots - 1:
-        knots = np.append(knots, grid.n_knots - 1)
+    knots = sigma_knots(grid, cfg)
     by_vf = scale is None
     cov_R = problem.covariance(blocks.attitude, knots, scale_by_variance_factor=by_vf) * (1.0 if by_vf else scale)
     cov_p = problem.covariance(blocks.position, knots, scale_by_variance_factor=by_vf,
@@ -438,6 +435,26 @@ def trajectory_sigma(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGrid,
     sigma_p = np.sqrt(np.clip(np.diagonal(cov_p, axis1=1, axis2=2), 0.0, None))
     sigma_v = np.sqrt(np.clip(np.diagonal(cov_v, axis1=1, axis2=2), 0.0, None))
     return tk, sigma_rph, sigma_p, sigma_v
+
+
+def sigma_knots(grid: KnotGrid, cfg: TrajectoryAdjustmentConfig) -> np.ndarray:
+    """The knots :func:`trajectory_sigma` reports: every ``covariance_interval_s``, at most
+    ``max_covariance_knots``, the last knot included."""
+    step = max(1, int(round(cfg.covariance_interval_s / grid.dt)), int(np.ceil(grid.n_knots / cfg.max_covariance_knots)))
+    knots = np.arange(0, grid.n_knots, step)
+    if knots[-1] != grid.n_knots - 1:
+        knots = np.append(knots, grid.n_knots - 1)
+    return knots
+
+
+def posterior_columns(built: "GnssImuProblem") -> int:
+    """About how many unit columns of ``N^-1`` :func:`with_posterior` asks for: attitude, position and
+    velocity at :func:`sigma_knots`, the IMU errors, the correlated GNSS error."""
+    P = built.problem
+    n = 9 * sigma_knots(built.grid, built.cfg).size + 6 * built.bias_grid.n_knots + 6
+    if GNSS_ERROR_BLOCK in P.blocks:
+        n += 3 * P.values(GNSS_ERROR_BLOCK).shape[0]
+    return n
 
 
 def block_sigma(problem: Problem, name: str, scale: float | None = None) -> np.ndarray:
@@ -494,6 +511,7 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
     """
     t = _time.perf_counter()
     p = built.problem
+    p.expect_covariance(posterior_columns(built))
     solve = posterior_components(p, built.cfg, result.solve)
     vf = posterior_scale(solve)
     tk, sigma_rph, sigma_p, sigma_v = trajectory_sigma(p, built.blocks, built.grid, built.cfg, built.data.frame,
