@@ -226,7 +226,11 @@ class ColumnLayout:
     """Columns of the free elements in the normal equations.
 
     Blocks in insertion order, elements in index order, ``d`` consecutive columns per free
-    element.
+    element; consecutive blocks with as many elements as each other are interleaved element by
+    element (the knot states ``p, v, a, R, omega`` of a spline: knot ``k``'s 15 columns side by
+    side). An observation at one time then touches a few contiguous runs of columns instead of
+    one run in each block's region: at 60 minutes of flight the assembly of ``J`` and of
+    ``J^T J`` had gone 1.4 times superlinear from scattered memory access.
 
     Attributes
     ----------
@@ -252,13 +256,27 @@ class ColumnLayout:
     def build(cls, blocks: Mapping[str, ParameterBlock]) -> ColumnLayout:
         """Layout of the current constant masks of ``blocks``."""
         col_start, dims, manifolds, free, offset = {}, {}, {}, {}, 0
-        for name, block in blocks.items():
-            d = block.dim
-            idx = np.flatnonzero(~block.constant)
-            starts = np.full(block.size, -1, dtype=np.int64)
-            starts[idx] = offset + d * np.arange(idx.size)
-            offset += d * idx.size
-            col_start[name], dims[name], manifolds[name], free[name] = starts, d, block.manifold, idx
+        names = list(blocks)
+        i = 0
+        while i < len(names):
+            group = [names[i]]
+            while i + len(group) < len(names) and blocks[names[i + len(group)]].size == blocks[names[i]].size:
+                group.append(names[i + len(group)])
+            i += len(group)
+            # Columns per element and block of the group: d where the element is free, else 0.
+            width = np.stack([np.where(blocks[n].constant, 0, blocks[n].dim) for n in group]).astype(np.int64)
+            if width.shape[1] == 0:
+                before = np.zeros_like(width)
+            else:
+                per_element = np.concatenate([[0], np.cumsum(width.sum(axis=0))[:-1]])
+                before = per_element[None, :] + np.cumsum(width, axis=0) - width
+            for row, name in enumerate(group):
+                block = blocks[name]
+                idx = np.flatnonzero(~block.constant)
+                starts = np.full(block.size, -1, dtype=np.int64)
+                starts[idx] = offset + before[row, idx]
+                col_start[name], dims[name], manifolds[name], free[name] = starts, block.dim, block.manifold, idx
+            offset += int(width.sum())
         return cls(col_start, dims, manifolds, free, offset)
 
     def apply_step(self, values: Mapping[str, np.ndarray], delta: np.ndarray) -> dict[str, np.ndarray]:

@@ -63,7 +63,7 @@ from georefine.adjustment.blocks import (
     ObservationGroup,
     ParameterBlock,
 )
-from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler
+from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler, column_squares
 from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky, available_backends
 from georefine.adjustment.pcg import PCG_STALE_ITERATIONS, NormalSystem, pcg_step
 from georefine.adjustment.robust import irls_weights
@@ -130,9 +130,9 @@ class SolverOptions:
         factorise again only when those do not converge; 0: always, a huge number: never.
     predicted_stop
         Also stop, once the Gauss-Newton model has been borne out (the last accepted step's gain
-        ratio within ``[0.5, 2]``), when the next exact step's *predicted* decrease
-        ``delta^T (2 g + ...) / 2`` is below the cost-change test: the step is then neither
-        evaluated nor taken. The predicted decrease is the distance to the model's minimum (half
+        ratio within ``[0.5, 2]``), when the next step's *predicted* decrease (of the damped model
+        for a factorised step, of the Gauss-Newton model for one by conjugate gradients) is below
+        the cost-change test: the step is then neither evaluated nor taken. The predicted decrease is the distance to the model's minimum (half
         its square in sigma units), which the actual change would measure one evaluation later;
         stopping there saves that evaluation, its Jacobian and the normal matrix the posterior
         would otherwise rebuild (the corridor's G/I: 2 evaluations with Jacobians instead of 4,
@@ -277,7 +277,7 @@ def _normal_equations(evaluation: _Evaluation, layout: ColumnLayout, assembler: 
     t0 = time.perf_counter()
     J, r = _assemble_jacobian(evaluation, layout, assembler)
     g = np.asarray(J.T @ r)
-    diag = np.bincount(J.indices, weights=J.data * J.data, minlength=layout.n_cols)
+    diag = column_squares(J)
     D = np.clip(diag, _MIN_DIAGONAL, _MAX_DIAGONAL)
     pattern = assembler.normal_pattern(J) if J.nnz else None
     return NormalSystem(J, g, diag, D, time.perf_counter() - t0, pattern=pattern)
@@ -448,8 +448,12 @@ def run_levenberg_marquardt(
             termination = "parameter_tolerance"
             _report(progress, iterations, cost, 0.0, math.nan, step_norm, g_max, lam, False, t_start)
             break
-        if options.predicted_stop and exact and model_trusted and normal_is_current:
-            predicted = 0.5 * float(delta @ (lam * normal.D * delta - normal.g))
+        if options.predicted_stop and model_trusted and normal_is_current:
+            if exact:
+                predicted = 0.5 * float(delta @ (lam * normal.D * delta - normal.g))
+            else:  # conjugate gradients: the Gauss-Newton model's decrease
+                Jd = normal.J @ delta
+                predicted = -float(normal.g @ delta) - 0.5 * float(Jd @ Jd)
             reference = cost
             if options.relative_to_fit and current.n_rows > layout.n_cols:
                 reference /= max(1.0, current.variance_factor(spent))
