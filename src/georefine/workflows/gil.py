@@ -27,7 +27,7 @@ from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.observations.prior import RotationPrior
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_trajectory_prior, with_prior_posterior
-from georefine.adjustment.upsampling import rebuild_high_rate, without_high_rate
+from georefine.adjustment.upsampling import on_knots, rebuild_high_rate, without_high_rate
 from georefine.config import boresight_matrix
 from georefine.errors import InputError
 from georefine.geometry.rotation import rph_from_R_n_b
@@ -144,12 +144,14 @@ def build_gil_problem(
     if knot_interval_s is not None and knot_interval_s != tcfg.knot_interval_s:
         tcfg = tcfg.model_copy(update={"knot_interval_s": float(knot_interval_s),
                                        "imu_window_s": tcfg.imu_window_s * knot_interval_s / tcfg.knot_interval_s})
-    if abs(spline.grid.dt - tcfg.knot_interval_s) > 1e-6 * tcfg.knot_interval_s:
-        spline = spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, tcfg.knot_interval_s))
     high_rate = None
     if nav.prior is not None:  # a delivered trajectory (§4.9): its problem, its faster motion
+        if abs(spline.grid.dt - tcfg.knot_interval_s) > 1e-6 * tcfg.knot_interval_s:
+            spline = spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, tcfg.knot_interval_s))
         built, high_rate = build_delivered_problem(nav, tcfg, spline, previous)
-    else:  # windows without the previous result's high-frequency motion (up-sampling, §4.6)
+    else:  # windows without the high-frequency motion the new knots do not hold (up-sampling, §4.6)
+        previous = on_knots(nav.gnss, previous, tcfg.knot_interval_s)
+        spline = previous.spline
         data = without_high_rate(nav.gnss, previous)
         built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), previous.imu_errors,
                                  previous.gnss_error)

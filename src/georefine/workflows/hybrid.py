@@ -68,7 +68,7 @@ from georefine.adjustment.observations.reprojection import ReprojectionObservati
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolverOptions
-from georefine.adjustment.upsampling import without_high_rate
+from georefine.adjustment.upsampling import on_knots, without_high_rate
 from georefine.config import boresight_matrix, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.rotation import rph_from_R_n_b
@@ -83,7 +83,6 @@ from georefine.lidargrammetry.bundle import (
 )
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
-from georefine.trajectory.spline import KnotGrid
 from georefine.workflows.cache import StepCache, StepRunner
 from georefine.workflows.gil import LidarAdjustment, build_gil_problem
 from georefine.workflows.lidar import (
@@ -379,9 +378,8 @@ def _build(nav: NavigationData, start: GnssImuResult, gil: LidarAdjustment | Non
         built, boresight = g.built, g.boresight
         offset_block = OFFSET_BLOCK if g.estimates_offset else None
     else:
-        spline = start.spline  # the G/I's, on its own knots: resampled to the G/I/L's (as build_gil_problem does)
-        if abs(spline.grid.dt - tcfg.knot_interval_s) > 1e-6 * tcfg.knot_interval_s:
-            spline = spline.resampled(KnotGrid.spanning(spline.grid.t_start, spline.grid.t_end, tcfg.knot_interval_s))
+        start = on_knots(nav.gnss, start, tcfg.knot_interval_s)  # the G/I's, on the G/I/L's knots (as build_gil_problem)
+        spline = start.spline
         data = without_high_rate(nav.gnss, start)
         built = start_imu_errors(build_gnss_imu_problem(data, cfg.imu.errors, tcfg, spline), start.imu_errors,
                                  start.gnss_error)
@@ -405,8 +403,11 @@ def _solve(nav: NavigationData, hb: _Built, progress: Progress) -> GnssImuResult
     def report(it) -> None:
         progress("hybrid adjustment", getattr(it, "iteration", 0), tcfg.max_iterations)
 
-    options = trajectory_solver_options(tcfg, function_tolerance=lcfg.function_tolerance,
-                                        initial_lambda=lcfg.initial_lambda)
+    # The G/I's cost-change test, not the G/I/L's 1e-3: the G/I/L's outer iterations start each
+    # from the last, this adjustment is the last. Under the Huber loss on the returns the small
+    # block's hybrid had stopped after 5 steps at 0.2 % of the cost above its solution, its cloud
+    # 0.095 m inside the photos against 0.093 m at the solution (11 steps).
+    options = trajectory_solver_options(tcfg, initial_lambda=lcfg.initial_lambda)
     return solve_gnss_imu(hb.built, options, progress=report, covariance=False)
 
 
