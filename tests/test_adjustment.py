@@ -790,7 +790,8 @@ def test_predicted_stop_saves_the_last_evaluations_within_the_tolerance(seed, mo
         problem.add_block("theta", np.array([[2.4, -0.29, 0.71]]))
         problem.add_group(ExpCurveGroup(x, y, 0.02))
         result = problem.solve(SolverOptions(function_tolerance=1e-6, initial_lambda=1e-6, predicted_stop=predicted))
-        assert result.termination == "function_tolerance" and result.converged
+        # the polish's re-damped step may be below the parameter tolerance: converged either way
+        assert result.termination in ("function_tolerance", "parameter_tolerance") and result.converged
         out[predicted] = (problem.values("theta")[0].copy(), len(calls), result.final_cost)
     assert out[True][1] < out[False][1], out
     assert abs(out[True][2] - out[False][2]) <= 1e-6 * out[False][2]
