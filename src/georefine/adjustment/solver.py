@@ -130,8 +130,10 @@ class SolverOptions:
         factorise again only when those do not converge; 0: always, a huge number: never.
     predicted_stop
         Also stop, once the Gauss-Newton model has been borne out (the last accepted step's gain
-        ratio within ``[0.5, 2]``) and no robust loss weights an observation down (reweighting
-        lowers the cost beyond what the model predicts), when the next step's *predicted* decrease (of the damped model
+        ratio within ``[0.5, 2]``) and the robust weights have settled (none below 1, or their change
+        over that step moves the cost by less than the test: reweighting lowers the cost beyond
+        what the model predicts), when
+        the next step's *predicted* decrease (of the damped model
         for a factorised step, of the Gauss-Newton model for one by conjugate gradients) is below
         the cost-change test: the step is then neither evaluated nor taken. The predicted decrease is the distance to the model's minimum (half
         its square in sigma units), which the actual change would measure one evaluation later;
@@ -343,11 +345,28 @@ def _strip_jacobians(evaluation: _Evaluation) -> _Evaluation:
     return _Evaluation(groups, evaluation.cost, evaluation.finite, False, evaluation.seconds)
 
 
+def _same_weights(before: _Evaluation, after: _Evaluation, budget: float) -> bool:
+    """Whether the robust weights settled over a step: their change, weighted by the squared
+    residuals, ``1/2 sum |w_after - w_before| r^2``, is within ``budget`` (the cost-change test's).
+    The fixed-weight model then predicts the next step again (a G/I's GNSS epochs beyond the Huber
+    threshold: after the first step their weights move the cost by 0.001 of the test's budget)."""
+    moved = 0.0
+    for a, b in zip(before.groups, after.groups):
+        wa, wb = a.row_sqrt_weight, b.row_sqrt_weight
+        if wa is None and wb is None:
+            continue
+        if wa is None or wb is None or wa.shape != wb.shape:
+            return False
+        r = b.linearization.residuals
+        moved += 0.5 * float(np.abs(wa * wa - wb * wb) @ (r * r))
+    return moved <= budget
+
+
 def _reweighting(evaluation: _Evaluation) -> bool:
-    """Whether a robust loss weights some observation down: its iterations then lower the cost by
-    reweighting too, which the fixed-weight model of the next step does not predict (the hybrid
-    adjustment's Huber loss on 375 returns stopped on a predicted 15 after actual changes of 257 and
-    58, short of its solution)."""
+    """Whether a robust loss weights some observation down: while the weights still move, the
+    iterations lower the cost by reweighting too, which the fixed-weight model of the next step
+    does not predict (the hybrid adjustment's Huber loss on 375 returns stopped on a predicted 15
+    after actual changes of 257 and 58, short of its solution)."""
     for ge in evaluation.groups:
         w = ge.row_sqrt_weight
         if w is not None and w.size and float(np.min(w)) < 1.0 - 1e-12:
@@ -400,6 +419,7 @@ def run_levenberg_marquardt(
     polishing = False  # the cost-change test was met once at a larger damping (SolverOptions.polish)
     model_trusted = False  # the last accepted step's gain ratio bore the Gauss-Newton model out
     redamped = False  # the last trial step was only re-damped: the factor is of the same N
+    settled = False  # the robust weights did not change over the last accepted step
     factorizer = SparseCholesky(options.linear_solver)  # one symbolic analysis for all iterations
     backend_used = options.linear_solver
     reuse = layout.n_cols >= options.reuse_factor_from
@@ -465,7 +485,7 @@ def run_levenberg_marquardt(
             termination = "parameter_tolerance"
             _report(progress, iterations, cost, 0.0, math.nan, step_norm, g_max, lam, False, t_start)
             break
-        if options.predicted_stop and model_trusted and normal_is_current and not _reweighting(current):
+        if options.predicted_stop and model_trusted and normal_is_current and (settled or not _reweighting(current)):
             if exact:
                 predicted = 0.5 * float(delta @ (lam * normal.D * delta - normal.g))
             else:  # conjugate gradients: the Gauss-Newton model's decrease
@@ -503,6 +523,8 @@ def run_levenberg_marquardt(
         if trial.finite and gain > _MIN_GAIN_RATIO:
             accepted_steps += 1
             model_trusted = 0.5 <= gain <= 2.0
+            settled = _same_weights(current, trial, options.function_tolerance * trial.cost
+                                    / max(1.0, trial.variance_factor(spent) if options.relative_to_fit else 1.0))
             values = trial_values
             if not trial.has_jacobians:
                 trial = _evaluate(groups, values, True, options.robust)
