@@ -138,8 +138,9 @@ class SolverOptions:
         the cost-change test: the step is then neither evaluated nor taken. The predicted decrease is the distance to the model's minimum (half
         its square in sigma units), which the actual change would measure one evaluation later;
         stopping there saves that evaluation, its Jacobian and the normal matrix the posterior
-        would otherwise rebuild (the corridor's G/I: 2 evaluations with Jacobians instead of 4,
-        roll/pitch/yaw within 0.1 %). The estimate is then one step short of what the plain test
+        would otherwise rebuild (a G/I with no observation weighted down: 2 evaluations with
+        Jacobians instead of 4, roll/pitch/yaw within 0.1 %; the corridor's, whose Huber loss
+        weights a few GNSS epochs down, still takes 4, its weights settling after the third). The estimate is then one step short of what the plain test
         returns (by less than the tolerance allows), so exact comparisons leave it off.
     polish
         When the cost-change test is first met by a step whose damping exceeded ``_POLISH_LAMBDA``,
