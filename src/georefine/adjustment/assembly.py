@@ -227,19 +227,9 @@ def _destinations(rows, col_start, m, d, row_offset, indptr, indices, dest):  # 
         c0 = col_start[k]
         for i in range(m):
             r = rows[k, i] + row_offset
-            lo0 = indptr[r]
-            hi0 = indptr[r + 1]
+            row = indices[indptr[r]:indptr[r + 1]]
             for j in range(d):
-                c = c0 + j
-                lo = lo0
-                hi = hi0
-                while lo < hi:
-                    mid = (lo + hi) // 2
-                    if indices[mid] < c:
-                        lo = mid + 1
-                    else:
-                        hi = mid
-                dest[e] = lo
+                dest[e] = indptr[r] + np.searchsorted(row, c0 + j)
                 e += 1
 
 

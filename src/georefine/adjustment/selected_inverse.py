@@ -146,14 +146,7 @@ def _lookup(indptr: np.ndarray, indices: np.ndarray, z: np.ndarray, rows: np.nda
     for k in range(rows.size):
         r = rows[k]
         c = cols[k]
-        lo = indptr[c]
-        hi = indptr[c + 1]
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if indices[mid] < r:
-                lo = mid + 1
-            else:
-                hi = mid
+        lo = indptr[c] + np.searchsorted(indices[indptr[c]:indptr[c + 1]], r)
         out[k] = z[lo] if lo < indptr[c + 1] and indices[lo] == r else np.nan
     return out
 
