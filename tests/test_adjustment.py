@@ -330,17 +330,34 @@ def test_normal_pattern_fills_scipys_lower_gram_matrix(seed):
     J2 = assembler.assemble(again, shape)
     assert assembler.normal_pattern(J2) is P
     np.testing.assert_allclose(P.lower(J2).toarray(), np.tril((J2.T @ J2).toarray()), rtol=1e-12, atol=1e-12)
-    dup = J2[np.repeat(np.arange(shape[0]), 3)]  # rows repeated: the symbolic passes skip the copies
-    dup.sort_indices()
-    dup_scaled = sp.diags(rng.uniform(0.5, 2.0, dup.shape[0])) @ dup
-    dup_scaled = sp.csr_matrix(dup_scaled)
+    # Rows with the same columns far apart (repeated, shuffled, rescaled) and empty rows: one set each.
+    rows = rng.permutation(np.concatenate([np.repeat(np.arange(shape[0]), 3), [-1, -1]]))
+    dup = sp.vstack([J2, sp.csr_matrix((1, shape[1]))]).tocsr()[np.where(rows < 0, shape[0], rows)]
+    dup_scaled = sp.csr_matrix(sp.diags(rng.uniform(0.5, 2.0, dup.shape[0])) @ dup)
     dup_scaled.sort_indices()
-    np.testing.assert_allclose(assembly.NormalPattern(dup_scaled).lower(dup_scaled).toarray(),
+    P_dup = assembly.NormalPattern(dup_scaled)
+    assert P_dup.n_sets <= P.n_sets + 1  # the copies join their originals' sets
+    np.testing.assert_allclose(P_dup.lower(dup_scaled).toarray(),
                                np.tril((dup_scaled.T @ dup_scaled).toarray()), rtol=1e-12, atol=1e-12)
     system = NormalSystem(J2, J2.T @ np.ones(shape[0]), np.zeros(shape[1]), np.ones(shape[1]), 0.0, pattern=P)
     np.testing.assert_allclose(system.N().toarray(), (J2.T @ J2).toarray(), rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(system.damped_lower(0.5).toarray(), np.tril((J2.T @ J2).toarray()) + 0.5 * np.eye(shape[1]),
                                rtol=1e-12, atol=1e-12)
+
+
+def test_column_sets_keep_rows_of_equal_hash_but_other_columns_apart():
+    """Rows whose hashes collide (all equal here) but whose columns differ never share a set."""
+    rng = np.random.default_rng(15)
+    J = sp.random(60, 20, density=0.2, random_state=rng, format="csr")
+    J = sp.vstack([J, J]).tocsr()
+    J.sort_indices()
+    order = rng.permutation(J.shape[0])
+    starts = assembly._column_sets(order, np.zeros(J.shape[0], dtype=np.uint64), J.indptr.astype(np.int64), J.indices)
+    assert starts[0] == 0 and starts[-1] == J.shape[0]
+    for a, b in zip(starts[:-1], starts[1:]):
+        first = J.indices[J.indptr[order[a]]:J.indptr[order[a] + 1]]
+        for r in order[a:b]:
+            np.testing.assert_array_equal(J.indices[J.indptr[r]:J.indptr[r + 1]], first)
 
 
 def test_lower_triangle_is_scipys_tril():
