@@ -139,8 +139,11 @@ class SolverOptions:
         the actual change would measure one evaluation later; stopping there saves that
         evaluation, its Jacobian and the normal matrix the posterior would otherwise rebuild (a
         G/I with no observation weighted down: 2 evaluations with Jacobians instead of 4,
-        roll/pitch/yaw within 0.1 %; the corridor's, whose Huber loss weights a few GNSS epochs
-        down, still takes 4, its weights settling after the third step). The estimate is then one
+        roll/pitch/yaw within 0.1 %). In the polish (below) the weights need not have settled:
+        the cost-change test, reweighting included, was met by an evaluated step, and the polish
+        looks for what the undamped model predicts (the corridor's G/I, whose Huber loss weights
+        a few GNSS epochs down: 3 evaluations instead of 4, predicted 1.6e-5 where the step
+        evaluated gave 1.69e-5; roll/pitch/yaw unchanged to 0.01 %). The estimate is then one
         step short of what the plain test returns (by less than the tolerance allows), so exact
         comparisons leave it off.
     polish
@@ -326,13 +329,17 @@ class LMOutcome:
             raise RuntimeError("jacobian(): J was freed when the normal matrix was formed")
         return self._normal.J
 
-    def normal_matrix(self, keep_jacobian: bool = False) -> sp.csr_matrix:
-        """``N = J^T W J`` at the solution (full symmetric CSR); ``J`` is freed unless ``keep_jacobian``."""
+    def normal_matrix(self, keep_jacobian: bool = False, lower: bool = False) -> sp.csr_matrix:
+        """``N = J^T W J`` at the solution (CSR; full symmetric, or with ``lower`` its lower
+        triangle with the diagonal, in the pattern of the solve's damped matrices, which the
+        factorizer's symbolic analysis fits); ``J`` is freed unless ``keep_jacobian``."""
         if self._normal is None:
             self.jacobian()
-        N = self._normal.N()
+        N = self._normal.N_lower() if lower else self._normal.N()
         if not keep_jacobian and not self._jacobian_freed:
-            self._normal = NormalSystem(sp.csr_matrix((0, 0)), np.zeros(0), np.zeros(0), np.zeros(0), 0.0, N)  # J freed
+            kept = self._normal
+            self._normal = NormalSystem(sp.csr_matrix((0, 0)), np.zeros(0), np.zeros(0), np.zeros(0), 0.0,
+                                        kept._N, kept._N_lower)  # J freed
             self._jacobian_freed = True
         return N
 
@@ -488,7 +495,11 @@ def run_levenberg_marquardt(
             termination = "parameter_tolerance"
             _report(progress, iterations, cost, 0.0, math.nan, step_norm, g_max, lam, False, t_start)
             break
-        if options.predicted_stop and model_trusted and normal_is_current and (settled or not _reweighting(current)):
+        # The weights need not have settled in the polish: the cost-change test, reweighting
+        # included, was met by an evaluated step, and what the polish looks for (a direction the
+        # damping left short) is what the undamped model predicts.
+        if (options.predicted_stop and model_trusted and normal_is_current
+                and (settled or polishing or not _reweighting(current))):
             if exact:
                 predicted = 0.5 * float(delta @ (lam * normal.D * delta - normal.g))
             else:  # conjugate gradients: the Gauss-Newton model's decrease
