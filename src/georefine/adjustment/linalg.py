@@ -84,6 +84,7 @@ __all__ = [
     "SparseCholesky",
     "marginal_covariance_blocks",
     "check_by_solve",
+    "symmetric_matvec",
     "check_pivot_ratios",
 ]
 
@@ -307,8 +308,13 @@ def _cholespy(A_lower: sp.csr_matrix, n: int) -> Factorization:
         raise
     factor = _CholespyFactorization(backend="cholespy", n=n, _solver=solver)
     # cholespy does not expose the factor's pivots: the singularity shows in the solve instead.
-    check_by_solve(factor, lambda v: A_lower @ v + A_lower.T @ v - A_lower.diagonal() * v)
+    check_by_solve(factor, lambda v: symmetric_matvec(A_lower, v))
     return factor
+
+
+def symmetric_matvec(A_lower: sp.spmatrix | sp.sparray, v: np.ndarray) -> np.ndarray:
+    """``A v`` for the symmetric ``A`` given by its lower triangle with the diagonal."""
+    return A_lower @ v + A_lower.T @ v - A_lower.diagonal() * v
 
 
 def check_by_solve(factor: Factorization, matvec) -> None:

@@ -44,7 +44,7 @@ class NormalSystem:
         """The full symmetric ``N`` (CSR)."""
         if self._N is None:
             t0 = time.perf_counter()
-            if self.pattern is not None:
+            if self.pattern is not None or self._N_lower is not None:
                 L = self.N_lower()
                 self._N = (L + sp.triu(L.T, k=1, format="csr")).tocsr()
             else:

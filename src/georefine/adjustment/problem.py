@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from georefine.adjustment.assembly import normal_equations
+from georefine.adjustment.assembly import lower_triangle, normal_equations
 from georefine.adjustment.blocks import (
     Manifold,
     ObservationGroup,
@@ -46,6 +46,7 @@ from georefine.adjustment.linalg import (
     available_backends,
     check_by_solve,
     marginal_covariance_blocks,
+    symmetric_matvec,
 )
 from georefine.adjustment.selected_inverse import EXPECTED_COLUMNS, SelectedInverse, selected_inverse
 from georefine.adjustment.solver import (
@@ -74,7 +75,7 @@ logger = logging.getLogger(__name__)
 class _Posterior:
     """Normal matrix at the solution of the last solve, for covariance queries."""
 
-    normal: Callable[[], sp.csr_matrix]
+    normal: Callable[[], sp.csr_matrix]  # its lower triangle with the diagonal (CSR)
     col_start: dict[str, np.ndarray]
     dims: dict[str, int]
     variance_factor: float
@@ -198,7 +199,7 @@ class Problem:
             block = self._blocks[name]
             block.values = np.array(values, dtype=float, copy=True)
         self._posterior = _Posterior(
-            normal=outcome.normal_matrix,
+            normal=lambda: outcome.normal_matrix(lower=True),
             col_start=outcome.col_start,
             dims={name: block.dim for name, block in self._blocks.items()},
             variance_factor=outcome.result.variance_factor,
@@ -237,7 +238,7 @@ class Problem:
         if post.outcome is None or post.result is None or post.inverse is not None or post.factor is not None:
             raise RuntimeError("use_variance_components(): call it before the first covariance query of a solve")
         J = post.outcome.jacobian()
-        N = post.outcome.normal_matrix(keep_jacobian=True)
+        N = post.outcome.normal_matrix(keep_jacobian=True, lower=True)  # the lower triangle
         names = [g.name for g in post.result.groups]
         rows = [g.n_residuals for g in post.result.groups]
         omega = [g.variance_factor * g.n_residuals if g.n_residuals else 0.0 for g in post.result.groups]
@@ -248,8 +249,8 @@ class Problem:
             solver = post.factorizer if post.factorizer is not None else SparseCholesky(post.backend)
             # The singularity test by a solve, as the posterior's factorisation does it (with
             # scikit-sparse the pivot test copies the whole factor out).
-            factor = solver.factorize(N, check_pivots=False)
-            check_by_solve(factor, lambda v: N @ v)
+            factor = solver.factorize(N, lower=True, check_pivots=False)
+            check_by_solve(factor, lambda v: symmetric_matvec(N, v))
             traces, sds = group_traces(J, rows, factor, probes=probes, seed=seed, which=which)
         spent = {g.name: float(getattr(g, "consumed_redundancy", 0.0)) for g in self.groups}
         comps = variance_components(names, rows, omega, traces, sds, post.result.redundancy, pools=pools,
@@ -264,7 +265,7 @@ class Problem:
                 post.factor = factor
         else:
             Jw = sp.diags(np.sqrt(row_weights(comps, names, rows))) @ J
-            weighted = normal_equations(sp.csr_matrix(Jw), np.zeros(J.shape[0]))[0]
+            weighted = lower_triangle(normal_equations(sp.csr_matrix(Jw), np.zeros(J.shape[0]))[0])
         del J, factor
         post.outcome.normal_matrix()  # frees J
         post.outcome = None
@@ -355,7 +356,7 @@ class Problem:
             if _resolved(backend) in ("cholespy", "scipy") and "qdldl" in available_backends():
                 backend, solver = "qdldl", None
             post.inverse, post.factor = selected_inverse(post.normal(), backend=backend, solver=solver,
-                                                         columns=post.columns)
+                                                         columns=post.columns, lower=True)
             post.factorizer = None
         if post.inverse is not None:
             cov = post.inverse.blocks(starts[idx], dim, diagonal=diagonal)

@@ -45,6 +45,7 @@ from georefine.adjustment.linalg import (
     SparseCholesky,
     check_by_solve,
     check_pivot_ratios,
+    symmetric_matvec,
 )
 
 __all__ = ["SelectedInverse", "selected_inverse"]
@@ -204,7 +205,7 @@ class SelectedInverse:
 
 def selected_inverse(
     A: sp.spmatrix | sp.sparray, *, backend: str = "auto", solver: SparseCholesky | None = None,
-    always: bool = False, columns: int = EXPECTED_COLUMNS,
+    always: bool = False, columns: int = EXPECTED_COLUMNS, lower: bool = False,
 ) -> tuple[SelectedInverse | None, Factorization | None]:
     """Factorise the symmetric positive definite ``A`` and invert it on the factor's pattern.
 
@@ -224,6 +225,8 @@ def selected_inverse(
     :class:`~georefine.adjustment.linalg.SparseCholesky` whose symbolic analysis may fit ``A``
     (that of the adjustment's iterations); it is reused when it does. ``always``: invert even
     where solving would be cheaper. ``columns``: how many unit columns the caller would solve for.
+    ``lower``: ``A`` is the lower triangle with the diagonal (as the adjustment's damped
+    matrices, so that their analysis fits).
 
     Raises
     ------
@@ -236,11 +239,11 @@ def selected_inverse(
     # The singularity test comes below: from the diagonal of L where L is copied out anyway,
     # else by a solve (with scikit-sparse the pivot test copies the whole factor, 9.1 s for a
     # 60-minute G/I/L matrix, and the solves' path would not use the copy).
-    factor = solver.factorize(A, check_pivots=False)
+    factor = solver.factorize(A, lower=lower, check_pivots=False)
     factor_s = time.perf_counter() - t
 
     def solving(f: Factorization = factor) -> tuple[None, Factorization]:
-        check_by_solve(f, lambda v: A @ v)
+        check_by_solve(f, lambda v: symmetric_matvec(A, v) if lower else A @ v)
         return None, f
 
     if factor.backend not in ("cholmod", "cvxopt", "qdldl"):
@@ -281,7 +284,7 @@ def selected_inverse(
     if solve_s is not None and not _recursion_pays(factor, _work(L), solve_s, columns):
         if factor.backend == "cvxopt":  # its numeric factor is gone: analyse and factorise again for the solves
             solver.forget()
-            return solving(solver.factorize(A, check_pivots=False))
+            return solving(solver.factorize(A, lower=lower, check_pivots=False))
         return solving()
     if factor.backend == "cvxopt":
         solver.forget()  # the factor handed out is symbolic now
