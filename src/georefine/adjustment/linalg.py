@@ -215,7 +215,9 @@ class SparseCholesky:
         monotone), far above the test's ``1e-13 A_jj`` for ``lambda >= 1e-10``. With
         scikit-sparse the test reads the diagonal of ``L`` through ``Factor.L()``, a copy of the
         whole factor: 9.1 s on top of a 12.9 s factorisation of a 60-minute G/I/L matrix
-        (264 M non-zeros in ``L``). Matrices that are not positive definite still raise.
+        (264 M non-zeros in ``L``). Matrices that are not positive definite still raise, except
+        with QDLDL, whose ``D`` is read only for the test (its ``factors()`` copies ``L``); its
+        factor raises when ``L`` is read (``factor()``, the selected inverse).
 
         Raises
         ------
@@ -488,7 +490,10 @@ class _QdldlFactorization(_BaseFactorization):
         """``(L, perm)`` with ``A[perm][:, perm] = L L^T``: QDLDL's ``(I + L) D (I + L)^T`` as ``LL^T``
         (column ``j`` scaled by ``sqrt(D_j)``, the diagonal first in every column, rows sorted)."""
         L, D, P = self._solver.factors()
-        return ldl_to_cholesky(sp.csc_matrix(L), np.asarray(D, dtype=np.float64)), np.asarray(P, dtype=np.int64)
+        D = np.asarray(D, dtype=np.float64)
+        if not np.all(D > 0) or not np.all(np.isfinite(D)):
+            raise NotPositiveDefiniteError(f"normal matrix ({self.n} unknowns) is not positive definite")
+        return ldl_to_cholesky(sp.csc_matrix(L), D), np.asarray(P, dtype=np.int64)
 
 
 def ldl_to_cholesky(L_strict: sp.csc_matrix, D: np.ndarray) -> sp.csc_matrix:
@@ -517,13 +522,17 @@ def _qdldl_numeric(symbolic: _QdldlSymbolic, A_lower: sp.csr_matrix, n: int, che
     if not symbolic.fresh:  # same pattern, new values: QDLDL keeps its ordering and elimination tree
         _qdldl_call(lambda: solver.update(_upper_csc(A_lower, n), upper=True), n)
     symbolic.fresh = False
-    # QDLDL factorises quasi-definite matrices too: a negative D is a matrix that is not
-    # positive definite; tiny positive ones are tested as the other backends' pivots.
-    _, D, P = solver.factors()
-    D = np.asarray(D)
-    if not np.all(D > 0) or not np.all(np.isfinite(D)):
-        raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is not positive definite")
     if check_pivots:
+        # QDLDL factorises quasi-definite matrices too: a negative D is a matrix that is not
+        # positive definite; tiny positive ones are tested as the other backends' pivots. D is
+        # only read here, because factors() copies all of L (15 ms of a 23 ms refactorisation of
+        # the corridor's G/I): without the test the caller knows every pivot is positive
+        # (Levenberg-Marquardt's damping) or tests the factor itself (the selected inverse reads
+        # L anyway, and check_by_solve finds a singular matrix).
+        _, D, P = solver.factors()
+        D = np.asarray(D)
+        if not np.all(D > 0) or not np.all(np.isfinite(D)):
+            raise NotPositiveDefiniteError(f"normal matrix ({n} unknowns) is not positive definite")
         check_pivot_ratios(np.sqrt(D), A_lower.diagonal()[np.asarray(P)], n)
     return _QdldlFactorization(backend="qdldl", n=n, _solver=solver)
 

@@ -267,7 +267,7 @@ class Problem:
             Jw = sp.diags(np.sqrt(row_weights(comps, names, rows))) @ J
             weighted = lower_triangle(normal_equations(sp.csr_matrix(Jw), np.zeros(J.shape[0]))[0])
         del J, factor
-        post.outcome.normal_matrix()  # frees J
+        post.outcome.normal_matrix(lower=True)  # frees J
         post.outcome = None
         post.normal = lambda: weighted
         post.components = comps
