@@ -5,7 +5,7 @@ import pytest
 
 from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
-from georefine.adjustment.observations.imu import ImuObservation, discrete_gauss_rule, make_imu_windows
+from georefine.adjustment.observations.imu import ImuObservation, discrete_gauss_rule, fewest_nodes, make_imu_windows
 from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
 from georefine.adjustment.testing import check_jacobians
@@ -118,6 +118,15 @@ def _readings(grid, values, t, kind, rate):
     return gyro, acc
 
 
+def _spline_without_imu_errors(seed, knot_interval):
+    """A 12-knot random spline (:func:`random_knots`) with zero biases and scale factors."""
+    grid = KnotGrid(0.0, knot_interval, 12)
+    values = random_knots(np.random.default_rng(seed), 12)
+    values |= {"acc_bias": np.zeros((4, 3)), "gyro_bias": np.zeros((4, 3)),
+               "acc_scale": np.zeros((1, 3)), "gyro_scale": np.zeros((1, 3))}
+    return grid, values
+
+
 @pytest.mark.parametrize("kind", ["rates", "increments"])
 def test_imu_windows_model_what_a_sample_is(kind):
     """A window's model is the mean of what its samples are: the spline's value at the time tags
@@ -126,12 +135,8 @@ def test_imu_windows_model_what_a_sample_is(kind):
     half a sample's shift misses increments."""
     from dataclasses import replace
 
-    rng = np.random.default_rng(7)
-    K, rate = 12, 200.0
-    grid = KnotGrid(0.0, 0.1, K)
-    values = random_knots(rng, K)
-    values |= {"acc_bias": np.zeros((4, 3)), "gyro_bias": np.zeros((4, 3)),
-               "acc_scale": np.zeros((1, 3)), "gyro_scale": np.zeros((1, 3))}
+    rate = 200.0
+    grid, values = _spline_without_imu_errors(7, 0.1)
     # Increments: the windows (t_first - dt, t_last] start on the knots, so that the quadrature
     # integrates within one piece of the spline (across a knot its rate has a kink).
     t = np.arange(0.02 + (1 / rate if kind == "increments" else 0.0), grid.t_end - 0.02, 1 / rate)
@@ -177,12 +182,8 @@ def test_imu_windows_of_many_samples_cost_the_rule_not_the_samples():
     """Windows of 20 samples (0.1 s at 200 Hz): three nodes each, the samples' mean to 2e-6 of the
     signal on a spline with knots 0.4 s apart and random knot values (170 m/s^2 of specific force: far
     more violent than flight; on the corridor's G/I the difference is 1e-6 of a window's sigma)."""
-    rng = np.random.default_rng(8)
-    K, rate = 12, 200.0
-    grid = KnotGrid(0.0, 0.4, K)
-    values = random_knots(rng, K)
-    values |= {"acc_bias": np.zeros((4, 3)), "gyro_bias": np.zeros((4, 3)),
-               "acc_scale": np.zeros((1, 3)), "gyro_scale": np.zeros((1, 3))}
+    rate = 200.0
+    grid, values = _spline_without_imu_errors(8, 0.4)
     t = np.arange(0.02, grid.t_end - 0.02, 1 / rate)
     gyro, acc = _readings(grid, values, t, "rates", rate)
     wins = make_imu_windows(t, gyro, acc, rate, 20 / rate)
@@ -196,6 +197,33 @@ def test_imu_windows_of_many_samples_cost_the_rule_not_the_samples():
     exact = ImuObservation(grid, wins, FRAME, bg, bg, 1.0, 1.0, nodes=3, sample_rule=False)
     assert exact.n_nodes == wins.n_samples.sum()
     np.testing.assert_allclose(exact.predict(values)[1], wins.gyro, rtol=0, atol=1e-12 * np.abs(wins.gyro).max())
+
+
+@pytest.mark.parametrize("kind", ["rates", "increments"])
+def test_fewest_nodes_drops_a_node_only_within_the_tolerance(kind):
+    """One node fewer per window where the window means move by at most the tolerance (in sigma)
+    against the full rule, the change reported being the largest such move; else the rule kept.
+    Windows short enough to be evaluated at their samples are left alone."""
+    rate = 200.0
+    grid, values = _spline_without_imu_errors(9, 0.4)
+    t = np.arange(0.02, grid.t_end - 0.02, 1 / rate)
+    gyro, acc = _readings(grid, values, t, kind, rate)
+    wins = make_imu_windows(t, gyro, acc, rate, 20 / rate, kind=kind)
+    bg = BiasGrid(0.0, 2.0, 4)
+    obs = ImuObservation(grid, wins, FRAME, bg, bg, sigma_acc=0.05, sigma_gyro=0.001, nodes=3)
+    fewer, change = fewest_nodes(obs, values, tolerance=np.inf)
+    assert fewer.nodes == 2 and fewer.n_nodes < obs.n_nodes
+    (a3, g3), (a2, g2) = obs.predict(values), fewer.predict(values)
+    assert change == pytest.approx(max(np.abs(a2 - a3).max() / 0.05, np.abs(g2 - g3).max() / 0.001), rel=1e-12)
+    assert change > 0
+    kept, again = fewest_nodes(obs, values, tolerance=0.5 * change)
+    assert kept is obs and again == change
+    taken, _ = fewest_nodes(obs, values, tolerance=2.0 * change)
+    assert taken.nodes == 2
+    if kind == "rates":
+        short = make_imu_windows(t, gyro, acc, rate, 2 / rate)  # two samples: evaluated at them with 2 or 3 nodes
+        same = ImuObservation(grid, short, FRAME, bg, bg, 0.05, 0.001, nodes=3)
+        assert fewest_nodes(same, values, tolerance=np.inf) == (same, 0.0)
 
 
 def test_imu_windows_average_and_respect_gaps():

@@ -419,7 +419,8 @@ class TrajectoryAdjustmentConfig(StrictModel):
     )
     quadrature_nodes: int = Field(
         3, ge=1, le=5, description="Nodes per IMU window: Gauss-Legendre over a window of increments, the "
-        "discrete Gauss rule over the samples of a window of rates (docs/ARCHITECTURE.md §4.6).")
+        "discrete Gauss rule over the samples of a window of rates; one fewer where that moves no window "
+        "mean by more than 0.01 of its sigma at the adjustment's start (docs/ARCHITECTURE.md §4.6).")
     upsampling: bool = Field(
         True,
         description="Rebuild the motion faster than the knots from the raw, error-corrected IMU and "
