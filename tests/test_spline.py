@@ -273,7 +273,7 @@ def test_orientation_jacobians_match_manifold_finite_differences(seed, scenario)
 
 @pytest.mark.parametrize("seed", SEEDS)
 def test_vectorised_paths_agree(seed):
-    # Many times (per-interval terms, chunked) and few times (per-time terms) agree.
+    # Many times (per-interval terms) and few times (per-time terms) agree.
     rng = np.random.default_rng(seed)
     grid, _, _, _, R, W = random_knots(rng, 40, rate_scale=1.0, angle_step=0.2)
     t = np.sort(rng.uniform(grid.t_start, grid.t_end, 20000))
@@ -287,6 +287,26 @@ def test_vectorised_paths_agree(seed):
     no_rate = eval_orientation(grid, R, W, t, rate=False, jacobians=True)
     assert no_rate.omega_wb_b is None and no_rate.jacobians.domega is None
     np.testing.assert_array_equal(no_rate.jacobians.dR, many.jacobians.dR)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_orientation_continued_beyond_the_interval_stays_a_rotation(seed):
+    """A normalised time a little outside [0, 1] (``locate_near``) makes some beta_i negative: the
+    sin/cos factors are even functions and must take their closed forms for |beta theta| >= 0.01
+    either side of zero (the series there once left R 7e-6 from orthonormal); the rate still matches
+    finite differences of the continued polynomial."""
+    rng = np.random.default_rng(seed)
+    grid, _, _, _, R, W = random_knots(rng, 12, rate_scale=1.0, angle_step=0.2)
+    k = rng.integers(1, grid.n_intervals - 1, 200)
+    u = rng.uniform(-0.5, 1.5, 200)
+    t = grid.t_start + (k + u) * grid.dt
+    ev = eval_orientation(grid, R, W, t, located=(k, u))
+    np.testing.assert_allclose(ev.R_w_b @ np.swapaxes(ev.R_w_b, 1, 2), np.broadcast_to(np.eye(3), ev.R_w_b.shape),
+                               atol=1e-13)
+    h = 1e-6
+    plus = eval_orientation(grid, R, W, t + h, rate=False, located=(k, u + h / grid.dt)).R_w_b
+    minus = eval_orientation(grid, R, W, t - h, rate=False, located=(k, u - h / grid.dt)).R_w_b
+    np.testing.assert_allclose(ev.omega_wb_b, log_so3(np.swapaxes(minus, 1, 2) @ plus) / (2 * h), atol=1e-7)
 
 
 # ------------------------------------------------------------------------------ container

@@ -28,6 +28,7 @@ import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
+import numba
 import numpy as np
 
 from georefine.errors import InputError
@@ -37,15 +38,12 @@ from georefine.geometry.rotation import (
     log_so3,
     right_jacobian,
     right_jacobian_inv,
-    skew,
 )
 from georefine.trajectory.sampled import Trajectory
 
 _log = logging.getLogger(__name__)
 
 _TIME_TOL_S = 1e-9  # times this close outside the span are rounding, evaluated at the end
-_EVAL_CHUNK = 8192  # times per block in the orientation evaluation (temporaries stay in cache)
-_EYE = np.eye(3)
 
 # Quintic Hermite basis on [0, 1] in powers of u: H_i(u) = sum_j _HERMITE5[i, j] u^j, for
 # [p_k, p'_k, p''_k, p_k+1, p'_k+1, p''_k+1] (derivatives with respect to u).
@@ -272,33 +270,11 @@ class OrientationEval(NamedTuple):
     jacobians: OrientationJacobians | None
 
 
-def _abc(x: np.ndarray):
-    """``sin x / x``, ``(1 - cos x) / x²``, ``(x - sin x) / x³``; Taylor series below 0.01,
-    where they are exact to rounding and the closed forms lose digits."""
-    x2 = x * x
-    small = x < 1e-2
-    xs = np.where(small, 1.0, x)
-    a = np.where(small, 1.0 - x2 / 6.0 + x2 * x2 / 120.0, np.sin(xs) / xs)
-    b = np.where(small, 0.5 - x2 / 24.0 + x2 * x2 / 720.0, (1.0 - np.cos(xs)) / (xs * xs))
-    c = np.where(small, 1.0 / 6.0 - x2 / 120.0 + x2 * x2 / 5040.0, (xs - np.sin(xs)) / (xs * xs * xs))
-    return a, b, c
-
-
-def _combine(s1: np.ndarray, K: np.ndarray, s2: np.ndarray, K2: np.ndarray) -> np.ndarray:
-    """``I + s1 K + s2 K2`` for stacks (N,3,3) and scalars (N,)."""
-    out = K * s1[:, None, None]
-    out += K2 * s2[:, None, None]
-    out[:, [0, 1, 2], [0, 1, 2]] += 1.0
-    return out
-
-
 class _Terms(NamedTuple):
     """Per-interval quantities of the orientation spline (leading axis: intervals)."""
 
-    phi: tuple  # phi1, phi2, phi3, each (M, 3)
-    theta: tuple  # their norms (M,)
-    K: tuple  # skew(phi_i) (M, 3, 3)
-    K2: tuple  # skew(phi_i)² (M, 3, 3)
+    phi: np.ndarray  # (3, M, 3): phi1, phi2, phi3
+    theta: np.ndarray  # (3, M): their norms
     dphi2: np.ndarray | None  # (M, 3, 12): dphi2 / d[theta_k, omega_k, theta_k+1, omega_k+1]
 
 
@@ -309,9 +285,7 @@ def interval_terms(R0, R1, w0, w1, dt: float, jacobians: bool) -> _Terms:
     E1, E3 = exp_so3(phi1), exp_so3(phi3)
     D = np.swapaxes(E1, 1, 2) @ np.swapaxes(R0, 1, 2) @ R1 @ np.swapaxes(E3, 1, 2)
     phi2 = log_so3(D)
-    phis = (phi1, phi2, phi3)
-    Ks = tuple(skew(p) for p in phis)
-    K2s = tuple(K @ K for K in Ks)
+    phis = np.stack([phi1, phi2, phi3])
     dphi2 = None
     if jacobians:
         # D = Exp(-phi1) R0^T R1 Exp(-phi3); right-perturbation of D for each knot state,
@@ -332,51 +306,159 @@ def interval_terms(R0, R1, w0, w1, dt: float, jacobians: bool) -> _Terms:
             ],
             axis=2,
         )
-    return _Terms(phis, tuple(np.linalg.norm(p, axis=1) for p in phis), Ks, K2s, dphi2)
+    return _Terms(phis, np.linalg.norm(phis, axis=2), dphi2)
 
 
 def evaluate_terms(terms: _Terms, idx, R0, u, dt: float, rate: bool, jacobians: bool, k) -> OrientationEval:
-    """Per-time evaluation from per-interval ``terms`` indexed by ``idx`` (N,)."""
-    beta = (1.0 - (1.0 - u) ** 3, u * u * (3.0 - 2.0 * u), u**3)
-    dbeta = (3.0 * (1.0 - u) ** 2, 6.0 * u * (1.0 - u), 3.0 * u * u)
-    A, Jr = [], []
-    for i in range(3):
-        Ki, K2i = terms.K[i][idx], terms.K2[i][idx]
-        a, b, c = _abc(beta[i] * terms.theta[i][idx])
-        A.append(_combine(beta[i] * a, Ki, beta[i] ** 2 * b, K2i))
-        if jacobians:  # beta_i Jr(beta_i phi_i) = d[Exp(beta_i phi_i)]/d(phi_i), right tangent
-            Jr.append(beta[i][:, None, None] * _combine(-beta[i] * b, Ki, beta[i] ** 2 * c, K2i))
-    A1, A2, A3 = A
-    M23 = A2 @ A3
-    M123 = A1 @ M23
-    R = R0 @ M123
-    omega = None
-    y2 = y3 = None
-    if rate:
-        phi1, phi2, phi3 = (p[idx] for p in terms.phi)
-        y2 = np.einsum("nji,nj->ni", A2, dbeta[0][:, None] * phi1)  # A2^T b1' phi1
-        y3 = np.einsum("nji,nj->ni", A3, y2 + dbeta[1][:, None] * phi2)
-        omega = (y3 + dbeta[2][:, None] * phi3) / dt
-    if not jacobians:
-        return OrientationEval(R, omega, None)
+    """Per-time evaluation from per-interval ``terms`` indexed by ``idx`` (N,): :func:`_orientation_kernel`."""
+    n = np.size(idx)
+    R = np.empty((n, 3, 3))
+    omega = np.empty((n, 3)) if rate else None
+    dR = np.empty((n, 3, 12)) if jacobians else None
+    dW = np.empty((n, 3, 12)) if jacobians and rate else None
+    empty3, empty12 = np.empty((0, 3)), np.empty((0, 3, 12))
+    _orientation_kernel(terms.phi, terms.theta, terms.dphi2 if jacobians else empty12,
+                        np.ascontiguousarray(idx, dtype=np.int64), np.ascontiguousarray(R0, dtype=np.float64),
+                        np.ascontiguousarray(u, dtype=np.float64), float(dt), bool(rate), bool(jacobians),
+                        R, omega if rate else empty3, dR if jacobians else empty12, dW if dW is not None else empty12)
+    return OrientationEval(R, omega, OrientationJacobians(np.asarray(k), dR, dW) if jacobians else None)
 
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _abc(x):  # pragma: no cover - numba
+    """``sin x / x``, ``(1 - cos x) / x²``, ``(x - sin x) / x³`` (even functions); Taylor series
+    below 0.01 in magnitude, where they are exact to rounding and the closed forms lose digits."""
+    x2 = x * x
+    if abs(x) < 1e-2:
+        return (1.0 - x2 / 6.0 + x2 * x2 / 120.0, 0.5 - x2 / 24.0 + x2 * x2 / 720.0,
+                1.0 / 6.0 - x2 / 120.0 + x2 * x2 / 5040.0)
+    s = math.sin(x)
+    return s / x, (1.0 - math.cos(x)) / x2, (x - s) / (x2 * x)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _mm(A, B, out):  # pragma: no cover - numba
+    """out = A @ B (3x3)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _mtm(A, B, out):  # pragma: no cover - numba
+    """out = A^T @ B (3x3)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[0, i] * B[0, j] + A[1, i] * B[1, j] + A[2, i] * B[2, j]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _skew_mm(y, B, out):  # pragma: no cover - numba
+    """out = skew(y) @ B (3x3)."""
+    for j in range(3):
+        out[0, j] = -y[2] * B[1, j] + y[1] * B[2, j]
+        out[1, j] = y[2] * B[0, j] - y[0] * B[2, j]
+        out[2, j] = -y[1] * B[0, j] + y[0] * B[1, j]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _exp_terms(p, s1, s2, out):  # pragma: no cover - numba
+    """out = I + s1 K + s2 K^2, K = skew(p) (K^2 = p p^T - |p|^2 I)."""
+    pp = p[0] * p[0] + p[1] * p[1] + p[2] * p[2]
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = s2 * p[i] * p[j]
+        out[i, i] += 1.0 - s2 * pp
+    out[0, 1] -= s1 * p[2]
+    out[1, 0] += s1 * p[2]
+    out[0, 2] += s1 * p[1]
+    out[2, 0] -= s1 * p[1]
+    out[1, 2] -= s1 * p[0]
+    out[2, 1] += s1 * p[0]
+
+
+@numba.njit(cache=True, nogil=True)
+def _orientation_kernel(phi, theta, dphi2, idx, R0, u, dt, rate, jacobians, R_out, omega_out, dR_out,
+                        dW_out):  # pragma: no cover - numba
+    """The attitude, rate and Jacobians of :func:`eval_orientation` time by time (derivation there).
+
+    ``A_i = Exp(b_i phi_i) = I + b_i a K_i + b_i^2 b K_i^2`` and ``b_i Jr(b_i phi_i) = b_i (I - b_i b
+    K_i + b_i^2 c K_i^2)`` with ``a, b, c`` of ``b_i |phi_i|`` (:func:`_abc`). Written in numba: the
+    numpy version went through (N, 3, 3) stacks op by op, three to four times slower, and the
+    spline is evaluated at every IMU node, GNSS epoch, plane and LiDAR return of every iteration.
+    """
+    A = np.empty((3, 3, 3))
+    Jr = np.empty((3, 3, 3))
+    M23 = np.empty((3, 3))
+    M123 = np.empty((3, 3))
+    T = np.empty((3, 3))
+    T2 = np.empty((3, 3))
+    y2 = np.empty(3)
+    y3 = np.empty(3)
+    v = np.empty(3)
+    beta = np.empty(3)
+    dbeta = np.empty(3)
     c3 = dt / 3.0
-    dphi2 = terms.dphi2[idx]
-    A3t = np.swapaxes(A3, 1, 2)
-    dR = (A3t @ Jr[1]) @ dphi2  # dR/dphi2 dphi2/dx
-    dR[:, :, 0:3] += np.swapaxes(M123, 1, 2)
-    dR[:, :, 3:6] += c3 * (np.swapaxes(M23, 1, 2) @ Jr[0])
-    dR[:, :, 9:12] += c3 * Jr[2]
-    dW = None
-    if rate:
-        # dt omega = A3^T A2^T a + A3^T b + c with a = b1' phi1, b = b2' phi2, c = b3' phi3;
-        # A^T x with A <- A Exp(e) changes by skew(A^T x) e.
-        eye = np.broadcast_to(_EYE, A3.shape)
-        H2 = A3t @ (skew(y2) @ Jr[1] + dbeta[1][:, None, None] * eye)
-        dW = (H2 @ dphi2) / dt
-        dW[:, :, 3:6] += np.swapaxes(M23, 1, 2) * (c3 * dbeta[0] / dt)[:, None, None]
-        dW[:, :, 9:12] += (skew(y3) @ Jr[2] + dbeta[2][:, None, None] * eye) * (c3 / dt)
-    return OrientationEval(R, omega, OrientationJacobians(k, dR, dW))
+    for n in range(idx.size):
+        m = idx[n]
+        x = u[n]
+        beta[0] = 1.0 - (1.0 - x) ** 3
+        beta[1] = x * x * (3.0 - 2.0 * x)
+        beta[2] = x ** 3
+        dbeta[0] = 3.0 * (1.0 - x) ** 2
+        dbeta[1] = 6.0 * x * (1.0 - x)
+        dbeta[2] = 3.0 * x * x
+        for i in range(3):
+            bi = beta[i]
+            a, b, c = _abc(bi * theta[i, m])
+            _exp_terms(phi[i, m], bi * a, bi * bi * b, A[i])
+            if jacobians:
+                _exp_terms(phi[i, m], -bi * b, bi * bi * c, Jr[i])
+                for r in range(3):
+                    for q in range(3):
+                        Jr[i, r, q] *= bi
+        _mm(A[1], A[2], M23)
+        _mm(A[0], M23, M123)
+        _mm(R0[n], M123, R_out[n])
+        if rate:
+            for r in range(3):
+                v[r] = dbeta[0] * phi[0, m, r]
+            for r in range(3):
+                y2[r] = A[1, 0, r] * v[0] + A[1, 1, r] * v[1] + A[1, 2, r] * v[2]
+            for r in range(3):
+                v[r] = y2[r] + dbeta[1] * phi[1, m, r]
+            for r in range(3):
+                y3[r] = A[2, 0, r] * v[0] + A[2, 1, r] * v[1] + A[2, 2, r] * v[2]
+                omega_out[n, r] = (y3[r] + dbeta[2] * phi[2, m, r]) / dt
+        if not jacobians:
+            continue
+        _mtm(A[2], Jr[1], T)  # A3^T Jr2: dR/dphi2
+        for r in range(3):
+            for q in range(12):
+                dR_out[n, r, q] = T[r, 0] * dphi2[m, 0, q] + T[r, 1] * dphi2[m, 1, q] + T[r, 2] * dphi2[m, 2, q]
+        _mtm(M23, Jr[0], T)
+        for r in range(3):
+            for q in range(3):
+                dR_out[n, r, q] += M123[q, r]
+                dR_out[n, r, 3 + q] += c3 * T[r, q]
+                dR_out[n, r, 9 + q] += c3 * Jr[2, r, q]
+        if not rate:
+            continue
+        _skew_mm(y2, Jr[1], T2)  # H2 = A3^T (skew(y2) Jr2 + b2' I)
+        for r in range(3):
+            T2[r, r] += dbeta[1]
+        _mtm(A[2], T2, T)
+        for r in range(3):
+            for q in range(12):
+                dW_out[n, r, q] = (T[r, 0] * dphi2[m, 0, q] + T[r, 1] * dphi2[m, 1, q]
+                                   + T[r, 2] * dphi2[m, 2, q]) / dt
+        _skew_mm(y3, Jr[2], T2)
+        for r in range(3):
+            T2[r, r] += dbeta[2]
+        for r in range(3):
+            for q in range(3):
+                dW_out[n, r, 3 + q] += M23[q, r] * (c3 * dbeta[0] / dt)
+                dW_out[n, r, 9 + q] += T2[r, q] * (c3 / dt)
 
 
 def eval_orientation(
@@ -422,8 +504,9 @@ def eval_orientation(
       ``d(dt omega)/dphi2 = A3^T (skew(A2^T b1' phi1) b2 Jr(b2 phi2) + b2' I)``,
       ``d(dt omega)/dphi3 = skew(A3^T (A2^T b1' phi1 + b2' phi2)) b3 Jr(b3 phi3) + b3' I``.
 
-    The total Jacobians chain these through ``dphi_i / d(knot state)``. Cost (numpy, one
-    core): ~0.5 µs per time without, ~1.5 µs with Jacobians (~700 bytes of output per time).
+    The total Jacobians chain these through ``dphi_i / d(knot state)``. Cost (one core, the
+    per-time part in numba): ~0.2 µs per time without, ~0.55 µs with Jacobians and rate (20,000
+    times on 2,000 intervals: 4.8 and 11.1 ms, against 15.0 and 44.5 ms op by op in numpy).
     """
     k, u = grid.locate(t) if located is None else located
     _check_knots(grid, R=R, W=W)
@@ -433,26 +516,7 @@ def eval_orientation(
     else:  # few times: compute the interval terms per time
         terms = interval_terms(R[k], R[k + 1], W[k], W[k + 1], grid.dt, jacobians)
         idx = np.arange(k.size)
-    if k.size <= _EVAL_CHUNK:
-        return evaluate_terms(terms, idx, R[k], u, grid.dt, rate, jacobians, k)
-    # Blocks of a few thousand times keep the temporaries in cache: 2-3x faster than one pass.
-    n = k.size
-    R_out = np.empty((n, 3, 3))
-    omega = np.empty((n, 3)) if rate else None
-    jac = None
-    if jacobians:
-        jac = OrientationJacobians(k, np.empty((n, 3, 12)), np.empty((n, 3, 12)) if rate else None)
-    for s in range(0, n, _EVAL_CHUNK):
-        sl = slice(s, s + _EVAL_CHUNK)
-        part = evaluate_terms(terms, idx[sl], R[k[sl]], u[sl], grid.dt, rate, jacobians, k[sl])
-        R_out[sl] = part.R_w_b
-        if rate:
-            omega[sl] = part.omega_wb_b
-        if jacobians:
-            jac.dR[sl] = part.jacobians.dR
-            if rate:
-                jac.domega[sl] = part.jacobians.domega
-    return OrientationEval(R_out, omega, jac)
+    return evaluate_terms(terms, idx, R[k], u, grid.dt, rate, jacobians, k)
 
 
 def locate_near(grid: KnotGrid, t: np.ndarray, k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
