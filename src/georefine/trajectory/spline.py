@@ -220,8 +220,22 @@ def knot_sum(P: np.ndarray, V: np.ndarray, A: np.ndarray, k: np.ndarray, w: np.n
     """``sum_j w[:, j] x_j`` over the six position knot states of interval ``k`` (N, 3): the position
     (or a derivative) for weights ``w`` (N, 6) of :func:`position_basis`, for callers that located
     their times once (the observation groups)."""
-    return (w[:, 0:1] * P[k] + w[:, 1:2] * V[k] + w[:, 2:3] * A[k]
-            + w[:, 3:4] * P[k + 1] + w[:, 4:5] * V[k + 1] + w[:, 5:6] * A[k + 1])
+    out = np.empty((np.size(k), 3))
+    _knot_sum(np.ascontiguousarray(P, dtype=np.float64), np.ascontiguousarray(V, dtype=np.float64),
+              np.ascontiguousarray(A, dtype=np.float64), np.ascontiguousarray(k, dtype=np.int64),
+              np.ascontiguousarray(w, dtype=np.float64), out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _knot_sum(P, V, A, k, w, out):  # pragma: no cover - numba
+    """:func:`knot_sum` time by time (numpy's six gathers and products took 2.5 ms per 20,000 times)."""
+    for n in range(k.size):
+        a = k[n]
+        b = a + 1
+        for c in range(3):
+            out[n, c] = (w[n, 0] * P[a, c] + w[n, 1] * V[a, c] + w[n, 2] * A[a, c]
+                         + w[n, 3] * P[b, c] + w[n, 4] * V[b, c] + w[n, 5] * A[b, c])
 
 
 # ------------------------------------------------------------------------ orientation
