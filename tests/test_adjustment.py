@@ -461,6 +461,39 @@ def test_covariance_is_the_same_whether_inverted_or_solved(backend, ns_per_unit,
         np.testing.assert_allclose(blocks[k], inv[s : s + 3, s : s + 3], atol=1e-10 * np.abs(inv).max())
 
 
+@pytest.mark.parametrize("dense_rows_max", [2000, 20, 0])
+def test_supernodal_recursion_equals_the_column_recursion(dense_rows_max, monkeypatch):
+    """The dense supernode blocks give the column-by-column recursion's entries (all of them, on a
+    factor with supernodes from 1 to 15 or more columns), also where supernodes with many rows below
+    go column by column; a pattern that is not a factor's is refused by both."""
+    from georefine.adjustment import selected_inverse as module
+
+    monkeypatch.setattr(module, "DENSE_ROWS_MAX", dense_rows_max)
+    kernel = module._takahashi_supernodal.py_func  # the module constant is read at compile time
+    rng = np.random.default_rng(19)
+    A = _banded_spd(rng, 150, 15, 1)
+    R = sp.random(A.shape[0], A.shape[0], density=2e-4, random_state=rng, format="csr")
+    A = (A + R @ R.T).tocsr()  # scattered couplings: supernodes of every size
+    L, perm = cholesky(A, backend="qdldl").factor()
+    L.sort_indices()
+    indptr, indices = L.indptr.astype(np.int64), L.indices.astype(np.int64)
+    starts = module._supernodes(indptr, indices)
+    sizes = np.diff(starts)
+    assert sizes.min() == 1 and sizes.max() >= 15 and np.unique(sizes).size >= 5, np.unique(sizes)
+    z_col, z_sup = np.empty(L.nnz), np.empty(L.nnz)
+    assert module._takahashi(indptr, indices, L.data, z_col)
+    assert kernel(indptr, indices, L.data, z_sup, starts)
+    np.testing.assert_allclose(z_sup, z_col, rtol=1e-10, atol=1e-12 * np.abs(z_col).max())
+    # A row dropped from the last column with two or more below its diagonal: not a factor's pattern.
+    j = int(np.flatnonzero(np.diff(L.indptr) >= 3)[-1])
+    keep = np.ones(L.nnz, dtype=bool)
+    keep[L.indptr[j] + 1] = False
+    bp = np.concatenate([indptr[:j + 1], indptr[j + 1:] - 1])
+    bi, bd = indices[keep], np.ascontiguousarray(L.data[keep])
+    assert not module._takahashi(bp, bi, bd, np.empty(bd.size))
+    assert not kernel(bp, bi, bd, np.empty(bd.size), module._supernodes(bp, bi))
+
+
 def test_selected_inverse_agrees_with_solves_to_1e_8_on_a_gnss_imu_matrix():
     """The posterior of a trajectory-like system (block band, bias-like elements coupling many knots,
     global unknowns): the recursion's diagonal blocks equal unit-column solves to 1e-8 relative."""

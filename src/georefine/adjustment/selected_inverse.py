@@ -18,8 +18,12 @@ the factorisation itself: 1.6-2.0 s instead of 27 s of solves on the 30-minute G
 :func:`_recursion_pays`.
 
 No library in our dependency list exposes it (CHOLMOD has none; MUMPS and PSelInv are not
-wheels), so it is a numba loop here, :func:`_takahashi`: one pass over the columns, each row
-pair found by walking the two sorted columns side by side.
+wheels), so it is written here in numba: :func:`_takahashi_supernodal` takes the factor's
+fundamental supernodes (runs of columns with the same structure below) as dense blocks, their
+products in BLAS, gathering ``Z`` of the rows below from the later columns; single columns, and
+supernodes with very many rows below, go column by column (:func:`_takahashi_column`, each row
+pair found by walking the two sorted columns side by side), which is also the reference in the
+tests.
 
 The factor ``L`` comes from QDLDL (``factors()``: its ``LDL^T`` rescaled to ``LL^T``, the
 default install), from CHOLMOD through scikit-sparse (``Factor.L()``) or from CVXOPT
@@ -53,18 +57,24 @@ __all__ = ["SelectedInverse", "selected_inverse"]
 log = logging.getLogger(__name__)
 
 
-NS_PER_WORK_UNIT = 2.0
-"""Time of the recursion per unit of ``sum_j |S_j|^2`` (ns; measured 1.4-2.4 on one core)."""
+NS_PER_WORK_UNIT = 0.6
+"""Time of the recursion per unit of ``sum_j |S_j|^2`` (ns, one core): 0.6 on the corridor's G/I
+factor (supernodes of 15 columns), 0.13 on its G/I/L factor (16 G units in 2.1 s; supernodes up
+to 1,192 columns), against 1.4-2.4 column by column."""
 EXPECTED_COLUMNS = 2000
 """Unit columns a posterior asks for (attitude and position at 150 knots, the IMU bias nodes)."""
 PROBE_COLUMNS = 64
-MIN_SOLVES_PER_FACTORISATION = 12.0
-"""Below this ratio of the solves' time to the factorisation's the factor is not even copied out.
+MIN_SOLVES_PER_FACTORISATION = 2.0
+"""Below this ratio of the solves' time to the factorisation's the factor is not even copied out
+(scikit-sparse's CHOLMOD, whose ``Factor.L()`` copy took 9.1 s beside a 12.9 s factorisation of
+a 60-minute G/I/L matrix).
 
-The recursion's multiply-adds are about the factorisation's, done one at a time instead of by
-BLAS. Measured: on the 30-minute G/I matrix 25 s of solves predicted against a factorisation
-of 1-2 s (the recursion won, 2 s); on G/I/L matrices 8.1 (10 minutes: 22.0 s against 2.7 s;
-the recursion lost, 30 s against 14 s of solves) and 6.2 (60 minutes: 156 s against 25 s)."""
+The copy plus the supernodal recursion cost about one factorisation: on the corridor's G/I/L
+factor (30.6 M non-zeros) the recursion took 2.1 s where the factorisation with CVXOPT and the
+copy took 4.1 s. Solves predicted at 8.1 (10 minutes of G/I/L: 22.0 s against 2.7 s) and 6.2
+factorisations (60 minutes: 156 s against 25 s) lost to the column-by-column recursion (30 s
+against 14 s at 10 minutes), which a ratio of 12 kept away; the supernodal one is 13 times
+faster there."""
 
 
 def _probe_solves(factor: Factorization, columns: int = EXPECTED_COLUMNS) -> float:
@@ -91,9 +101,10 @@ def _recursion_pays(factor: Factorization, work: float, solve_s: float, columns:
     Which one wins depends on the factor's supernodes: on a G/I normal matrix (narrow band,
     small supernodes) the recursion took 2 s against 27 s of solves at 30 minutes of flight; on a
     G/I/L one the planes fill the factor (36 M non-zeros for 108,000 unknowns at 10 minutes) into
-    large supernodes, where batched solves run at BLAS-3 speed and the scalar recursion lost
-    (30 s against 14 s). So a batch of :data:`PROBE_COLUMNS` solves is timed first
-    (``solve_s``, :func:`_probe_solves`).
+    large supernodes, where batched solves run at BLAS-3 speed and the column-by-column recursion
+    lost (30 s against 14 s); the supernodal recursion, in BLAS too, took 2.1 s on the corridor's
+    G/I/L factor. So a batch of :data:`PROBE_COLUMNS` solves is timed first (``solve_s``,
+    :func:`_probe_solves`) and weighed against :data:`NS_PER_WORK_UNIT`.
     """
     recursion_s = NS_PER_WORK_UNIT * 1e-9 * work
     log.debug("selected inverse: recursion ~%.1f s (sum |S_j|^2 = %.3g), %d unit-column solves ~%.1f s (%d unknowns)",
@@ -102,41 +113,158 @@ def _recursion_pays(factor: Factorization, work: float, solve_s: float, columns:
 
 
 @numba.njit(cache=True, nogil=True)
-def _takahashi(indptr: np.ndarray, indices: np.ndarray, lval: np.ndarray, z: np.ndarray) -> bool:
-    """``z`` = ``(L L^T)^-1`` on the pattern of ``L`` (CSC, sorted rows, diagonal first in each column).
+def _takahashi(indptr: np.ndarray, indices: np.ndarray, lval: np.ndarray, z: np.ndarray) -> bool:  # pragma: no cover
+    """``z`` = ``(L L^T)^-1`` on the pattern of ``L`` (CSC, sorted rows, diagonal first in each column),
+    column by column (:func:`_takahashi_column`); the reference of :func:`_takahashi_supernodal`.
 
     False when the pattern is not a factor's (a row of ``S_j`` missing from a column of ``S_j``).
     """
-    n = indptr.size - 1
-    acc = np.zeros(n)  # sum_{k in S_j} L_kj Z_ki, indexed by the row i; zeroed again after each column
-    for j in range(n - 1, -1, -1):
-        p0 = indptr[j]
-        p1 = indptr[j + 1]
-        d = lval[p0]
-        for pb in range(p0 + 1, p1):
-            b = indices[pb]
-            lb = lval[pb]
-            q = indptr[b]
-            acc[b] += lb * z[q]  # Z_bb
-            q += 1
-            q1 = indptr[b + 1]
-            for pa in range(pb + 1, p1):  # rows a > b of S_j: also rows of column b
-                a = indices[pa]
-                while q < q1 and indices[q] < a:
-                    q += 1
-                if q == q1 or indices[q] != a:
-                    return False
-                zab = z[q]
-                acc[a] += lb * zab
-                acc[b] += lval[pa] * zab
-        s = 0.0
-        for pa in range(p0 + 1, p1):
+    acc = np.zeros(indptr.size - 1)
+    for j in range(indptr.size - 2, -1, -1):
+        if not _takahashi_column(j, indptr, indices, lval, z, acc):
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _takahashi_column(j, indptr, indices, lval, z, acc) -> bool:  # pragma: no cover - numba
+    """Column ``j`` of the recursion (module docstring), every later column done. ``acc`` (n zeros)
+    holds ``sum_{k in S_j} L_kj Z_ki`` by row ``i`` and is zeroed again."""
+    p0 = indptr[j]
+    p1 = indptr[j + 1]
+    d = lval[p0]
+    for pb in range(p0 + 1, p1):
+        b = indices[pb]
+        lb = lval[pb]
+        q = indptr[b]
+        acc[b] += lb * z[q]  # Z_bb
+        q += 1
+        q1 = indptr[b + 1]
+        for pa in range(pb + 1, p1):  # rows a > b of S_j: also rows of column b
             a = indices[pa]
-            v = -acc[a] / d
-            acc[a] = 0.0
-            z[pa] = v
-            s += lval[pa] * v
-        z[p0] = 1.0 / (d * d) - s / d
+            while q < q1 and indices[q] < a:
+                q += 1
+            if q == q1 or indices[q] != a:
+                return False
+            zab = z[q]
+            acc[a] += lb * zab
+            acc[b] += lval[pa] * zab
+    s = 0.0
+    for pa in range(p0 + 1, p1):
+        a = indices[pa]
+        v = -acc[a] / d
+        acc[a] = 0.0
+        z[pa] = v
+        s += lval[pa] * v
+    z[p0] = 1.0 / (d * d) - s / d
+    return True
+
+
+DENSE_ROWS_MAX = 2000
+"""Supernodes with more rows below them than this go column by column: their dense ``Z_UU``
+(``8 u^2`` bytes, 32 MB here) stays bounded."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _supernodes(indptr: np.ndarray, indices: np.ndarray) -> np.ndarray:  # pragma: no cover - numba
+    """Where the fundamental supernodes of ``L`` start (and ``n``): runs of columns each of whose
+    structure is the previous one's without its first row below the diagonal."""
+    n = indptr.size - 1
+    starts = np.empty(n + 1, dtype=np.int64)
+    m = 0
+    for j in range(n):
+        same = False
+        if j > 0:
+            p0, p1 = indptr[j - 1], indptr[j]
+            if p1 - p0 >= 2 and indices[p0 + 1] == j and indptr[j + 1] - p1 == p1 - p0 - 1:
+                same = True
+                for t in range(p1 - p0 - 1):
+                    if indices[p0 + 1 + t] != indices[p1 + t]:
+                        same = False
+                        break
+        if not same:
+            starts[m] = j
+            m += 1
+    starts[m] = n
+    return starts[:m + 1].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _takahashi_supernodal(indptr: np.ndarray, indices: np.ndarray, lval: np.ndarray, z: np.ndarray,
+                          starts: np.ndarray) -> bool:  # pragma: no cover - numba
+    """:func:`_takahashi` a supernode at a time, in dense blocks (BLAS for the products).
+
+    For a supernode of columns ``J`` with rows ``U`` below it, ``T = L_UJ L_JJ^-1`` and::
+
+        Z_UJ = -Z_UU T
+        Z_JJ = L_JJ^-T L_JJ^-1 - T^T Z_UJ
+
+    ``Z_UU`` is gathered from the columns of ``U`` (later supernodes, already done); a row of ``U``
+    missing from one of them makes it return False, as :func:`_takahashi`. About twice the
+    scalar recursion's multiply-adds, at BLAS speed: on the corridor's G/I factor (24,009
+    unknowns, 1.2 M non-zeros in ``L``, 1,610 supernodes of 15 columns on average) 94 ms -> 18 ms.
+    Single columns, and supernodes with more than :data:`DENSE_ROWS_MAX` rows below, go column by
+    column (:func:`_takahashi_column`).
+    """
+    n_super = starts.size - 1
+    scratch = np.zeros(indptr.size - 1)
+    for sn in range(n_super - 1, -1, -1):
+        j0 = starts[sn]
+        j1 = starts[sn + 1]
+        s = j1 - j0
+        last = indptr[j1 - 1]
+        u = indptr[j1] - last - 1
+        if u > DENSE_ROWS_MAX or s == 1:
+            for j in range(j1 - 1, j0 - 1, -1):
+                if not _takahashi_column(j, indptr, indices, lval, z, scratch):
+                    return False
+            continue
+        U = indices[last + 1:indptr[j1]]
+        LJJ = np.zeros((s, s))
+        LUJ = np.empty((u, s))
+        for t in range(s):
+            p = indptr[j0 + t]
+            for r in range(s - t):
+                LJJ[t + r, t] = lval[p + r]
+            for r in range(u):
+                LUJ[r, t] = lval[p + s - t + r]
+        # Linv = L_JJ^-1 (lower), column by column by forward substitution.
+        Linv = np.zeros((s, s))
+        for c in range(s):
+            Linv[c, c] = 1.0 / LJJ[c, c]
+            for r in range(c + 1, s):
+                acc = 0.0
+                for k in range(c, r):
+                    acc += LJJ[r, k] * Linv[k, c]
+                Linv[r, c] = -acc / LJJ[r, r]
+        ZJJ = Linv.T @ Linv
+        if u > 0:
+            ZUU = np.empty((u, u))
+            for bi in range(u):
+                b = U[bi]
+                q = indptr[b]
+                q1 = indptr[b + 1]
+                ZUU[bi, bi] = z[q]
+                q += 1
+                for ai in range(bi + 1, u):
+                    a = U[ai]
+                    while q < q1 and indices[q] < a:
+                        q += 1
+                    if q == q1 or indices[q] != a:
+                        return False
+                    ZUU[ai, bi] = z[q]
+                    ZUU[bi, ai] = z[q]
+            T = LUJ @ Linv
+            ZUJ = -(ZUU @ T)
+            ZJJ -= T.T @ ZUJ
+            for t in range(s):
+                p = indptr[j0 + t] + s - t
+                for r in range(u):
+                    z[p + r] = ZUJ[r, t]
+        for t in range(s):
+            p = indptr[j0 + t]
+            for r in range(s - t):
+                z[p + r] = ZJJ[t + r, t]
     return True
 
 
@@ -294,7 +422,7 @@ def selected_inverse(
     L.data = np.ascontiguousarray(L.data, dtype=np.float64)
     z = np.empty_like(L.data)
     t = time.perf_counter()
-    if not _takahashi(L.indptr, L.indices, L.data, z):
+    if not _takahashi_supernodal(L.indptr, L.indices, L.data, z, _supernodes(L.indptr, L.indices)):
         raise RuntimeError("selected inverse: the factor's pattern is not closed under elimination")
     log.debug("selected inverse: %s factor of %d unknowns, %d non-zeros, recursion %.2f s",
               factor.backend, factor.n, L.nnz, time.perf_counter() - t)
