@@ -55,17 +55,21 @@ residuals and Jacobians, assembly, normal matrix, factorisation, the solver's re
 sigma; the total is of these. The up-sampling (the motion faster than the knots, rebuilt from the
 raw IMU for the IMU-rate trajectory, which the gtsam states do not give either) is timed apart.
 Every solver runs ``--repeat`` times and the fastest run is reported; imports are not timed.
+``auto:default`` and ``auto:fast`` are what ``linear_solver: auto`` does on the default install
+(QDLDL, cholespy, SciPy) and with the ``fast`` extra (CVXOPT too): Georefine is made to see only
+those backends (:func:`installed`), so one machine measures both installs.
 
 Usage::
 
     python bench/trajectory_vs_gtsam.py [--seed 42] [--keep DIR] [--keyframe-interval 0.1]
-        [--variants plain scale+gravity] [--backends qdldl cvxopt cholespy] [--repeat 2]
+        [--variants plain scale+gravity] [--backends auto:default auto:fast qdldl cvxopt] [--repeat 2]
         [--no-marginals] [--set scene.length_m=2000 ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import shutil
 import tempfile
 import time
@@ -134,16 +138,52 @@ PHASES = ("start", "build", "evaluation", "assembly", "normal", "factorisation",
 """Georefine's phases, in the order of the profile table (the adjustment; up-sampling apart)."""
 
 
+INSTALLS = {"default": ("qdldl", "cholespy", "scipy"), "fast": ("cvxopt", "qdldl", "cholespy", "scipy")}
+"""The backends each install brings (``pip install georefine``, ``georefine[fast]``), in auto's order."""
+
+
+@contextlib.contextmanager
+def installed(backends: tuple[str, ...] | None):
+    """Georefine seeing only ``backends`` (None: what is installed), as on an install without the others:
+    every module's ``available_backends`` is swapped for the duration."""
+    import sys
+
+    from georefine.adjustment import linalg
+
+    if backends is None:
+        yield
+        return
+    missing = [b for b in backends if b not in linalg.available_backends()]
+    if missing:
+        raise SystemExit(f"cannot emulate an install with {', '.join(missing)}: not installed here")
+    original = linalg.available_backends
+    patched = [m for m in list(sys.modules.values())
+               if getattr(m, "__name__", "").startswith("georefine") and getattr(m, "available_backends", None) is original]
+    for m in patched:
+        m.available_backends = lambda: backends
+    try:
+        yield
+    finally:
+        for m in patched:
+            m.available_backends = original
+
+
 def run_georefine(nav, filt, backend: str) -> Solution:
-    """Step 2 of the workflow with ``backend``, timed phase by phase (the filter's result is shared)."""
+    """Step 2 of the workflow with ``backend``, timed phase by phase (the filter's result is shared).
+    ``auto:default`` and ``auto:fast``: ``linear_solver: auto`` on the backends of that install (:data:`INSTALLS`)."""
     from georefine.workflows import step_adjust_gnss_imu
 
+    install = None
+    if backend.startswith("auto:"):
+        install = INSTALLS[backend.split(":", 1)[1]]
     tcfg = nav.config.processing.trajectory
-    nav.config.processing.__dict__["trajectory"] = tcfg.model_copy(update={"linear_solver": backend})
+    nav.config.processing.__dict__["trajectory"] = tcfg.model_copy(
+        update={"linear_solver": "auto" if install else backend})
     try:
         sol = Solution(f"Georefine {backend}")
         t = time.perf_counter()
-        adj = step_adjust_gnss_imu(nav, filt)
+        with installed(install):
+            adj = step_adjust_gnss_imu(nav, filt)
         wall = time.perf_counter() - t
     finally:
         nav.config.processing.__dict__["trajectory"] = tcfg
@@ -334,8 +374,9 @@ def main() -> None:
     ap.add_argument("--variants", nargs="+", default=["scale+gravity"],
                     help="gtsam input variants: plain, scale, gravity, scale+gravity")
     ap.add_argument("--backends", nargs="+", default=None,
-                    help="Georefine's sparse Cholesky backends (default: every installed one of qdldl, cvxopt, "
-                         "cholmod, cholespy; qdldl is the default install's, cvxopt the fast extra's)")
+                    help="Georefine's sparse Cholesky backends, or auto:default / auto:fast (linear_solver auto on "
+                         "the backends of the default install / the fast extra) (default: both installs, then every "
+                         "installed one of qdldl, cvxopt, cholmod, cholespy)")
     ap.add_argument("--repeat", type=int, default=2, help="runs of each solver; the fastest is reported")
     ap.add_argument("--no-marginals", action="store_true", help="skip gtsam's marginal covariances")
     args = ap.parse_args()
@@ -346,7 +387,8 @@ def main() -> None:
     from georefine.adjustment.linalg import available_backends
     from georefine.workflows import load_navigation, step_initialise
 
-    backends = args.backends or [b for b in ("qdldl", "cvxopt", "cholmod", "cholespy") if b in available_backends()]
+    backends = args.backends or ["auto:default", "auto:fast"] + [
+        b for b in ("qdldl", "cvxopt", "cholmod", "cholespy") if b in available_backends()]
     base = args.keep or Path(tempfile.mkdtemp(prefix="georefine-bench-"))
     base.mkdir(parents=True, exist_ok=True)
     try:
@@ -418,10 +460,10 @@ def main() -> None:
               "factorisations and solves, lm_other = the rest of the solver, covariance = posterior sigma "
               "(variance components, selected inversion); up-sampling (the motion faster than the knots, "
               "rebuilt from the raw IMU for the IMU-rate trajectory) is not part of the total")
-        print(f"{'backend':<10}" + "".join(f" {p:>13}" for p in PHASES) + f" {'total':>7} {'up-sampling':>11}")
+        print(f"{'backend':<14}" + "".join(f" {p:>13}" for p in PHASES) + f" {'total':>7} {'up-sampling':>11}")
         for g in geos:
             tm = g.timings_s
-            print(f"{g.name.split()[-1]:<10}" + "".join(f" {tm[p]:13.3f}" for p in PHASES)
+            print(f"{g.name.split()[-1]:<14}" + "".join(f" {tm[p]:13.3f}" for p in PHASES)
                   + f" {tm['total']:7.3f} {tm['upsampling']:11.3f}")
         print(f"filter (step 1, shared by both peers, not timed in either) {filter_s:.2f} s; "
               f"'iter' = trial/accepted steps (Georefine), LM iterations (gtsam)")

@@ -223,7 +223,7 @@ def solve_trajectory_prior(
     """Solve; the result has ``imu_errors`` None and the SBET error in ``sbet_errors``."""
     cfg = built.cfg
     t = _time.perf_counter()
-    options = options or trajectory_solver_options(cfg)
+    options = options or trajectory_solver_options(cfg, narrow=True)
     result = built.problem.solve(options, progress=progress)
     p = built.problem
     errors = SbetErrorEstimate(built.error_grid, p.values(POSITION_ERROR), p.values(ATTITUDE_ERROR))

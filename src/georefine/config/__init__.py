@@ -444,7 +444,8 @@ class TrajectoryAdjustmentConfig(StrictModel):
     linear_solver: Literal["auto", "cholmod", "cvxopt", "qdldl", "cholespy", "scipy"] = Field(
         "auto",
         description="Sparse Cholesky backend of the trajectory adjustments (docs/ARCHITECTURE.md §4.4): auto takes "
-        "scikit-sparse's CHOLMOD, CVXOPT's (the fast extra), QDLDL (installed), cholespy, SciPy, the first installed.",
+        "scikit-sparse's CHOLMOD, CVXOPT's (the fast extra), QDLDL (installed), cholespy, SciPy, the first installed; "
+        "for the G/I and the delivered trajectory, whose factors are narrow, QDLDL.",
     )
     initial_lambda: float = Field(
         1e-9, gt=0.0,
