@@ -275,9 +275,9 @@ class NormalPattern:
     a *set* (an IMU window's axes, and every window and GNSS epoch between the same two knots:
     the corridor's G/I has 47,232 rows in 6,140 sets), found by hashing each row's columns
     (:func:`_row_hashes`, :func:`_column_sets`; rows that only share a hash stay apart). The CSR
-    pattern of ``lower(N)`` follows from one row per set (:func:`_lower_gram_pattern`), and every
-    entry of a set's dense ``L x L`` lower Gram matrix gets its slot in that pattern once
-    (:func:`_set_slots`). Each :meth:`lower` is then one numba pass (:func:`_lower_gram_fill`):
+    pattern of ``lower(N)`` follows from one row per set, and every entry of a set's dense
+    ``L x L`` lower Gram matrix gets its slot in that pattern, row by row of ``N`` in the same pass
+    (:func:`_lower_gram_pattern`). Each :meth:`lower` is then one numba pass (:func:`_lower_gram_fill`):
     per set, the Gram matrix of its rows in a small dense buffer (contiguous row reads), added to
     its slots. The sets are ordered by their first column, so that the additions of neighbouring
     sets fall on neighbouring rows of ``N``. Against the former pass over groups of consecutive
@@ -307,21 +307,22 @@ class NormalPattern:
         order = np.lexsort((hashes, first))  # the rows of a set together, the sets by their first column
         self.set_start = _column_sets(order, hashes, J_indptr, J_indices)
         self.order = order.astype(np.int32 if m < _INT32_MAX else np.int64)
-        representative = np.zeros(m, dtype=np.bool_)
-        representative[order[self.set_start[:-1]]] = True
+        set_of = np.full(m, -1, dtype=np.int64)  # the set of each set's first row (its representative)
+        set_of[order[self.set_start[:-1]]] = np.arange(self.set_start.size - 1)
         col_ptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(_representative_column_counts(J_indptr, J_indices, representative, n), out=col_ptr[1:])
+        np.cumsum(_representative_column_counts(J_indptr, J_indices, set_of, n), out=col_ptr[1:])
         col_row = np.empty(col_ptr[-1], dtype=np.int64)
-        _column_lists(J_indptr, J_indices, representative, col_ptr, col_row)
+        col_pos = np.empty(col_ptr[-1], dtype=np.int64)
+        _column_lists(J_indptr, J_indices, set_of, col_ptr, col_row, col_pos)
         counts = _lower_gram_counts(col_ptr, col_row, J_indptr, J_indices, n)
         indptr = np.zeros(n + 1, dtype=np.int64)
         np.cumsum(counts, out=indptr[1:])
         indices = np.empty(indptr[-1], dtype=np.int64)
-        _lower_gram_pattern(col_ptr, col_row, J_indptr, J_indices, indptr, indices)
-        del col_ptr, col_row
         self.slot_ptr = _set_slot_counts(self.set_start, self.order, J_indptr)
         self.slots = np.empty(self.slot_ptr[-1], dtype=np.int32 if indptr[-1] < _INT32_MAX else np.int64)
-        _set_slots(self.set_start, self.order, J_indptr, J_indices, indptr, indices, self.slot_ptr, self.slots)
+        _lower_gram_pattern(col_ptr, col_row, col_pos, set_of, J_indptr, J_indices, indptr, indices,
+                            self.slot_ptr, self.slots)
+        del col_ptr, col_row, col_pos
         self.row_max = int(np.max(np.diff(J_indptr), initial=0))
         index_dtype = np.int32 if max(n, indptr[-1]) < _INT32_MAX else np.int64
         self.indptr = indptr.astype(index_dtype)
@@ -401,25 +402,27 @@ def _column_sets(order, hashes, indptr, indices):  # pragma: no cover - numba
 
 
 @numba.njit(cache=True, nogil=True)
-def _representative_column_counts(indptr, indices, representative, n):  # pragma: no cover - numba
+def _representative_column_counts(indptr, indices, set_of, n):  # pragma: no cover - numba
     """Sets each column is in (the entries of the sets' first rows per column)."""
     counts = np.zeros(n, dtype=np.int64)
     for r in range(indptr.size - 1):
-        if representative[r]:
+        if set_of[r] >= 0:
             for q in range(indptr[r], indptr[r + 1]):
                 counts[indices[q]] += 1
     return counts
 
 
 @numba.njit(cache=True, nogil=True)
-def _column_lists(indptr, indices, representative, col_ptr, col_row):  # pragma: no cover - numba
-    """The sets' first rows each column is in, ascending: a counting sort (a CSC view of those rows)."""
+def _column_lists(indptr, indices, set_of, col_ptr, col_row, col_pos):  # pragma: no cover - numba
+    """The sets' first rows each column is in, ascending, and the column's place in each: a counting
+    sort (a CSC view of those rows)."""
     cursor = col_ptr[:-1].copy()
     for r in range(indptr.size - 1):
-        if representative[r]:
+        if set_of[r] >= 0:
             for q in range(indptr[r], indptr[r + 1]):
                 c = indices[q]
                 col_row[cursor[c]] = r
+                col_pos[cursor[c]] = q - indptr[r]
                 cursor[c] += 1
 
 
@@ -446,10 +449,19 @@ def _lower_gram_counts(col_ptr, col_row, indptr, indices, n):  # pragma: no cove
 
 
 @numba.njit(cache=True, nogil=True)
-def _lower_gram_pattern(col_ptr, col_row, indptr, indices, out_ptr, out_ind):  # pragma: no cover - numba
-    """The column indices of each row of ``lower(J^T J)``, sorted, the diagonal last."""
+def _lower_gram_pattern(col_ptr, col_row, col_pos, set_of, indptr, indices, out_ptr, out_ind, slot_ptr,
+                        slots):  # pragma: no cover - numba
+    """The column indices of each row of ``lower(J^T J)`` (sorted, the diagonal last), and the slot of
+    every entry of every set's lower Gram matrix, row by row of ``N``.
+
+    Row ``i`` is gathered from the sets containing column ``i`` (the marker walk of
+    :func:`_lower_gram_counts`), sorted, and its places kept in ``place`` (by column); then every
+    set with column ``i`` at its place ``a`` finds the slots of its entries ``(a, b <= a)`` there,
+    without a search: ``O(nnz(N) + slots)``. Set ``s``'s entry ``(a, b)`` is its slot number
+    ``slot_ptr[s] + a (a + 1) / 2 + b`` (the order of :func:`_lower_gram_fill`)."""
     n = out_ptr.size - 1
     marker = np.full(n, -1, dtype=np.int64)
+    place = np.empty(n, dtype=np.int64)
     for i in range(n):
         pos = out_ptr[i]
         for p in range(col_ptr[i], col_ptr[i + 1]):
@@ -464,6 +476,15 @@ def _lower_gram_pattern(col_ptr, col_row, indptr, indices, out_ptr, out_ind):  #
                     pos += 1
         out_ind[out_ptr[i]:pos] = np.sort(out_ind[out_ptr[i]:pos])
         out_ind[pos] = i
+        for q in range(out_ptr[i], pos + 1):
+            place[out_ind[q]] = q
+        for p in range(col_ptr[i], col_ptr[i + 1]):
+            r = col_row[p]
+            a = col_pos[p]
+            k = slot_ptr[set_of[r]] + a * (a + 1) // 2
+            base = indptr[r]
+            for b in range(a + 1):
+                slots[k + b] = place[indices[base + b]]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -477,25 +498,6 @@ def _set_slot_counts(set_start, order, indptr):  # pragma: no cover - numba
         length = indptr[r + 1] - indptr[r]
         out[s + 1] = out[s] + length * (length + 1) // 2
     return out
-
-
-@numba.njit(cache=True, nogil=True)
-def _set_slots(set_start, order, indptr, indices, out_ptr, out_ind, slot_ptr, slots):  # pragma: no cover - numba
-    """The entry of ``lower(N)`` of every ``(a, b <= a)`` of every set's Gram matrix, row by row."""
-    for s in range(set_start.size - 1):
-        r = order[set_start[s]]
-        base = indptr[r]
-        length = indptr[r + 1] - base
-        k = slot_ptr[s]
-        for a in range(length):
-            i = indices[base + a]
-            p, end = out_ptr[i], out_ptr[i + 1]
-            for b in range(a + 1):  # both sorted, and row i holds every column of the set up to i
-                j = indices[base + b]
-                if out_ind[p] != j:  # mostly the next entry (a knot's columns are consecutive), else bisect
-                    p += 1 + np.searchsorted(out_ind[p + 1:end], j)
-                slots[k] = p
-                k += 1
 
 
 @numba.njit(cache=True, nogil=True)
