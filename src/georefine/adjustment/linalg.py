@@ -69,6 +69,7 @@ import logging
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+import numba
 import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
@@ -398,13 +399,33 @@ class _CvxoptSymbolic:
 def _cvxopt_analyse(A_lower: sp.csr_matrix, n: int) -> _CvxoptSymbolic:
     from cvxopt import cholmod, matrix, spmatrix
 
-    rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(A_lower.indptr))
+    rows, order = _rows_and_csc_order(A_lower.indptr.astype(np.int64, copy=False), A_lower.indices, n)
     cols = A_lower.indices.astype(np.int64)
-    # Triplets in row-major order build ten times faster than in column-major order (measured);
+    # Triplets in row-major order build ten times faster than in column-major order (measured;
+    # the same arrays as the upper triangle's column-major triplets took 15 times longer).
     # CVXOPT stores the values column-major, hence the gather order for later value updates.
     M = spmatrix(matrix(A_lower.data), matrix(rows), matrix(cols), (n, n))
-    order = np.lexsort((rows, cols))
     return _CvxoptSymbolic(M, order, cholmod.symbolic(M, uplo="L"))
+
+
+@numba.njit(cache=True, nogil=True)
+def _rows_and_csc_order(indptr, indices, n):  # pragma: no cover - numba
+    """The row of every CSR entry, and the entries in column-major order (a counting sort: on the
+    corridor's G/I/L matrix 0.07 s where np.repeat and np.lexsort took 0.5 s)."""
+    rows = np.empty(indices.size, dtype=np.int64)
+    start = np.zeros(n + 1, dtype=np.int64)
+    for q in range(indices.size):
+        start[indices[q] + 1] += 1
+    for j in range(n):
+        start[j + 1] += start[j]
+    order = np.empty(indices.size, dtype=np.int64)
+    for i in range(n):
+        for q in range(indptr[i], indptr[i + 1]):
+            rows[q] = i
+            j = indices[q]
+            order[start[j]] = q
+            start[j] += 1
+    return rows, order
 
 
 @dataclass
