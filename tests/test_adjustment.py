@@ -309,16 +309,19 @@ def test_assembler_reuses_its_structure_and_notices_a_new_pattern():
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-def test_normal_pattern_fills_scipys_lower_gram_matrix(seed):
+@pytest.mark.parametrize("slots_per_entry", [0, 100])
+def test_normal_pattern_fills_scipys_lower_gram_matrix(seed, slots_per_entry, monkeypatch):
     """lower(J^T J) filled into the kept pattern equals SciPy's product, empty columns keep an
     explicit zero diagonal, the damped copy adds on the diagonal only, and the pattern is reused
-    for new values of the same structure."""
+    for new values of the same structure; by the sets' slots and row by row alike."""
+    monkeypatch.setattr(assembly, "SLOTS_PER_ENTRY", slots_per_entry)
     rng = np.random.default_rng(seed)
     shape = (120, 45)
     pieces, _ = _random_pieces(rng, shape)
     assembler = assembly.JacobianAssembler()
     J = assembler.assemble(pieces, shape)
     P = assembler.normal_pattern(J)
+    assert P.by_slots == (slots_per_entry > 0)
     L = P.lower(J)
     np.testing.assert_allclose(L.toarray(), np.tril((J.T @ J).toarray()), rtol=1e-13, atol=1e-13)
     assert np.all(L.indices[P.diagonal] == np.arange(shape[1]))  # every diagonal entry, the last of its row
