@@ -905,6 +905,27 @@ def test_predicted_stop_does_not_trust_a_model_no_step_has_borne_out():
     np.testing.assert_allclose(out[True], out[False], rtol=1e-5)
 
 
+def test_posterior_seconds_count_what_the_posterior_formed_itself():
+    """A solve ended by an evaluated step leaves J and N at the solution to the posterior, which
+    times them apart (they are assembly and normal-matrix work, not covariance); a solve ended on
+    the predicted change leaves both formed."""
+    rng = np.random.default_rng(29)
+    x = rng.uniform(0.0, 4.0, 400)
+    y = 2.5 * np.exp(-0.3 * x) + 0.7 + rng.normal(scale=0.02, size=x.size)
+    for predicted, formed in ((False, True), (True, False)):
+        problem = Problem()
+        problem.add_block("theta", np.array([[2.4, -0.29, 0.71]]))
+        problem.add_group(ExpCurveGroup(x, y, 0.02))
+        result = problem.solve(SolverOptions(function_tolerance=1e-4, initial_lambda=1e-6, predicted_stop=predicted,
+                                             polish=False))
+        assert result.termination == "function_tolerance"
+        assert problem.posterior_seconds() == {"assembly": 0.0, "normal": 0.0}
+        problem.covariance("theta")
+        seconds = problem.posterior_seconds()
+        assert (seconds["assembly"] > 0.0) == formed, (result.termination, seconds)
+        assert seconds["normal"] >= 0.0
+
+
 def test_relative_to_fit_changes_nothing_where_the_variance_factor_is_below_one():
     """Weights a fifth looser than the noise (variance factor about 0.7): the same steps, the same estimate."""
     rng = np.random.default_rng(23)

@@ -87,6 +87,7 @@ class _Posterior:
     result: SolveResult | None = None
     components: tuple[VarianceComponent, ...] | None = None  # set: normal() is the component-weighted matrix
     columns: int = EXPECTED_COLUMNS  # unit columns the covariance queries will ask for (expect_covariance)
+    formed_s: tuple[float, float] = (0.0, 0.0)  # J's assembly and N's forming for it, once the outcome is gone
 
 
 class Problem:
@@ -210,6 +211,16 @@ class Problem:
         )
         return outcome.result
 
+    def posterior_seconds(self) -> dict[str, float]:
+        """Time the posterior of the last solve spent so far assembling ``J`` (``"assembly"``) and
+        forming ``N`` (``"normal"``) at the solution: the solve leaves them to it when its last
+        evaluated step ended it, or when its last steps ran by conjugate gradients without ``N``."""
+        post = self._posterior
+        if post is None:
+            return {"assembly": 0.0, "normal": 0.0}
+        a, n = (post.outcome.assembly_s, post.outcome.normal_s) if post.outcome is not None else post.formed_s
+        return {"assembly": a, "normal": n}
+
     def use_variance_components(self, pools: Sequence[Sequence[str]] | None = None, *,
                                 min_redundancy: float = MIN_REDUNDANCY, probes: int = PROBES,
                                 seed: int = 0) -> tuple[VarianceComponent, ...]:
@@ -268,6 +279,7 @@ class Problem:
             weighted = lower_triangle(normal_equations(sp.csr_matrix(Jw), np.zeros(J.shape[0]))[0])
         del J, factor
         post.outcome.normal_matrix(lower=True)  # frees J
+        post.formed_s = (post.outcome.assembly_s, post.outcome.normal_s)
         post.outcome = None
         post.normal = lambda: weighted
         post.components = comps

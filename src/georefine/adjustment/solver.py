@@ -315,6 +315,8 @@ class LMOutcome:
     _assembler: JacobianAssembler | None = None  # the solve's, whose structure fits J at the solution
 
     _jacobian_freed: bool = False
+    assembly_s: float = 0.0  # spent after the solve assembling J at the solution (for the posterior)
+    normal_s: float = 0.0  # spent after the solve forming N there
 
     def jacobian(self) -> sp.csr_matrix:
         """The whitened, robustly weighted ``J`` at the solution (rows in group order).
@@ -322,7 +324,9 @@ class LMOutcome:
         Available until :meth:`normal_matrix` is called without ``keep_jacobian``.
         """
         if self._normal is None:
+            t = time.perf_counter()
             self._normal = _normal_equations(self._evaluation, self._layout, self._assembler or JacobianAssembler())
+            self.assembly_s += time.perf_counter() - t
             self._evaluation = None
             self._assembler = None
         if self._jacobian_freed:
@@ -335,7 +339,9 @@ class LMOutcome:
         factorizer's symbolic analysis fits); ``J`` is freed unless ``keep_jacobian``."""
         if self._normal is None:
             self.jacobian()
+        t = time.perf_counter()
         N = self._normal.N_lower() if lower else self._normal.N()
+        self.normal_s += time.perf_counter() - t
         if not keep_jacobian and not self._jacobian_freed:
             kept = self._normal
             self._normal = NormalSystem(sp.csr_matrix((0, 0)), np.zeros(0), np.zeros(0), np.zeros(0), 0.0,
