@@ -392,7 +392,8 @@ factors): on the corridor's G/I the factor holds 50 entries per column in supern
 columns, for any flight length. There QDLDL's simplicial factorisation (installed with Georefine)
 beats CHOLMOD's supernodal one through CVXOPT, whose triplet conversion, symbolic analysis and
 factor copy cost more than its BLAS saves: factorisations 0.12 s against 0.20 s, posterior 0.06 s
-against 0.08 s (BENCHMARKS.md, Georefine against gtsam). The planes of the G/I/L fill its factor
+against 0.08 s (BENCHMARKS.md, Georefine against gtsam; scikit-sparse's CHOLMOD was not measured
+there). The planes of the G/I/L fill its factor
 (270 entries per column at 10 minutes of flight, supernodes of up to 1,192 columns), where
 CVXOPT is 1.8 times faster: it keeps the general order (:func:`~georefine.adjustment.linalg.available_backends`)."""
 
