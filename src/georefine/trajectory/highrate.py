@@ -129,8 +129,21 @@ def significant_content(x: np.ndarray, factor: float = LINE_FACTOR, block: int =
 
 def _integral(t: np.ndarray, y: np.ndarray) -> np.ndarray:
     """``int_{t[0]}^{t} y`` at the samples ``t``: the antiderivative of the interpolating cubic
-    spline (not-a-knot) of ``y`` (N, ...), zero at ``t[0]`` (module docstring)."""
-    return CubicSpline(t, y, axis=0).antiderivative()(t)
+    spline (not-a-knot) of ``y`` (N, ...), zero at ``t[0]`` (module docstring).
+
+    The integral of each piece from its coefficients, summed: the same numbers as
+    ``CubicSpline.antiderivative()(t)``, without the quartic spline and the search of every
+    sample's piece that evaluating it takes (0.3 of 0.6 s on the 60-minute flight's IMU series,
+    and what made the up-sampling grow faster than the flight)."""
+    if t.size < 2:
+        return np.zeros_like(y, dtype=np.float64)
+    c = CubicSpline(t, y, axis=0).c  # (4, N - 1, ...): c0 x^3 + c1 x^2 + c2 x + c3 on each piece
+    h = np.diff(t).reshape((-1,) + (1,) * (y.ndim - 1))
+    pieces = (((c[0] * (h / 4.0) + c[1] / 3.0) * h + c[2] / 2.0) * h + c[3]) * h
+    out = np.empty(y.shape, dtype=np.float64)
+    out[0] = 0.0
+    np.cumsum(pieces, axis=0, out=out[1:])
+    return out
 
 
 def _segments(time: np.ndarray, rate_hz: float, max_gap_factor: float = 1.5) -> list[slice]:
