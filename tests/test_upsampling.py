@@ -262,3 +262,20 @@ def test_navigation_grade_imu_on_a_vibrating_platform_states_honest_sigmas(tmp_p
         assert np.all((acc.z_rms[:2] > 0.5) & (acc.z_rms[:2] < 2.0)), acc.z_rms
         assert acc.z_rms[2] > 0.3, acc.z_rms  # yaw: one sample of a slow error per pass
         assert np.all(acc.beyond_3_sigma <= 0.01), acc.beyond_3_sigma
+
+
+@pytest.mark.parametrize("n", [2, 3, 4, 5, 9, 1000])
+def test_cubic_integral_is_scipys_not_a_knot_antiderivative(n):
+    """The integral of the samples' not-a-knot cubic spline, solved and summed here, equals
+    SciPy's ``CubicSpline(t, y).antiderivative()(t)`` on irregular spacing, one or many columns."""
+    from scipy.interpolate import CubicSpline
+
+    from georefine.trajectory.highrate import _integral
+
+    rng = np.random.default_rng(n)
+    t = np.cumsum(rng.uniform(0.5, 1.5, n)) * 5e-3
+    for y in (rng.normal(size=n).cumsum(), rng.normal(size=(n, 3)).cumsum(axis=0)):
+        ref = CubicSpline(t, y, axis=0).antiderivative()(t)
+        got = _integral(t, y)
+        assert got.shape == y.shape
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * max(1.0, np.abs(ref).max()))
