@@ -279,3 +279,24 @@ def test_cubic_integral_is_scipys_not_a_knot_antiderivative(n):
         got = _integral(t, y)
         assert got.shape == y.shape
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12 * max(1.0, np.abs(ref).max()))
+
+
+def test_significant_content_block_by_block_equals_the_whole_series(monkeypatch):
+    """Stretches of a few STFT hops with a window's margin either side give the whole series'
+    result exactly (every block's bins and noise are its own), with ``also`` too, whatever the
+    series' length against the stretch."""
+    import georefine.trajectory.highrate as highrate
+
+    rng = np.random.default_rng(31)
+    n = 12_345
+    t = np.arange(n) / 200.0
+    x = rng.normal(size=(n, 3)) + 0.4 * np.sin(2 * np.pi * 13.0 * t)[:, None]
+    u = rng.normal(size=(n, 3))
+    monkeypatch.setattr(highrate, "STFT_CHUNK_BLOCKS", 10**6)
+    whole, whole_u = significant_content(x, block=256, also=u)
+    assert np.abs(whole).max() > 0.1  # the 13 Hz line passes
+    monkeypatch.setattr(highrate, "STFT_CHUNK_BLOCKS", 4)
+    parts, parts_u = significant_content(x, block=256, also=u)
+    np.testing.assert_allclose(parts, whole, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(parts_u, whole_u, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(significant_content(x, block=256), whole, rtol=0, atol=1e-12)

@@ -111,12 +111,43 @@ def significant_content(x: np.ndarray, factor: float = LINE_FACTOR, block: int =
     ``also`` (N, C): another signal put through the same bins (the same linear filter), returned
     second: what the filter takes out of a known noise (:meth:`HighRateMotion.removed_noise`).
     """
-    from scipy.signal import istft, stft
-
     n = x.shape[0]
     nper = min(block, n)
     if nper < 64:
         return np.zeros_like(x) if also is None else (np.zeros_like(x), np.zeros_like(also))
+    # Block by block of time: every block's bins and noise are its own, so a stretch of samples
+    # with a margin of one window either side gives exactly the whole series' result there, with
+    # the stretch's start on the blocks' grid. Over the whole 60-minute series at once the
+    # transforms' arrays left the cache (the inverse took 15x the time for 6x the samples).
+    hop = nper // 2
+    step = STFT_CHUNK_BLOCKS * hop
+    if n <= step + 2 * nper:
+        return _significant_stretch(x, nper, factor, also)
+    out = np.empty_like(x, dtype=np.float64)
+    out_also = None if also is None else np.empty_like(also, dtype=np.float64)
+    for a in range(0, n, step):
+        b = min(a + step, n)
+        lo, hi = max(0, a - nper), min(n, b + nper)
+        part = _significant_stretch(x[lo:hi], nper, factor, None if also is None else also[lo:hi])
+        if also is None:
+            out[a:b] = part[a - lo:b - lo]
+        else:
+            out[a:b] = part[0][a - lo:b - lo]
+            out_also[a:b] = part[1][a - lo:b - lo]
+    return out if also is None else (out, out_also)
+
+
+STFT_CHUNK_BLOCKS = 128
+"""Hops of the short-time Fourier transform per stretch of :func:`significant_content` (131,072
+samples with the default blocks, 13 MB of transform for six channels)."""
+
+
+def _significant_stretch(x: np.ndarray, nper: int, factor: float, also: np.ndarray | None):
+    """:func:`significant_content` of one stretch, transformed whole."""
+    from scipy.signal import istft, stft
+
+    n = x.shape[0]
+
     def spectrum(signal):
         return stft(signal.T, nperseg=nper, noverlap=nper // 2, window="hann")[2]
 
