@@ -63,7 +63,7 @@ from georefine.adjustment.blocks import (
     ObservationGroup,
     ParameterBlock,
 )
-from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler, column_squares
+from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler, column_squares, lower_triangle, normal_equations
 from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky, available_backends
 from georefine.adjustment.pcg import PCG_STALE_ITERATIONS, NormalSystem, pcg_step
 from georefine.adjustment.robust import irls_weights
@@ -332,6 +332,24 @@ class LMOutcome:
         if self._jacobian_freed:
             raise RuntimeError("jacobian(): J was freed when the normal matrix was formed")
         return self._normal.J
+
+    def weighted_normal_lower(self, row_weights: np.ndarray) -> sp.csr_matrix:
+        """The lower triangle of ``J^T diag(row_weights) J`` at the solution (``J`` must still be
+        kept): in the pattern of the solve's damped matrices where the solve kept one (the rows
+        scaled in place of a copy of ``J``, same structure), so the factorizer's symbolic
+        analysis fits it too; else SciPy's product."""
+        J = self.jacobian()
+        w = np.sqrt(np.asarray(row_weights, dtype=np.float64))
+        t = time.perf_counter()
+        pattern = self._normal.pattern
+        if pattern is not None and pattern.fits(J):
+            Jw = sp.csr_matrix((J.data * np.repeat(w, np.diff(J.indptr)), J.indices, J.indptr), shape=J.shape)
+            Jw.has_sorted_indices = True
+            N = pattern.lower(Jw)
+        else:
+            N = lower_triangle(normal_equations(sp.csr_matrix(sp.diags(w) @ J), np.zeros(J.shape[0]))[0])
+        self.normal_s += time.perf_counter() - t
+        return N
 
     def normal_matrix(self, keep_jacobian: bool = False, lower: bool = False) -> sp.csr_matrix:
         """``N = J^T W J`` at the solution (CSR; full symmetric, or with ``lower`` its lower
