@@ -104,6 +104,33 @@ def test_the_components_weight_the_posterior_group_by_group():
         problem.covariance("x")
 
 
+def test_the_weighted_posterior_reuses_the_solves_analysis():
+    """The component-weighted normal matrix is filled in the solve's pattern: its factorisation
+    needs no second symbolic analysis, and gives the dense inverse's blocks. ``x_0`` and ``x_3``
+    meet only through the zeros the groups' blocks hold, which SciPy's product had dropped (a
+    pattern of its own, analysed again)."""
+    rng = np.random.default_rng(8)
+    m = 3000
+    x_true = np.array([0.3, -1.0, 2.0, 0.5])
+    A = np.c_[rng.normal(size=(m, 3)), np.zeros(m)]
+    B = np.c_[np.zeros(m), rng.normal(size=(m, 3))]
+    problem = Problem()
+    problem.add_block("x", np.zeros((1, 4)))
+    problem.add_group(Linear("a", A, A @ x_true + 3.0 * rng.normal(size=m), 1.0))
+    problem.add_group(Linear("b", B, B @ x_true + 1.0 * rng.normal(size=m), 1.0))
+    problem.add_group(Linear("prior", np.eye(4)[:1], x_true[:1] + 10 * rng.normal(size=1), 10.0))
+    problem.solve(SolverOptions(linear_solver="qdldl"))
+    comps = {c.groups: c for c in problem.use_variance_components()}
+    assert comps[("a",)].scale > 2.0 and comps[("b",)].scale == 1.0  # the weighted path
+    factorizer = problem._posterior.factorizer
+    analyses = factorizer.analyses
+    cov = problem.covariance("x", scale_by_variance_factor=False)[0]
+    assert factorizer.analyses == analyses
+    P = np.eye(4)[:1] / 10.0
+    expected = np.linalg.inv(A.T @ A / comps[("a",)].scale + B.T @ B + P.T @ P)
+    np.testing.assert_allclose(cov, expected, rtol=1e-8)
+
+
 def test_pools_take_the_rest_from_the_exact_redundancy():
     rng = np.random.default_rng(9)
     problem, A, B = _two_group_problem(rng, np.array([0.3, -1.0, 2.0]), 2000, 3.0, 1.0)
