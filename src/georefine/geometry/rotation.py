@@ -62,27 +62,33 @@ def exp_so3(phi: np.ndarray) -> np.ndarray:
 
 @numba.njit(cache=True, nogil=True)
 def _exp_so3(phi, out):  # pragma: no cover - numba
-    """``out[n] = I + a K + b K^2`` with ``K = skew(phi[n])`` and the coefficients of :func:`_coefficients`."""
+    """``out[n] = Exp(phi[n])`` for every row (:func:`exp_so3_into`)."""
     for n in range(phi.shape[0]):
-        x, y, z = phi[n, 0], phi[n, 1], phi[n, 2]
-        t2 = x * x + y * y + z * z
-        theta = np.sqrt(t2)
-        if theta < 1e-4:
-            a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
-            b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
-        else:
-            a = np.sin(theta) / theta
-            b = (1.0 - np.cos(theta)) / t2
-        # K^2 = phi phi^T - |phi|^2 I
-        out[n, 0, 0] = 1.0 + b * (x * x - t2)
-        out[n, 1, 1] = 1.0 + b * (y * y - t2)
-        out[n, 2, 2] = 1.0 + b * (z * z - t2)
-        out[n, 0, 1] = -a * z + b * x * y
-        out[n, 1, 0] = a * z + b * x * y
-        out[n, 0, 2] = a * y + b * x * z
-        out[n, 2, 0] = -a * y + b * x * z
-        out[n, 1, 2] = -a * x + b * y * z
-        out[n, 2, 1] = a * x + b * y * z
+        exp_so3_into(phi[n], out[n])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def exp_so3_into(phi, out):  # pragma: no cover - numba
+    """``Exp(phi)`` of one rotation vector into ``out`` (3, 3), for numba kernels:
+    ``I + a K + b K^2`` with ``K = skew(phi)`` and the coefficients of :func:`_coefficients`."""
+    t2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
+    t = np.sqrt(t2)
+    if t < 1e-4:
+        a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
+        b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
+    else:
+        a = np.sin(t) / t
+        b = (1.0 - np.cos(t)) / t2
+    x, y, z = phi[0], phi[1], phi[2]
+    out[0, 0] = 1.0 - b * (y * y + z * z)
+    out[1, 1] = 1.0 - b * (x * x + z * z)
+    out[2, 2] = 1.0 - b * (x * x + y * y)
+    out[0, 1] = -a * z + b * x * y
+    out[1, 0] = a * z + b * x * y
+    out[0, 2] = a * y + b * x * z
+    out[2, 0] = -a * y + b * x * z
+    out[1, 2] = -a * x + b * y * z
+    out[2, 1] = a * x + b * y * z
 
 
 def log_so3(R: np.ndarray) -> np.ndarray:

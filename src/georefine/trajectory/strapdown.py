@@ -36,6 +36,7 @@ import numpy as np
 
 from georefine.geometry import earth
 from georefine.geometry.frames import LocalFrame
+from georefine.geometry.rotation import exp_so3_into
 
 _A, _B = earth.WGS84_A, earth.WGS84_B
 _E2, _EP2, _F = earth.WGS84_E2, earth.WGS84_EP2, earth.WGS84_F
@@ -103,29 +104,6 @@ def _gravity_w(p_w, R_e_w, p_e_w, out):
 
 
 @nb.njit(cache=True)
-def _exp(phi, out):
-    """Rotation matrix Exp(phi) into ``out`` (3,3)."""
-    t2 = phi[0] * phi[0] + phi[1] * phi[1] + phi[2] * phi[2]
-    t = np.sqrt(t2)
-    if t < 1e-4:
-        a = 1.0 - t2 / 6.0 + t2 * t2 / 120.0
-        b = 0.5 - t2 / 24.0 + t2 * t2 / 720.0
-    else:
-        a = np.sin(t) / t
-        b = (1.0 - np.cos(t)) / t2
-    x, y, z = phi[0], phi[1], phi[2]
-    out[0, 0] = 1.0 - b * (y * y + z * z)
-    out[1, 1] = 1.0 - b * (x * x + z * z)
-    out[2, 2] = 1.0 - b * (x * x + y * y)
-    out[0, 1] = -a * z + b * x * y
-    out[1, 0] = a * z + b * x * y
-    out[0, 2] = a * y + b * x * z
-    out[2, 0] = -a * y + b * x * z
-    out[1, 2] = -a * x + b * y * z
-    out[2, 1] = a * x + b * y * z
-
-
-@nb.njit(cache=True)
 def _cross(a, b, out):
     out[0] = a[1] * b[2] - a[2] * b[1]
     out[1] = a[2] * b[0] - a[0] * b[2]
@@ -179,7 +157,7 @@ def _step(p, v, R, w0, f0, wm, fm, w1, f1, dt, R_e_w, p_e_w, w_ie, p_out, v_out,
         th[i] = 0.5 * dt * k1[i]
         v2[i] = v[i] + 0.5 * dt * a1[i]
         pi[i] = p[i] + 0.5 * dt * v[i]
-    _exp(th, E)
+    exp_so3_into(th, E)
     Ri[:, :] = R @ E
     _derivs(Ri, v2, pi, wm, fm, R_e_w, p_e_w, w_ie, om, a2)
     _jr_inv_apply(th, om, k2)
@@ -188,7 +166,7 @@ def _step(p, v, R, w0, f0, wm, fm, w1, f1, dt, R_e_w, p_e_w, w_ie, p_out, v_out,
         th[i] = 0.5 * dt * k2[i]
         v3[i] = v[i] + 0.5 * dt * a2[i]
         pi[i] = p[i] + 0.5 * dt * v2[i]
-    _exp(th, E)
+    exp_so3_into(th, E)
     Ri[:, :] = R @ E
     _derivs(Ri, v3, pi, wm, fm, R_e_w, p_e_w, w_ie, om, a3)
     _jr_inv_apply(th, om, k3)
@@ -197,7 +175,7 @@ def _step(p, v, R, w0, f0, wm, fm, w1, f1, dt, R_e_w, p_e_w, w_ie, p_out, v_out,
         th[i] = dt * k3[i]
         v4[i] = v[i] + dt * a3[i]
         pi[i] = p[i] + dt * v3[i]
-    _exp(th, E)
+    exp_so3_into(th, E)
     Ri[:, :] = R @ E
     _derivs(Ri, v4, pi, w1, f1, R_e_w, p_e_w, w_ie, om, a4)
     _jr_inv_apply(th, om, k4)
@@ -205,7 +183,7 @@ def _step(p, v, R, w0, f0, wm, fm, w1, f1, dt, R_e_w, p_e_w, w_ie, p_out, v_out,
         th[i] = dt / 6.0 * (k1[i] + 2.0 * k2[i] + 2.0 * k3[i] + k4[i])
         v_out[i] = v[i] + dt / 6.0 * (a1[i] + 2.0 * a2[i] + 2.0 * a3[i] + a4[i])
         p_out[i] = p[i] + dt / 6.0 * (v[i] + 2.0 * v2[i] + 2.0 * v3[i] + v4[i])
-    _exp(th, E)
+    exp_so3_into(th, E)
     R_out[:, :] = R @ E
 
 
