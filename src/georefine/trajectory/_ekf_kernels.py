@@ -10,6 +10,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from georefine.geometry.rotation import exp_so3_into
 from georefine.trajectory import strapdown as sd
 
 _NX = 21  # error states: 15 navigation + 6 scale factors
@@ -96,7 +97,7 @@ def _inject(k, d, P_n, V_n, R_n, nom, E):
     for i in range(3):
         P_n[k, i] += d[i]
         V_n[k, i] += d[3 + i]
-    sd._exp(d[6:9].copy(), E)
+    exp_so3_into(d[6:9].copy(), E)
     R_n[k] = R_n[k] @ E
     for i in range(12):
         nom[i] += d[9 + i]
