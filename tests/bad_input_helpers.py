@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Callable
 
-from cli_helpers import run_georefine_here
+from cli_helpers import messages, run_georefine_here
 
 
 def lines(p: Path) -> list[str]:
@@ -51,7 +51,7 @@ def assert_refused(name: str, commands: list[list[str]], words: tuple[str, ...],
     """Each command exits 2 with one line on stderr holding ``words``, no traceback, and ``out`` is not made."""
     for cmd in commands:
         run = run_georefine_here(*cmd)
-        err = run.stderr.strip()
+        err = messages(run.stderr).strip()
         assert run.returncode == 2, (name, cmd[0], run.returncode, run.stderr[-2000:])
         assert "Traceback" not in run.stderr and err.count("\n") == 0 and err.startswith("error: "), (name, err)
         for w in words:

@@ -5,6 +5,7 @@ of start-up that each fresh process spends importing)."""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -37,3 +38,11 @@ def run_georefine_here(*args: str) -> subprocess.CompletedProcess:
     else:
         stderr = result.stderr
     return subprocess.CompletedProcess(["georefine", *args], result.exit_code, result.stdout, stderr)
+
+
+STAGE_LINE = re.compile(r"^\d{4}-\d\d-\d\d \d\d:\d\d:\d\d  ")  # georefine.cli.stages' lines off a terminal
+
+
+def messages(stderr: str) -> str:
+    """``stderr`` without the timestamped stage lines a command prints off a terminal: its messages."""
+    return "\n".join(line for line in stderr.splitlines() if not STAGE_LINE.match(line))

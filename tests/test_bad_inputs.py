@@ -24,7 +24,7 @@ from bad_input_helpers import set_field as _set_field
 from bad_input_helpers import truncate as _truncate
 from bad_input_helpers import write as _write
 from cli_helpers import run_georefine as _georefine
-from cli_helpers import run_georefine_here
+from cli_helpers import messages, run_georefine_here
 from test_bad_photo_inputs import PHOTO_CASES
 from georefine.sim.scenarios import simulate_project
 
@@ -244,7 +244,7 @@ def _cut_sbet(folder: Path) -> Path:
 def test_a_bad_option_is_one_line_and_exit_2(clean, tmp_path, name, args, words):
     before = sorted(q.name for q in clean.rglob("*"))
     run = run_georefine_here(*args(clean, tmp_path))
-    err = run.stderr.strip()
+    err = messages(run.stderr).strip()
     assert run.returncode == 2 and "Traceback" not in run.stderr and err.count("\n") == 0, (name, run.stderr[-2000:])
     assert all(w in err for w in words), (name, err)
     assert sorted(q.name for q in clean.rglob("*")) == before and not (tmp_path / "o").exists()

@@ -311,4 +311,4 @@ def test_map_keeps_the_order_and_reports_progress():
         out = list(runner.map(pow, [(k, 2) for k in range(20)], window=3, label="squares",
                               progress=lambda *a: calls.append(a)))
     assert out == [k * k for k in range(20)]
-    assert calls[-1] == ("squares", 20, 20.0) and len(calls) == 20
+    assert calls[0] == ("squares", 0, 20.0) and calls[-1] == ("squares", 20, 20.0) and len(calls) == 21

@@ -18,6 +18,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+from cli_helpers import STAGE_LINE, messages
 from shared_projects import README_SEED
 from truth_helpers import pass_rmse
 
@@ -185,6 +186,11 @@ def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_pat
                           env={**os.environ, "COLUMNS": "200"})
     assert proc.returncode == 0, proc.stderr
     assert "yaw RMSE" in proc.stdout and "report:" in proc.stdout and "AVG-SD" in proc.stdout
+    # Off a terminal (`georefine demo > log 2>&1`) the stages are timestamped lines, kept in OUT/georefine.log too.
+    stages = [line for line in proc.stderr.splitlines() if STAGE_LINE.match(line)]
+    assert any(line.endswith("G/I/L posterior sigma: started") for line in stages), proc.stderr[-3000:]
+    log = (out / "georefine.log").read_text().splitlines()
+    assert all(line in log for line in stages) and "demo" in log[0]
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["timings_s"]["simulate"] < 1.0  # reused
     assert "gil_posterior" in json.loads((out / "run" / "metrics.json").read_text())["resumed"]
@@ -330,7 +336,7 @@ def test_a_strip_outside_the_trajectory_is_an_error_not_an_empty_file(sparse_pro
                            str(tmp_path / "pass1.sbet"), "--out", str(tmp_path / "o")], capture_output=True, text=True)
     assert proc.returncode == 2, proc.stderr
     assert "strip_2.laz" in proc.stderr and "gps_time" in proc.stderr and "inside the trajectory" in proc.stderr
-    assert proc.stderr.strip().count("\n") == 0 and "Traceback" not in proc.stderr
+    assert messages(proc.stderr).strip().count("\n") == 0 and "Traceback" not in proc.stderr
     assert not (tmp_path / "o").exists()
 
 

@@ -203,13 +203,14 @@ class TaskRunner:
 
         At most ``window`` tasks (default two per task slot) are submitted ahead of the result the
         caller takes next, so memory holds at most that many results. ``progress(label, done,
-        total)`` is reported as results are taken. An exception in a task is raised here, with
+        total)`` is reported before the first task and as results are taken. An exception in a task is raised here, with
         the pending tasks cancelled.
         """
         items = iter(args)
         if total is None and hasattr(args, "__len__"):
             total = len(args)  # type: ignore[arg-type]
         total_f = float(total) if total is not None else float("nan")
+        progress(label, 0, total_f)  # the stage starts now, not when its first task ends
         if self.scheduler == "sync":
             for done, a in enumerate(items, 1):
                 value = fn(*a)

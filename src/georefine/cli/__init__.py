@@ -43,12 +43,15 @@ def main(
     verbose: bool = typer.Option(False, "--verbose", "-v", help="Log progress details to standard error."),
 ) -> None:
     """Georefine: tightly-coupled GNSS/IMU/LiDAR trajectory estimation and lidargrammetry."""
+    level = logging.INFO if verbose else logging.WARNING
     logging.basicConfig(
-        level=logging.INFO if verbose else logging.WARNING,
+        level=level,
         format="%(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
         force=True,  # this command's stderr, also when the application runs again in one process (the tests)
     )
+    for handler in logging.getLogger().handlers:  # the output folder's log takes INFO whatever --verbose says
+        handler.setLevel(level)
     # laspy logs a read error before raising it; the reader turns it into the command's one line
     logging.getLogger("laspy").setLevel(logging.CRITICAL)
 
@@ -114,10 +117,10 @@ def trajectory(
     configuration.
     """
     with user_errors():
-        output_ok(out, force)
+        output_ok(out, force, project)
         from georefine.workflows import run_trajectory
 
-        with progress() as report:
+        with progress(out) as report:
             result = run_trajectory(project, out, filter_only=filter_only, progress=report)
     stdout.print(result.summary())
 
@@ -142,7 +145,7 @@ def run(
     step's result is cached in OUT/.cache: a rerun resumes what its inputs have not changed.
     """
     with user_errors():
-        output_ok(out, force)
+        output_ok(out, force, project)
         from georefine.errors import InputError
         from georefine.workflows.lidar import run_workflow
 
@@ -153,7 +156,7 @@ def run(
             except ValueError:
                 raise InputError("strip ids must be integers", field="--strips", found=repr(strips)) from None
         try:
-            with progress() as report:
+            with progress(out) as report:
                 result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh,
                                       points=not no_points, progress=report, scheduler=scheduler)
         except InputError as exc:
@@ -176,10 +179,10 @@ def georeference(
 ) -> None:
     """Georeference the project's strips with a trajectory (LAZ 1.4 in the output CRS)."""
     with user_errors():
-        output_ok(out, force)
+        output_ok(out, force, project)
         from georefine.workflows import run_georeference
 
-        with progress() as report:
+        with progress(out) as report:
             result = run_georeference(project, trajectory_file, out, gps_week=gps_week, progress=report,
                                       scheduler=scheduler)
     stdout.print(result.summary())
@@ -225,7 +228,7 @@ def import_strips_cmd(
         from georefine.workflows.import_strips import import_strips
 
         arm, bs = _vector3(lever_arm, "--lever-arm"), _vector3(boresight, "--boresight")
-        with progress() as report:
+        with progress(out) as report:
             result = import_strips(strips, sbet, out, lever_arm_m=arm, boresight_deg=bs, smrmsg=smrmsg,
                                    gps_week=gps_week, imu=imu, progress=report, scheduler=scheduler)
     stdout.print(result.summary())
@@ -260,7 +263,7 @@ def demo(
         output_ok(out, force)
         from georefine.demo.corridor import run_demo
 
-        with progress() as report:
+        with progress(out) as report:
             result = run_demo(out, scenario=scenario, seed=seed, overrides=overrides or [], single_pass=single_pass,
                               progress=report, scheduler=scheduler)
     from rich.table import Table
@@ -286,7 +289,7 @@ def _block_demo(out: Path, seed: int, overrides: list[str], method: str, schedul
                              found=method)
         from georefine.demo.block import run_block_demo
 
-        with progress() as report:
+        with progress(out) as report:
             result = run_block_demo(out, seed=seed, overrides=overrides, method=method, progress=report,
                                     scheduler=scheduler)
     from rich.table import Table
@@ -329,10 +332,10 @@ def lidargrams(
     Also writes the resolved configuration (config.resolved.yaml).
     """
     with user_errors():
-        output_ok(out, force)
+        output_ok(out, force, project)
         from georefine.workflows.lidargrammetry import run_lidargrams
 
-        with progress() as report:
+        with progress(out) as report:
             names = run_lidargrams(project, points, out, progress=report, scheduler=scheduler,
                                    overrides=_given(lidargram_scale=scale, per_strip=False if merged else None))
     stdout.print(f"{len(names)} lidargrams written to {out}")
@@ -375,13 +378,13 @@ def match(
     processing.lidargrammetry of project.yaml.
     """
     with user_errors():
-        output_ok(out, force)
+        output_ok(out, force, project)
         from georefine.workflows.lidargrammetry import run_match
 
         kinds = None if pairs is None else [k.strip() for k in pairs.split(",") if k.strip()]
         overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
                      **_given(pair_kinds=kinds, lidargram_scale=scale)}
-        with progress() as report:
+        with progress(out) as report:
             summary = run_match(project, points, out, overrides=overrides, progress=report, scheduler=scheduler)
     stdout.print(f"{summary.photos} photos, {summary.lidargrams} lidargrams, {summary.tracks} tracks")
     for k in summary.pair_kinds:
@@ -418,14 +421,14 @@ def coadjust(
     processing.lidargrammetry of project.yaml.
     """
     with user_errors():
-        output_ok(out, force)
+        output_ok(out, force, project)
         from georefine.workflows.lidargrammetry import run_coadjust
 
         sig_r = None if sigma_rotation is None else [v.strip() for v in sigma_rotation.split(",")]
         overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
                      **_given(use_depth=False if no_depth else None, lidargram_sigma_position_m=sigma_position,
                               lidargram_sigma_rotation_deg=sig_r)}
-        with progress() as report:
+        with progress(out) as report:
             m = run_coadjust(project, points, out, case, overrides=overrides, progress=report, scheduler=scheduler)
     stdout.print(f"case {case}: {m.description}")
     for label, st in (("control points", m.control_points), ("check points", m.check_points)):
@@ -467,12 +470,12 @@ def hybrid(
     processing.lidargrammetry of project.yaml.
     """
     with user_errors():
-        output_ok(out, force)
+        output_ok(out, force, project)
         from georefine.workflows.hybrid import run_hybrid
 
         overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
                      **_given(return_keypoint_offset=True if keypoint_offset else None)}
-        with progress() as report:
+        with progress(out) as report:
             m = run_hybrid(project, out, case=case, planes=planes, overrides=overrides, resume=not fresh,
                            progress=report, scheduler=scheduler)
     stdout.print(m.summary())

@@ -3,6 +3,7 @@ several commands, the error and output-folder handling, the progress bar."""
 
 from __future__ import annotations
 
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator, Optional
@@ -33,11 +34,17 @@ def force_option():
                         "(its files of the same names are replaced).")
 
 
-def output_ok(out: Optional[Path], force: bool) -> None:
-    """Refuse an output folder that holds files Georefine did not write, unless --force (io.files.refuse_foreign_output)."""
+def output_ok(out: Optional[Path], force: bool, project: Optional[Path] = None) -> None:
+    """Refuse an output folder that holds files Georefine did not write, unless --force
+    (io.files.refuse_foreign_output), and one inside ``project`` (workflows.project.output_folder):
+    before :func:`progress` makes the folder for its log."""
     if out is not None:
         from georefine.io.files import refuse_foreign_output
 
+        if project is not None:
+            from georefine.workflows.project import output_folder
+
+            output_folder(out, Path(project))
         refuse_foreign_output(out, force)
 
 
@@ -52,8 +59,15 @@ def user_errors() -> Iterator[None]:
 
 
 @contextmanager
-def progress() -> Iterator:
-    """A rich progress bar; yields ``report(task, done, total)`` for the library to call."""
+def progress(out: Optional[Path] = None) -> Iterator:
+    """Progress of a command; yields ``report(task, done, total)`` for the library to call.
+
+    Bars on a terminal that all end complete; off a terminal plain, timestamped stage lines on
+    standard error (:class:`~georefine.cli.stages.StageLog`). With an output folder ``out``
+    (made here, as :func:`~georefine.io.files.make_output_folder` does) the stage lines and
+    Georefine's log records also go to ``out/georefine.log``; Ctrl-C then removes the empty
+    folders the run made, says where it stopped and how to go on, and exits with 130.
+    """
     from rich.progress import (
         BarColumn,
         Progress,
@@ -62,20 +76,81 @@ def progress() -> Iterator:
         TimeRemainingColumn,
     )
 
-    with Progress(
-        TextColumn("{task.description:<28}"),
-        BarColumn(),
-        TextColumn("{task.percentage:>5.1f}%"),
-        TimeElapsedColumn(),
-        TimeRemainingColumn(),
-        console=console,
-        disable=not console.is_terminal,
-    ) as progress:
-        tasks: dict[str, int] = {}
+    from georefine.cli import stages as st
 
-        def report(name: str, done: float, total: float) -> None:
-            if name not in tasks:
-                tasks[name] = progress.add_task(name, total=total)
-            progress.update(tasks[name], completed=done, total=total)
+    terminal = console.is_terminal
+    writers = [] if terminal else [lambda line: console.print(line, markup=False, highlight=False, soft_wrap=True)]
+    detach, before, created, write_file = None, set(), False, None
+    if out is not None:
+        from georefine.io.files import make_output_folder
 
-        yield report
+        before, created = st.folder_snapshot(out), not out.exists()
+        make_output_folder(out)
+        write_file, detach = st.attach_log_file(out)
+        writers.append(write_file)
+    log = st.StageLog(lambda line: [w(line) for w in writers])
+    started = time.monotonic()
+    try:
+        with Progress(
+            TextColumn("{task.description:<28}"),
+            BarColumn(),
+            TextColumn("{task.percentage:>5.1f}%"),
+            TimeElapsedColumn(),
+            TimeRemainingColumn(),
+            console=console,
+            disable=not terminal,
+        ) as bars:
+            tasks: dict[str, int] = {}
+
+            def report(name: str, done: float, total: float) -> None:
+                if name not in tasks:
+                    tasks[name] = bars.add_task(name, total=total)
+                bars.update(tasks[name], completed=done, total=total)
+                log.report(name, done, total)
+
+            try:
+                yield report
+            except KeyboardInterrupt:
+                _interrupted(out, before, log.running(), time.monotonic() - started, log)
+                raise typer.Exit(130) from None
+            except GeorefineError as exc:
+                if write_file is not None:  # the command prints it (user_errors); the log keeps it too
+                    st.StageLog(write_file).note(f"error: {exc}")
+                raise
+            for task in bars.tasks:  # a stage that stopped short of its total (converged early) is done
+                bars.update(task.id, completed=task.total)
+            log.close()
+    finally:
+        if detach is not None:
+            detach()
+            if created and out is not None:
+                _drop_if_unused(out)
+
+
+def _drop_if_unused(out: Path) -> None:
+    """Remove an output folder this command made if it holds nothing but its mark and the log (a
+    command that failed on its input, or was interrupted, before writing anything)."""
+    import shutil
+
+    from georefine.cli.stages import LOG_NAME
+    from georefine.io.files import OUTPUT_MARK
+
+    if out.is_dir() and {e.name for e in out.iterdir()} <= {OUTPUT_MARK, LOG_NAME}:
+        shutil.rmtree(out, ignore_errors=True)
+
+
+def _interrupted(out: Optional[Path], before: set, running: list[str], elapsed: float, log) -> None:
+    from georefine.cli import stages as st
+
+    where = f" during {', '.join(running)}" if running else ""
+    message = f"interrupted{where} after {st.format_duration(elapsed)}."
+    if out is not None:
+        st.remove_new_empty_folders(out, before)
+        if (out / ".cache").is_dir():
+            message += (f" The steps that finished are kept in {out / '.cache'}: run the same command again "
+                        "to resume from there.")
+        else:
+            message += " Run the same command again to start over."
+    log.note(message)
+    if console.is_terminal:  # off a terminal the stage log just printed it
+        console.print(message, style="bold yellow", markup=False, highlight=False, soft_wrap=True)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import signal
 import queue
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
@@ -57,6 +58,12 @@ class QueuedProgress:
         self.events.put((f"{self.prefix}{name}", done, total))
 
 
+def _ignore_interrupts() -> None:
+    """The worker leaves Ctrl-C to the main process, which ends it (a terminal sends SIGINT to the
+    whole process group: without this the worker printed its own traceback)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
 class Lanes:
     """A one-worker process pool (spawn) whose progress reports reach ``progress``.
 
@@ -74,14 +81,22 @@ class Lanes:
     def __enter__(self) -> "Lanes":
         self._manager = self._ctx.Manager()
         self.events = self._manager.Queue()
-        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx)
+        self._pool = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx, initializer=_ignore_interrupts)
         return self
 
-    def __exit__(self, *exc) -> None:
+    def __exit__(self, exc_type, *exc) -> None:
         try:
             if self._pool is not None:
-                self._pool.shutdown(wait=True)
-            self.drain()
+                if exc_type is None:
+                    self._pool.shutdown(wait=True)
+                else:  # Ctrl-C or an error in this process: the worker's job is abandoned, not awaited
+                    workers = list(getattr(self._pool, "_processes", {}).values())
+                    self._pool.shutdown(wait=False, cancel_futures=True)
+                    for worker in workers:
+                        worker.terminate()
+                        worker.join(timeout=10)
+            if exc_type is None:
+                self.drain()
         finally:
             if self._manager is not None:
                 self._manager.shutdown()

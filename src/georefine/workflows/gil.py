@@ -235,6 +235,7 @@ def step_adjust_gil(
         result = solve_gnss_imu(built, options, progress=report, covariance=False)
         if tcfg.upsampling:
             result = replace(result, high_rate=rebuild_high_rate(nav.gnss, result))
+    progress("G/I/L adjustment", 1, 1)  # it reports iterations of its limit; it ended here
     bs_deg = None
     if gil.boresight:
         R = P.values("boresight")[0]

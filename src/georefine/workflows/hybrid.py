@@ -408,7 +408,9 @@ def _solve(nav: NavigationData, hb: _Built, progress: Progress) -> GnssImuResult
     # block's hybrid had stopped after 5 steps at 0.2 % of the cost above its solution, its cloud
     # 0.095 m inside the photos against 0.093 m at the solution (11 steps).
     options = trajectory_solver_options(tcfg, initial_lambda=lcfg.initial_lambda)
-    return solve_gnss_imu(hb.built, options, progress=report, covariance=False)
+    result = solve_gnss_imu(hb.built, options, progress=report, covariance=False)
+    progress("hybrid adjustment", 1, 1)  # it reports iterations of its limit; it ended here
+    return result
 
 
 def _posterior(nav: NavigationData, hb: _Built, result: GnssImuResult, n_tie: int, control: ControlData,

@@ -196,10 +196,14 @@ def features_and_objects(nav, current: GnssImuResult, strip_files, it: int, time
         traj = imu_rate_trajectory(nav, current)
         features, counts = step_features(nav, traj, strip_files, progress, runner, frame_poses=current.spline.pose)
     if search:
+        progress("LiDAR time offset search", 0, 1)
         with timed("time_offset_search"):
             found, features = search_and_shift(nav, traj, current.spline.pose, features, strip_files[0].time_offset_s)
+        progress("LiDAR time offset search", 1, 1)
+    progress("matching planar features", 0, 1)
     with timed(f"matching_{it}"):
         objects = match_features(features, nav.config.processing.matching)
+    progress("matching planar features", 1, 1)
     return features, objects, counts, found
 
 
@@ -305,7 +309,10 @@ def stage_gnss_imu(steps: StepRunner, nav: NavigationData, progress: Progress = 
         progress("initialisation filter", 0, 1)
         with steps.timed("filter"):
             filt = step_initialise(nav)
-        return step_adjust_gnss_imu(nav, filt, progress)
+        progress("initialisation filter", 1, 1)
+        result = step_adjust_gnss_imu(nav, filt, progress)
+        progress("G/I adjustment", 1, 1)  # it reports iterations of its limit; it ended here
+        return result
 
     key = _navigation_key(nav.config, nav.root)
     return steps.cached("gi", key, compute, timing="gi_adjustment"), key
@@ -399,7 +406,9 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
             return replace(add_posterior(gil), built=None)
 
         key = StepCache.key("gil_posterior", outer.key)
+        progress("G/I/L posterior sigma", 0, 1)
         gil = steps.cached("gil_posterior", key, compute)
+        progress("G/I/L posterior sigma", 1, 1)
     return Posterior(gil, features, objects, key)
 
 
@@ -579,7 +588,9 @@ def run_workflow(
 def _run_stages(steps: StepRunner, project_dir, out, strips, lidar: bool, points: bool, progress: Progress,
                 runner: TaskRunner) -> WorkflowResult:
     """The stages of :func:`run_workflow`, with the runner of the per-tile work."""
+    progress("reading the input", 0, 1)
     inputs = stage_read_inputs(steps, project_dir, out, strips, runner)
+    progress("reading the input", 1, 1)
     gi, key = stage_gnss_imu(steps, inputs.nav, progress)
     stage_gi_products(inputs, gi)
     final, gil, records = gi, None, ()

@@ -336,7 +336,9 @@ def run_trajectory(
     """Steps 1-2 on a project folder; write the trajectory products into ``out``."""
     timings: dict[str, float] = {}
     t = _time.perf_counter()
+    progress("reading the input", 0, 1)
     nav = load_navigation(project_dir)
+    progress("reading the input", 1, 1)
     timings["read"] = _time.perf_counter() - t
     if nav.prior is not None:
         raise InputError("steps 1-2 need raw GNSS and IMU; this project has a delivered trajectory "
@@ -371,6 +373,7 @@ def run_trajectory(
     else:
         t = _time.perf_counter()
         adj = step_adjust_gnss_imu(nav, filt, progress)
+        progress("G/I adjustment", 1, 1)  # it reports iterations of its limit; it ended here
         timings["adjustment"] = _time.perf_counter() - t
         t = _time.perf_counter()
         write_trajectory_products(out, nav, adj, crs)
