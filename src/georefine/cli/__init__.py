@@ -21,6 +21,7 @@ from georefine.cli.common import force_option, output_ok, progress, scheduler_op
 from georefine.cli.tools import evaluate_app, export_app
 
 app = typer.Typer(
+    rich_markup_mode=None,  # plain help: units in brackets stay, on/off flags show as flags
     name="georefine",
     help="Rigorous georeferencing of airborne LiDAR and aerial images.",
     no_args_is_help=True,

@@ -16,7 +16,7 @@ from georefine.errors import GeorefineError
 __all__ = ["console", "force_option", "output_ok", "progress", "scheduler_option", "stdout", "user_errors"]
 
 console = Console(stderr=True)
-stdout = Console(soft_wrap=True)
+stdout = Console(soft_wrap=True, markup=False)  # results and tables: "[m]" in a header is a unit, not a style
 
 _SCHEDULER_HELP = ("Where the per-tile work runs: sync, threads, processes (a local Dask cluster, one worker "
                    "process per core) or the address of a running dask scheduler, e.g. tcp://127.0.0.1:8786. "
@@ -54,7 +54,9 @@ def user_errors() -> Iterator[None]:
     try:
         yield
     except GeorefineError as exc:
-        console.print(f"[bold red]error:[/] {exc}", highlight=False, soft_wrap=True)
+        from rich.markup import escape
+
+        console.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
         raise typer.Exit(2) from None
 
 

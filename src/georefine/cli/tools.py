@@ -12,6 +12,7 @@ from georefine.cli.common import force_option, output_ok, scheduler_option, stdo
 __all__ = ["evaluate_app", "export_app"]
 
 export_app = typer.Typer(
+    rich_markup_mode=None,  # plain help: units in brackets stay, on/off flags show as flags
     help="Write results in the formats of other tools (trajectories for evo and trajectopy, ...).",
     no_args_is_help=True,
 )
@@ -47,6 +48,7 @@ def export_trajectory_cmd(
 # ---------------------------------------------------------------------------
 
 evaluate_app = typer.Typer(
+    rich_markup_mode=None,  # plain help: units in brackets stay, on/off flags show as flags
     help="Evaluate results against a reference (trajectory differences, ...).",
     no_args_is_help=True,
 )
