@@ -123,3 +123,26 @@ def test_ctrl_c_says_where_it_stopped_how_to_resume_and_leaves_no_empty_folders(
     empty = [root for root, dirs, files in os.walk(out) if not dirs and not files]
     assert not empty, empty
     assert list((out / ".cache").glob("gi-*.pkl"))  # what finished stays
+
+
+def test_clean_frees_the_step_caches_of_georefines_folders_only(tmp_path):
+    from cli_helpers import run_georefine_here
+
+    from georefine.io.files import OUTPUT_MARK, make_output_folder
+
+    demo = make_output_folder(tmp_path / "demo")
+    run = make_output_folder(demo / "run")
+    (demo / "project" / ".cache").mkdir(parents=True)  # not an output folder: its .cache is not ours
+    for folder in (run / ".cache", demo / ".cache"):
+        folder.mkdir()
+        (folder / "gi-0.pkl").write_bytes(b"x" * 1000)
+    (run / "metrics.json").write_text("{}")
+    done = run_georefine_here("clean", str(demo))
+    assert done.returncode == 0, done.stderr
+    assert str(run / ".cache") in done.stdout and "(0.0 MB)" in done.stdout
+    assert not (demo / ".cache").exists() and not (run / ".cache").exists()
+    assert (run / "metrics.json").is_file() and (demo / "project" / ".cache").is_dir()
+    assert "nothing to clean" in run_georefine_here("clean", str(demo)).stdout
+    refused = run_georefine_here("clean", str(demo / "project"))
+    assert refused.returncode == 2 and OUTPUT_MARK in refused.stderr
+    assert run_georefine_here("clean", str(demo), "--all").returncode == 0 and not demo.exists()

@@ -189,6 +189,24 @@ def georeference(
     stdout.print(result.summary())
 
 
+@app.command()
+def clean(
+    out: Path = typer.Argument(..., help="An output folder Georefine made (a run, a demo, ...)."),
+    everything: bool = typer.Option(False, "--all", help="Remove the whole folder, results included."),
+) -> None:
+    """Free the disk space of an output folder: its step caches (OUT/.cache, and those of the runs
+    inside a demo's folder), after which a rerun recomputes every step; with --all the folder.
+    Only folders Georefine made are touched."""
+    with user_errors():
+        from georefine.io.files import clean_output
+
+        removed, size = clean_output(out, everything)
+    if not removed:
+        stdout.print(f"nothing to clean in {out}: no step cache")
+        return
+    stdout.print(f"removed {', '.join(str(p) for p in removed)} ({size / 1e6:,.1f} MB)")
+
+
 def _vector3(text: str, option: str) -> tuple[float, float, float]:
     """``"x,y,z"`` as three floats (an InputError naming ``option`` otherwise)."""
     from georefine.errors import InputError

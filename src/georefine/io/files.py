@@ -130,6 +130,41 @@ def make_output_folder(path: PathLike) -> Path:
     return out
 
 
+CACHE_FOLDER = ".cache"
+"""The step cache of an output folder (:mod:`georefine.workflows.cache`)."""
+
+
+def clean_output(path: PathLike, everything: bool = False) -> tuple[list[Path], int]:
+    """Remove the step caches of an output folder Georefine made, or with ``everything`` the folder.
+
+    The caches are the :data:`CACHE_FOLDER` of ``path`` and of every output folder Georefine
+    made inside it (the demo's runs). A rerun then recomputes every step; the results stay.
+    Returns what was removed and the bytes it held.
+
+    Raises
+    ------
+    InputError
+        ``path`` is not a folder, or does not hold :data:`OUTPUT_MARK` (only Georefine's own
+        folders are removed).
+    """
+    import shutil
+
+    out = Path(path)
+    if not out.is_dir():
+        raise InputError("no such output folder", path=out, expected="an output folder Georefine made")
+    if not (out / OUTPUT_MARK).is_file():
+        raise InputError("not an output folder Georefine made", path=out,
+                         expected=f"a folder holding {OUTPUT_MARK}", found="no mark")
+    if everything:
+        targets = [out]
+    else:
+        targets = sorted(p for p in out.rglob(CACHE_FOLDER) if p.is_dir() and (p.parent / OUTPUT_MARK).is_file())
+    size = sum(f.stat().st_size for t in targets for f in t.rglob("*") if f.is_file() and not f.is_symlink())
+    for t in targets:
+        shutil.rmtree(t)
+    return targets, size
+
+
 @contextlib.contextmanager
 def atomic_path(path: PathLike, protect: Iterable[PathLike] = ()) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it to ``path`` on success.
