@@ -992,6 +992,14 @@ def test_robust_line_fit_rejects_gross_outliers(seed):
     assert np.all(np.abs(estimates["cauchy"] - truth) < [0.01, 0.05])
     stats = results["cauchy"].group("line")
     assert stats.robust_loss == "cauchy" and stats.n_downweighted >= 0.8 * bad.size
+    # What the good points alone would put below weight 0.5: one row each, |r| > c.
+    from scipy.special import chdtrc
+
+    assert stats.expected_downweighted == pytest.approx(chdtrc(1, 2.385**2))
+    good_down = stats.n_downweighted - bad.size
+    assert abs(good_down - stats.expected_downweighted * (n - bad.size)) < 4 * np.sqrt(0.017 * n), good_down
+    assert results["ls"].group("line").expected_downweighted == 0.0
+    assert results["huber"].group("line").expected_downweighted == pytest.approx(chdtrc(1, 4 * 1.345**2))
     # robust=False switches the loss off
     problem = Problem()
     problem.add_block("theta", np.zeros((1, 2)))

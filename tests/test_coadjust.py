@@ -81,6 +81,13 @@ def test_demo_block_runs_the_three_cases(demo):
     assert not (out / "case3" / "points").exists()
     report = (out / "report.html").read_text()
     assert "Tables 1-6" in report and report.count("data:image/png;base64") >= 3
+    # The check points to ASPRS 2023 / NSSDA in metrics.json and the report (18 points: fewer than 30).
+    a = chk["asprs"]
+    assert a["n_checkpoints"] == 18 and not a["enough_checkpoints"]
+    assert a["rmse_h1_m"] == pytest.approx(np.hypot(chk["rmse_x_m"], chk["rmse_y_m"]))
+    assert a["rmse_v1_m"] == pytest.approx(chk["rmse_z_m"]) and a["rmse_v_m"] >= a["rmse_v1_m"]
+    assert a["nssda_vertical_95_m"] == pytest.approx(1.96 * chk["rmse_z_m"])
+    assert "Accuracy to the standards" in report and "18 (fewer than 30)" in report
 
 
 @pytest.mark.slow

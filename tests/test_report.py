@@ -14,7 +14,7 @@ import math
 import numpy as np
 import pytest
 
-from georefine.evaluation.report import summary_rows, write_report
+from georefine.evaluation.report import summary_rows, summary_verdicts, write_report
 from georefine.evaluation.summary import (
     EvaluationPlots,
     ReferencePlaneFigures,
@@ -116,6 +116,24 @@ def test_summary_rows_take_the_typed_figures():
     assert [r[2:] for r in summary_rows(None)] == [["–", "–", "–"]] * 3
 
 
+def test_each_summary_row_has_a_verdict_that_flags_figures_the_paper_beats():
+    _, evaluation = _records(2)
+    rows, verdicts = summary_rows(evaluation), summary_verdicts(evaluation)
+    assert len(verdicts) == len(rows)
+    gi_yaw = evaluation.trajectory["G/I"].overall.yaw_rmse_mdeg
+    single_yaw = evaluation.single_pass.overall.yaw_rmse_mdeg
+    yaw = verdicts[2]
+    assert ("G/I ✓" in yaw) == (gi_yaw <= 20.0) and ("single pass ✓" in yaw) == (single_yaw <= 2.0), yaw
+    if single_yaw > 2.0:
+        assert f"single pass ✗ worse than paper 000 ({single_yaw:.1f}; paper ≤ 2)" in yaw
+    mean = evaluation.reference_planes["G/I/L"].mean_m * 1e3
+    judged = verdicts[[r[0] for r in rows].index("reference planes Mean (mm)")]
+    assert judged == (f"G/I/L ✓ ({abs(mean):.1f} < 4)" if abs(mean) < 4 else
+                      f"G/I/L ✗ worse than paper 000 ({abs(mean):.1f}; paper < 4)")
+    assert verdicts[-1] == "–"  # the G/I/L strip differences have no cells here
+    assert summary_verdicts(None) == ["–"] * 3
+
+
 def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     metrics, evaluation = _records(3)
     run = tmp_path / "run"
@@ -123,8 +141,9 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     write_json(run / "metrics.json", metrics.to_dict())
     write_json(run / "evaluation" / "summary.json", evaluation.to_dict())
     page = html.unescape(write_report(run).read_text())
-    for row in summary_rows(RunEvaluation.read(run / "evaluation" / "summary.json")):
-        assert "".join(f"<td>{c}</td>" for c in row) in page, row
+    read = RunEvaluation.read(run / "evaluation" / "summary.json")
+    for row, verdict in zip(summary_rows(read), summary_verdicts(read)):
+        assert "".join(f"<td>{c}</td>" for c in [*row, verdict]) in page, row
     last = metrics.outer_iterations[-1]
     assert (f"<td>{last.iteration}</td><td>0.1</td><td>{last.features:,}</td><td>{last.objects:,}</td>"
             f"<td>{last.features_used:,}</td><td>{last.attitude_change_mdeg:.2f}</td>") in page
@@ -139,7 +158,8 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     assert "over 4,000 planar 1 m cells; 100 gated (grey): rough 60, steep 20, edge 15, normals 5" in page
     # The G/I/L's adjustment statistics with its variance components.
     groups = [{"name": n, "n_observations": m, "n_residuals": 3 * m, "rms": 1.0, "variance_factor": 1.0,
-               "cost_share": 0.5, "n_downweighted": 0} for n, m in (("imu", 1000), ("planes", 5000))]
+               "cost_share": 0.5, "n_downweighted": d, "expected_downweighted": e}
+              for n, m, d, e in (("imu", 1000, 0, 0.0), ("planes", 5000, 1300, 0.26146))]
     comps = [{"groups": ["planes"], "n_residuals": 15000, "redundancy": 13456.7, "redundancy_sd": 20.0,
               "sum_wr2": 9000.0, "factor": 0.669, "scale": 1.0},
              {"groups": ["imu", "gnss"], "n_residuals": 3000, "redundancy": 1500.0, "redundancy_sd": 20.0,
@@ -150,6 +170,7 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
         "redundancy": 14956, "groups": groups, "variance_components": comps}})
     page = html.unescape(write_report(run).read_text())
     assert "<td>planes</td><td>15,000</td><td>13456.7</td><td>0.669</td><td>1.000</td>" in page
+    assert "<td>1,300 (26.0 %)</td><td>26.1 %</td>" in page and "<td>0 (0.0 %)</td><td>0.0 %</td>" in page
     assert "<td>imu, gnss</td><td>3,000</td><td>1500.0</td><td>2.200</td><td>2.200</td>" in page
     # A run without an evaluation still gets its report.
     (run / "evaluation" / "summary.json").unlink()

@@ -224,6 +224,10 @@ def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_pat
     rp, sd = ev["reference_planes"], ev["strip_differences"]
     assert rp["G/I/L"]["n_observations"] == rp["G/I"]["n_observations"] == 36
     assert rp["G/I/L"]["avg_sd_m"] <= 0.5 * rp["G/I"]["avg_sd_m"]
+    # The level reference surfaces as vertical check points, to ASPRS 2023 / NSSDA.
+    va = rp["G/I/L"]["asprs_vertical"]
+    assert 1 <= va["n_checkpoints"] <= 36 and va["rmse_v_m"] == pytest.approx(np.hypot(va["rmse_v1_m"], va["rmse_v2_m"]))
+    assert va["nssda_vertical_95_m"] == pytest.approx(1.96 * va["rmse_v1_m"]) and va["rmse_h_m"] is None
     assert sd["G/I/L"]["p95_m"] < sd["G/I"]["p95_m"]
     # The report shows the figures of metrics.json.
     page = _html.unescape((out / "report.html").read_text())
@@ -233,6 +237,7 @@ def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_pat
     for row in rows:
         assert "".join(f"<td>{c}</td>" for c in row) in page, row
     assert f"{rp['G/I/L']['avg_sd_m'] * 1e3:.1f}" in page and page.count("data:image/png;base64,") >= 4
+    assert "Vertical accuracy to the standards" in page and f"{va['rmse_v_m'] * 1e3:.1f}" in page
 
 
 @pytest.mark.slow

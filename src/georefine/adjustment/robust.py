@@ -38,6 +38,7 @@ __all__ = [
     "make_loss",
     "IRLSWeights",
     "irls_weights",
+    "downweight_threshold",
 ]
 
 
@@ -190,3 +191,21 @@ def irls_weights(loss: RobustLoss | None, observation: np.ndarray, residuals: np
         return IRLSWeights(s, np.ones_like(s), None, 0.5 * sum_s, sum_s, sum_s)
     rho, weight = loss.evaluate(s)
     return IRLSWeights(s, weight, np.sqrt(weight)[obs], 0.5 * float(np.sum(rho)), sum_s, float(np.sum(weight * s)))
+
+
+def downweight_threshold(loss: RobustLoss | None, weight: float = 0.5) -> float | None:
+    """The squared norm ``s`` beyond which ``loss`` weights an observation below ``weight``
+    (``rho'(s) = weight``; Cauchy: ``c^2``, Huber: ``4 delta^2`` for 0.5), or None where it never
+    does (plain least squares). Found by bisection: ``rho'`` falls monotonically."""
+    if loss is None or float(loss.evaluate(np.array([1e12]))[1][0]) >= weight:
+        return None
+    lo, hi = 0.0, 1.0
+    while float(loss.evaluate(np.array([hi]))[1][0]) >= weight:
+        lo, hi = hi, hi * 4.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        if float(loss.evaluate(np.array([mid]))[1][0]) >= weight:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)

@@ -60,6 +60,11 @@ class GroupStatistics:
         ``sqrt(median s / median chi2(k))`` over the observations' squared norms ``s`` (``k``
         rows each): about 1 when the model fits, whatever a minority of outliers does; NaN in
         results stored before it was recorded.
+    expected_downweighted
+        The share of observations a fitting model with honest sigmas weights below 0.5 by
+        chance: ``P(chi2(k) > s*)`` with ``s*`` the loss's threshold (Cauchy ``c^2``: with
+        ``c = 2`` on three rows 26 %); 0 without a robust loss, NaN in older results. A
+        ``n_downweighted`` far above it points to wrong matches or optimistic sigmas.
     """
 
     name: str
@@ -72,6 +77,7 @@ class GroupStatistics:
     variance_factor: float
     n_downweighted: int
     robust_sigma0: float = float("nan")
+    expected_downweighted: float = float("nan")
 
 
 @dataclass(frozen=True)

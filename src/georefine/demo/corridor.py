@@ -28,7 +28,7 @@ from typing import Any
 import yaml
 
 from georefine.demo.lanes import Lanes, QueuedProgress, demo_stamp, reusable_project, simulation_scheduler
-from georefine.evaluation.report import summary_rows, write_report
+from georefine.evaluation.report import summary_rows, summary_verdicts, write_report
 from georefine.evaluation.summary import CloudEvaluation, RunEvaluation
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import WorkflowMetrics
@@ -85,8 +85,9 @@ class DemoResult:
     metrics: DemoMetrics
 
     def summary_table(self) -> list[list[str]]:
-        """Rows ``[quantity, paper 000, G/I, G/I/L, single-pass G/I/L]``."""
-        return summary_rows(self.metrics.evaluation)
+        """Rows ``[quantity, paper 000, G/I, G/I/L, single-pass G/I/L, against paper 000]``."""
+        ev = self.metrics.evaluation
+        return [[*row, verdict] for row, verdict in zip(summary_rows(ev), summary_verdicts(ev))]
 
 
 def _second_lane(project: Path, out: Path, cache: Path, first_strip: int,

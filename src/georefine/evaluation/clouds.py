@@ -31,12 +31,16 @@ from __future__ import annotations
 import csv
 import io
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import laspy
 import numpy as np
 
+from georefine.adjustment.accuracy_standards import (
+    positional_accuracy,
+    surface_vertical_errors,
+)
 from georefine.errors import InputError
 from georefine.evaluation.reference_planes import (
     PlaneObservation,
@@ -337,7 +341,8 @@ def evaluate_reference_planes(
     obs = observe_reference_planes(scan.near_xyz, scan.near_strip, scan.near_channel, planes, inset_m=inset_m,
                                    max_distance_m=max_distance_m, min_points=min_points)
     obs.sort(key=lambda o: (o.surface_id, o.strip, o.channel))
-    summary = summarise_observations(obs)
+    errors, survey, _ = surface_vertical_errors(obs, planes)
+    summary = replace(summarise_observations(obs), vertical=positional_accuracy(errors, survey))
     if out is not None:
         make_output_folder(out)
         write_json(out / "reference_planes.json", {

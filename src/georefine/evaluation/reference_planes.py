@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import ConvexHull
 
+from georefine.adjustment.accuracy_standards import PositionalAccuracy
 from georefine.io.reference import ReferenceSurfaces
 
 __all__ = [
@@ -52,6 +53,7 @@ class ReferencePlane:
     axis_v: np.ndarray  # (3,)
     outline_uv: np.ndarray  # (K, 2) convex hull, counter-clockwise
     rms_survey_m: float  # RMS distance of the surveyed points from the plane
+    n_survey_points: int = 0  # how many surveyed points the plane was fitted to
 
     def inside(self, xyz: np.ndarray, inset_m: float) -> np.ndarray:
         """Which points project into the outline shrunk by ``inset_m``."""
@@ -85,7 +87,7 @@ def reference_planes(surfaces: ReferenceSurfaces) -> list[ReferencePlane]:
         if area < 0:
             ring = ring[::-1]
         rms = float(np.sqrt(np.mean(((pts - c) @ n) ** 2)))
-        out.append(ReferencePlane(sid, c, n, u, v, ring, rms))
+        out.append(ReferencePlane(sid, c, n, u, v, ring, rms, int(len(pts))))
     return out
 
 
@@ -157,10 +159,14 @@ class ReferencePlaneSummary:
     avg_sd_m: float
     n_observations: int
     per_surface: list[dict]  # surface_id, observations, mean_m, sd_m, rmse_m
+    vertical: PositionalAccuracy | None = None  # ASPRS 2023 / NSSDA on the level surfaces (adjustment.accuracy_standards)
 
     def to_dict(self) -> dict:
-        return {"mean_m": self.mean_m, "rmse_m": self.rmse_m, "avg_sd_m": self.avg_sd_m,
-                "n_observations": self.n_observations, "surfaces": self.per_surface}
+        out = {"mean_m": self.mean_m, "rmse_m": self.rmse_m, "avg_sd_m": self.avg_sd_m,
+               "n_observations": self.n_observations, "surfaces": self.per_surface}
+        if self.vertical is not None:
+            out["asprs_vertical"] = self.vertical.to_dict()
+        return out
 
 
 def summarise_observations(observations: list[PlaneObservation]) -> ReferencePlaneSummary:

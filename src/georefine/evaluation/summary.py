@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from georefine.adjustment.accuracy_standards import PositionalAccuracy
 from georefine.evaluation.reference_planes import ReferencePlaneSummary
 from georefine.evaluation.strip_differences import StripDifferenceMap
 
@@ -117,20 +118,26 @@ class ReferencePlaneFigures:
     avg_sd_m: float | None
     n_observations: int
     surfaces: tuple[SurfaceFigures, ...] = ()
+    asprs_vertical: PositionalAccuracy | None = None  # the level surfaces as vertical check points
 
     @classmethod
     def from_summary(cls, s: ReferencePlaneSummary) -> ReferencePlaneFigures:
         return cls(s.mean_m, s.rmse_m, s.avg_sd_m, s.n_observations,
-                   tuple(SurfaceFigures(**row) for row in s.per_surface))
+                   tuple(SurfaceFigures(**row) for row in s.per_surface), s.vertical)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"mean_m": self.mean_m, "rmse_m": self.rmse_m, "avg_sd_m": self.avg_sd_m,
-                "n_observations": self.n_observations, "surfaces": [s.to_dict() for s in self.surfaces]}
+        out = {"mean_m": self.mean_m, "rmse_m": self.rmse_m, "avg_sd_m": self.avg_sd_m,
+               "n_observations": self.n_observations, "surfaces": [s.to_dict() for s in self.surfaces]}
+        if self.asprs_vertical is not None:
+            out["asprs_vertical"] = self.asprs_vertical.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ReferencePlaneFigures:
+        vertical = d.get("asprs_vertical")
         return cls(_num(d["mean_m"]), _num(d["rmse_m"]), _num(d["avg_sd_m"]), int(d["n_observations"]),
-                   tuple(SurfaceFigures.from_dict(s) for s in d.get("surfaces", [])))
+                   tuple(SurfaceFigures.from_dict(s) for s in d.get("surfaces", [])),
+                   None if vertical is None else PositionalAccuracy.from_dict(vertical))
 
 
 @dataclass(frozen=True)

@@ -34,6 +34,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from georefine.adjustment.accuracy_standards import (
+    PositionalAccuracy,
+    positional_accuracy,
+)
 from georefine.adjustment.linalg import NotPositiveDefiniteError
 from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
 from georefine.adjustment.observations.reprojection import (
@@ -98,17 +102,23 @@ class PointStats:
     n: int
     rmse_xyz_m: np.ndarray
     reprojection_px: float
+    accuracy: PositionalAccuracy | None = None  # ASPRS 2023 / NSSDA, the points' survey sigma included
 
     def to_dict(self) -> dict:
-        return {"n": self.n, "rmse_x_m": float(self.rmse_xyz_m[0]), "rmse_y_m": float(self.rmse_xyz_m[1]),
-                "rmse_z_m": float(self.rmse_xyz_m[2]), "reprojection_px": self.reprojection_px}
+        out = {"n": self.n, "rmse_x_m": float(self.rmse_xyz_m[0]), "rmse_y_m": float(self.rmse_xyz_m[1]),
+               "rmse_z_m": float(self.rmse_xyz_m[2]), "reprojection_px": self.reprojection_px}
+        if self.accuracy is not None:
+            out["asprs"] = self.accuracy.to_dict()
+        return out
 
     @classmethod
     def from_dict(cls, d: dict) -> PointStats:
         """From :meth:`to_dict` or its JSON (where NaN is ``null``)."""
         re_px = d["reprojection_px"]
+        asprs = d.get("asprs")
         return cls(int(d["n"]), np.array([d["rmse_x_m"], d["rmse_y_m"], d["rmse_z_m"]], dtype=float),
-                   float("nan") if re_px is None else float(re_px))
+                   float("nan") if re_px is None else float(re_px),
+                   None if asprs is None else PositionalAccuracy.from_dict(asprs))
 
 
 @dataclass(frozen=True)
@@ -188,8 +198,10 @@ def control_point_stats(cameras, R_w_c: np.ndarray, p_w_c: np.ndarray, control: 
         meas = np.isin(control.point, pts)
         grp = ReprojectionObservation("tmp", cameras, control.image[meas], control.point[meas], control.uv[meas])
         uv, _ = grp.predict({"image_rotation": R_w_c, "image_position": p_w_c, "points": X})
-        stats[label] = PointStats(int(pts.size), np.sqrt(np.mean((X[pts] - control.xyz_w[pts]) ** 2, axis=0)),
-                                  _rms(np.linalg.norm(uv - control.uv[meas], axis=1)))
+        errors = X[pts] - control.xyz_w[pts]  # w: x, y horizontal, z up
+        stats[label] = PointStats(int(pts.size), np.sqrt(np.mean(errors**2, axis=0)),
+                                  _rms(np.linalg.norm(uv - control.uv[meas], axis=1)),
+                                  positional_accuracy(errors, control.sigma_m[pts]))
     return stats, X
 
 
