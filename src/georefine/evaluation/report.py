@@ -118,6 +118,39 @@ def summary_verdicts(summary: RunEvaluation | None) -> list[str]:
     return out
 
 
+def _calibration_section(summary: RunEvaluation, ev: Path) -> str:
+    """The adjustments' IMU errors and boresight against the simulated truth."""
+    parts = ["<h3>Estimated IMU errors and boresight against the simulated truth</h3>",
+             '<p class="note">Scale factors: estimated / true ± sigma (ppm). Biases: the RMS over the bias knots '
+             "of estimated minus true against the RMS of their sigma (about 1 : 1 when the sigmas are honest; "
+             "the plot shows the whole series with ±2σ bands).</p>"]
+    rows = []
+    for label, f in summary.imu_errors.items():
+        for name, est, true, sig in (("accelerometer scale (ppm)", f.acc_scale_ppm, f.acc_scale_true_ppm,
+                                      f.acc_scale_sigma_ppm),
+                                     ("gyro scale (ppm)", f.gyro_scale_ppm, f.gyro_scale_true_ppm, f.gyro_scale_sigma_ppm)):
+            rows.append([label, name, *(f"{e:.0f} / {t:.0f} ± {s:.0f}" for e, t, s in zip(est, true, sig))])
+        for name, err, sig, digits in (("accelerometer bias (µg)", f.acc_bias_rms_error_ug, f.acc_bias_rms_sigma_ug, 0),
+                                       ("gyro bias (deg/h)", f.gyro_bias_rms_error_deg_per_h,
+                                        f.gyro_bias_rms_sigma_deg_per_h, 2)):
+            rows.append([label, f"{name}: RMS error : RMS sigma",
+                         *(f"{e:.{digits}f} : {s:.{digits}f}" for e, s in zip(err, sig))])
+    if rows:
+        parts.append(table(["solution", "quantity", "x", "y", "z"], rows))
+    if summary.imu_errors_plot:
+        parts.append(image(ev / summary.imu_errors_plot, "IMU biases against the truth"))
+    b = summary.boresight
+    if b is not None:
+        parts.append(table(["boresight", "roll", "pitch", "yaw"], [
+            ["estimated (deg)", *(f"{v:.4f}" for v in b.estimated_deg)],
+            ["true (deg)", *(f"{v:.4f}" for v in b.true_deg)],
+            ["project.yaml, the start (deg)", *(f"{v:.4f}" for v in b.stated_deg)],
+            ["error (mdeg)", *(f"{v:.1f}" for v in b.error_mdeg)],
+            ["sigma (mdeg)", *(_f(v) for v in b.sigma_mdeg)],
+        ]))
+    return "".join(parts)
+
+
 def _downweighted(g: dict) -> str:
     n, total = g["n_downweighted"], g["n_observations"]
     return f"{n:,} ({100 * n / total:.1f} %)" if total else f"{n:,}"
@@ -280,6 +313,9 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
             b, sg = a["boresight_deg"], a.get("boresight_sigma_mdeg") or [float("nan")] * 3
             parts.append("<p>Boresight roll/pitch/yaw: " + ", ".join(
                 f"{b[i]:.4f}° ± {sg[i]:.1f} mdeg" for i in range(3)) + "</p>")
+
+    if summary is not None and (summary.imu_errors or summary.boresight is not None):
+        parts.append(_calibration_section(summary, ev))
 
     cfg = run_dir / "config.resolved.yaml"
     if cfg.is_file():

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from georefine.adjustment.accuracy_standards import PositionalAccuracy
+from georefine.evaluation.calibration import BoresightFigures, ImuErrorFigures
 from georefine.evaluation.reference_planes import ReferencePlaneSummary
 from georefine.evaluation.strip_differences import StripDifferenceMap
 
@@ -223,6 +224,10 @@ class RunEvaluation:
         The trajectory plots, when any trajectory was compared.
     reference_planes, strip_differences
         Per point cloud label (``"G/I"``, ``"G/I/L"``).
+    imu_errors, imu_errors_plot, boresight
+        Where the project has a simulated truth: the adjustments' IMU errors against it per
+        solution (``"G/I"``, ``"G/I/L"``), their plot's file name, and the estimated boresight
+        against it (:mod:`georefine.evaluation.calibration`).
     """
 
     reference: str
@@ -230,6 +235,9 @@ class RunEvaluation:
     plots: EvaluationPlots | None = None
     reference_planes: dict[str, ReferencePlaneFigures] = field(default_factory=dict)
     strip_differences: dict[str, StripDifferenceFigures] = field(default_factory=dict)
+    imu_errors: dict[str, ImuErrorFigures] = field(default_factory=dict)
+    imu_errors_plot: str | None = None
+    boresight: BoresightFigures | None = None
 
     SINGLE_PASS = "G/I/L single pass"
     """Start of the single-pass solution's label."""
@@ -246,6 +254,12 @@ class RunEvaluation:
             d["plots"] = self.plots.to_dict()
         d["reference_planes"] = {k: v.to_dict() for k, v in self.reference_planes.items()}
         d["strip_differences"] = {k: v.to_dict() for k, v in self.strip_differences.items()}
+        if self.imu_errors:
+            d["imu_errors"] = {k: v.to_dict() for k, v in self.imu_errors.items()}
+        if self.imu_errors_plot is not None:
+            d["imu_errors_plot"] = self.imu_errors_plot
+        if self.boresight is not None:
+            d["boresight"] = self.boresight.to_dict()
         return d
 
     @classmethod
@@ -258,6 +272,9 @@ class RunEvaluation:
             reference_planes={k: ReferencePlaneFigures.from_dict(v) for k, v in d.get("reference_planes", {}).items()},
             strip_differences={k: StripDifferenceFigures.from_dict(v)
                                for k, v in d.get("strip_differences", {}).items()},
+            imu_errors={k: ImuErrorFigures.from_dict(v) for k, v in d.get("imu_errors", {}).items()},
+            imu_errors_plot=d.get("imu_errors_plot"),
+            boresight=None if d.get("boresight") is None else BoresightFigures.from_dict(d["boresight"]),
         )
 
     @classmethod

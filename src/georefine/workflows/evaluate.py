@@ -16,10 +16,14 @@ the run folder of a single-pass run, and writes ``RUN/evaluation/``:
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 from typing import Callable
 
+import yaml
+
+from georefine.evaluation.calibration import boresight_figures, imu_error_figures, plot_imu_errors
 from georefine.evaluation.clouds import (
     DEFAULT_CHUNK_POINTS,
     evaluate_reference_planes,
@@ -49,6 +53,7 @@ from georefine.io.reference import read_reference_surfaces
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.navigation import run_georeference
+from georefine.workflows.project import load_project
 
 log = logging.getLogger(__name__)
 
@@ -122,6 +127,7 @@ def evaluate_run(
                                                "position differences").name,
         )
     report("trajectory differences", 1, 1)
+    imu_errors, imu_plot, boresight = _calibration(project, run_dir, out)
 
     # Point clouds: G/I (georeferenced here) and G/I/L (written by the run).
     clouds = dict(clouds or {})
@@ -140,9 +146,36 @@ def evaluate_run(
     finally:
         if own is not None:
             own.close()
-    summary = RunEvaluation(reference_name, trajectory, plots, reference_planes, strip_differences)
+    summary = RunEvaluation(reference_name, trajectory, plots, reference_planes, strip_differences, imu_errors,
+                            imu_plot, boresight)
     write_json(out / "summary.json", summary.to_dict())
     return summary
+
+
+def _calibration(project: Path, run_dir: Path, out: Path):
+    """The adjustments' IMU errors and boresight against the simulated truth, where there is one
+    (:mod:`georefine.evaluation.calibration`): figures per solution, the bias plot, the boresight."""
+    truth_npz = project / "truth" / "imu_errors.npz"
+    adjustments = {}
+    for label, sub in (("G/I", "gi"), ("G/I/L", "gil")):
+        path = run_dir / sub / "adjustment.json"
+        if path.is_file():
+            adjustments[label] = json.loads(path.read_text(encoding="utf-8"))
+    imu, plot, boresight = {}, None, None
+    if truth_npz.is_file() and adjustments:
+        for label, adj in adjustments.items():
+            figures = imu_error_figures(adj, truth_npz)
+            if figures is not None:
+                imu[label] = figures
+        if imu:
+            plot = plot_imu_errors({k: adjustments[k] for k in imu}, truth_npz, out / "imu_errors.png").name
+    scenario = project / "truth" / "scenario.yaml"
+    if "G/I/L" in adjustments and scenario.is_file():
+        true_deg = (yaml.safe_load(scenario.read_text()).get("scenario") or {}).get("boresight_deg")
+        if true_deg is not None:
+            stated = load_project(project).scanner.boresight_deg
+            boresight = boresight_figures(adjustments["G/I/L"], true_deg, stated)
+    return imu, plot, boresight
 
 
 def evaluate_cloud(
