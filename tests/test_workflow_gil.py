@@ -241,6 +241,13 @@ def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_pat
     # The adjustments' IMU errors against the simulated truth, with their plot.
     assert sorted(ev["imu_errors"]) == ["G/I", "G/I/L"] and (out / "run" / "evaluation" / ev["imu_errors_plot"]).is_file()
     assert "IMU errors and boresight against the simulated truth" in page
+    # The boresight calibration: stated 0.05 deg off in roll, recovered within 5 mdeg and shown against the truth.
+    b = ev["boresight"]
+    assert b["stated_deg"][0] - b["true_deg"][0] == pytest.approx(0.05) and abs(b["error_mdeg"][0]) < 5.0, b
+    assert all(abs(e) < 3.0 * s for e, s in zip(b["error_mdeg"], b["sigma_mdeg"])), b
+    assert "boresight calibration (started +50, +0, +0 mdeg off)" in proc.stdout
+    assert f"<td>error (mdeg)</td><td>{b['error_mdeg'][0]:.1f}</td>" in page
+    assert (out / "run-boresight" / "gil" / "adjustment.json").is_file()
 
 
 @pytest.mark.slow

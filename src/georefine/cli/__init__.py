@@ -262,6 +262,8 @@ def demo(
     seed: Optional[int] = typer.Option(None, "--seed", help="Simulation seed (default 42 corridor, 3 block)."),
     overrides: Optional[list[str]] = typer.Option(None, "--set", help="Scenario override key.sub=value (repeatable)."),
     single_pass: bool = typer.Option(True, "--single-pass/--no-single-pass", help="Also run the single-pass case."),
+    boresight: bool = typer.Option(True, "--boresight/--no-boresight", help="corridor: also calibrate a boresight "
+                                   "stated 0.05 deg off (both passes, OUT/run-boresight)."),
     method: str = typer.Option("sift", "--method", help="block: matcher, sift or xfeat."),
     scheduler: str = scheduler_option(),
     force: bool = force_option(),
@@ -284,6 +286,7 @@ def demo(
 
         with progress(out) as report:
             result = run_demo(out, scenario=scenario, seed=seed, overrides=overrides or [], single_pass=single_pass,
+                              boresight=boresight,
                               progress=report, scheduler=scheduler)
     from rich.table import Table
 
@@ -295,6 +298,13 @@ def demo(
     for row in result.summary_table():
         table.add_row(*row)
     stdout.print(table)
+    b = m.evaluation.boresight
+    if b is not None:
+        err, sig = b.error_mdeg, b.sigma_mdeg
+        stdout.print("boresight calibration (started "
+                     + ", ".join(f"{1e3 * (s - t):+.0f}" for s, t in zip(b.stated_deg, b.true_deg))
+                     + " mdeg off): roll/pitch/yaw error " + " / ".join(f"{e:+.1f}" for e in err)
+                     + " mdeg, sigma " + " / ".join(f"{s:.1f}" for s in sig) + " mdeg")
     stdout.print("timings: " + ", ".join(f"{k} {v:.0f} s" for k, v in m.timings_s.items()))
     stdout.print(f"report: {result.report.resolve()}")
 

@@ -76,8 +76,12 @@ def evaluate_run(
     clouds: dict[str, CloudEvaluation] | None = None,
     progress: Callable[[str, float, float], None] | None = None,
     scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
+    boresight_run: Path | None = None,
 ) -> RunEvaluation:
     """Evaluate ``run_dir`` (and ``single_dir``); write ``run_dir/evaluation`` and return the summary.
+
+    ``boresight_run``: a run that estimated the boresight (the demo's calibration run, whose
+    project states a wrong one); its estimate is compared with the truth instead of ``run_dir``'s.
 
     ``clouds`` holds :func:`evaluate_cloud` results computed elsewhere (``georefine demo``
     evaluates the G/I cloud in a second process while the run goes on); the others are
@@ -127,7 +131,7 @@ def evaluate_run(
                                                "position differences").name,
         )
     report("trajectory differences", 1, 1)
-    imu_errors, imu_plot, boresight = _calibration(project, run_dir, out)
+    imu_errors, imu_plot, boresight = _calibration(project, run_dir, out, boresight_run)
 
     # Point clouds: G/I (georeferenced here) and G/I/L (written by the run).
     clouds = dict(clouds or {})
@@ -152,9 +156,10 @@ def evaluate_run(
     return summary
 
 
-def _calibration(project: Path, run_dir: Path, out: Path):
+def _calibration(project: Path, run_dir: Path, out: Path, boresight_run: Path | None = None):
     """The adjustments' IMU errors and boresight against the simulated truth, where there is one
-    (:mod:`georefine.evaluation.calibration`): figures per solution, the bias plot, the boresight."""
+    (:mod:`georefine.evaluation.calibration`): figures per solution, the bias plot, the boresight
+    (of ``boresight_run`` where given, started from its configuration's)."""
     truth_npz = project / "truth" / "imu_errors.npz"
     adjustments = {}
     for label, sub in (("G/I", "gi"), ("G/I/L", "gil")):
@@ -170,11 +175,14 @@ def _calibration(project: Path, run_dir: Path, out: Path):
         if imu:
             plot = plot_imu_errors({k: adjustments[k] for k in imu}, truth_npz, out / "imu_errors.png").name
     scenario = project / "truth" / "scenario.yaml"
-    if "G/I/L" in adjustments and scenario.is_file():
+    source = Path(boresight_run) if boresight_run is not None else run_dir
+    adjustment, resolved = source / "gil" / "adjustment.json", source / "config.resolved.yaml"
+    if adjustment.is_file() and scenario.is_file():
         true_deg = (yaml.safe_load(scenario.read_text()).get("scenario") or {}).get("boresight_deg")
         if true_deg is not None:
-            stated = load_project(project).scanner.boresight_deg
-            boresight = boresight_figures(adjustments["G/I/L"], true_deg, stated)
+            stated = (yaml.safe_load(resolved.read_text())["scanner"]["boresight_deg"] if resolved.is_file()
+                      else load_project(project).scanner.boresight_deg)
+            boresight = boresight_figures(json.loads(adjustment.read_text(encoding="utf-8")), true_deg, stated)
     return imu, plot, boresight
 
 
