@@ -10,8 +10,11 @@ import pytest
 from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
 from georefine.evaluation.strip_differences import (
     BAND_DESCRIPTION,
+    StripDifferenceMap,
     cell_planes,
     crop,
+    map_figure,
+    map_panels,
     strip_differences,
     write_geotiff,
     write_png,
@@ -86,6 +89,20 @@ def test_strip_difference_raster_png_and_geotiff(tmp_path):
         crop(m, (0.0, 10.0, 0.0, 10.0))
     png = write_png(tmp_path / "map.png", m, epsg=25832)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # A long corridor's map: panels of at most 2.5 : 1 side by side, each at equal aspect, in mm, with
+    # the cells beyond the colour scale counted and the sites inside a panel marked.
+    assert map_panels(3300, 500)[0] == "rows" and [p.stop - p.start for p in map_panels(3300, 500)[1]] == [1100] * 3
+    assert map_panels(200, 1200)[0] == "cols" and len(map_panels(200, 1200)[1]) == 3 and len(map_panels(90, 100)[1]) == 1
+    rng = np.random.default_rng(4)
+    long = StripDifferenceMap(rng.uniform(0.0, 0.12, (600, 100)), np.ones((600, 100), dtype=np.int32), 1000.0, 7000.0,
+                              1.0, np.zeros((600, 100)), np.zeros((600, 100), dtype=np.int8))
+    fig = map_figure(long, epsg=25832, sites=[("roof_a", 1050.0, 6800.0), ("far", 0.0, 0.0)])
+    maps = [ax for ax in fig.axes if ax.images]
+    assert len(maps) == 3 and all(ax.get_aspect() == 1.0 for ax in maps)
+    assert sum(t.get_text() == "roof_a" for ax in maps for t in ax.texts) == 1  # the site outside is not drawn
+    assert "cells above 100 mm in purple" in fig._suptitle.get_text() and fig.axes[-1].get_ylabel() == "difference [mm]"
+    fonts = [t.get_fontsize() for ax in fig.axes for t in (*ax.get_xticklabels(), *ax.get_yticklabels(), *ax.texts)]
+    assert min(fonts) >= 7
     tif = write_geotiff(tmp_path / "map.tif", m, 25832)
     with tifffile.TiffFile(tif) as t:
         page = t.pages[0]

@@ -364,7 +364,7 @@ def evaluate_strip_differences(
     max_roughness_m: float = MAX_ROUGHNESS_M, max_slope_deg: float = MAX_SLOPE_DEG,
     max_normal_angle_deg: float = MAX_NORMAL_ANGLE_DEG, title: str = "", zoom: tuple[float, float, float, float] | None = None,
     scan: CloudScan | None = None, runner: TaskRunner | None = None, chunk_points: int = DEFAULT_CHUNK_POINTS,
-    progress: Progress = no_progress,
+    progress: Progress = no_progress, sites: list[tuple[str, float, float]] | None = None,
 ) -> StripDifferenceMap:
     """The strip-difference raster over all strip x channel layers (files written to ``out``).
 
@@ -373,7 +373,7 @@ def evaluate_strip_differences(
     ``max_roughness_m``, ``max_slope_deg``, ``max_normal_angle_deg``: the gate
     (:mod:`georefine.evaluation.strip_differences`, "Gating"); ``strip_differences.json`` holds
     the figures of the gated map, the cells gated per reason (``gated``) and the figures of the
-    map without the gate (``ungated``). ``zoom``: ``(xmin, xmax,
+    map without the gate (``ungated``). ``sites``: ``(label, x, y)`` marked on the maps. ``zoom``: ``(xmin, xmax,
     ymin, ymax)`` of an additional detail map, ``strip_differences_zoom.png`` (as paper 000's
     Fig. 7 shows a semi-urban area).
     """
@@ -397,9 +397,10 @@ def evaluate_strip_differences(
             "layers": [{"strip": s, "channel": c, "points": n} for s, c, n in scan.layers],
             "x0": m.x0, "y1": m.y1, "epsg": epsg,
         })
-        write_png(out / "strip_differences.png", m, title=title, epsg=epsg)
+        write_png(out / "strip_differences.png", m, title=title, epsg=epsg, sites=sites)
         if zoom is not None:
-            write_png(out / "strip_differences_zoom.png", crop(m, zoom), title=title + " (detail)", epsg=epsg)
+            write_png(out / "strip_differences_zoom.png", crop(m, zoom), title=title + " (detail)", epsg=epsg,
+                      sites=sites)
         if epsg is not None:
             write_geotiff(out / "strip_differences.tif", m, epsg)
     return m

@@ -23,7 +23,11 @@ from typing import Callable
 
 import yaml
 
-from georefine.evaluation.calibration import boresight_figures, imu_error_figures, plot_imu_errors
+from georefine.evaluation.calibration import (
+    boresight_figures,
+    imu_error_figures,
+    plot_imu_errors,
+)
 from georefine.evaluation.clouds import (
     DEFAULT_CHUNK_POINTS,
     evaluate_reference_planes,
@@ -35,6 +39,9 @@ from georefine.evaluation.clouds import (
 from georefine.evaluation.plots import (
     plot_attitude_differences,
     plot_position_differences,
+)
+from georefine.evaluation.reference_planes import (
+    reference_planes as fit_reference_planes,
 )
 from georefine.evaluation.summary import (
     ANGLES,
@@ -241,7 +248,11 @@ def evaluate_cloud(
     if ref_csv.is_file():
         _, rp = evaluate_reference_planes(files, ref_csv, out, scan=scan)
         planes = ReferencePlaneFigures.from_summary(rp)
-    sd = evaluate_strip_differences(files, out, title=f"strip differences, {label}", zoom=zoom, scan=scan)
+    sites = None
+    if ref_csv.is_file():  # the reference surfaces, marked on the maps
+        sites = [(p.surface_id, float(p.centre[0]), float(p.centre[1]))
+                 for p in fit_reference_planes(read_reference_surfaces(ref_csv))]
+    sd = evaluate_strip_differences(files, out, title=f"strip differences, {label}", zoom=zoom, scan=scan, sites=sites)
     differences = StripDifferenceFigures.from_map(
         sd, f"{sub}/strip_differences.png", None if zoom is None else f"{sub}/strip_differences_zoom.png")
     return CloudEvaluation(differences, planes)
