@@ -16,7 +16,7 @@ from pathlib import Path
 
 from PIL import Image
 
-from georefine.evaluation.report import summary_rows
+from georefine.evaluation.report import summary_rows, summary_verdicts
 from georefine.evaluation.summary import RunEvaluation
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,10 +39,10 @@ def main() -> None:
     out.parent.mkdir(exist_ok=True)
     pair.quantize(colors=128).save(out, optimize=True)  # a palette image: a few hundred kB
     print(f"wrote {out}\n")
-    print("| quantity | paper 000 (G/I / G/I/L / single pass) | G/I | G/I/L | single-pass G/I/L |")
-    print("|---|---:|---:|---:|---:|")
-    for row in summary_rows(ev):
-        print("| " + " | ".join(row) + " |")
+    print("| quantity | paper 000 (G/I / G/I/L / single pass) | G/I | G/I/L | single-pass G/I/L | against paper 000 |")
+    print("|---|---:|---:|---:|---:|---|")
+    for row, verdict in zip(summary_rows(ev), summary_verdicts(ev)):
+        print("| " + " | ".join([*row, verdict]) + " |")
 
 
 if __name__ == "__main__":

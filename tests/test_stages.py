@@ -104,8 +104,11 @@ def test_ctrl_c_says_where_it_stopped_how_to_resume_and_leaves_no_empty_folders(
     (out / ".georefine-output").write_text("Georefine writes into this folder.\n")
     exe = shutil.which("georefine")
     cmd = [exe] if exe else [sys.executable, "-m", "georefine.cli"]
+    # SIGINT back to its default in the child: a test run started in the background by a shell
+    # ignores it, and an ignored signal stays ignored across exec (Python then installs no handler).
     proc = subprocess.Popen([*cmd, "run", str(gil_project), "--out", str(out), "--no-points"], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=dict(os.environ, COLUMNS="200"))
+                            stderr=subprocess.PIPE, text=True, env=dict(os.environ, COLUMNS="200"),
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     seen = []
     for line in proc.stderr:
         seen.append(line)
