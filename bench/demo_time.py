@@ -5,8 +5,8 @@ empty numba cache (``--cold``: the kernels are compiled on the way, as on a fres
 samples the resident memory of the whole process tree (the demo and its second process) every
 0.2 s, and prints the wall time, the peak of the summed memory, the demo's stage timings and,
 as the yardstick measured in the same run, the time the same stages take one after the other
-(simulation, both passes, single pass, both clouds' evaluation): their ratio is what the two
-lanes gain.
+(simulation, both passes, single pass, the boresight calibration, both clouds' evaluation): their
+ratio is what the two lanes gain.
 
 Usage::
 
@@ -58,7 +58,7 @@ def main() -> None:
     if proc.returncode:
         sys.exit(f"georefine demo failed with exit code {proc.returncode}")
     timings = json.loads((out / "metrics.json").read_text())["timings_s"]
-    one_lane = sum(timings.get(k, 0.0) for k in ("simulate", "run_both_passes", "run_single_pass",
+    one_lane = sum(timings.get(k, 0.0) for k in ("simulate", "run_both_passes", "run_single_pass", "run_boresight",
                                                   "evaluate_gil_cloud", "evaluate_gi_cloud", "evaluate", "report"))
     print(f"georefine demo ({'cold' if a.cold else 'warm'} numba cache): {wall:.0f} s wall, "
           f"peak memory {peak / 1024**3:.1f} GB (process tree)")

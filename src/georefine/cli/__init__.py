@@ -293,7 +293,7 @@ def demo(
     m = result.metrics
     table = Table(title=f"Georefine demo ({scenario}, seed {seed}) against {m.evaluation.reference}, beside paper 000")
     for column in ("quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L",
-                   "against paper 000"):
+                   "against paper 000 (✗: the paper's is better)"):
         table.add_column(column, justify="left" if column == "quantity" else "right")
     for row in result.summary_table():
         table.add_row(*row)

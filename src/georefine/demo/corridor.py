@@ -55,7 +55,9 @@ error, 0.9 m across a 1,000 m swath edge at 600 m above ground, which the two pa
 def boresight_project(project: Path, folder: Path, error_deg=BORESIGHT_ERROR_DEG) -> Path:
     """``folder/project.yaml``: ``project``'s configuration with the boresight ``error_deg`` off and
     estimated, its files named relative to ``folder`` (nothing is copied). The time offset is
-    held at the project's: the calibration is about the boresight."""
+    held at the project's: the calibration is about the boresight. One outer iteration: on the
+    corridor (seed 42) it recovers the boresight as two do (roll/pitch/yaw error 2.4/0.3/1.3 mdeg
+    against 2.3/0.3/1.0, sigma 2.3/2.5/14.9) in 60 s instead of 128 s."""
     cfg = yaml.safe_load((project / "project.yaml").read_text(encoding="utf-8"))
     rel = Path("..") / project.name
 
@@ -72,6 +74,7 @@ def boresight_project(project: Path, folder: Path, error_deg=BORESIGHT_ERROR_DEG
     cfg["scanner"]["boresight_deg"] = [b + e for b, e in zip(cfg["scanner"]["boresight_deg"], error_deg)]
     lidar = cfg.setdefault("processing", {}).setdefault("lidar", {})
     lidar["estimate_boresight"] = True
+    lidar["outer_iterations"] = 1
     lidar.setdefault("time_offset", {})["search"] = False
     folder.mkdir(parents=True, exist_ok=True)
     text = yaml.safe_dump(cfg, sort_keys=False)

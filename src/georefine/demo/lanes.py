@@ -12,8 +12,9 @@ from __future__ import annotations
 
 import json
 import multiprocessing
-import signal
 import queue
+import signal
+import threading
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass
@@ -69,7 +70,12 @@ class Lanes:
 
     Use as a context manager; :meth:`__call__` is itself a progress callback (it reports and
     then relays what the worker queued), so the demo passes the lanes object to its own stages.
+    A thread relays the worker's reports every :data:`RELAY_S` seconds too, so that they reach
+    ``progress`` when they happen (the stage lines' times) while this process is in a long step
+    that reports nothing; one lock keeps the two threads' calls apart.
     """
+
+    RELAY_S = 0.25
 
     def __init__(self, progress: Progress) -> None:
         self.progress = progress
@@ -77,14 +83,26 @@ class Lanes:
         self._manager = None
         self._pool: ProcessPoolExecutor | None = None
         self.events = None
+        self._lock = threading.Lock()
+        self._stop = threading.Event()
+        self._relay: threading.Thread | None = None
 
     def __enter__(self) -> "Lanes":
         self._manager = self._ctx.Manager()
         self.events = self._manager.Queue()
         self._pool = ProcessPoolExecutor(max_workers=1, mp_context=self._ctx, initializer=_ignore_interrupts)
+        self._relay = threading.Thread(target=self._relay_loop, name="demo-progress-relay", daemon=True)
+        self._relay.start()
         return self
 
+    def _relay_loop(self) -> None:
+        while not self._stop.wait(self.RELAY_S):
+            self.drain()
+
     def __exit__(self, exc_type, *exc) -> None:
+        self._stop.set()
+        if self._relay is not None:
+            self._relay.join(timeout=5)
         try:
             if self._pool is not None:
                 if exc_type is None:
@@ -111,19 +129,21 @@ class Lanes:
         return self._pool.submit(fn, *args, **kwargs)
 
     def __call__(self, name: str, done: float, total: float) -> None:
-        self.progress(name, done, total)
+        with self._lock:
+            self.progress(name, done, total)
         self.drain()
 
     def drain(self) -> None:
         """Report what the worker has queued so far."""
         if self.events is None:
             return
-        while True:
-            try:
-                name, done, total = self.events.get_nowait()
-            except (queue.Empty, EOFError, OSError):
-                return
-            self.progress(name, done, total)
+        with self._lock:  # one thread at a time: the reports keep their order
+            while True:
+                try:
+                    name, done, total = self.events.get_nowait()
+                except (queue.Empty, EOFError, OSError):
+                    return
+                self.progress(name, done, total)
 
     def result(self, future: Future):
         """``future.result()``, relaying the worker's progress meanwhile."""

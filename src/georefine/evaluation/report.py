@@ -77,10 +77,9 @@ def _judge(value: float | None, bound: float, what: str, strict: bool = False) -
     """``what``'s ``value`` against the paper's ``bound`` (same unit); None without a (finite) value."""
     if value is None or not math.isfinite(value):
         return None
-    relation = "<" if strict else "≤"
     if (value < bound) if strict else (value <= bound):
-        return f"{what} ✓ ({value:.1f} {relation} {bound:g})"
-    return f"{what} ✗ worse than paper 000 ({value:.1f}; paper {relation} {bound:g})"
+        return f"{what} ✓"
+    return f"{what} ✗ {value:.1f} {'≥' if strict else '>'} {bound:g}"
 
 
 def summary_verdicts(summary: RunEvaluation | None) -> list[str]:
@@ -90,7 +89,7 @@ def summary_verdicts(summary: RunEvaluation | None) -> list[str]:
     pass (the paper's figures are differences to its own G/I/L solution, Georefine's to the truth:
     a comparison of magnitudes, not a test). Reference planes: the G/I/L's Mean below 4 mm in
     magnitude, RMSE below 22 mm, AVG-SD at most 3.3 mm (Table 1). Strip differences: at most 50 mm
-    on planar surfaces (Fig. 7). "✗ worse than paper 000" flags a figure the paper beats.
+    on planar surfaces (Fig. 7). "✗" flags a figure the paper beats, with both figures.
     """
     out: list[str] = []
     traj = summary.trajectory if summary is not None else {}
@@ -189,7 +188,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
 
     parts.append("<h2>1. Summary beside paper 000</h2>")
     parts.append(table(["quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L",
-                        "against paper 000"],
+                        "against paper 000 (✗: the paper's is better)"],
                        [[*row, verdict] for row, verdict in zip(summary_rows(summary), summary_verdicts(summary))]))
     parts.append('<p class="note">Paper 000 compares with its full G/I/L solution (no truth); Georefine compares '
                  "with the reference named above. Reference planes: Mean and RMSE over all strip x channel "
