@@ -422,6 +422,10 @@ def test_outer_iterations_that_do_not_converge_are_reported_with_their_figures(c
     with caplog.at_level(logging.WARNING, logger="georefine.workflows.outer_checks"):
         warn_unconverged(settled, lcfg)
     assert caplog.text == ""
+    # One outer iteration configured: no convergence test asked for, so no warning; the change is logged.
+    with caplog.at_level(logging.INFO, logger="georefine.workflows.outer_checks"):
+        warn_unconverged(moving[:1], LidarAdjustmentConfig(outer_iterations=1))
+    assert [r.levelno for r in caplog.records] == [logging.INFO] and "57.70 mdeg" in caplog.text
 
 
 def _gps_seconds(las) -> np.ndarray:

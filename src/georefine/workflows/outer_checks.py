@@ -50,9 +50,19 @@ def outer_converged(record: OuterIteration, lcfg) -> bool:
 
 
 def warn_unconverged(records: list[OuterIteration], lcfg) -> None:
-    """Warn, with the figures, when the last allowed outer iteration still moved the trajectory too much."""
+    """Warn, with the figures, when the last allowed outer iteration still moved the trajectory too much.
+
+    A configuration of one outer iteration asked for no convergence test: its only change is the
+    one from the G/I, which is what the LiDAR adds (a boresight calibration, as the demo's, uses
+    one; the boresight's posterior sigma says how well it is known). That is logged, not warned.
+    """
     last = records[-1]
     if outer_converged(last, lcfg):
+        return
+    if lcfg.outer_iterations == 1:
+        log.info("one outer iteration (processing.lidar.outer_iterations: 1): no convergence test; it moved the "
+                 "trajectory by %.2f mdeg and %.1f mm RMS from the G/I", last.attitude_change_mdeg,
+                 last.position_change_m * 1e3)
         return
     log.warning(
         "the G/I/L outer iterations did not converge: after %d (processing.lidar.outer_iterations) the last one "
