@@ -485,6 +485,7 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
         points[strip_id] = writers.write_strip(
             root / "scans" / f"strip_{strip_id}.{ext}", root / "truth" / f"strip_{strip_id}.{ext}", records, tick, crs)
         done += t1 - t0
+    progress("scanning", total, total)  # the last chunk's end may fall a rounding short of the total
     timings["scanning"] = _time.perf_counter() - t
 
     truth = {
