@@ -138,18 +138,27 @@ def plot_cloud_errors(errors: CloudErrors, path: Path, *, title: str = "", pixel
     cell = max(float(span.max()) / pixels, 1e-3)
     shape = (int(span[1] / cell) + 1, int(span[0] / cell) + 1)
     aspect = float(np.clip(span[1] / max(span[0], 1e-9), 0.3, 2.0))
-    fig, axes = plt.subplots(1, 2, figsize=(11, 4.4 * aspect + 1.2), sharex=True, sharey=True,
+    # 9 in wide: the report shows it near its size, so its 9-11 pt labels stay readable there.
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6 * aspect + 1.2), sharex=True, sharey=True,
                              constrained_layout=True)
     extent = (0.0, shape[1] * cell, 0.0, shape[0] * cell)
+    cmap = plt.get_cmap("viridis").with_extremes(over=(0.85, 0.1, 0.45))  # cells beyond the scale: magenta
+    over = 0
     for ax, n, rms, label in ((axes[0], n0, rms0, "jammed G/I cloud"), (axes[1], n1, rms1, "refined")):
-        im = ax.imshow(_error_grid(errors.xy, n, origin, cell, shape), origin="lower", extent=extent,
-                       cmap="viridis", vmin=0, vmax=vmax, interpolation="nearest")
-        ax.set_title(f"{label}: RMS {rms:.3f} m")
-        ax.set_xlabel("E - E0 [m]")
-    axes[0].set_ylabel("N - N0 [m]")
-    fig.colorbar(im, ax=axes, label=f"mean 3-D error against the truth per {cell:.2g} m cell [m]", shrink=0.8)
+        grid = _error_grid(errors.xy, n, origin, cell, shape)
+        over += int(np.count_nonzero(grid > vmax))
+        im = ax.imshow(grid, origin="lower", extent=extent, cmap=cmap, vmin=0, vmax=vmax, interpolation="nearest")
+        ax.set_aspect("equal")
+        ax.set_title(f"{label}: RMS {rms:.3f} m", fontsize=11)
+        ax.set_xlabel("E - E0 [m]", fontsize=10)
+        ax.tick_params(labelsize=9)
+    axes[0].set_ylabel("N - N0 [m]", fontsize=10)
+    bar = fig.colorbar(im, ax=axes, shrink=0.8, extend="max" if over else "neither")
+    bar.set_label(f"mean 3-D error per {cell:.2g} m cell [m]" + (f"; {over:,} cells beyond, in magenta" if over else ""),
+                  fontsize=10)
+    bar.ax.tick_params(labelsize=9)
     if title:
-        fig.suptitle(title)
+        fig.suptitle(title, fontsize=11)
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, dpi=110, format="png")
