@@ -69,7 +69,8 @@ def test_the_figures_compare_the_adjustment_with_the_truth_at_its_knots(tmp_path
     run = tmp_path / "run"
     (run / "evaluation").mkdir(parents=True)
     plot_imu_errors({"G/I/L": adjustment}, path, run / "evaluation" / "imu_errors.png")
-    ev = RunEvaluation("truth", imu_errors={"G/I/L": f}, imu_errors_plot="imu_errors.png", boresight=b)
+    ev = RunEvaluation("truth", imu_errors={"G/I/L": f}, imu_errors_plot="imu_errors.png", boresight=b,
+                       overview_plot="overview.png")
     assert RunEvaluation.from_dict(ev.to_dict()) == ev
     write_json(run / "evaluation" / "summary.json", ev.to_dict())
     write_json(run / "metrics.json", WorkflowMetrics(t0_gps=t0, strips=(1,), strip_time_gps={1: (t[0], t[-1])}).to_dict())

@@ -238,7 +238,8 @@ def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_pat
         assert "".join(f"<td>{c}</td>" for c in row) in page, row
     assert f"{rp['G/I/L']['avg_sd_m'] * 1e3:.1f}" in page and page.count("data:image/png;base64,") >= 4
     assert "Vertical accuracy to the standards" in page and f"{va['rmse_v_m'] * 1e3:.1f}" in page
-    # The adjustments' IMU errors against the simulated truth, with their plot.
+    # The flight on a map first, then the adjustments' IMU errors against the simulated truth, with their plot.
+    assert (out / "run" / "evaluation" / ev["overview_plot"]).is_file() and "The flight: the trajectory" in page
     assert sorted(ev["imu_errors"]) == ["G/I", "G/I/L"] and (out / "run" / "evaluation" / ev["imu_errors_plot"]).is_file()
     assert "IMU errors and boresight against the simulated truth" in page
     # The boresight calibration: stated 0.05 deg off in roll, recovered within 5 mdeg and shown against the truth.

@@ -140,3 +140,59 @@ def plot_position_differences(
                 for j, name in enumerate(("north", "east", "down"))]
 
     return _panels(comparisons, path, title, series, protect)
+
+
+def plot_overview(trajectory_csv: Path, strip_time_gps: dict, path: Path, *,
+                  sites: list[tuple[str, float, float]] | None = None, title: str = "") -> Path:
+    """The flight on a map: the whole trajectory in grey, each strip's part of it in colour and
+    labelled with its id and direction, the reference surfaces as triangles; equal aspect, the
+    output CRS's axes (what a surveyor looks at first)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from georefine.io.trajectory_csv import read_trajectory_csv
+
+    table = read_trajectory_csv(trajectory_csv)
+    t, x, y = table.time_gps, table.xyz[:, 0], table.xyz[:, 1]
+    span = max(float(np.ptp(x)), float(np.ptp(y)), 1.0)
+    wide = float(np.ptp(x)) >= float(np.ptp(y))
+    fig = Figure(figsize=(10, 6) if wide else (6, 9), layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    ax.plot(x, y, color="0.65", lw=0.8, label="trajectory")
+    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+    strips = sorted(strip_time_gps.items(), key=lambda kv: kv[1][0])
+    for k, (sid, (t0, t1)) in enumerate(strips):
+        on = (t >= t0) & (t <= t1)
+        if not np.any(on):
+            continue
+        c = colours[k % len(colours)]
+        # Passes over one corridor overlap: each drawn thinner than the last, labelled at its own place and side.
+        ax.plot(x[on], y[on], color=c, lw=3.0 - 2.0 * k / max(len(strips), 1), label=f"strip {sid}")
+        i = np.flatnonzero(on)
+        ax.annotate("", xy=(x[i[-1]], y[i[-1]]), xytext=(x[i[-2]], y[i[-2]]) if i.size > 1 else (x[i[0]], y[i[0]]),
+                    arrowprops={"arrowstyle": "-|>", "color": c, "lw": 1.5})
+        at = i[int(i.size * (k + 1) / (len(strips) + 1))]
+        ax.annotate(f"strip {sid}", (x[at], y[at]), xytext=(8 if k % 2 == 0 else -8, 0), textcoords="offset points",
+                    ha="left" if k % 2 == 0 else "right", fontsize=9, color=c)
+    for label, sx, sy in sites or ():
+        ax.plot(sx, sy, marker="^", ms=7, mfc="none", mec="black", mew=1.0)
+        ax.annotate(label, (sx, sy), xytext=(4, 4), textcoords="offset points", fontsize=8)
+    ax.set_aspect("equal")
+    ax.ticklabel_format(useOffset=False, style="plain")
+    ax.tick_params(labelsize=9)
+    from matplotlib.ticker import MaxNLocator
+
+    (ax.yaxis if wide else ax.xaxis).set_major_locator(MaxNLocator(3))  # the narrow axis: labels apart
+    if not wide:
+        ax.tick_params(axis="x", labelrotation=30)
+    crs = f" ({table.crs})" if table.crs else ""
+    ax.set_xlabel(f"easting [m]{crs}", fontsize=10)
+    ax.set_ylabel(f"northing [m]{crs}", fontsize=10)
+    ax.grid(True, lw=0.3, alpha=0.6)
+    ax.legend(loc="best", fontsize=9)
+    ax.set_title(title or f"flight overview ({span / 1000:.1f} km across)", fontsize=11)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", dpi=110)
+    return path

@@ -186,6 +186,10 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
              f"run folder {html.escape(str(run_dir.resolve()))}; strips {list(metrics.strips)}; "
              f"trajectory reference: {html.escape(reference)}.</p>"]
 
+    if summary is not None and summary.overview_plot:
+        parts.append(f"<figure>{image(ev / summary.overview_plot, 'flight overview')}<figcaption>The flight: "
+                     "the trajectory in grey, the strips in colour with their direction, the reference surfaces "
+                     "as triangles.</figcaption></figure>")
     parts.append("<h2>1. Summary beside paper 000</h2>")
     parts.append(table(["quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L",
                         "against paper 000 (✗: the paper's is better)"],

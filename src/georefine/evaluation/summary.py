@@ -238,6 +238,7 @@ class RunEvaluation:
     imu_errors: dict[str, ImuErrorFigures] = field(default_factory=dict)
     imu_errors_plot: str | None = None
     boresight: BoresightFigures | None = None
+    overview_plot: str | None = None  # the flight on a map (evaluation.plots.plot_overview)
 
     SINGLE_PASS = "G/I/L single pass"
     """Start of the single-pass solution's label."""
@@ -260,6 +261,8 @@ class RunEvaluation:
             d["imu_errors_plot"] = self.imu_errors_plot
         if self.boresight is not None:
             d["boresight"] = self.boresight.to_dict()
+        if self.overview_plot is not None:
+            d["overview_plot"] = self.overview_plot
         return d
 
     @classmethod
@@ -275,6 +278,7 @@ class RunEvaluation:
             imu_errors={k: ImuErrorFigures.from_dict(v) for k, v in d.get("imu_errors", {}).items()},
             imu_errors_plot=d.get("imu_errors_plot"),
             boresight=None if d.get("boresight") is None else BoresightFigures.from_dict(d["boresight"]),
+            overview_plot=d.get("overview_plot"),
         )
 
     @classmethod

@@ -38,6 +38,7 @@ from georefine.evaluation.clouds import (
 )
 from georefine.evaluation.plots import (
     plot_attitude_differences,
+    plot_overview,
     plot_position_differences,
 )
 from georefine.evaluation.reference_planes import (
@@ -139,6 +140,11 @@ def evaluate_run(
         )
     report("trajectory differences", 1, 1)
     imu_errors, imu_plot, boresight = _calibration(project, run_dir, out, boresight_run)
+    overview = None
+    track = next((p for p in (run_dir / "gil" / "trajectory.csv", run_dir / "gi" / "trajectory.csv") if p.is_file()), None)
+    if track is not None:
+        overview = plot_overview(track, metrics.strip_time_gps, out / "overview.png",
+                                 sites=_sites(project / "reference" / "surfaces.csv")).name
 
     # Point clouds: G/I (georeferenced here) and G/I/L (written by the run).
     clouds = dict(clouds or {})
@@ -158,9 +164,17 @@ def evaluate_run(
         if own is not None:
             own.close()
     summary = RunEvaluation(reference_name, trajectory, plots, reference_planes, strip_differences, imu_errors,
-                            imu_plot, boresight)
+                            imu_plot, boresight, overview)
     write_json(out / "summary.json", summary.to_dict())
     return summary
+
+
+def _sites(ref_csv: Path) -> list[tuple[str, float, float]] | None:
+    """``(surface id, x, y)`` of every reference surface's centre (output CRS), or None without them."""
+    if not ref_csv.is_file():
+        return None
+    return [(p.surface_id, float(p.centre[0]), float(p.centre[1]))
+            for p in fit_reference_planes(read_reference_surfaces(ref_csv))]
 
 
 def _calibration(project: Path, run_dir: Path, out: Path, boresight_run: Path | None = None):
@@ -248,10 +262,7 @@ def evaluate_cloud(
     if ref_csv.is_file():
         _, rp = evaluate_reference_planes(files, ref_csv, out, scan=scan)
         planes = ReferencePlaneFigures.from_summary(rp)
-    sites = None
-    if ref_csv.is_file():  # the reference surfaces, marked on the maps
-        sites = [(p.surface_id, float(p.centre[0]), float(p.centre[1]))
-                 for p in fit_reference_planes(read_reference_surfaces(ref_csv))]
+    sites = _sites(ref_csv)  # the reference surfaces, marked on the maps
     sd = evaluate_strip_differences(files, out, title=f"strip differences, {label}", zoom=zoom, scan=scan, sites=sites)
     differences = StripDifferenceFigures.from_map(
         sd, f"{sub}/strip_differences.png", None if zoom is None else f"{sub}/strip_differences_zoom.png")
