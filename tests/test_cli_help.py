@@ -43,3 +43,21 @@ def test_tables_and_errors_keep_brackets():
                 raise GeorefineError("lidargram sigma [m] must be positive")
     assert exit_info.value.exit_code == 2
     assert "error: lidargram sigma [m] must be positive" in captured.get()
+
+
+def test_the_readme_names_the_workflow_steps_as_the_help_does():
+    """README.md's numbered steps 1-6 (the trajectory and the whole-workflow sections) are
+    georefine.steps.WORKFLOW_STEPS, which the help quotes: one source for the step names."""
+    from pathlib import Path
+
+    from georefine.steps import WORKFLOW_STEPS, steps_text
+
+    readme = (Path(__file__).resolve().parents[1] / "README.md").read_text(encoding="utf-8")
+    start = readme.index("## Estimating the trajectory from GNSS and IMU")
+    end = readme.index("\n## ", readme.index("## GNSS/IMU/LiDAR: the whole workflow"))
+    named = {int(n): name.lower() for n, name in re.findall(r"^([1-6])\. \*\*(.+?)\*\*", readme[start:end], re.MULTILINE)}
+    assert named == {k: v.lower() for k, v in WORKFLOW_STEPS.items()}, named
+    assert steps_text(1, 2, 6) == "steps 1, 2 and 6 (initialisation, GNSS/IMU adjustment, final georeferencing)"
+    assert steps_text(6) == "step 6 (final georeferencing)"
+    with pytest.raises(ValueError):
+        steps_text(7)

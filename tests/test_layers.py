@@ -25,7 +25,7 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src"
 
 LAYERS: list[tuple[str, ...]] = [
-    ("georefine", "georefine.errors", "georefine.progress"),  # conventions and version, errors, progress
+    ("georefine", "georefine.errors", "georefine.progress", "georefine.steps"),  # conventions, errors, progress, steps
     ("georefine.tasks",),  # where per-tile work runs (sync, threads, processes, a Dask cluster)
     ("georefine.geometry",),
     ("georefine.io",),

@@ -17,6 +17,7 @@ from typing import Optional
 import typer
 
 from georefine import __version__
+from georefine.steps import steps_text
 from georefine.cli.common import force_option, output_ok, progress, scheduler_option, stdout, user_errors
 from georefine.cli.tools import evaluate_app, export_app
 
@@ -107,7 +108,7 @@ def check(
 def trajectory(
     project: Path = typer.Argument(..., help="Project folder with project.yaml."),
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
-    filter_only: bool = typer.Option(False, "--filter-only", help="Stop after the initialisation filter (step 1)."),
+    filter_only: bool = typer.Option(False, "--filter-only", help=f"Stop after {steps_text(1)}, the filter."),
     force: bool = force_option(),
 ) -> None:
     """Estimate the trajectory from GNSS and IMU (workflow steps 1-2).
@@ -132,9 +133,10 @@ def run(
     out: Path = typer.Option(..., "--out", "-o", help="Output folder (outside the project)."),
     strips: Optional[str] = typer.Option(None, "--strips", help="Comma-separated strip ids (point_source_id) to use."),
     no_lidar: bool = typer.Option(
-        False, "--no-lidar", help="No LiDAR adjustment: steps 1, 2 and 6 (the G/I trajectory and its point clouds)."),
+        False, "--no-lidar", help=f"No LiDAR adjustment: only {steps_text(1, 2, 6)}: the G/I trajectory and its "
+        "point clouds."),
     fresh: bool = typer.Option(False, "--fresh", help="Recompute every step instead of resuming from OUT/.cache."),
-    no_points: bool = typer.Option(False, "--no-points", help="Skip the final point clouds (step 6)."),
+    no_points: bool = typer.Option(False, "--no-points", help=f"Skip {steps_text(6)}: no point clouds."),
     scheduler: str = scheduler_option(),
     force: bool = force_option(),
 ) -> None:
