@@ -55,7 +55,6 @@ from typing import Literal
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.special import chdtrc, chdtri  # chi-square tail and quantiles without scipy.stats (0.4 s to import)
 
 from georefine.adjustment.blocks import (
     ColumnLayout,
@@ -66,12 +65,14 @@ from georefine.adjustment.blocks import (
 from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler, column_squares, lower_triangle, normal_equations
 from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky, available_backends
 from georefine.adjustment.pcg import PCG_STALE_ITERATIONS, NormalSystem, pcg_step
-from georefine.adjustment.robust import downweight_threshold, irls_weights
+from georefine.adjustment.robust import irls_weights
 from georefine.adjustment.statistics import (
     GroupStatistics,
     IterationSummary,
     SolveResult,
     Timings,
+    expected_downweighted,
+    robust_sigma0,
 )
 
 __all__ = [
@@ -635,22 +636,6 @@ def _report(progress, iteration, cost, change, gain, step, g_max, lam, accepted,
         )
 
 
-def _expected_downweighted(group, ge, m: int) -> float:
-    """``P(chi2(k) > s*)``: the share of observations (``k`` rows each) that the group's loss
-    weights below 0.5 by chance when the model fits (GroupStatistics.expected_downweighted)."""
-    threshold = downweight_threshold(getattr(group, "loss", None)) if ge.loss_name is not None else None
-    if threshold is None:
-        return 0.0
-    return float(chdtrc(m / ge.n_observations, threshold)) if ge.n_observations else math.nan
-
-
-def robust_sigma0(median_s: float, dof: float) -> float:
-    """``sqrt(median s / median chi2(dof))``: sigma0 from the median squared norm ``s`` of
-    observations with ``dof`` rows each; about 1 when the model and the sigmas fit, whatever a
-    minority of outliers does."""
-    return math.sqrt(median_s / chdtri(dof, 0.5)) if math.isfinite(median_s) else math.nan
-
-
 def _spent(layout: ColumnLayout, groups) -> float:
     """Unknowns plus the degrees of freedom the observations spent before the adjustment
     (readings cleaned of a signal fitted to themselves, ``ImuObservation.consumed_redundancy``):
@@ -678,7 +663,8 @@ def _statistics(
                 variance_factor=ge.sum_wr2 / m if m else math.nan,
                 n_downweighted=ge.n_downweighted,
                 robust_sigma0=robust_sigma0(ge.median_s, m / ge.n_observations) if ge.n_observations else math.nan,
-                expected_downweighted=_expected_downweighted(group, ge, m),
+                expected_downweighted=(expected_downweighted(getattr(group, "loss", None) if ge.loss_name else None,
+                                                             m / ge.n_observations) if ge.n_observations else math.nan),
             )
         )
         n_obs += ge.n_observations

@@ -11,6 +11,9 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
+from scipy.special import chdtrc, chdtri  # chi-square tail and quantiles without scipy.stats (0.4 s to import)
+
+from georefine.adjustment.robust import downweight_threshold
 
 _CONVERGED = ("function_tolerance", "parameter_tolerance", "gradient_tolerance", "no_unknowns")
 
@@ -207,3 +210,18 @@ def _jsonable(obj: Any) -> Any:
 # ---------------------------------------------------------------------------------------------
 # Layout, evaluation and assembly
 # ---------------------------------------------------------------------------------------------
+
+
+def robust_sigma0(median_s: float, dof: float) -> float:
+    """``sqrt(median s / median chi2(dof))``: sigma0 from the median squared norm ``s`` of
+    observations with ``dof`` rows each; about 1 when the model and the sigmas fit, whatever a
+    minority of outliers does."""
+    return math.sqrt(median_s / chdtri(dof, 0.5)) if math.isfinite(median_s) else math.nan
+
+
+def expected_downweighted(loss, dof: float) -> float:
+    """``P(chi2(dof) > s*)``: the share of observations (``dof`` rows each) that ``loss`` weights
+    below 0.5 by chance when the model fits (:attr:`GroupStatistics.expected_downweighted`); 0
+    without a robust loss."""
+    threshold = downweight_threshold(loss)
+    return 0.0 if threshold is None else float(chdtrc(dof, threshold))
