@@ -35,7 +35,7 @@ import yaml
 from georefine.demo.lanes import Lanes, QueuedProgress, demo_stamp, reusable_project, simulation_scheduler
 from georefine.evaluation.report import summary_rows, summary_verdicts, write_report
 from georefine.evaluation.summary import CloudEvaluation, RunEvaluation
-from georefine.io.files import make_output_folder, write_json
+from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import resolve_scenario, simulate_project
@@ -80,7 +80,8 @@ def boresight_project(project: Path, folder: Path, error_deg=BORESIGHT_ERROR_DEG
     text = yaml.safe_dump(cfg, sort_keys=False)
     path = folder / "project.yaml"
     if not path.is_file() or path.read_text(encoding="utf-8") != text:  # unchanged: its runs' cache keys hold
-        path.write_text(text, encoding="utf-8")
+        with atomic_output(path, "wb") as fh:
+            fh.write(text.encode("utf-8"))
     return folder
 
 

@@ -41,9 +41,6 @@ from georefine.evaluation.plots import (
     plot_overview,
     plot_position_differences,
 )
-from georefine.evaluation.reference_planes import (
-    reference_planes as fit_reference_planes,
-)
 from georefine.evaluation.summary import (
     ANGLES,
     CloudEvaluation,
@@ -170,11 +167,12 @@ def evaluate_run(
 
 
 def _sites(ref_csv: Path) -> list[tuple[str, float, float]] | None:
-    """``(surface id, x, y)`` of every reference surface's centre (output CRS), or None without them."""
+    """``(surface id, x, y)`` of every reference surface's centre, the mean of its surveyed points
+    (output CRS), or None without them."""
     if not ref_csv.is_file():
         return None
-    return [(p.surface_id, float(p.centre[0]), float(p.centre[1]))
-            for p in fit_reference_planes(read_reference_surfaces(ref_csv))]
+    surfaces = read_reference_surfaces(ref_csv)
+    return [(sid, *map(float, surfaces.points_of(sid).mean(axis=0)[:2])) for sid in surfaces.surface_ids()]
 
 
 def _calibration(project: Path, run_dir: Path, out: Path, boresight_run: Path | None = None):
