@@ -8,16 +8,14 @@ import numpy as np
 import pytest
 
 from georefine.evaluation.point_cloud import strip_discrepancy, surface_distances
+from georefine.evaluation.strip_difference_maps import map_figure, map_panels, write_png
 from georefine.evaluation.strip_differences import (
     BAND_DESCRIPTION,
     StripDifferenceMap,
     cell_planes,
     crop,
-    map_figure,
-    map_panels,
     strip_differences,
     write_geotiff,
-    write_png,
 )
 
 

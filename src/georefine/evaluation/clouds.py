@@ -50,6 +50,7 @@ from georefine.evaluation.reference_planes import (
     reference_planes,
     summarise_observations,
 )
+from georefine.evaluation.strip_difference_maps import write_png
 from georefine.evaluation.strip_differences import (
     LAYER_CODE,
     MAX_NORMAL_ANGLE_DEG,
@@ -63,7 +64,6 @@ from georefine.evaluation.strip_differences import (
     cell_moments,
     crop,
     write_geotiff,
-    write_png,
 )
 from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.io.point_manifest import manifest_files
