@@ -135,7 +135,7 @@ def plot_imu_errors(adjustments: dict[str, dict[str, Any]], truth_npz: Path, pat
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from georefine.io.files import atomic_path
+    from georefine.evaluation.figures import save_png
 
     with np.load(truth_npz) as z:
         truth = {k: np.asarray(z[k]) for k in z.files}
@@ -162,7 +162,6 @@ def plot_imu_errors(adjustments: dict[str, dict[str, Any]], truth_npz: Path, pat
                 ax.set_xlabel("time since start (s)")
     axes[0, 0].legend(fontsize=8, loc="best")
     fig.suptitle("Estimated IMU biases (±2σ bands) against the simulated truth", fontsize=11)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+    save_png(fig, path, 110)
     plt.close(fig)
     return path

@@ -16,7 +16,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from georefine.io.files import PathLike, atomic_path, week_from_gps_seconds
+from georefine.evaluation.figures import save_png
+from georefine.io.files import PathLike, week_from_gps_seconds
 
 if TYPE_CHECKING:  # pragma: no cover
     from georefine.evaluation.trajectory import TrajectoryComparison
@@ -81,10 +82,7 @@ def _panels(
     axes[-1].set_xlabel(xlabel)
     if title:
         fig.suptitle(title)
-    path = Path(path)
-    with atomic_path(path, protect) as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    return path
+    return save_png(fig, path, 120, protect)
 
 
 def plot_attitude_differences(
@@ -192,7 +190,4 @@ def plot_overview(trajectory_csv: Path, strip_time_gps: dict, path: Path, *,
     ax.grid(True, lw=0.3, alpha=0.6)
     ax.legend(loc="best", fontsize=9)
     ax.set_title(title or f"flight overview ({span / 1000:.1f} km across)", fontsize=11)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    return path
+    return save_png(fig, path, 110)

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from georefine.evaluation.strip_differences import GATES, StripDifferenceMap
-from georefine.io.files import atomic_path
+from georefine.evaluation.figures import save_png
 
-__all__ = ["MAX_PANEL_RATIO", "map_figure", "map_panels", "write_png"]
+__all__ = ["MAX_PANEL_RATIO", "label_axes", "map_figure", "map_panels", "mark_sites", "tiled_axes", "write_png"]
 
 MAX_PANEL_RATIO = 2.5
 """A map longer than this many times its width is cut along its long axis into panels of at most
@@ -32,15 +32,65 @@ def map_panels(rows: int, cols: int, max_ratio: float = MAX_PANEL_RATIO) -> tupl
     return ("rows" if rows >= cols else "cols"), [slice(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:])]
 
 
+def tiled_axes(rows: int, cols: int, x0: float, y1: float, cell_size_m: float,
+               max_panel_ratio: float = MAX_PANEL_RATIO):
+    """A figure for a ``rows`` x ``cols`` raster (row 0 the northern edge at ``y1``, column 0 the
+    western at ``x0``) cut into panels (:func:`map_panels`): ``(fig, axes, panels)`` with one
+    ``(row slice, column slice, imshow extent)`` per axes, every axes at equal aspect with plain
+    coordinates in metres. Shared by the report's raster maps (strip differences, coverage)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    axis, parts = map_panels(rows, cols, max_panel_ratio)
+    c = cell_size_m
+    panel_rows = max(p.stop - p.start for p in parts) if axis == "rows" else rows
+    panel_cols = cols if axis == "rows" else max(p.stop - p.start for p in parts)
+    ratio = panel_rows / max(panel_cols, 1)  # height / width of one panel
+    n = len(parts)
+    if axis == "rows":  # tall panels side by side
+        w = min(4.0, 14.0 / n, 11.0 / ratio)
+        fig, axes = plt.subplots(1, n, figsize=(n * w + 1.8, 0.9 * w * ratio + 1.3), dpi=150, squeeze=False,
+                                 layout="constrained")
+    else:  # wide panels stacked
+        w = min(10.0, 14.0 / (n * ratio))
+        fig, axes = plt.subplots(n, 1, figsize=(w + 1.8, n * w * ratio + 1.3), dpi=150, squeeze=False,
+                                 layout="constrained")
+    axes = list(axes.ravel())
+    panels = []
+    for ax, part in zip(axes, parts):
+        r, q = (part, slice(0, cols)) if axis == "rows" else (slice(0, rows), part)
+        extent = (x0 + q.start * c, x0 + q.stop * c, y1 - r.stop * c, y1 - r.start * c)
+        panels.append((r, q, extent))
+        ax.set_aspect("equal")
+        ax.ticklabel_format(useOffset=False, style="plain")
+        ax.tick_params(labelsize=8)
+    return fig, axes, panels
+
+
+def mark_sites(ax, extent, sites: list[tuple[str, float, float]] | None) -> None:
+    """``sites`` ``(label, x, y)`` inside ``extent`` as labelled triangles (on one panel where two meet)."""
+    for label, x, y in sites or ():
+        if extent[0] <= x < extent[1] and extent[2] < y <= extent[3]:
+            ax.plot(x, y, marker="^", ms=6, mfc="none", mec="black", mew=1.0)
+            ax.annotate(label, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=8)
+
+
+def label_axes(fig, epsg: int | None) -> None:
+    """Easting and northing in metres, and the CRS, once for all panels."""
+    crs = f" (EPSG:{epsg})" if epsg else ""
+    fig.supxlabel(f"easting [m]{crs}", fontsize=9)
+    fig.supylabel(f"northing [m]{crs}", fontsize=9)
+
+
 def write_png(path: str | Path, m: StripDifferenceMap, *, title: str = "", vmax_m: float = 0.1, epsg: int | None = None,
               sites: list[tuple[str, float, float]] | None = None, max_panel_ratio: float = MAX_PANEL_RATIO) -> Path:
     """PNG map of the spread (:func:`map_figure`), written atomically."""
     import matplotlib.pyplot as plt
 
     fig = map_figure(m, title=title, vmax_m=vmax_m, epsg=epsg, sites=sites, max_panel_ratio=max_panel_ratio)
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, format="png")
+    save_png(fig, path)
     plt.close(fig)
     return path
 
@@ -57,48 +107,22 @@ def map_figure(m: StripDifferenceMap, *, title: str = "", vmax_m: float = 0.1, e
     import matplotlib.pyplot as plt
 
     rows, cols = m.spread_m.shape
-    axis, parts = map_panels(rows, cols, max_panel_ratio)
-    c = m.cell_size_m
-    panel_rows = max(p.stop - p.start for p in parts) if axis == "rows" else rows
-    panel_cols = cols if axis == "rows" else max(p.stop - p.start for p in parts)
-    ratio = panel_rows / max(panel_cols, 1)  # height / width of one panel
-    n = len(parts)
-    if axis == "rows":  # tall panels side by side
-        w = min(4.0, 14.0 / n, 11.0 / ratio)
-        fig, axes = plt.subplots(1, n, figsize=(n * w + 1.8, 0.9 * w * ratio + 1.3), dpi=150, squeeze=False,
-                                 layout="constrained")
-    else:  # wide panels stacked
-        w = min(10.0, 14.0 / (n * ratio))
-        fig, axes = plt.subplots(n, 1, figsize=(w + 1.8, n * w * ratio + 1.3), dpi=150, squeeze=False,
-                                 layout="constrained")
-    axes = axes.ravel()
+    fig, axes, panels = tiled_axes(rows, cols, m.x0, m.y1, m.cell_size_m, max_panel_ratio)
     cmap = plt.get_cmap("RdYlGn_r").with_extremes(bad=(1.0, 1.0, 1.0, 0.0), over=(0.45, 0.05, 0.55))
     spread_mm = m.spread_m * 1e3
     over = int(np.count_nonzero(spread_mm > vmax_m * 1e3))
     gated = np.where(m.gate >= GATES.index("rough"), 1.0, np.nan)
     im = None
-    for ax, part in zip(axes, parts):
-        r, q = (part, slice(None)) if axis == "rows" else (slice(None), part)
-        r0 = r.start or 0
-        q0 = q.start or 0
+    for ax, (r, q, extent) in zip(axes, panels):
         sub = spread_mm[r, q]
-        extent = (m.x0 + q0 * c, m.x0 + (q0 + sub.shape[1]) * c, m.y1 - (r0 + sub.shape[0]) * c, m.y1 - r0 * c)
         g = gated[r, q]
         if np.any(g == 1.0):  # gated cells in grey, beneath the map
             ax.imshow(g, extent=extent, cmap=plt.get_cmap("Greys"), vmin=0.0, vmax=2.0, interpolation="nearest",
                       origin="upper")
         im = ax.imshow(sub, extent=extent, cmap=cmap, vmin=0.0, vmax=vmax_m * 1e3, interpolation="nearest",
                        origin="upper")
-        ax.set_aspect("equal")
-        ax.ticklabel_format(useOffset=False, style="plain")
-        ax.tick_params(labelsize=8)
-        for label, x, y in sites or ():
-            if extent[0] <= x < extent[1] and extent[2] < y <= extent[3]:  # on one panel where two meet
-                ax.plot(x, y, marker="^", ms=6, mfc="none", mec="black", mew=1.0)
-                ax.annotate(label, (x, y), xytext=(4, 4), textcoords="offset points", fontsize=7)
-    crs = f" (EPSG:{epsg})" if epsg else ""
-    fig.supxlabel(f"easting [m]{crs}", fontsize=9)
-    fig.supylabel(f"northing [m]{crs}", fontsize=9)
+        mark_sites(ax, extent, sites)
+    label_axes(fig, epsg)
     note = f"; {over:,} cells above {vmax_m * 1e3:g} mm in purple" if over else ""
     fig.suptitle((title or "strip differences") + f" (max - min per cell along the normal; grey: gated{note})",
                  fontsize=10)
