@@ -181,4 +181,12 @@ def evaluate_strip_differences_cmd(
     stdout.print(f"gated {g['candidates'] - g['kept']:,} of {g['candidates']:,} cells: " + ", ".join(
         f"{k} {g[k]:,}" for k in ("rough", "steep", "edge", "normals")))
     if out is not None:
-        stdout.print(f"wrote {out / 'strip_differences.png'}, .tif and .json")
+        import json
+
+        cov = json.loads((out / "strip_differences.json").read_text(encoding="utf-8")).get("coverage")
+        if cov:
+            stdout.print(f"point density: median {cov['density_median_per_m2']:.1f} points/m² on {cell:g} m cells, "
+                         f"5 % of the area below {cov['density_p5_per_m2']:.1f}; "
+                         f"{100 * cov['overlap_share']:.0f} % of {cov['area_km2']:.2f} km² seen from two strips or more")
+        stdout.print(f"wrote {out / 'strip_differences.png'}, .tif and .json, coverage_density.png and "
+                     "coverage_overlap.png")

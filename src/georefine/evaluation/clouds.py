@@ -23,7 +23,10 @@ size, the closing or the scheduler, beyond the order of floating-point sums (< 1
   surfaces per strip x channel and paper 000's Table 1 figures
   (:mod:`georefine.evaluation.reference_planes`);
 * ``strip_differences.json``, ``strip_differences.png`` and ``strip_differences.tif``: the Fig. 7
-  raster over the layers strip x channel (:mod:`georefine.evaluation.strip_differences`).
+  raster over the layers strip x channel (:mod:`georefine.evaluation.strip_differences`);
+* ``coverage_density.png`` and ``coverage_overlap.png``: points per m² and strips per cell on the
+  same raster, from the same scan (:mod:`georefine.evaluation.coverage`; figures under
+  ``coverage`` in ``strip_differences.json``).
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from georefine.adjustment.accuracy_standards import (
     surface_vertical_errors,
 )
 from georefine.errors import InputError
+from georefine.geometry.frames import GeoidHeights, OutputCRS
 from georefine.evaluation.reference_planes import (
     PlaneObservation,
     ReferencePlane,
@@ -50,6 +54,7 @@ from georefine.evaluation.reference_planes import (
     reference_planes,
     summarise_observations,
 )
+from georefine.evaluation.coverage import COVERAGE_MAPS, CoverageMap, write_coverage_png
 from georefine.evaluation.strip_difference_maps import write_png
 from georefine.evaluation.strip_differences import (
     LAYER_CODE,
@@ -74,7 +79,7 @@ from georefine.tasks import TaskRunner
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "DEFAULT_CHUNK_POINTS", "CLOSE_AFTER_POINTS", "NEAR_PLANE_M", "point_files", "epsg_of", "plane_boxes", "reference_boxes",
+    "DEFAULT_CHUNK_POINTS", "CLOSE_AFTER_POINTS", "NEAR_PLANE_M", "point_files", "epsg_of", "vertical_epsg_of", "plane_boxes", "reference_boxes",
     "record_ranges", "ScanSettings", "ChunkScan", "scan_chunk", "CloudScan", "scan_clouds", "evaluate_reference_planes",
     "evaluate_strip_differences",
 ]
@@ -121,6 +126,17 @@ def epsg_of(path: Path) -> int | None:
     # The strips carry the projected CRS with ellipsoidal heights (3-D), which has no EPSG code
     # of its own: the horizontal CRS has.
     return crs.to_epsg() or crs.to_2d().to_epsg()
+
+
+def vertical_epsg_of(path: Path) -> int | None:
+    """EPSG code of the vertical part of a LAS/LAZ file's compound CRS, if it has one (a run's
+    final clouds with gravity-related heights, ``crs.vertical_epsg``)."""
+    with laspy.open(path) as f:
+        crs = f.header.parse_crs()
+    if crs is None or not crs.is_compound:
+        return None
+    vertical = [c for c in crs.sub_crs_list if c.is_vertical]
+    return vertical[0].to_epsg() if vertical else None
 
 
 def plane_boxes(planes: list[ReferencePlane], max_distance_m: float = 0.3, margin_m: float = NEAR_PLANE_M) -> np.ndarray:
@@ -201,10 +217,12 @@ def _read_range(path: Path, start: int, stop: int) -> tuple[np.ndarray, np.ndarr
 @dataclass(frozen=True)
 class ScanSettings:
     """What a chunk task keeps: cell sums of this size (``None``: none) and the points in these
-    ``(P, 2, 3)`` boxes (``None``: none)."""
+    ``(P, 2, 3)`` boxes (``None``: none). ``ellipsoidal``: the output CRS and geoid grid that turn
+    the file's gravity-related heights back into ellipsoidal ones (:func:`scan_clouds`)."""
 
     cell_size_m: float | None = None
     boxes: np.ndarray | None = None
+    ellipsoidal: tuple[OutputCRS, GeoidHeights] | None = None
 
 
 @dataclass(frozen=True)
@@ -221,6 +239,9 @@ class ChunkScan:
 def scan_chunk(path: Path, start: int, stop: int, settings: ScanSettings) -> ChunkScan:
     """The task of one record range: read it and reduce it to what ``settings`` asks for."""
     xyz, sid, ch = _read_range(Path(path), int(start), int(stop))
+    if settings.ellipsoidal is not None:
+        crs, geoid = settings.ellipsoidal
+        xyz = geoid.ellipsoidal_xyz(crs, xyz, what=f"points of {Path(path).name}")
     code = sid.astype(np.int64) * _LAYER + ch
     layers, points = np.unique(code, return_counts=True)
     moments = None
@@ -246,6 +267,7 @@ class CloudScan:
     files: tuple[Path, ...]
     layers: tuple[tuple[int, int, int], ...]  # (strip, channel, points), sorted
     strip_differences: StripDifferenceMap | None
+    coverage: CoverageMap | None  # points and strips per cell, on the strip-difference raster
     settings: tuple[float, int, float, float, float] | None  # cell size, min points, roughness, slope, normal angle
     boxes: np.ndarray | None
     near_xyz: np.ndarray  # (K, 3) the points in the boxes, by layer, in file order within a layer
@@ -258,7 +280,7 @@ def scan_clouds(
     max_roughness_m: float = MAX_ROUGHNESS_M, max_slope_deg: float = MAX_SLOPE_DEG,
     max_normal_angle_deg: float = MAX_NORMAL_ANGLE_DEG, boxes: np.ndarray | None = None, runner: TaskRunner | None = None, chunk_points: int = DEFAULT_CHUNK_POINTS,
     close_after: int | None = CLOSE_AFTER_POINTS, progress: Progress = no_progress,
-    label: str = "point cloud evaluation",
+    label: str = "point cloud evaluation", heights: tuple[OutputCRS, GeoidHeights] | None = None,
 ) -> CloudScan:
     """Read ``files`` once, a task per record range (:func:`scan_chunk`) on ``runner`` (default:
     this process), the results taken in the order of the ranges.
@@ -271,12 +293,24 @@ def scan_clouds(
     points to a closed layer x cell (a strip split over files, a file not in time order), the
     files are read again with every cell open to the end, in memory that grows with the cells of
     all layers (a warning says so).
+
+    ``heights``: the output CRS and the geoid grid of the run (``crs.geoid_grid``). A file whose
+    header states the grid's vertical CRS (a run's final clouds with gravity-related heights)
+    is read back to ellipsoidal heights, ``h = H + N``, chunk by chunk: the reference surfaces
+    and the simulated truth the metrics compare with are ellipsoidal, as everything inside
+    Georefine is, so the evaluation stays ellipsoidal rather than converting them. Other files,
+    and every file without ``heights``, are taken as they are.
     """
     files = [Path(f) for f in files]
     runner = runner or TaskRunner("sync")
     settings = ScanSettings(None if cell_size_m is None else float(cell_size_m),
                             None if boxes is None else np.asarray(boxes, dtype=float).reshape(-1, 2, 3))
-    tasks = [(f, a, b, settings) for f, a, b in record_ranges(files, chunk_points)]
+    per_file = {f: settings for f in files}
+    if heights is not None:
+        for f in files:
+            if vertical_epsg_of(f) == int(heights[1].vertical_epsg):
+                per_file[f] = replace(settings, ellipsoidal=(heights[0], heights[1]))
+    tasks = [(f, a, b, per_file[f]) for f, a, b in record_ranges(files, chunk_points)]
     gate = (int(min_points), float(max_roughness_m), float(max_slope_deg), float(max_normal_angle_deg))
     try:
         return _scan(files, tasks, settings, gate, runner, close_after, True, progress, label)
@@ -316,6 +350,7 @@ def _scan(files, tasks, settings, gate, runner, close_after, close_files, progre
     xyz, code = xyz[order], code[order]
     layers = tuple((c // _LAYER, c % _LAYER, counts[c]) for c in sorted(counts))
     return CloudScan(tuple(files), layers, None if stream is None else stream.result(),
+                     None if stream is None else stream.coverage(),
                      None if stream is None else (settings.cell_size_m, *gate),
                      settings.boxes, xyz, code // _LAYER, code % _LAYER)
 
@@ -396,8 +431,13 @@ def evaluate_strip_differences(
             "gated": m.gating(), "ungated": m.ungated_summary(),
             "layers": [{"strip": s, "channel": c, "points": n} for s, c, n in scan.layers],
             "x0": m.x0, "y1": m.y1, "epsg": epsg,
+            **({} if scan.coverage is None else {"coverage": scan.coverage.summary()}),
         })
         write_png(out / "strip_differences.png", m, title=title, epsg=epsg, sites=sites)
+        if scan.coverage is not None:  # the same scan's density and overlap
+            for what in COVERAGE_MAPS:
+                write_coverage_png(out / f"coverage_{what}.png", scan.coverage, what, epsg=epsg, sites=sites,
+                                   title=title.replace("strip differences", "coverage") if title else "")
         if zoom is not None:
             write_png(out / "strip_differences_zoom.png", crop(m, zoom), title=title + " (detail)", epsg=epsg,
                       sites=sites)

@@ -69,6 +69,7 @@ from georefine.evaluation.cell_moments import (
     cell_moments,
     cell_planes,
 )
+from georefine.evaluation.coverage import CellCounts, CoverageMap, coverage_map
 from georefine.io.files import atomic_path
 
 __all__ = [
@@ -366,6 +367,7 @@ class StripDifferenceStream:
         self.max_normal_angle_deg = float(max_normal_angle_deg)
         self.close_after = None if close_after is None else max(1, int(close_after))
         self._coverage: dict[int, _Pile] = {}  # per strip: keys of its cells with points
+        self._counts = _Pile(CellCounts.merge)  # points per cell, all layers (the density map)
         self._sums: dict[int, _Pile] = {}  # open layers
         self._touched: dict[int, list[np.ndarray]] = {}  # their cells with points since the last closing
         self._closed_cells: dict[int, list[np.ndarray]] = {}  # sorted keys of closed cells of open layers
@@ -395,6 +397,7 @@ class StripDifferenceStream:
                                    "records before")
             self._sums.setdefault(layer, _Pile(CellMoments.merge)).add(m)
             self._coverage.setdefault(layer // LAYER_CODE, _Pile(_union)).add(keys)
+            self._counts.add(CellCounts(keys, np.rint(m.sums[:, 0]).astype(np.int64)))
             if self.close_after is not None:
                 self._touched.setdefault(layer, []).append(keys)
         self._since += int(records)
@@ -433,6 +436,11 @@ class StripDifferenceStream:
         self._touched.pop(layer, None)
         self._closed_cells.pop(layer, None)
         self._closed_layers.add(layer)
+
+    def coverage(self) -> CoverageMap:
+        """Points and strips per cell of everything added so far (:mod:`georefine.evaluation.coverage`)."""
+        return coverage_map(self._counts.merged(), {strip: pile.merged() for strip, pile in self._coverage.items()},
+                            self.cell_size_m)
 
     def result(self) -> StripDifferenceMap:
         """The gated map of everything added (every layer is closed)."""

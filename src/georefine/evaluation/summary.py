@@ -22,6 +22,7 @@ from typing import Any
 from georefine.adjustment.accuracy_standards import PositionalAccuracy
 from georefine.evaluation.calibration import BoresightFigures, ImuErrorFigures
 from georefine.evaluation.reference_planes import ReferencePlaneSummary
+from georefine.evaluation.coverage import CoverageMap
 from georefine.evaluation.strip_differences import StripDifferenceMap
 
 __all__ = [
@@ -30,6 +31,7 @@ __all__ = [
     "SolutionFigures",
     "SurfaceFigures",
     "ReferencePlaneFigures",
+    "CoverageFigures",
     "StripDifferenceFigures",
     "CloudEvaluation",
     "EvaluationPlots",
@@ -175,24 +177,58 @@ class StripDifferenceFigures:
 
 
 @dataclass(frozen=True)
+class CoverageFigures:
+    """Point density and strip overlap of a point cloud (:class:`~georefine.evaluation.coverage.CoverageMap`)
+    and their maps (paths relative to ``RUN/evaluation``)."""
+
+    area_km2: float
+    density_median_per_m2: float | None
+    density_p5_per_m2: float | None
+    overlap_share: float | None  # share of the covered area seen from two strips or more
+    max_strips: int
+    density_map: str
+    overlap_map: str
+
+    @classmethod
+    def from_map(cls, m: CoverageMap, density_map: str, overlap_map: str) -> CoverageFigures:
+        s = m.summary()
+        return cls(s["area_km2"], _num(s["density_median_per_m2"]), _num(s["density_p5_per_m2"]),
+                   _num(s["overlap_share"]), int(s["max_strips"]), density_map, overlap_map)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"area_km2": self.area_km2, "density_median_per_m2": self.density_median_per_m2,
+                "density_p5_per_m2": self.density_p5_per_m2, "overlap_share": self.overlap_share,
+                "max_strips": self.max_strips, "density_map": self.density_map, "overlap_map": self.overlap_map}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> CoverageFigures:
+        return cls(float(d["area_km2"]), _num(d["density_median_per_m2"]), _num(d["density_p5_per_m2"]),
+                   _num(d["overlap_share"]), int(d["max_strips"]), str(d["density_map"]), str(d["overlap_map"]))
+
+
+@dataclass(frozen=True)
 class CloudEvaluation:
     """One point cloud of a run (G/I or G/I/L): reference planes (when the project has them), strip differences."""
 
     strip_differences: StripDifferenceFigures
     reference_planes: ReferencePlaneFigures | None = None
+    coverage: CoverageFigures | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {}
         if self.reference_planes is not None:
             d["reference_planes"] = self.reference_planes.to_dict()
         d["strip_differences"] = self.strip_differences.to_dict()
+        if self.coverage is not None:
+            d["coverage"] = self.coverage.to_dict()
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> CloudEvaluation:
-        rp = d.get("reference_planes")
+        rp, cov = d.get("reference_planes"), d.get("coverage")
         return cls(StripDifferenceFigures.from_dict(d["strip_differences"]),
-                   None if rp is None else ReferencePlaneFigures.from_dict(rp))
+                   None if rp is None else ReferencePlaneFigures.from_dict(rp),
+                   None if cov is None else CoverageFigures.from_dict(cov))
 
 
 @dataclass(frozen=True)
@@ -228,6 +264,8 @@ class RunEvaluation:
         Where the project has a simulated truth: the adjustments' IMU errors against it per
         solution (``"G/I"``, ``"G/I/L"``), their plot's file name, and the estimated boresight
         against it (:mod:`georefine.evaluation.calibration`).
+    overview_plot, coverage
+        The flight on a map; per point cloud label, its point density and strip overlap.
     """
 
     reference: str
@@ -239,6 +277,7 @@ class RunEvaluation:
     imu_errors_plot: str | None = None
     boresight: BoresightFigures | None = None
     overview_plot: str | None = None  # the flight on a map (evaluation.plots.plot_overview)
+    coverage: dict[str, CoverageFigures] = field(default_factory=dict)  # per point cloud label
 
     SINGLE_PASS = "G/I/L single pass"
     """Start of the single-pass solution's label."""
@@ -263,6 +302,8 @@ class RunEvaluation:
             d["boresight"] = self.boresight.to_dict()
         if self.overview_plot is not None:
             d["overview_plot"] = self.overview_plot
+        if self.coverage:
+            d["coverage"] = {k: v.to_dict() for k, v in self.coverage.items()}
         return d
 
     @classmethod
@@ -279,6 +320,7 @@ class RunEvaluation:
             imu_errors_plot=d.get("imu_errors_plot"),
             boresight=None if d.get("boresight") is None else BoresightFigures.from_dict(d["boresight"]),
             overview_plot=d.get("overview_plot"),
+            coverage={k: CoverageFigures.from_dict(v) for k, v in d.get("coverage", {}).items()},
         )
 
     @classmethod

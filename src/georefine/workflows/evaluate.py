@@ -44,6 +44,7 @@ from georefine.evaluation.plots import (
 from georefine.evaluation.summary import (
     ANGLES,
     CloudEvaluation,
+    CoverageFigures,
     EvaluationPlots,
     ReferencePlaneFigures,
     RunEvaluation,
@@ -53,6 +54,7 @@ from georefine.evaluation.summary import (
 )
 from georefine.evaluation.trajectory import TrajectoryComparison
 from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.geometry.frames import OutputCRS
 from georefine.io.files import write_json
 from georefine.io.reference import read_reference_surfaces
 from georefine.io.run_metrics import WorkflowMetrics
@@ -147,6 +149,7 @@ def evaluate_run(
     clouds = dict(clouds or {})
     reference_planes: dict[str, ReferencePlaneFigures] = {}
     strip_differences: dict[str, StripDifferenceFigures] = {}
+    coverage: dict[str, CoverageFigures] = {}
     own = None
     if any(label not in clouds for label in CLOUDS) and not isinstance(scheduler, TaskRunner):
         own = TaskRunner(scheduler)
@@ -157,11 +160,13 @@ def evaluate_run(
             if result.reference_planes is not None:
                 reference_planes[label] = result.reference_planes
             strip_differences[label] = result.strip_differences
+            if result.coverage is not None:
+                coverage[label] = result.coverage
     finally:
         if own is not None:
             own.close()
     summary = RunEvaluation(reference_name, trajectory, plots, reference_planes, strip_differences, imu_errors,
-                            imu_plot, boresight, overview)
+                            imu_plot, boresight, overview, coverage)
     write_json(out / "summary.json", summary.to_dict())
     return summary
 
@@ -254,8 +259,15 @@ def evaluate_cloud(
             boxes = reference_boxes(ref_csv)
         files = [f for f in point_files([folder])
                  if strips is None or f.stem in {f"strip_{s}" for s in strips} or not f.stem.startswith("strip_")]
+        # With crs.geoid_grid the run's clouds hold gravity-related heights; the reference surfaces
+        # and the simulated truth are ellipsoidal (as everything inside Georefine), so the clouds
+        # are read back to ellipsoidal heights with the same grid (scan_clouds) rather than the
+        # references converted: the figures are those of an ellipsoidal run.
+        cfg = load_project(project) if (project / "project.yaml").is_file() else None
+        geoid = None if cfg is None else cfg.crs.geoid(project)
+        heights = None if geoid is None else (OutputCRS(cfg.crs.output_epsg), geoid)
         scan = scan_clouds(files, cell_size_m=1.0, boxes=boxes, runner=runner, chunk_points=chunk_points,
-                           progress=report, label=f"point cloud evaluation {label}")
+                           progress=report, label=f"point cloud evaluation {label}", heights=heights)
     planes = None
     if ref_csv.is_file():
         _, rp = evaluate_reference_planes(files, ref_csv, out, scan=scan)
@@ -264,4 +276,6 @@ def evaluate_cloud(
     sd = evaluate_strip_differences(files, out, title=f"strip differences, {label}", zoom=zoom, scan=scan, sites=sites)
     differences = StripDifferenceFigures.from_map(
         sd, f"{sub}/strip_differences.png", None if zoom is None else f"{sub}/strip_differences_zoom.png")
-    return CloudEvaluation(differences, planes)
+    coverage = None if scan.coverage is None else CoverageFigures.from_map(
+        scan.coverage, f"{sub}/coverage_density.png", f"{sub}/coverage_overlap.png")
+    return CloudEvaluation(differences, planes, coverage)
