@@ -1000,6 +1000,15 @@ def test_robust_line_fit_rejects_gross_outliers(seed):
     assert abs(good_down - stats.expected_downweighted * (n - bad.size)) < 4 * np.sqrt(0.017 * n), good_down
     assert results["ls"].group("line").expected_downweighted == 0.0
     assert results["huber"].group("line").expected_downweighted == pytest.approx(chdtrc(1, 4 * 1.345**2))
+    # The whitened residuals' histogram: every row counted, the outliers (3-8 / 0.1 sigma) in the outer bin.
+    from georefine.adjustment.statistics import RESIDUAL_EDGES
+
+    theta = estimates["cauchy"]
+    r = (y - (theta[0] * x + theta[1])) / sigma
+    hist = np.asarray(stats.residual_histogram)
+    assert hist.sum() == n and hist.size == len(RESIDUAL_EDGES) - 1
+    assert hist[0] + hist[-1] == np.count_nonzero(np.abs(r) >= 5.0) >= bad.size * 0.9, (hist[0], hist[-1])
+    assert np.count_nonzero(np.abs(r) < 1.0) == pytest.approx(hist[16:24].sum(), abs=2)  # edges at +-1: rounding
     # robust=False switches the loss off
     problem = Problem()
     problem.add_block("theta", np.zeros((1, 2)))

@@ -171,6 +171,19 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     assert "<td>planes</td><td>15,000</td><td>13456.7</td><td>0.669</td><td>1.000</td>" in page
     assert "<td>1,300 (26.0 %)</td><td>26.1 %</td>" in page and "<td>0 (0.0 %)</td><td>0.0 %</td>" in page
     assert "<td>imu, gnss</td><td>3,000</td><td>1500.0</td><td>2.200</td><td>2.200</td>" in page
+    assert "residual histograms" not in page  # results stored before the histograms
+    from georefine.adjustment.statistics import RESIDUAL_EDGES, residual_histogram
+
+    rng = np.random.default_rng(3)
+    groups[1]["residual_histogram"] = residual_histogram(rng.standard_normal(15000) * 1.3)
+    groups[1]["robust_sigma0"] = 1.3
+    write_json(run / "gil" / "adjustment.json", {"adjustment": {
+        "termination": "function_tolerance", "iterations": 4, "variance_factor": 0.83, "n_unknowns": 2000,
+        "redundancy": 14956, "groups": groups, "variance_components": comps}})
+    page = html.unescape(write_report(run).read_text())
+    assert page.count('alt="residual histograms"') == 1 and "Whitened residuals of each group" in page
+    assert len(groups[1]["residual_histogram"]) == len(RESIDUAL_EDGES) - 1
+    assert not list(run.rglob("residuals_*.png"))  # drawn for the page, not left in the run folder
     # A run without an evaluation still gets its report.
     (run / "evaluation" / "summary.json").unlink()
     page = html.unescape(write_report(run).read_text())

@@ -72,6 +72,7 @@ from georefine.adjustment.statistics import (
     SolveResult,
     Timings,
     expected_downweighted,
+    residual_histogram,
     robust_sigma0,
 )
 
@@ -665,6 +666,7 @@ def _statistics(
                 robust_sigma0=robust_sigma0(ge.median_s, m / ge.n_observations) if ge.n_observations else math.nan,
                 expected_downweighted=(expected_downweighted(getattr(group, "loss", None) if ge.loss_name else None,
                                                              m / ge.n_observations) if ge.n_observations else math.nan),
+                residual_histogram=residual_histogram(ge.linearization.residuals),
             )
         )
         n_obs += ge.n_observations

@@ -68,6 +68,11 @@ class GroupStatistics:
         chance: ``P(chi2(k) > s*)`` with ``s*`` the loss's threshold (Cauchy ``c^2``: with
         ``c = 2`` on three rows 26 %); 0 without a robust loss, NaN in older results. A
         ``n_downweighted`` far above it points to wrong matches or optimistic sigmas.
+    residual_histogram
+        The whitened residual rows counted per bin of :data:`RESIDUAL_EDGES`, the outer bins
+        holding everything beyond them (:func:`residual_histogram`): set against ``N(0, 1)`` in
+        the report, it shows whether the residuals look like the noise the sigmas state, and how
+        heavy the tails are that the robust loss weighs down.
     """
 
     name: str
@@ -81,6 +86,7 @@ class GroupStatistics:
     n_downweighted: int
     robust_sigma0: float = float("nan")
     expected_downweighted: float = float("nan")
+    residual_histogram: tuple[int, ...] = ()  # whitened residual rows per bin of RESIDUAL_EDGES; () in older results
 
 
 @dataclass(frozen=True)
@@ -210,6 +216,18 @@ def _jsonable(obj: Any) -> Any:
 # ---------------------------------------------------------------------------------------------
 # Layout, evaluation and assembly
 # ---------------------------------------------------------------------------------------------
+
+
+RESIDUAL_EDGES = tuple(float(e) for e in np.linspace(-5.0, 5.0, 41))
+"""Bin edges of :attr:`GroupStatistics.residual_histogram`: a quarter sigma wide, +-5 sigma."""
+
+
+def residual_histogram(r: np.ndarray) -> tuple[int, ...]:
+    """Counts of the whitened residuals ``r`` per bin of :data:`RESIDUAL_EDGES`, those beyond the
+    outer edges in the outer bins (a few numbers in ``adjustment.json`` whatever the rows)."""
+    edges = np.asarray(RESIDUAL_EDGES)
+    counts, _ = np.histogram(np.clip(np.ravel(r), edges[0], edges[-1]), bins=edges)
+    return tuple(int(c) for c in counts)
 
 
 def robust_sigma0(median_s: float, dof: float) -> float:

@@ -191,3 +191,48 @@ def plot_overview(trajectory_csv: Path, strip_time_gps: dict, path: Path, *,
     ax.legend(loc="best", fontsize=9)
     ax.set_title(title or f"flight overview ({span / 1000:.1f} km across)", fontsize=11)
     return save_png(fig, path, 110)
+
+
+def plot_residual_histograms(groups: list[dict], path: Path, title: str = "") -> Path | None:
+    """Per observation group of an adjustment (``adjustment.json``'s ``groups``), the histogram of
+    its whitened residual rows (:attr:`~georefine.adjustment.statistics.GroupStatistics.residual_histogram`)
+    on a log scale, beside the counts ``N(0, 1)`` expects of as many rows: the middle shows whether
+    the sigmas are honest (wider: optimistic), the outer bins, which hold everything beyond +-5,
+    the outliers the robust loss weighs down. None when no group has a histogram (older results)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+    from scipy.special import ndtr
+
+    from georefine.adjustment.statistics import RESIDUAL_EDGES
+
+    shown = [g for g in groups if g.get("residual_histogram") and sum(g["residual_histogram"]) > 0]
+    if not shown:
+        return None
+    edges = np.asarray(RESIDUAL_EDGES)
+    cols = min(3, len(shown))
+    rows = -(-len(shown) // cols)
+    fig = Figure(figsize=(4.2 * cols, 3.0 * rows + 0.6), layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = np.atleast_1d(fig.subplots(rows, cols, squeeze=False)).ravel()
+    cdf = ndtr(edges)
+    cdf[0], cdf[-1] = 0.0, 1.0  # the outer bins hold the tails
+    for ax, g in zip(axes, shown):
+        counts = np.asarray(g["residual_histogram"], dtype=float)
+        n = counts.sum()
+        ax.stairs(np.maximum(counts, 0.5), edges, fill=True, color="tab:blue", alpha=0.55, baseline=0.5,
+                  label="residuals")
+        ax.stairs(n * np.diff(cdf), edges, color="black", lw=1.0, label="N(0, 1)")
+        ax.set_yscale("log")
+        ax.set_ylim(0.5, max(counts.max(), n * np.diff(cdf).max()) * 2.0)
+        s0 = g.get("robust_sigma0")
+        ax.set_title(f"{g['name']}: {int(n):,} rows" + (f", robust σ0 {s0:.2f}" if s0 is not None else ""),
+                     fontsize=10)
+        ax.set_xlabel("whitened residual [σ]; outer bins: beyond ±5", fontsize=9)
+        ax.tick_params(labelsize=9)
+        ax.grid(True, lw=0.3, alpha=0.6)
+    axes[0].legend(fontsize=9, loc="upper right")
+    for ax in axes[len(shown):]:
+        ax.set_visible(False)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    return save_png(fig, path, 110)

@@ -21,10 +21,12 @@ import datetime as _dt
 import html
 import json
 import math
+import tempfile
 from pathlib import Path
 
 from georefine import __version__
 from georefine.evaluation.page import CSS, image, table
+from georefine.evaluation.plots import plot_residual_histograms
 from georefine.evaluation.summary import ANGLES, RunEvaluation, SurfaceFigures
 from georefine.io.files import atomic_output
 from georefine.io.run_metrics import WorkflowMetrics
@@ -190,6 +192,18 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
         parts.append(f"<figure>{image(ev / summary.overview_plot, 'flight overview')}<figcaption>The flight: "
                      "the trajectory in grey, the strips in colour with their direction, the reference surfaces "
                      "as triangles.</figcaption></figure>")
+    cov = next((summary.coverage[k] for k in ("G/I/L", "G/I") if summary is not None and k in summary.coverage), None)
+    if cov is not None:
+        parts.append(table(["covered area (km²)", "density, median (points/m²)", "density, 5 % of the area below",
+                            "area seen from two strips or more", "most strips on a cell"],
+                           [[f"{cov.area_km2:.2f}", _f(cov.density_median_per_m2), _f(cov.density_p5_per_m2),
+                             "–" if cov.overlap_share is None else f"{100 * cov.overlap_share:.0f} %",
+                             cov.max_strips]]))
+        parts.append(f"<figure>{image(ev / cov.density_map, 'point density map')}<figcaption>Points per m² "
+                     "(1 m cells, all strips and channels; cells above the scale in magenta).</figcaption></figure>")
+        parts.append(f"<figure>{image(ev / cov.overlap_map, 'strip overlap map')}<figcaption>Strips with points "
+                     "in each cell: a place seen from one strip only (orange) has no strip difference to check "
+                     "it.</figcaption></figure>")
     parts.append("<h2>1. Summary beside paper 000</h2>")
     parts.append(table(["quantity", "paper 000 (G/I / G/I/L / single pass)", "G/I", "G/I/L", "single-pass G/I/L",
                         "against paper 000 (✗: the paper's is better)"],
@@ -270,7 +284,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
                 cap += (f"; {v.gated['candidates'] - v.gated['kept']:,} gated (grey): " + ", ".join(
                     f"{k} {v.gated.get(k, 0):,}" for k in ("rough", "steep", "edge", "normals")))
             figs.append(f"<figure>{image(ev / v.map, label)}<figcaption>{html.escape(cap)}</figcaption></figure>")
-        parts.append('<div class="maps">' + "".join(figs) + "</div>")
+        parts.append("".join(figs))  # the whole corridor at the page's width, one map under the other
 
     parts.append("<h2>6. Adjustment statistics and IMU errors</h2>")
     for key, a in adj.items():
@@ -290,6 +304,12 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
                      "(chi-square of their rows beyond that threshold; with c = 2 on a plane correspondence's three "
                      "rows, 26 %): a count near it is noise, one well above it wrong matches or optimistic "
                      "sigmas.</p>")
+        with tempfile.TemporaryDirectory() as tmp:
+            hist = plot_residual_histograms(s.get("groups", []), Path(tmp) / f"residuals_{key}.png")
+            if hist is not None:
+                parts.append(f"<figure>{image(hist, 'residual histograms')}<figcaption>Whitened residuals of "
+                             "each group against N(0, 1) (log scale): wider than the curve, the sigmas are "
+                             "optimistic; the outer bins hold every residual beyond ±5 σ.</figcaption></figure>")
         if s.get("variance_components"):
             parts.append("<p>The posterior sigmas weight each variance component by its own factor (floored at 1; "
                          "docs/ARCHITECTURE.md §4.4):</p>")
