@@ -148,7 +148,7 @@ def write_coverage_png(path: str | Path, m: CoverageMap, what: str, *, title: st
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
     from georefine.evaluation.figures import save_png
-    from georefine.evaluation.strip_difference_maps import label_axes, mark_sites, tiled_axes
+    from georefine.evaluation.map_panels import label_axes, mark_sites, tiled_axes
 
     if what not in COVERAGE_MAPS:
         raise ValueError(f"coverage map {what!r}: expected one of {COVERAGE_MAPS}")
