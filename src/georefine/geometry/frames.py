@@ -8,7 +8,9 @@ are the only extra terms of the physics written in it:
 
 The output CRS (e.g. ETRS89 / UTM 32N, EPSG:25832) is reached through pyproj from
 geodetic WGS84 coordinates with ellipsoidal heights (EPSG:4979); heights stay ellipsoidal
-(the projected CRS is promoted to 3D with ``CRS.to_3d()``).
+(the projected CRS is promoted to 3D with ``CRS.to_3d()``). Only the final point clouds may
+carry gravity-related heights instead, ``H = h - N`` from a geoid grid (:class:`GeoidHeights`,
+``crs.geoid_grid`` and ``crs.vertical_epsg`` in ``project.yaml``).
 """
 
 from __future__ import annotations
@@ -204,3 +206,121 @@ def _R_w_b_kernel(lat, lon, rph, R_e_w, out):  # pragma: no cover - compiled
             r2 = R_e_w[0, i] * A[0, 2] + R_e_w[1, i] * A[1, 2] + R_e_w[2, i] * A[2, 2]
             for j in range(3):
                 out[n, i, j] = r0 * B[0, j] + r1 * B[1, j] + r2 * B[2, j]
+
+
+@dataclass(frozen=True)
+class GeoidHeights:
+    """Gravity-related heights ``H = h - N(lat, lon)`` from a geoid grid, through PROJ.
+
+    Parameters
+    ----------
+    grid
+        Absolute path of the grid PROJ reads (GeoTIFF or GTX): the geoid undulation ``N`` in
+        metres above the ellipsoid of the output CRS's datum, on a latitude/longitude grid.
+    vertical_epsg
+        EPSG code of the vertical CRS the grid realises (e.g. 7837 DHHN2016 height, 5703 NAVD88
+        height): the vertical part of the compound CRS the final point clouds are written in.
+
+    Notes
+    -----
+    The conversion is PROJ's ``vgridshift`` (bilinear interpolation in the grid), with the
+    multiplier stated rather than left to its default: PROJ applies ``z_out = z_in + multiplier *
+    grid value`` in the forward direction, so ``+multiplier=-1`` goes from ellipsoidal to
+    gravity-related heights (-1 is also PROJ's default, kept from the PROJ.4 ``+geoidgrids``
+    convention; tests/test_geoid.py checks the sign against a grid of known undulations).
+    Everything inside Georefine stays ellipsoidal; only the heights written into the final
+    point clouds pass through here (docs/ARCHITECTURE.md §3, "Sensor configuration").
+
+    A point where the grid gives no value (outside it, or on its no-data cells) makes PROJ
+    return ``inf``; that is an :class:`~georefine.errors.InputError` naming the grid and
+    ``crs.geoid_grid``, never a height written as it is.
+    """
+
+    grid: str
+    vertical_epsg: int
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def _transformer(self):
+        if "t" not in self._cache:
+            from pyproj import Transformer
+
+            g = str(self.grid)
+            g = f'"{g}"' if any(c.isspace() for c in g) else g  # a PROJ string value with blanks is quoted
+            # Longitude and latitude in radians (``transform(..., radians=True)``), heights in metres.
+            self._cache["t"] = Transformer.from_pipeline(f"+proj=pipeline +step +proj=vgridshift +grids={g} +multiplier=-1")
+        return self._cache["t"]
+
+    def check(self) -> None:
+        """Raise ``ValueError`` (PROJ's reason) if PROJ cannot open the grid."""
+        from pyproj.exceptions import ProjError
+
+        try:
+            self._transformer()
+        except ProjError as exc:
+            reason = str(exc).split("(Internal Proj Error: ")[-1].rstrip(")") or str(exc)
+            raise ValueError(f"PROJ cannot use it as a vertical grid: {reason}") from None
+
+    def vertical_crs(self):
+        """The ``pyproj.CRS`` of ``vertical_epsg``."""
+        from pyproj import CRS
+
+        return CRS.from_epsg(int(self.vertical_epsg))
+
+    def compound_crs(self, output: OutputCRS):
+        """The compound ``pyproj.CRS`` of the final point clouds: the output CRS's horizontal CRS
+        (its EPSG definition, 2-D) + the vertical CRS, e.g. EPSG:25832+7837."""
+        from pyproj import CRS
+        from pyproj.crs import CompoundCRS
+
+        horizontal, vertical = CRS.from_epsg(int(output.epsg)), self.vertical_crs()
+        if len(horizontal.axis_info) == 3:
+            horizontal = horizontal.to_2d()
+        return CompoundCRS(f"{horizontal.name} + {vertical.name}", [horizontal, vertical])
+
+    def _shift(self, lat, lon, z, direction: str, what: str) -> np.ndarray:
+        lat, lon = np.asarray(lat, dtype=float), np.asarray(lon, dtype=float)
+        z = np.asarray(z, dtype=float)
+        if z.size == 0:
+            return z.copy()
+        _, _, out = self._transformer().transform(lon, lat, z, radians=True, direction=direction)
+        out = np.asarray(out, dtype=float)
+        bad = ~np.isfinite(out)
+        if np.any(bad):
+            from georefine.errors import InputError
+
+            k = int(np.argmax(bad.ravel()))
+            lat_d, lon_d = np.degrees(np.broadcast_to(lat, z.shape).ravel()[k]), np.degrees(
+                np.broadcast_to(lon, z.shape).ravel()[k])
+            raise InputError(
+                f"the geoid grid gives no undulation for {int(bad.sum()):,} of {z.size:,} {what}", path=self.grid,
+                field="crs.geoid_grid", expected="a grid that covers every point",
+                found=f"the first at latitude {lat_d:.6f} deg, longitude {lon_d:.6f} deg")
+        return out
+
+    def orthometric(self, lat: np.ndarray, lon: np.ndarray, h: np.ndarray, *, what: str = "points") -> np.ndarray:
+        """``H = h - N(lat, lon)`` (m) of geodetic points (rad; ``h`` ellipsoidal, m).
+
+        Raises :class:`~georefine.errors.InputError` where the grid has no value; ``what`` names
+        the points in that message (e.g. ``"points of strip_1.laz"``)."""
+        return self._shift(lat, lon, h, "FORWARD", what)
+
+    def ellipsoidal(self, lat: np.ndarray, lon: np.ndarray, H: np.ndarray, *, what: str = "points") -> np.ndarray:
+        """``h = H + N(lat, lon)`` (m): the inverse of :meth:`orthometric`."""
+        return self._shift(lat, lon, H, "INVERSE", what)
+
+    def orthometric_xyz(self, output: OutputCRS, xyz: np.ndarray, *, what: str = "points") -> np.ndarray:
+        """Output-CRS points ``(n, 3)`` with ellipsoidal heights, their heights made gravity-related."""
+        xyz = np.array(xyz, dtype=float)
+        lat, lon, h = output.to_geodetic(xyz)
+        xyz[..., 2] = self.orthometric(lat, lon, h, what=what)
+        return xyz
+
+    def ellipsoidal_xyz(self, output: OutputCRS, xyz: np.ndarray, *, what: str = "points") -> np.ndarray:
+        """Output-CRS points ``(n, 3)`` with gravity-related heights, their heights made ellipsoidal.
+
+        The horizontal coordinates do not depend on the height (a projected CRS's easting and
+        northing, or latitude and longitude), so they give ``N`` directly."""
+        xyz = np.array(xyz, dtype=float)
+        lat, lon, H = output.to_geodetic(xyz)
+        xyz[..., 2] = self.ellipsoidal(lat, lon, H, what=what)
+        return xyz

@@ -38,7 +38,7 @@ import numpy as np
 
 from georefine.config import PlaneExtractionConfig, ScaleConfig
 from georefine.errors import InputError
-from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.io.las import PointCloud, TimeIndex, read_las_range, time_index
 from georefine.io.las_encode import LAZ_CHUNK_POINTS, EncodedPoints, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter, offset_near
@@ -222,14 +222,16 @@ def tile_features(
 
 def tile_georeference(
     tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
-    frame: LocalFrame, crs: OutputCRS, time_offset_s: float = 0.0,
+    frame: LocalFrame, crs: OutputCRS, time_offset_s: float = 0.0, heights: GeoidHeights | None = None,
 ) -> tuple[PointCloud | None, int]:
     """Step 6 on one tile's own records: the points in the output CRS with their LAS scan angles
     (:func:`~georefine.lidar.georeference.scan_angles_deg`; ``None`` if all are outside the
     trajectory), and the number left out because they are outside it.
 
     ``t0_gps``: the navigation's epoch; the points are georeferenced, and written, at their
-    ``gps_time + time_offset_s``."""
+    ``gps_time + time_offset_s``. Heights are ellipsoidal, or with ``heights`` gravity-related
+    (``H = h - N``, converted here, sub-chunk by sub-chunk; a point the geoid grid does not
+    cover is an :class:`~georefine.errors.InputError` naming the grid)."""
     parts, outside = [], 0
     for a in range(tile.start, tile.stop, GEOREFERENCE_CHUNK):
         pc = read_las_range(tile.path, a, min(a + GEOREFERENCE_CHUNK, tile.stop), ())
@@ -242,7 +244,10 @@ def tile_georeference(
         x_w = georeference(t[keep], pc.xyz[keep], poses, p_b_s, R_b_s)
         lat, lon, h = frame.to_geodetic(x_w)
         angle = scan_angles_deg(t[keep], pc.xyz[keep], poses, R_b_s, frame.up_w(lat, lon))
-        parts.append(PointCloud(time_gps[keep], crs.from_geodetic(lat, lon, h), pc.intensity[keep],
+        xyz = crs.from_geodetic(lat, lon, h)
+        if heights is not None:
+            xyz[:, 2] = heights.orthometric(lat, lon, h, what=f"points of {tile.path.name}")
+        parts.append(PointCloud(time_gps[keep], xyz, pc.intensity[keep],
                                 pc.scanner_channel[keep], pc.point_source_id[keep], pc.return_number[keep],
                                 pc.number_of_returns[keep], scan_angle_deg=angle))
     if not parts:
@@ -253,10 +258,11 @@ def tile_georeference(
 def tile_georeference_encoded(
     tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
     frame: LocalFrame, crs: OutputCRS, layout: LasLayout, time_offset_s: float = 0.0,
+    heights: GeoidHeights | None = None,
 ) -> tuple[EncodedPoints, int]:
     """:func:`tile_georeference`, the points encoded for the output file of ``layout`` (LAZ
     chunks compressed here, :mod:`georefine.io.las_encode`)."""
-    cloud, outside = tile_georeference(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, time_offset_s)
+    cloud, outside = tile_georeference(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, time_offset_s, heights)
     return encode_points(PointCloud.empty() if cloud is None else cloud, layout), outside
 
 
@@ -274,10 +280,11 @@ def georeference_strip(
     plan: StripPlan, out_path: str | Path, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray,
     R_b_s: np.ndarray, frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
     scale_m: float = 0.001, progress: Progress = no_progress, protect: tuple = (),
+    heights: GeoidHeights | None = None,
 ) -> StripGeoreferenceResult:
     """Georeference one scanner-frame strip into an output-CRS LAZ (:func:`georeference_strips`)."""
     return georeference_strips([plan], [out_path], poses, t0_gps, p_b_s, R_b_s, frame, crs, runner=runner,
-                               scale_m=scale_m, progress=progress, protect=protect)[0]
+                               scale_m=scale_m, progress=progress, protect=protect, heights=heights)[0]
 
 
 def refuse_strips_outside(plans: list[StripPlan], span: tuple[float, float], t0_gps: float,
@@ -310,6 +317,7 @@ def georeference_strips(
     plans: list[StripPlan], out_paths: list[str | Path], poses: PoseInterpolator, t0_gps: float,
     p_b_s: np.ndarray, R_b_s: np.ndarray, frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
     scale_m: float = 0.001, progress: Progress = no_progress, protect: tuple = (), time_offset_s: float = 0.0,
+    heights: GeoidHeights | None = None,
 ) -> list[StripGeoreferenceResult]:
     """Georeference scanner-frame strips into output-CRS LAZ files (LAS 1.4, PF 6), tile by tile.
 
@@ -326,15 +334,19 @@ def georeference_strips(
     intensity, ``scanner_channel``, ``point_source_id`` and return numbers, sets the scan angle
     from the beam and the body's heading, and the header's file source ID to the strip id; the
     CRS is written as WKT (:func:`georefine.io.las_writer.las_crs_wkt`); heights are
-    ellipsoidal. Points outside the trajectory's time span are left out and counted (a warning
+    ellipsoidal, or with ``heights`` (``crs.geoid_grid``) gravity-related, each task converting
+    its own points, and the files state the compound CRS (:meth:`GeoidHeights.compound_crs`); a
+    point outside the geoid grid stops the run with an error naming the grid, and no file is
+    left half-written. Points outside the trajectory's time span are left out and counted (a warning
     is logged). ``poses`` may be a value that ``runner.share`` returned.
     """
     if len(plans) != len(out_paths):
         raise ValueError(f"{len(plans)} strips but {len(out_paths)} output paths")
     runner = runner or TaskRunner("sync")
     offset = tuple(offset_near(crs.from_w(frame, np.zeros((1, 3)))[0]))
-    writers = [LasWriter(Path(o), scale=scale_m, offset=offset, crs=crs.crs, protect=protect) for o in out_paths]
-    tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, w.layout_for(), time_offset_s)
+    file_crs = crs.crs if heights is None else heights.compound_crs(crs)
+    writers = [LasWriter(Path(o), scale=scale_m, offset=offset, crs=file_crs, protect=protect) for o in out_paths]
+    tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, w.layout_for(), time_offset_s, heights)
              for plan, w in zip(plans, writers) for tile in plan.tiles]
     owner = [k for k, plan in enumerate(plans) for _ in plan.tiles]
     last = {k: i for i, k in enumerate(owner)}  # a file is complete after its strip's last tile

@@ -18,6 +18,10 @@ indexed once (:func:`index_cloud`) and read back in blocks.
 
 Memory is that of one block range per task (a lidargram's view, a re-intersection range), not
 of the cloud.
+
+Every point is read into ``w`` with ellipsoidal heights. A strip with gravity-related heights
+(a run's final cloud with ``crs.geoid_grid``: its header states ``crs.vertical_epsg``) is read
+back with the project's grid, ``h = H + N`` (:attr:`CloudIndex.file_orthometric`).
 """
 
 from __future__ import annotations
@@ -30,7 +34,8 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.geometry.camera import Camera
-from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.evaluation.clouds import vertical_epsg_of
+from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.io.las import read_las_info, read_las_range
 from georefine.io.las_encode import LAZ_CHUNK_POINTS
 from georefine.progress import Progress, no_progress
@@ -67,6 +72,9 @@ class CloudIndex:
         Bounding box of each block's points in ``w``.
     file_centre : (F, 3) float64
         Centre of each file's header bounds (output CRS), from which refined files take their offset.
+    heights : the project's geoid grid (``crs.geoid_grid``), or ``None``
+    file_orthometric : (F,) bool
+        Which files hold gravity-related heights of ``heights`` (read back to ellipsoidal ones).
     """
 
     files: tuple[Path, ...]
@@ -79,6 +87,13 @@ class CloudIndex:
     lo: np.ndarray
     hi: np.ndarray
     file_centre: np.ndarray
+    heights: GeoidHeights | None = None
+    file_orthometric: tuple[bool, ...] = ()
+
+    def to_w(self, file: int, xyz: np.ndarray) -> np.ndarray:
+        """``w`` positions of points of file ``file`` (output CRS, as stored in it)."""
+        return _to_w(self.files[file], xyz, self.frame, self.crs,
+                     self.heights if file < len(self.file_orthometric) and self.file_orthometric[file] else None)
 
     @property
     def n_points(self) -> int:
@@ -134,7 +149,7 @@ class CloudIndex:
             for a in range(start, stop, step):
                 b = min(a + step, stop)
                 c = read_las_range(self.files[f], a, b)
-                yield (self.crs.to_w(self.frame, c.xyz), np.asarray(c.intensity),
+                yield (self.to_w(f, c.xyz), np.asarray(c.intensity),
                        self.file_start[f] + np.arange(a, b, dtype=np.int64))
 
     def gather(self, index: np.ndarray, max_points: int = INDEX_RANGE_POINTS) -> np.ndarray:
@@ -163,27 +178,48 @@ class CloudIndex:
                                                                             - self.file_start[f])
 
 
-def _index_range(path: Path, start: int, stop: int, frame: LocalFrame, crs: OutputCRS
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _to_w(path: Path, xyz: np.ndarray, frame: LocalFrame, crs: OutputCRS, orthometric: GeoidHeights | None
+          ) -> np.ndarray:
+    """``w`` positions of a file's points; ``orthometric``: the grid their gravity-related heights come from."""
+    if orthometric is not None:
+        xyz = orthometric.ellipsoidal_xyz(crs, xyz, what=f"points of {Path(path).name}")
+    return crs.to_w(frame, xyz)
+
+
+def _index_range(path: Path, start: int, stop: int, frame: LocalFrame, crs: OutputCRS,
+                 orthometric: GeoidHeights | None = None) -> tuple[np.ndarray, np.ndarray]:
     """One indexing task: ``w`` bounding boxes of the blocks of records ``start..stop`` of a file."""
     c = read_las_range(path, start, stop)
-    xyz = crs.to_w(frame, c.xyz)
+    xyz = _to_w(path, c.xyz, frame, crs, orthometric)
     cut = np.arange(0, len(xyz), BLOCK_POINTS)
     return np.minimum.reduceat(xyz, cut, axis=0), np.maximum.reduceat(xyz, cut, axis=0)
 
 
 def index_cloud(files: list[Path], frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
-                progress: Progress = no_progress) -> CloudIndex:
+                progress: Progress = no_progress, heights: GeoidHeights | None = None) -> CloudIndex:
     """Index georeferenced strips (output CRS) for block reads in ``frame``: one pass over the points,
     as tasks of :data:`INDEX_RANGE_POINTS` records on ``runner`` (default in this process).
+    ``heights``: the project's geoid grid; files whose header states its vertical CRS are read
+    back to ellipsoidal heights.
 
     Raises
     ------
     InputError
-        A file that does not open or is corrupt (named, with the record range); a cloud without points.
+        A file that does not open or is corrupt (named, with the record range); a cloud without
+        points; a file with gravity-related heights of another vertical CRS than ``heights``
+        (which could not be read back to ellipsoidal ones).
     """
     files = [Path(f) for f in files]
     infos = [read_las_info(f) for f in files]
+    vertical = [vertical_epsg_of(f) for f in files]
+    for f, v in zip(files, vertical):
+        if v is not None and (heights is None or v != int(heights.vertical_epsg)):
+            raise InputError(
+                "the points have gravity-related heights, which lidargrammetry reads back to ellipsoidal ones only "
+                "with the project's geoid grid", path=f, field="crs.vertical_epsg",
+                expected=f"EPSG:{v} with crs.geoid_grid in project.yaml, or ellipsoidal heights",
+                found="no geoid grid" if heights is None else f"EPSG:{heights.vertical_epsg}")
+    orthometric = tuple(v is not None for v in vertical)
     counts = np.array([i.point_count for i in infos], dtype=np.int64)
     if not counts.sum():
         raise InputError("the point cloud has no points", path=", ".join(map(str, files)),
@@ -195,7 +231,7 @@ def index_cloud(files: list[Path], frame: LocalFrame, crs: OutputCRS, *, runner:
         starts.append(file_start[f] + s)
         stops.append(file_start[f] + np.minimum(s + BLOCK_POINTS, n))
         owner.append(np.full(len(s), f, dtype=np.int64))
-    tasks = [(files[f], a, min(a + INDEX_RANGE_POINTS, int(n)), frame, crs)
+    tasks = [(files[f], a, min(a + INDEX_RANGE_POINTS, int(n)), frame, crs, heights if orthometric[f] else None)
              for f, n in enumerate(counts) for a in range(0, int(n), INDEX_RANGE_POINTS)]
     runner = runner or TaskRunner("sync")
     parts = list(runner.map(_index_range, tasks, label="indexing the cloud", progress=progress))
@@ -203,4 +239,4 @@ def index_cloud(files: list[Path], frame: LocalFrame, crs: OutputCRS, *, runner:
     hi = np.concatenate([p[1] for p in parts]) if parts else np.zeros((0, 3))
     centre = np.array([0.5 * (i.mins + i.maxs) for i in infos]).reshape(-1, 3)
     return CloudIndex(tuple(files), frame, crs, file_start, np.concatenate(starts), np.concatenate(stops),
-                      np.concatenate(owner), lo, hi, centre)
+                      np.concatenate(owner), lo, hi, centre, heights, orthometric)

@@ -37,7 +37,7 @@ from georefine.adjustment.upsampling import (
     high_rate_share,
 )
 from georefine.config import ProjectConfig, boresight_matrix, load_project, write_yaml
-from georefine.geometry.frames import OutputCRS
+from georefine.geometry.frames import GeoidHeights, OutputCRS
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
@@ -125,13 +125,16 @@ class WorkflowResult:
 
 @dataclass(frozen=True)
 class WorkflowInputs:
-    """The read inputs of a run: navigation data, strips (indexed), output folder, CRS and task runner."""
+    """The read inputs of a run: navigation data, strips (indexed), output folder, CRS and task
+    runner; ``heights``: the final point clouds' gravity-related heights (``crs.geoid_grid``), or
+    ``None`` for ellipsoidal ones."""
 
     nav: NavigationData
     strips: list[StripFile]
     out: Path
     crs: OutputCRS
     runner: TaskRunner
+    heights: GeoidHeights | None = None
 
 
 @dataclass(frozen=True)
@@ -252,16 +255,22 @@ def outer_knot_interval(lcfg, knot_interval_s: float, iteration: int, vibrating:
     return None
 
 
+def _frame_crs(cfg: ProjectConfig) -> dict:
+    """The ``crs`` section as the steps before the final georeferencing see it: the geoid grid
+    changes only the final point clouds' heights (step 6's key holds it)."""
+    return cfg.crs.model_dump(exclude={"geoid_grid", "vertical_epsg"})
+
+
 def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
     """Key of steps 1-2: the GNSS and IMU files and their configuration (no data read); or the delivered trajectory's."""
     if cfg.delivered_trajectory:
         tc = cfg.trajectory
         files = [file_stamp(root / f, root) for f in (tc.sbet, tc.smrmsg) if f]
-        return StepCache.key("delivered", files, cfg.crs.model_dump(), tc.model_dump(),
+        return StepCache.key("delivered", files, _frame_crs(cfg), tc.model_dump(),
                              cfg.processing.trajectory.model_dump())
     files = [file_stamp(root / f, root) for f in [*cfg.gnss.files, cfg.imu.file, cfg.gnss.smrmsg] if f]
     return StepCache.key(
-        "gi", files, cfg.crs.model_dump(), cfg.gnss.model_dump(), cfg.imu.model_dump(),
+        "gi", files, _frame_crs(cfg), cfg.gnss.model_dump(), cfg.imu.model_dump(),
         cfg.processing.filter.model_dump(), cfg.processing.trajectory.model_dump(),
     )
 
@@ -279,9 +288,12 @@ def _lidar_key(nav: NavigationData, strips: list[StripFile], upstream: str, iter
 def _points_key(nav: NavigationData, strips: list[StripFile], upstream: str) -> str:
     """Key of step 6: the trajectory's key, the CRS, the scanner and the strips (named relative
     to the project, as in the other steps' keys: a project moved, or named by another path,
-    keeps its points)."""
-    return StepCache.key("points", upstream, nav.config.crs.model_dump(), nav.config.scanner.model_dump(),
-                         [file_stamp(s.path, nav.root) for s in strips])
+    keeps its points). With a geoid grid, its vertical CRS and the grid file's stamp too."""
+    crs = nav.config.crs
+    geoid = ([] if crs.geoid_grid is None
+             else [[crs.vertical_epsg, file_stamp(nav.root / crs.geoid_grid, nav.root)]])
+    return StepCache.key("points", upstream, _frame_crs(nav.config), nav.config.scanner.model_dump(),
+                         [file_stamp(s.path, nav.root) for s in strips], *geoid)
 
 
 def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Path,
@@ -297,7 +309,8 @@ def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Pat
     make_output_folder(out)
     for sub in ("gi", "gil", "points", "features"):
         (out / sub).mkdir(parents=True, exist_ok=True)
-    return WorkflowInputs(nav, strip_files, out, OutputCRS(nav.config.crs.output_epsg), runner)
+    return WorkflowInputs(nav, strip_files, out, OutputCRS(nav.config.crs.output_epsg), runner,
+                          nav.config.crs.geoid(nav.root))
 
 
 def stage_gnss_imu(steps: StepRunner, nav: NavigationData, progress: Progress = no_progress) -> tuple[GnssImuResult, str]:
@@ -494,7 +507,7 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
         paths = [folder / (s.path.stem + ".laz") for s in strips]
         results = georeference_strips([s.plan for s in strips], paths, poses, nav.t0_gps, p_b_s, R_b_s,
                                       nav.frame, inputs.crs, runner=runner, progress=progress, protect=(nav.root,),
-                                      time_offset_s=offset)
+                                      time_offset_s=offset, heights=inputs.heights)
         return [{"strip": s.strip_id, "file": path.name, "points": r.points_written,
                  "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]}
                 for s, path, r in zip(inputs.strips, paths, results)]

@@ -429,7 +429,8 @@ def run_georeference(
 
     The strips are cut into time tiles (:mod:`georefine.lidar.tiles`) that run on ``scheduler``
     (:mod:`georefine.tasks`); memory holds a few tiles whatever the number of points. The points
-    are georeferenced at, and written with, ``gps_time + scanner.time_offset_s``.
+    are georeferenced at, and written with, ``gps_time + scanner.time_offset_s``. Heights
+    are ellipsoidal, or gravity-related with ``crs.geoid_grid`` (:class:`~georefine.geometry.frames.GeoidHeights`).
     """
     from georefine.config import boresight_matrix
     from georefine.io.las import gps_week_of_strip, time_index
@@ -459,6 +460,6 @@ def run_georeference(
         results = georeference_strips(
             plans, [out / (Path(rel).stem + ".laz") for rel in cfg.scanner.files], poses, t0,
             np.asarray(cfg.scanner.lever_arm_m), boresight_matrix(cfg.scanner.boresight_deg), frame, crs,
-            runner=runner, progress=progress, protect=(root,), time_offset_s=offset,
+            runner=runner, progress=progress, protect=(root,), time_offset_s=offset, heights=cfg.crs.geoid(root),
         )
     return GeoreferenceRunResult(out, tuple(results))

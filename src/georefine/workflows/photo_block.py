@@ -26,7 +26,7 @@ from georefine.config import (
 from georefine.errors import InputError
 from georefine.evaluation.clouds import point_files
 from georefine.geometry.camera import Camera
-from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.io import photos as pio
 from georefine.io.las import PointCloud, read_las_range
 from georefine.io.las_encode import EncodedPoints, ExtraDim, LasLayout, encode_points
@@ -62,6 +62,7 @@ class PhotoProject:
     R_w_c: np.ndarray
     p_w_c: np.ndarray
     warnings: tuple[str, ...] = ()
+    heights: GeoidHeights | None = None  # the refined cloud's gravity-related heights (crs.geoid_grid)
 
     def camera(self, i: int) -> Camera:
         return self.cameras[self.eop.cameras[i]]
@@ -114,14 +115,17 @@ def load_photo_project(project_dir: str | Path, config: ProjectConfig | None = N
     R, p = pio.poses_in_w(eop, frame, crs)
     empty = pio.ImagePoints((), (), np.zeros((0, 2)), np.zeros(0, np.int64))
     gc = gcps if gcps is not None else pio.ControlPoints((), np.zeros((0, 3)), np.zeros((0, 3)), ())
-    return PhotoProject(root, frame, crs, cameras, eop, gc, pts or empty, root / ph.folder, R, p, tuple(warnings))
+    return PhotoProject(root, frame, crs, cameras, eop, gc, pts or empty, root / ph.folder, R, p, tuple(warnings),
+                        cfg.crs.geoid(root))
 
 
 def read_cloud(paths: list[Path], pp: PhotoProject, *, runner: TaskRunner | None = None,
                progress: Progress = no_progress) -> CloudIndex:
     """Georeferenced LAZ/LAS strips (output CRS), indexed for block reads in ``w``
-    (:mod:`georefine.workflows.cloud_index`; the points are not held)."""
-    return index_cloud(point_files([Path(p) for p in paths]), pp.frame, pp.crs, runner=runner, progress=progress)
+    (:mod:`georefine.workflows.cloud_index`; the points are not held). Strips with the
+    gravity-related heights of the project's geoid grid are read back to ellipsoidal heights."""
+    return index_cloud(point_files([Path(p) for p in paths]), pp.frame, pp.crs, runner=runner, progress=progress,
+                       heights=pp.heights)
 
 
 def render_lidargrams(pp: PhotoProject, cloud: CloudIndex, settings: LidargrammetryConfig | None = None, *,
@@ -185,15 +189,18 @@ def write_cloud(cloud: CloudIndex, refine: Reintersector, folder: Path, *, prote
     many lidargrams showed the point (0: interpolated from its neighbours, -1, the no-data value:
     outside every lidargram, unchanged). The scan angles are the input's (a move of centimetres
     turns a beam by far less than the LAS step of 0.006 degrees), and so is each file's source ID.
+    Heights are ellipsoidal, or with the project's geoid grid (``cloud.heights``) gravity-related
+    in the compound CRS, converted in each task (a point outside the grid is an error).
     Returns how many points were moved which way (as :meth:`Reintersection.summary`).
     """
     folder.mkdir(parents=True, exist_ok=True)
     runner = runner or TaskRunner("sync")
     shared = runner.share((cloud, refine))
+    file_crs = cloud.crs.crs if cloud.heights is None else cloud.heights.compound_crs(cloud.crs)
     counts = np.zeros(4, np.int64)
     for k, f in enumerate(cloud.files):
         with LasWriter(folder / (f.stem + ".laz"), scale=0.001, offset=offset_near(cloud.file_centre[k]),
-                       crs=cloud.crs.crs, protect=[*protect, f], extra_dims=[LIDARGRAMS_DIM]) as w:
+                       crs=file_crs, protect=[*protect, f], extra_dims=[LIDARGRAMS_DIM]) as w:
             layout = w.layout_for()
             n = int(cloud.file_start[k + 1] - cloud.file_start[k])
             tasks = [(shared, k, a, min(a + INDEX_RANGE_POINTS, n), layout) for a in range(0, n, INDEX_RANGE_POINTS)]
@@ -211,8 +218,11 @@ def _refine_range(shared: tuple[CloudIndex, Reintersector], strip: int, start: i
     cloud, refine = shared
     c = read_las_range(cloud.files[strip], start, stop)
     ids = cloud.file_start[strip] + np.arange(start, stop, dtype=np.int64)
-    xyz_w, n = refine.refine(cloud.crs.to_w(cloud.frame, c.xyz), ids, np.full(len(ids), strip))
-    out = PointCloud(c.time_gps, cloud.crs.from_w(cloud.frame, xyz_w), c.intensity, c.scanner_channel,
+    xyz_w, n = refine.refine(cloud.to_w(strip, c.xyz), ids, np.full(len(ids), strip))
+    xyz = cloud.crs.from_w(cloud.frame, xyz_w)
+    if cloud.heights is not None:  # the refined cloud is a final product: gravity-related heights
+        xyz = cloud.heights.orthometric_xyz(cloud.crs, xyz, what=f"points of {cloud.files[strip].name}")
+    out = PointCloud(c.time_gps, xyz, c.intensity, c.scanner_channel,
                      c.point_source_id, c.return_number, c.number_of_returns,
                      {"lidargrams": n.astype(np.float64)}, scan_angle_deg=c.scan_angle_deg)
     counts = np.array([np.count_nonzero(n == 0), np.count_nonzero(n == 1), np.count_nonzero(n >= 2),
