@@ -18,6 +18,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+from browser_helpers import WINDOW, check_rendered_images, chromium, rendered_images
 from cli_helpers import STAGE_LINE, messages
 from shared_projects import README_SEED
 from truth_helpers import pass_rmse
@@ -164,17 +165,14 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, full_run, tm
     assert (out / "gil" / "trajectory.sbet").read_bytes() == before
 
 
-@pytest.mark.slow
-def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_path):
+@pytest.fixture(scope="module")
+def demo(project, full_run, gil_single_pass, tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     """A reduced `georefine demo` (the README example stands in for it: its project for the
     simulation, its run of both passes and its single-pass run for the demo's: their steps are
-    in the demo's cache)."""
-    import html as _html
-
+    in the demo's cache): its folder and its process (read only)."""
     from georefine.demo.lanes import demo_stamp
-    from georefine.evaluation.report import summary_rows
 
-    out = make_output_folder(tmp_path / "demo")  # the demo folder an earlier demo made, with its project
+    out = make_output_folder(tmp_path_factory.mktemp("demo") / "demo")  # an earlier demo's folder, with its project
     shutil.copytree(project, out / "project")
     shutil.copytree(full_run / ".cache", out / ".cache")  # the same project and configuration: the same keys
     for f in (gil_single_pass / ".cache").glob("*.pkl"):
@@ -184,6 +182,17 @@ def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_pat
     args = ["demo", "--out", str(out), "--scenario", "corridor-tiny", "--seed", str(README_SEED)]
     proc = subprocess.run([sys.executable, "-m", "georefine", *args], capture_output=True, text=True,
                           env={**os.environ, "COLUMNS": "200"})
+    return out, proc
+
+
+@pytest.mark.slow
+def test_demo_single_pass_and_report(demo, gil_single_pass):
+    """The reduced demo's figures, files, log and report."""
+    import html as _html
+
+    from georefine.evaluation.report import summary_rows
+
+    out, proc = demo
     assert proc.returncode == 0, proc.stderr
     assert "yaw RMSE" in proc.stdout and "report:" in proc.stdout and "AVG-SD" in proc.stdout
     # Off a terminal (`georefine demo > log 2>&1`) the stages are timestamped lines, kept in OUT/georefine.log too.
@@ -249,6 +258,31 @@ def test_demo_single_pass_and_report(project, full_run, gil_single_pass, tmp_pat
     assert "boresight calibration (started +50, +0, +0 mdeg off)" in proc.stdout
     assert f"<td>error (mdeg)</td><td>{b['error_mdeg'][0]:.1f}</td>" in page
     assert (out / "run-boresight" / "gil" / "adjustment.json").is_file()
+    # Point density and strip overlap, from the same scan as the strip differences, in the overview.
+    cov = ev["coverage"]["G/I/L"]
+    assert 0.0 < cov["density_p5_per_m2"] <= cov["density_median_per_m2"] and 0.5 < cov["overlap_share"] <= 1.0
+    gi = ev["coverage"]["G/I"]  # the same points, georeferenced twice: a few cross a cell's edge
+    assert cov["max_strips"] == gi["max_strips"] == 2 and cov["area_km2"] == pytest.approx(gi["area_km2"], rel=1e-3)
+    assert cov["overlap_share"] == pytest.approx(gi["overlap_share"], abs=2e-3)
+    assert cov["density_median_per_m2"] == pytest.approx(gi["density_median_per_m2"], abs=1.0)
+    assert all((out / "run" / "evaluation" / cov[k]).is_file() for k in ("density_map", "overlap_map"))
+    assert "Points per m²" in page and f"{100 * cov['overlap_share']:.0f} %" in page
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(chromium() is None, reason="headless Chromium is not installed (apt-get install chromium)")
+def test_the_demo_report_reads_in_a_browser(demo, tmp_path):
+    """The demo's report in headless Chromium at a laptop's window: every map at equal aspect, no
+    image stretched, the smallest text of every figure readable as the page shows it."""
+    out, proc = demo
+    assert proc.returncode == 0, proc.stderr
+    shown, shot = rendered_images(out / "report.html", tmp_path)
+    check_rendered_images(shown, maps=("overview", "map", "G/I"))
+    assert {"flight overview", "point density map", "strip overlap map"} <= {im["alt"] for im in shown}
+    from PIL import Image
+
+    pixels = np.asarray(Image.open(shot).convert("L"), dtype=float)
+    assert pixels.shape == (WINDOW[1], WINDOW[0]) and pixels.std() > 10.0  # the page drew, not a blank window
 
 
 @pytest.mark.slow
