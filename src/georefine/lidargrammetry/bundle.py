@@ -52,7 +52,7 @@ from georefine.geometry.camera import Camera
 log = logging.getLogger(__name__)
 
 __all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "check_point_consistency", "coadjust",
-           "control_point_stats", "intersect_points",
+           "control_point_stats", "intersect_points", "point_reprojection",
            "stations_per_point"]
 
 CASES = {
@@ -136,6 +136,17 @@ class BundleResult:
     point_xyz_w: np.ndarray  # (m, 3) control/check points intersected with the adjusted photos
     extra: dict = field(default_factory=dict)
     tie_inlier: np.ndarray | None = None  # (k,) tie observations within 3 loss scales after the adjustment
+    # Per tie observation (k, 2): projected minus measured pixel coordinates after the adjustment;
+    # NaN where the point was not adjusted (seen from one station without depth) or lies behind.
+    tie_residual_px: np.ndarray | None = None
+    # Per control/check point (m,): photo measurements (rays) and the RMS of their image residuals
+    # (px) with the adjusted photos; NaN where fewer than two rays intersect.
+    point_rays: np.ndarray | None = None
+    point_reprojection_px: np.ndarray | None = None
+    # (m, 3, 3) posterior covariance in ``w`` of the control/check points as points of the
+    # adjustment the photos come from (case 1: the photo block's, case 2: the co-adjustment's);
+    # None where they are not in it (case 3) or the block gave no covariance.
+    point_cov_w: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         return {"case": self.case, "description": CASES[self.case],
@@ -180,6 +191,26 @@ def stations_per_point(point: np.ndarray, station_of_obs: np.ndarray, n_points: 
 
 def _rms(values: np.ndarray) -> float:
     return float(np.sqrt(np.mean(values**2))) if values.size else float("nan")
+
+
+def point_reprojection(cameras, R_w_c: np.ndarray, p_w_c: np.ndarray, control: ControlData,
+                       X: np.ndarray) -> np.ndarray:
+    """``(m,)`` RMS image residual (px) of each control/check point's measurements against the
+    projection of ``X`` (its intersection) in the given photo poses; NaN where ``X`` is NaN."""
+    out = np.full(len(control.ids), np.nan)
+    ok = np.isfinite(X[:, 0])
+    meas = ok[control.point] if len(control.point) else np.zeros(0, dtype=bool)
+    if not meas.any():
+        return out
+    grp = ReprojectionObservation("tmp", cameras, control.image[meas], control.point[meas], control.uv[meas])
+    uv, _ = grp.predict({"image_rotation": R_w_c, "image_position": p_w_c, "points": np.where(ok[:, None], X, 0.0)})
+    sq = np.sum((uv - control.uv[meas]) ** 2, axis=1)
+    pts = control.point[meas]
+    n = np.bincount(pts, minlength=len(out))
+    total = np.bincount(pts, weights=sq, minlength=len(out))
+    has = n > 0
+    out[has] = np.sqrt(total[has] / n[has])
+    return out
 
 
 def control_point_stats(cameras, R_w_c: np.ndarray, p_w_c: np.ndarray, control: ControlData, *,
@@ -243,6 +274,7 @@ def coadjust(
                      use_control=True, fixed=~photo, tie_sigma_px=tie_sigma_px, m_sigma=measurement_sigma_px,
                      tie_loss=tie_loss, tie_loss_scale=tie_loss_scale, options=options, depth_sigma_m=depth_sigma_m)
         R, p = pre["R"], pre["p"]
+        point_cov = pre.get("cov_points")  # the check points are intersected from these photos
         extra["photo_block_adjustment"] = pre["solve"].to_dict()
         extra["photo_block_precision"] = _precision(images, pre, control, ~control.is_control)
         fixed, use_control = photo, False
@@ -254,6 +286,10 @@ def coadjust(
                  fixed=fixed, tie_sigma_px=tie_sigma_px, m_sigma=measurement_sigma_px, tie_loss=tie_loss,
                  tie_loss_scale=tie_loss_scale, options=options, depth_sigma_m=depth_sigma_m)
     R, p = out["R"], out["p"]
+    if case == 2:
+        point_cov = out.get("cov_points")
+    elif case == 3:
+        point_cov = None
     extra["precision"] = _precision(images, out, control, ~control.is_control)
     # Case 3 uses no control point: all of them are check points (paper 004, Tables 3 and 6).
     stats, X = control_point_stats(images.cameras, R, p, control, all_check=case == 3)
@@ -264,7 +300,10 @@ def coadjust(
     rms = {kind: _rms(err[inlier & (images.is_lidargram[tie_image] == lg)])
            for kind, lg in (("photos", False), ("lidargrams", True))}
     extra["tie_inlier_fraction"] = float(inlier.mean()) if inlier.size else float("nan")
-    return BundleResult(case, R, p, out["ties"], stats["control"], stats["check"], rms, out["solve"], X, extra, inlier)
+    residual = np.where(front[:, None], uv - tie_uv, np.nan)
+    rays = np.bincount(control.point, minlength=len(control.ids)) if len(control.ids) else np.zeros(0, np.int64)
+    return BundleResult(case, R, p, out["ties"], stats["control"], stats["check"], rms, out["solve"], X, extra, inlier,
+                        residual, rays, point_reprojection(images.cameras, R, p, control, X), point_cov)
 
 
 def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: ControlData, t_depth, *,
@@ -326,6 +365,7 @@ def _solve(images: BlockImages, R, p, t_img, t_pt, t_uv, t_xyz0, control: Contro
         if use_control and len(control.ids):
             cov = P.covariance("points", n_tie + np.arange(len(control.ids)))
             out["points"] = P.values("points")[n_tie:]
+            out["cov_points"] = cov
             out["sigma_points"] = np.sqrt(np.einsum("kii->ki", cov))
     except (NotPositiveDefiniteError, ValueError) as exc:  # a weak block: no precision, the estimate stands
         log.warning("no posterior precision: %s", exc)

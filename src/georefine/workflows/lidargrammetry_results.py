@@ -6,20 +6,29 @@
 ``to_dict`` gives that file's JSON (keys in the file's order) and ``from_dict`` reads it back,
 so a result and its file are one thing. Values the JSON writer turns into ``null`` (NaN) read
 back as NaN.
+
+The per-point files of ``georefine coadjust`` are typed the same way: :class:`PointResiduals`
+(``point_residuals.csv``: each control and check point's error) and :class:`TieResiduals`
+(``tie_residuals.csv``: each tie observation's image residual), each with its writer and reader.
 """
 
 from __future__ import annotations
 
+import csv
+import io
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from georefine.errors import InputError
+from georefine.io.files import atomic_output, read_text_lines
 from georefine.lidargrammetry.bundle import CASES, BundleResult, PointStats
 
 __all__ = ["PairKindStats", "MatchSummary", "PairCount", "PhotoLidargramMatches", "TieReprojection",
            "ImagePrecision", "CheckPointPrecision", "Precision", "ColmapModel", "ReintersectionCounts",
-           "CoadjustResult"]
+           "CoadjustResult", "PointResiduals", "TieResiduals", "POINT_RESIDUAL_COLUMNS", "TIE_RESIDUAL_COLUMNS"]
 
 
 def _float(value: Any) -> float:
@@ -319,3 +328,202 @@ class CoadjustResult:
                    None if pbp is None else Precision.from_dict(pbp),
                    None if ri is None else ReintersectionCounts.from_dict(ri),
                    {k: _float(v) for k, v in d["timings_s"].items()})
+
+
+# ---------------------------------------------------------------------------- per-point files
+POINT_RESIDUAL_COLUMNS = ("id", "role", "x", "y", "z", "dx_m", "dy_m", "dz_m", "dh_m", "d3_m", "rays",
+                          "reprojection_px", "sigma_x_m", "sigma_y_m", "sigma_z_m")
+"""Columns of ``point_residuals.csv`` (docs/ARCHITECTURE.md §4.8)."""
+
+TIE_RESIDUAL_COLUMNS = ("image", "kind", "track", "u", "v", "du_px", "dv_px", "inlier")
+"""Columns of ``tie_residuals.csv`` (docs/ARCHITECTURE.md §4.8)."""
+
+
+def _cell(value: float, digits: int) -> str:
+    """A number with ``digits`` decimals; empty for NaN (a spreadsheet shows an empty cell, not "nan")."""
+    return "" if not np.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _table(path: Path, columns: tuple[str, ...]) -> tuple[dict[str, list[str]], np.ndarray]:
+    """The columns ``columns`` of the CSV file ``path`` (header line first) and each row's line number.
+
+    Raises
+    ------
+    InputError
+        A missing column (named) or a row with another number of fields than the header.
+    """
+    lines = read_text_lines(path)
+    if not lines:
+        raise InputError("empty file", path=path, expected="a header line: " + ",".join(columns))
+    header = next(csv.reader([lines[0]]))
+    for c in columns:
+        if c not in header:
+            raise InputError("missing column", path=path, line=1, field=c, expected=",".join(columns))
+    rows = list(csv.reader(io.StringIO("\n".join(lines[1:]))))
+    out: dict[str, list[str]] = {c: [] for c in columns}
+    idx = [header.index(c) for c in columns]
+    numbers = []
+    for k, r in enumerate(rows):
+        if not r:
+            continue
+        if len(r) != len(header):
+            raise InputError("wrong number of fields", path=path, line=k + 2, expected=str(len(header)),
+                             found=str(len(r)))
+        for c, i in zip(columns, idx):
+            out[c].append(r[i])
+        numbers.append(k + 2)
+    return out, np.asarray(numbers, dtype=np.int64)
+
+
+def _numbers(path: Path, table: dict[str, list[str]], lines: np.ndarray, name: str) -> np.ndarray:
+    """Column ``name`` as floats, an empty cell as NaN; a bad cell raises naming its line and field."""
+    out = np.full(len(lines), np.nan)
+    for k, text in enumerate(table[name]):
+        if text.strip():
+            try:
+                out[k] = float(text)
+            except ValueError:
+                raise InputError("not a number", path=path, line=int(lines[k]), field=name, found=text) from None
+    return out
+
+
+@dataclass(frozen=True)
+class PointResiduals:
+    """Each control and check point of one case: ``OUT/point_residuals.csv`` of ``georefine coadjust``.
+
+    ``role``: as the case used the point (``control`` or ``check``; case 3 uses no control point,
+    so all are ``check``). ``xyz``: the surveyed coordinates (output CRS, as ``gcp.csv``).
+    ``error_m``: the point intersected from the adjusted photos minus its surveyed coordinates,
+    along the output CRS's grid axes (east, north, height); NaN for a point measured in fewer than
+    two photos. ``reprojection_px``: RMS of its image residuals with the adjusted photos.
+    ``sigma_m``: its posterior standard deviation as a point of the adjustment the photos come from,
+    along the same axes (NaN where that adjustment does not hold it: case 3). Rows are ordered
+    worst first (3-D error descending; points not intersected last), so the file opens with the
+    points to look at.
+    """
+
+    ids: tuple[str, ...]
+    role: tuple[str, ...]
+    xyz: np.ndarray  # (m, 3)
+    error_m: np.ndarray  # (m, 3)
+    rays: np.ndarray  # (m,) int
+    reprojection_px: np.ndarray  # (m,)
+    sigma_m: np.ndarray  # (m, 3)
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    @property
+    def horizontal_m(self) -> np.ndarray:
+        return np.hypot(self.error_m[:, 0], self.error_m[:, 1])
+
+    @property
+    def error_3d_m(self) -> np.ndarray:
+        return np.linalg.norm(self.error_m, axis=1)
+
+    @property
+    def is_control(self) -> np.ndarray:
+        return np.array([r == "control" for r in self.role], dtype=bool)
+
+    def subset(self, keep: np.ndarray) -> PointResiduals:
+        """The rows ``keep`` (a boolean mask or indices), in that order."""
+        k = np.flatnonzero(keep) if np.asarray(keep).dtype == bool else np.asarray(keep, dtype=np.int64)
+        return PointResiduals(tuple(self.ids[i] for i in k), tuple(self.role[i] for i in k), self.xyz[k],
+                              self.error_m[k], self.rays[k], self.reprojection_px[k], self.sigma_m[k])
+
+    def worst_first(self) -> PointResiduals:
+        """Sorted by 3-D error descending, points without an error last (stable: ties keep their order)."""
+        d3 = self.error_3d_m
+        return self.subset(np.argsort(np.where(np.isfinite(d3), -d3, np.inf), kind="stable"))
+
+    def write(self, path: Path, protect=()) -> None:
+        """``path`` (CSV, :data:`POINT_RESIDUAL_COLUMNS`), written atomically, worst first."""
+        r = self.worst_first()
+        h, d3 = r.horizontal_m, r.error_3d_m
+        with atomic_output(path, protect=protect) as fh:
+            fh.write(",".join(POINT_RESIDUAL_COLUMNS) + "\n")
+            for k, pid in enumerate(r.ids):
+                fh.write(",".join([pid, r.role[k], *(f"{v:.4f}" for v in r.xyz[k]),
+                                   *(_cell(v, 4) for v in r.error_m[k]), _cell(h[k], 4), _cell(d3[k], 4),
+                                   str(int(r.rays[k])), _cell(r.reprojection_px[k], 3),
+                                   *(_cell(v, 4) for v in r.sigma_m[k])]) + "\n")
+
+    @classmethod
+    def read(cls, path: Path) -> PointResiduals:
+        """Read :meth:`write`'s file.
+
+        Raises
+        ------
+        InputError
+            A missing column, a bad number or role (naming the line and field).
+        """
+        path = Path(path)
+        t, lines = _table(path, POINT_RESIDUAL_COLUMNS)
+        for k, role in enumerate(t["role"]):
+            if role not in ("control", "check"):
+                raise InputError("unknown role", path=path, line=int(lines[k]), field="role",
+                                 expected="control or check", found=role)
+
+        def cols(*names: str) -> np.ndarray:
+            return np.column_stack([_numbers(path, t, lines, c) for c in names]) if len(lines) \
+                else np.zeros((0, len(names)))
+
+        return cls(tuple(t["id"]), tuple(t["role"]), cols("x", "y", "z"), cols("dx_m", "dy_m", "dz_m"),
+                   cols("rays")[:, 0].astype(np.int64), cols("reprojection_px")[:, 0],
+                   cols("sigma_x_m", "sigma_y_m", "sigma_z_m"))
+
+
+@dataclass(frozen=True)
+class TieResiduals:
+    """Each tie observation of one case: ``OUT/tie_residuals.csv`` of ``georefine coadjust``.
+
+    ``residual_px``: the adjusted tie point projected into the image minus the measured keypoint
+    (``du_px``, ``dv_px``; NaN where the point was not adjusted: seen from one station and
+    without a lidargram depth); ``inlier``: within 3 loss scales (the observations the tie
+    reprojection RMS of ``metrics.json`` is taken over).
+    """
+
+    images: tuple[str, ...]
+    is_lidargram: np.ndarray  # (k,) bool
+    track: np.ndarray  # (k,) int
+    uv: np.ndarray  # (k, 2) measured, pixels (top-left pixel centre at (0.5, 0.5))
+    residual_px: np.ndarray  # (k, 2)
+    inlier: np.ndarray  # (k,) bool
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    @property
+    def norm_px(self) -> np.ndarray:
+        return np.linalg.norm(self.residual_px, axis=1)
+
+    def write(self, path: Path, protect=()) -> None:
+        """``path`` (CSV, :data:`TIE_RESIDUAL_COLUMNS`), written atomically, in observation order."""
+        buf = io.StringIO()
+        buf.write(",".join(TIE_RESIDUAL_COLUMNS) + "\n")
+        for k, name in enumerate(self.images):
+            buf.write(f"{name},{'lidargram' if self.is_lidargram[k] else 'photo'},{int(self.track[k])},"
+                      f"{self.uv[k, 0]:.3f},{self.uv[k, 1]:.3f},{_cell(self.residual_px[k, 0], 4)},"
+                      f"{_cell(self.residual_px[k, 1], 4)},{int(bool(self.inlier[k]))}\n")
+        with atomic_output(path, protect=protect) as fh:
+            fh.write(buf.getvalue())
+
+    @classmethod
+    def read(cls, path: Path) -> TieResiduals:
+        """Read :meth:`write`'s file.
+
+        Raises
+        ------
+        InputError
+            A missing column, a bad number or kind (naming the line and field).
+        """
+        path = Path(path)
+        t, lines = _table(path, TIE_RESIDUAL_COLUMNS)
+        for k, kind in enumerate(t["kind"]):
+            if kind not in ("photo", "lidargram"):
+                raise InputError("unknown image kind", path=path, line=int(lines[k]), field="kind",
+                                 expected="photo or lidargram", found=kind)
+        num = {c: _numbers(path, t, lines, c) for c in ("track", "u", "v", "du_px", "dv_px", "inlier")}
+        return cls(tuple(t["image"]), np.array([k == "lidargram" for k in t["kind"]], dtype=bool),
+                   num["track"].astype(np.int64), np.column_stack([num["u"], num["v"]]),
+                   np.column_stack([num["du_px"], num["dv_px"]]), num["inlier"] == 1)
