@@ -3,8 +3,8 @@
 :func:`rendered_images` opens a copy of a report with a small script added that, once the page
 has loaded, writes every image's natural and displayed size into the page; Chromium's
 ``--dump-dom`` prints the page after that, and a screenshot of the same window is kept beside
-it. :func:`check_rendered_images` holds what the report promises a reader (docs/ARCHITECTURE.md,
-"Reports"): no image stretched, every map at equal aspect, and the smallest text of every figure
+it. :func:`check_rendered_images` holds what the report promises a reader (docs/ARCHITECTURE.md §5,
+"Report"): no image stretched, every map at equal aspect, and the smallest text of every figure
 at least :data:`MIN_READABLE_PX` pixels high at the size the page shows it.
 """
 
@@ -74,14 +74,18 @@ def rendered_images(report: Path, work: Path) -> tuple[list[dict], Path]:
     return shown, shot
 
 
-def check_rendered_images(shown: list[dict], maps: tuple[str, ...]) -> None:
+def check_rendered_images(shown: list[dict], maps: tuple[str, ...], pictures: tuple[str, ...] = ()) -> None:
     """No image stretched; the figures whose ``alt`` contains one of ``maps`` with every axes at
-    equal aspect; every figure's smallest text readable as shown (module docstring)."""
+    equal aspect; every figure's smallest text readable as shown (module docstring). Images whose
+    ``alt`` contains one of ``pictures`` are pictures, not plots (matches drawn on a photo): only
+    their proportions are checked."""
     assert shown, "no image in the report"
     for im in shown:
         (nw, nh), (sw, sh) = im["natural"], im["shown"]
         assert nw > 0 and sw > 0, im
         assert abs(sw / nw - sh / nh) <= 0.02 * sw / nw, f"{im['alt']}: drawn {sw}x{sh} of {nw}x{nh}"
+        if any(p in im["alt"] for p in pictures):
+            continue
         facts = im["facts"]
         assert MIN_FONT_KEY in facts and AXES_KEY in facts, f"{im['alt']}: a figure not saved by save_png"
         if facts[MIN_FONT_KEY]:

@@ -13,6 +13,7 @@ import laspy
 import numpy as np
 import pytest
 import yaml
+from browser_helpers import check_rendered_images, chromium, rendered_images
 from colmap_helpers import colmap_checks
 
 from georefine.config import ProjectConfig, validate_model
@@ -24,7 +25,7 @@ from georefine.io.colmap import block_from_reconstruction, read_model
 from georefine.lidargrammetry.crosscheck import solve_both
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows.lidargrammetry import make_matcher, run_coadjust
-from georefine.workflows.lidargrammetry_results import CoadjustResult, MatchSummary
+from georefine.workflows.lidargrammetry_results import CoadjustResult, MatchSummary, PointResiduals, TieResiduals
 
 # The default camera and GSD (8 cm) over a shorter town (3 photos per strip), a lighter scanner.
 SMALL = ["scene.length_m=260", "scanner.pulse_rate_hz=50000", "scanner.line_rate_hz=100"]
@@ -53,6 +54,17 @@ def _cloud_error(points: Path, truth: Path, covered: dict | None = None) -> floa
         keep = covered[f.name] if covered is not None else slice(None)
         err.append(np.column_stack([a.x - b.x, a.y - b.y, a.z - b.z])[keep])
     return float(np.sqrt(np.mean(np.sum(np.concatenate(err) ** 2, axis=1))))
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(chromium() is None, reason="headless Chromium is not installed (apt-get install chromium)")
+def test_the_block_report_reads_in_a_browser(demo, tmp_path):
+    """The block demo's report in headless Chromium: the layout and error maps at equal aspect, no
+    image stretched, the smallest text of every plot readable as the page shows it."""
+    out, _ = demo
+    shown, _ = rendered_images(out / "report.html", tmp_path)
+    check_rendered_images(shown, maps=("layout", "point errors", "cloud errors"), pictures=("matches",))
+    assert {"block layout", "check point errors"} <= {im["alt"] for im in shown}, [im["alt"] for im in shown]
 
 
 @pytest.mark.slow
@@ -88,6 +100,27 @@ def test_demo_block_runs_the_three_cases(demo):
     assert a["rmse_v1_m"] == pytest.approx(chk["rmse_z_m"]) and a["rmse_v_m"] >= a["rmse_v1_m"]
     assert a["nssda_vertical_95_m"] == pytest.approx(1.96 * chk["rmse_z_m"])
     assert "Accuracy to the standards" in report and "18 (fewer than 30)" in report
+    # The surveyor's view: the layout first, the point maps and a table per case from the files
+    # the cases wrote, whose errors are those of metrics.json (grid axes: the horizontal and
+    # vertical RMS agree, the X/Y split turns by the meridian convergence).
+    assert report.index("Block layout") < report.index("Tables 1-6") < report.index("Point by point")
+    assert report.count("<details") == 3
+    for name in ("layout.png", "point_errors.png", "case1/residuals.png", "case3/residuals.png"):
+        assert (out / name).stat().st_size > 10_000, name
+    for case in ("1", "2", "3"):
+        r = PointResiduals.read(out / f"case{case}" / "point_residuals.csv")
+        chk = m["cases"][case]["check_points"]
+        sel = ~r.is_control & np.isfinite(r.error_3d_m)
+        assert sel.sum() == chk["n"] and len(r) == 18
+        assert np.sqrt(np.mean(r.horizontal_m[sel] ** 2)) == pytest.approx(np.hypot(chk["rmse_x_m"], chk["rmse_y_m"]),
+                                                                          rel=1e-3)
+        assert np.sqrt(np.mean(r.error_m[sel, 2] ** 2)) == pytest.approx(chk["rmse_z_m"], rel=1e-3)
+        assert np.all(np.diff(r.error_3d_m[np.isfinite(r.error_3d_m)]) <= 0)  # worst first
+        assert np.isfinite(r.sigma_m).all() == (case != "3")
+        ties = TieResiduals.read(out / f"case{case}" / "tie_residuals.csv")
+        inl = ties.inlier & ~ties.is_lidargram
+        assert np.sqrt(np.mean(ties.norm_px[inl] ** 2)) == pytest.approx(m["cases"][case]["tie_reprojection_px"]["photos"],
+                                                                          rel=1e-3)
 
 
 @pytest.mark.slow

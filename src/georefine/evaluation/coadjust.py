@@ -128,7 +128,7 @@ def plot_cloud_errors(errors: CloudErrors, path: Path, *, title: str = "", pixel
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from georefine.io.files import atomic_path
+    from georefine.evaluation.figures import save_png
 
     rms0, rms1 = CloudErrors._rms(errors.before), CloudErrors._rms(errors.after)
     n0, n1 = np.linalg.norm(errors.before, axis=1), np.linalg.norm(errors.after, axis=1)
@@ -160,7 +160,6 @@ def plot_cloud_errors(errors: CloudErrors, path: Path, *, title: str = "", pixel
     if title:
         fig.suptitle(title, fontsize=11)
     path = Path(path)
-    with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110, format="png")
+    save_png(fig, path, 110)
     plt.close(fig)
     return path

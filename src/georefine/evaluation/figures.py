@@ -4,9 +4,9 @@ Every plot of the reports is saved by :func:`save_png`. Besides writing under a 
 it records in the PNG's text chunks what a reader of the page cannot measure from pixels: the
 smallest font on the figure in pixels at the saved resolution (``georefine:min-font-px``) and how
 many of its map axes are drawn at equal aspect (``georefine:axes``, ``"equal/total"``, colour bars
-not counted). The report test renders the pages in a browser, reads each image's displayed size
-and these facts, and so checks that every map keeps equal aspect and that its smallest text is
-still readable at the size the page shows it (``tests/test_report_browser.py``).
+not counted). The browser tests of the corridor and block demos (``tests/browser_helpers.py``)
+render the pages, read each image's displayed size and these facts, and so check that every map
+keeps equal aspect and that its smallest text is still readable at the size the page shows it.
 """
 
 from __future__ import annotations
