@@ -25,6 +25,7 @@ def figure_facts(fig, dpi: float) -> dict[str, str]:
     """``{MIN_FONT_KEY: smallest visible text in px at dpi, AXES_KEY: "equal/total"}`` of ``fig``."""
     from matplotlib.text import Text
 
+    fig.draw_without_rendering()  # tick labels get their text (and layout its place) when the figure is drawn
     sizes = [t.get_fontsize() for t in fig.findobj(Text) if t.get_visible() and t.get_text().strip()]
     axes = [ax for ax in fig.axes if ax.get_visible() and not hasattr(ax, "_colorbar")]
     equal = sum(1 for ax in axes if ax.get_aspect() == 1.0)

@@ -44,12 +44,14 @@ def tiled_axes(rows: int, cols: int, x0: float, y1: float, cell_size_m: float,
     panel_cols = cols if axis == "rows" else max(p.stop - p.start for p in parts)
     ratio = panel_rows / max(panel_cols, 1)  # height / width of one panel
     n = len(parts)
+    # At most about 11.5 inches wide: the page shows a map at 1120 px whatever its size, so a wider
+    # figure only shrinks its text (at 13.8 inches, 8 pt came out 9.0 px high on the page).
     if axis == "rows":  # tall panels side by side
-        w = min(4.0, 14.0 / n, 11.0 / ratio)
+        w = min(3.2, 9.6 / n, 11.0 / ratio)
         fig, axes = plt.subplots(1, n, figsize=(n * w + 1.8, 0.9 * w * ratio + 1.3), dpi=150, squeeze=False,
                                  layout="constrained")
     else:  # wide panels stacked
-        w = min(10.0, 14.0 / (n * ratio))
+        w = min(9.6, 14.0 / (n * ratio))
         fig, axes = plt.subplots(n, 1, figsize=(w + 1.8, n * w * ratio + 1.3), dpi=150, squeeze=False,
                                  layout="constrained")
     axes = list(axes.ravel())
