@@ -1000,6 +1000,10 @@ def test_robust_line_fit_rejects_gross_outliers(seed):
     assert abs(good_down - stats.expected_downweighted * (n - bad.size)) < 4 * np.sqrt(0.017 * n), good_down
     assert results["ls"].group("line").expected_downweighted == 0.0
     assert results["huber"].group("line").expected_downweighted == pytest.approx(chdtrc(1, 4 * 1.345**2))
+    # sigma0 from the median squared residual: the outliers (10 %) move it to the 56th percentile of
+    # the good points' chi2(1), a factor sqrt(0.587 / 0.455) = 1.14 (NaN here until the statistics
+    # kept the median through the solver's Jacobian-free copy of the evaluation).
+    assert 0.9 < stats.robust_sigma0 < 1.4, stats.robust_sigma0
     # The whitened residuals' histogram: every row counted, the outliers (3-8 / 0.1 sigma) in the outer bin.
     from georefine.adjustment.statistics import RESIDUAL_EDGES
 

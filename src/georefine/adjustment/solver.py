@@ -410,7 +410,8 @@ def _reweighting(evaluation: _Evaluation) -> bool:
     return False
 
 
-_GROUP_FIELDS = ("row_sqrt_weight", "loss_name", "n_observations", "cost", "sum_r2", "sum_wr2", "n_downweighted")
+_GROUP_FIELDS = ("row_sqrt_weight", "loss_name", "n_observations", "cost", "sum_r2", "sum_wr2", "n_downweighted",
+                 "median_s")  # every field of _GroupEvaluation after the linearisation, in order
 
 
 def run_levenberg_marquardt(
