@@ -264,3 +264,18 @@ def test_report_has_the_layout_the_maps_and_the_tables_worst_first(tmp_path):
     assert rows[0][0] == "P01" and rows[-1][0] == "P02" and rows[-1][1] == "–"
     assert "worst P01, 155.2 cm 3-D" in page  # |(1.2, -0.9, 0.4)| m
     assert page.index(">P01<") < page.index(">P04<")
+
+
+def test_the_block_verdict_flags_each_figure_the_paper_beats():
+    from georefine.demo.block import graz_verdict
+    from georefine.evaluation.coadjust import PAPER_004_GRAZ
+    from georefine.lidargrammetry.bundle import PointStats
+
+    paper = PAPER_004_GRAZ[2]["check_points"]  # 0.012 / 0.028 / 0.111 m, 0.335 px
+    case2 = PointStats(12, np.array([0.015, 0.030, 0.206]), 0.31)  # the example: Z twice the paper's
+    assert graz_verdict(case2, paper) == "✗ Z 0.206 > 0.111"
+    within = PointStats(12, np.array([0.016, 0.032, 0.115]), 0.38)  # within 5 mm and 0.05 px: rounding
+    assert graz_verdict(within, paper) == "✓"
+    worse = PointStats(12, np.array([0.020, 0.030, 0.100]), 0.50)
+    assert graz_verdict(worse, paper) == "✗ X 0.020 > 0.012, RE 0.500 > 0.335"
+    assert graz_verdict(case2, None) == "–"

@@ -328,7 +328,7 @@ def _block_demo(out: Path, seed: int, overrides: list[str], method: str, schedul
 
     table = Table(title=f"Georefine demo (block, seed {seed}): co-adjustment, beside paper 004")
     for column in ("case", "points", "RMSE X [m]", "RMSE Y [m]", "RMSE Z [m]", "RE [px]", "Graz X / Y / Z, RE",
-                   "Loosdorf X / Y / Z, RE"):
+                   "Loosdorf X / Y / Z, RE", "against Graz (✗: the paper's is better)"):
         table.add_column(column, justify="left" if column in ("case", "points") else "right")
     for row in result.summary_table():
         table.add_row(*row)
