@@ -60,7 +60,7 @@ def _ij(keys: np.ndarray) -> np.ndarray:
 class CoverageMap:
     """Points per cell and strips per cell on one raster; row 0 is the northern edge."""
 
-    points: np.ndarray  # (rows, cols) int64, 0 where no point
+    points: np.ndarray  # (rows, cols) int32, 0 where no point (4 bytes a cell beside the map's 25)
     strips: np.ndarray  # (rows, cols) uint8 strips with points in the cell
     x0: float
     y1: float
@@ -110,12 +110,12 @@ def coverage_map(counts: CellCounts, strips: dict[int, np.ndarray], cell_size_m:
     """The rasters of ``counts`` (all layers) and of ``strips`` (per strip, the sorted keys of its
     cells with points), over the bounding box of the counted cells."""
     if len(counts) == 0:
-        return CoverageMap(np.zeros((1, 1), np.int64), np.zeros((1, 1), np.uint8), 0.0, cell_size_m, cell_size_m)
+        return CoverageMap(np.zeros((1, 1), np.int32), np.zeros((1, 1), np.uint8), 0.0, cell_size_m, cell_size_m)
     ij = _ij(counts.keys)
     i0, j0 = ij.min(axis=0)
     i1, j1 = ij.max(axis=0)
     rows, cols = int(j1 - j0 + 1), int(i1 - i0 + 1)
-    points = np.zeros((rows, cols), np.int64)
+    points = np.zeros((rows, cols), np.int32)
     points[j1 - ij[:, 1], ij[:, 0] - i0] = counts.n
     seen = np.zeros((rows, cols), np.uint8)
     for keys in strips.values():
@@ -162,8 +162,8 @@ def write_coverage_png(path: str | Path, m: CoverageMap, what: str, *, title: st
         top = max(float(np.percentile(finite, 99.0)), 1e-9) if finite.size else 1.0
         kw = {"cmap": plt.get_cmap("viridis").with_extremes(bad=(1.0, 1.0, 1.0, 0.0), over="magenta"),
               "vmin": 0.0, "vmax": top}
-        head = (f"point density on {m.cell_size_m:g} m cells (on {cell:g} m cells: median {s['density_median_per_m2']:.1f} points/m², 5 % of the area below "
-                f"{s['density_p5_per_m2']:.1f})")
+        head = (f"point density on {m.cell_size_m:g} m cells (on {cell:g} m cells: median "
+                f"{s['density_median_per_m2']:.1f} points/m², 5 % of the area below {s['density_p5_per_m2']:.1f})")
     else:
         fig, axes, panels = tiled_axes(*m.strips.shape, m.x0, m.y1, m.cell_size_m)
         n_strips = max(int(m.strips.max()), 1)
