@@ -96,6 +96,15 @@ def test_point_residuals_file_is_worst_first_and_reads_back(tmp_path):
     np.testing.assert_array_equal(np.isnan(back.sigma_m), np.isnan(r.sigma_m[order]))
 
 
+def test_a_point_id_with_a_comma_is_quoted_and_reads_back(tmp_path):
+    r = _residuals(3)
+    r = PointResiduals(("GCP 7, roof",) + r.ids[1:], r.role, r.xyz, r.error_m, r.rays, r.reprojection_px, r.sigma_m)
+    path = tmp_path / "point_residuals.csv"
+    r.write(path)
+    assert '"GCP 7, roof"' in path.read_text()
+    assert "GCP 7, roof" in PointResiduals.read(path).ids
+
+
 def test_residual_files_name_the_bad_line_and_field(tmp_path):
     path = tmp_path / "point_residuals.csv"
     _residuals(2).write(path)

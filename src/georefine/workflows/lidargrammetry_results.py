@@ -440,13 +440,15 @@ class PointResiduals:
         """``path`` (CSV, :data:`POINT_RESIDUAL_COLUMNS`), written atomically, worst first."""
         r = self.worst_first()
         h, d3 = r.horizontal_m, r.error_3d_m
+        buf = io.StringIO()
+        w = csv.writer(buf, lineterminator="\n")  # quotes an id with a comma, as the reader expects
+        w.writerow(POINT_RESIDUAL_COLUMNS)
+        for k, pid in enumerate(r.ids):
+            w.writerow([pid, r.role[k], *(f"{v:.4f}" for v in r.xyz[k]),
+                        *(_cell(v, 4) for v in r.error_m[k]), _cell(h[k], 4), _cell(d3[k], 4),
+                        str(int(r.rays[k])), _cell(r.reprojection_px[k], 3), *(_cell(v, 4) for v in r.sigma_m[k])])
         with atomic_output(path, protect=protect) as fh:
-            fh.write(",".join(POINT_RESIDUAL_COLUMNS) + "\n")
-            for k, pid in enumerate(r.ids):
-                fh.write(",".join([pid, r.role[k], *(f"{v:.4f}" for v in r.xyz[k]),
-                                   *(_cell(v, 4) for v in r.error_m[k]), _cell(h[k], 4), _cell(d3[k], 4),
-                                   str(int(r.rays[k])), _cell(r.reprojection_px[k], 3),
-                                   *(_cell(v, 4) for v in r.sigma_m[k])]) + "\n")
+            fh.write(buf.getvalue())
 
     @classmethod
     def read(cls, path: Path) -> PointResiduals:
@@ -500,11 +502,12 @@ class TieResiduals:
     def write(self, path: Path, protect=()) -> None:
         """``path`` (CSV, :data:`TIE_RESIDUAL_COLUMNS`), written atomically, in observation order."""
         buf = io.StringIO()
-        buf.write(",".join(TIE_RESIDUAL_COLUMNS) + "\n")
+        w = csv.writer(buf, lineterminator="\n")  # quotes an image name with a comma
+        w.writerow(TIE_RESIDUAL_COLUMNS)
         for k, name in enumerate(self.images):
-            buf.write(f"{name},{'lidargram' if self.is_lidargram[k] else 'photo'},{int(self.track[k])},"
-                      f"{self.uv[k, 0]:.3f},{self.uv[k, 1]:.3f},{_cell(self.residual_px[k, 0], 4)},"
-                      f"{_cell(self.residual_px[k, 1], 4)},{int(bool(self.inlier[k]))}\n")
+            w.writerow([name, "lidargram" if self.is_lidargram[k] else "photo", int(self.track[k]),
+                        f"{self.uv[k, 0]:.3f}", f"{self.uv[k, 1]:.3f}", _cell(self.residual_px[k, 0], 4),
+                        _cell(self.residual_px[k, 1], 4), int(bool(self.inlier[k]))])
         with atomic_output(path, protect=protect) as fh:
             fh.write(buf.getvalue())
 
