@@ -18,6 +18,7 @@ Three small concerns live here because every format module needs them:
 from __future__ import annotations
 
 import contextlib
+import csv
 import json
 import math
 import os
@@ -459,6 +460,15 @@ def _json_clean(obj: Any) -> Any:
     if isinstance(obj, np.integer):
         return int(obj)
     return obj
+
+
+def write_csv(path: PathLike, header: Sequence[str], rows: Iterable[Sequence], protect: Iterable[PathLike] = ()) -> None:
+    """A CSV table written atomically (:func:`atomic_output`) by the csv module: ``\\n`` line
+    ends, a field with a comma or a quote quoted, as ``csv.reader`` reads it back."""
+    with atomic_output(path, "w", protect) as fh:
+        w = csv.writer(fh, lineterminator="\n")
+        w.writerow(header)
+        w.writerows(rows)
 
 
 def write_json(path: Path, data: dict) -> None:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from georefine.errors import InputError
-from georefine.io.files import atomic_output, read_text_lines
+from georefine.io.files import read_text_lines, write_csv
 from georefine.lidargrammetry.bundle import CASES, BundleResult, PointStats
 
 __all__ = ["PairKindStats", "MatchSummary", "PairCount", "PhotoLidargramMatches", "TieReprojection",
@@ -375,6 +375,15 @@ def _table(path: Path, columns: tuple[str, ...]) -> tuple[dict[str, list[str]], 
     return out, np.asarray(numbers, dtype=np.int64)
 
 
+def _one_of(path: Path, table: dict[str, list[str]], lines: np.ndarray, name: str, choices: tuple[str, ...],
+            what: str) -> None:
+    """Raise naming the line and field where column ``name`` holds something else than ``choices``."""
+    for k, text in enumerate(table[name]):
+        if text not in choices:
+            raise InputError(what, path=path, line=int(lines[k]), field=name, expected=" or ".join(choices),
+                             found=text)
+
+
 def _numbers(path: Path, table: dict[str, list[str]], lines: np.ndarray, name: str) -> np.ndarray:
     """Column ``name`` as floats, an empty cell as NaN; a bad cell raises naming its line and field."""
     out = np.full(len(lines), np.nan)
@@ -440,15 +449,10 @@ class PointResiduals:
         """``path`` (CSV, :data:`POINT_RESIDUAL_COLUMNS`), written atomically, worst first."""
         r = self.worst_first()
         h, d3 = r.horizontal_m, r.error_3d_m
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")  # quotes an id with a comma, as the reader expects
-        w.writerow(POINT_RESIDUAL_COLUMNS)
-        for k, pid in enumerate(r.ids):
-            w.writerow([pid, r.role[k], *(f"{v:.4f}" for v in r.xyz[k]),
-                        *(_cell(v, 4) for v in r.error_m[k]), _cell(h[k], 4), _cell(d3[k], 4),
-                        str(int(r.rays[k])), _cell(r.reprojection_px[k], 3), *(_cell(v, 4) for v in r.sigma_m[k])])
-        with atomic_output(path, protect=protect) as fh:
-            fh.write(buf.getvalue())
+        write_csv(path, POINT_RESIDUAL_COLUMNS, (
+            [pid, r.role[k], *(f"{v:.4f}" for v in r.xyz[k]), *(_cell(v, 4) for v in r.error_m[k]),
+             _cell(h[k], 4), _cell(d3[k], 4), str(int(r.rays[k])), _cell(r.reprojection_px[k], 3),
+             *(_cell(v, 4) for v in r.sigma_m[k])] for k, pid in enumerate(r.ids)), protect)
 
     @classmethod
     def read(cls, path: Path) -> PointResiduals:
@@ -461,10 +465,7 @@ class PointResiduals:
         """
         path = Path(path)
         t, lines = _table(path, POINT_RESIDUAL_COLUMNS)
-        for k, role in enumerate(t["role"]):
-            if role not in ("control", "check"):
-                raise InputError("unknown role", path=path, line=int(lines[k]), field="role",
-                                 expected="control or check", found=role)
+        _one_of(path, t, lines, "role", ("control", "check"), "unknown role")
 
         def cols(*names: str) -> np.ndarray:
             return np.column_stack([_numbers(path, t, lines, c) for c in names]) if len(lines) \
@@ -501,15 +502,10 @@ class TieResiduals:
 
     def write(self, path: Path, protect=()) -> None:
         """``path`` (CSV, :data:`TIE_RESIDUAL_COLUMNS`), written atomically, in observation order."""
-        buf = io.StringIO()
-        w = csv.writer(buf, lineterminator="\n")  # quotes an image name with a comma
-        w.writerow(TIE_RESIDUAL_COLUMNS)
-        for k, name in enumerate(self.images):
-            w.writerow([name, "lidargram" if self.is_lidargram[k] else "photo", int(self.track[k]),
-                        f"{self.uv[k, 0]:.3f}", f"{self.uv[k, 1]:.3f}", _cell(self.residual_px[k, 0], 4),
-                        _cell(self.residual_px[k, 1], 4), int(bool(self.inlier[k]))])
-        with atomic_output(path, protect=protect) as fh:
-            fh.write(buf.getvalue())
+        write_csv(path, TIE_RESIDUAL_COLUMNS, (
+            [name, "lidargram" if self.is_lidargram[k] else "photo", int(self.track[k]), f"{self.uv[k, 0]:.3f}",
+             f"{self.uv[k, 1]:.3f}", _cell(self.residual_px[k, 0], 4), _cell(self.residual_px[k, 1], 4),
+             int(bool(self.inlier[k]))] for k, name in enumerate(self.images)), protect)
 
     @classmethod
     def read(cls, path: Path) -> TieResiduals:
@@ -522,10 +518,7 @@ class TieResiduals:
         """
         path = Path(path)
         t, lines = _table(path, TIE_RESIDUAL_COLUMNS)
-        for k, kind in enumerate(t["kind"]):
-            if kind not in ("photo", "lidargram"):
-                raise InputError("unknown image kind", path=path, line=int(lines[k]), field="kind",
-                                 expected="photo or lidargram", found=kind)
+        _one_of(path, t, lines, "kind", ("photo", "lidargram"), "unknown image kind")
         num = {c: _numbers(path, t, lines, c) for c in ("track", "u", "v", "du_px", "dv_px", "inlier")}
         return cls(tuple(t["image"]), np.array([k == "lidargram" for k in t["kind"]], dtype=bool),
                    num["track"].astype(np.int64), np.column_stack([num["u"], num["v"]]),
