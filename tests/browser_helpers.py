@@ -17,7 +17,7 @@ import shutil
 import subprocess
 from pathlib import Path
 
-from georefine.evaluation.figures import AXES_KEY, MIN_FONT_KEY, png_facts
+from georefine.evaluation.figures import AXES_KEY, MIN_FONT_KEY
 
 MIN_READABLE_PX = 9.0
 """Smallest text height (CSS px at 100 % zoom) counted as readable: 7 pt, the size of footnotes."""
@@ -36,6 +36,22 @@ window.addEventListener("load", () => {
   document.body.appendChild(pre);
 });
 </script>"""
+
+
+def png_facts(data: bytes) -> dict[str, str]:
+    """The text chunks of a PNG (what :func:`georefine.evaluation.figures.save_png` wrote, among
+    others), read by Pillow, matplotlib's own image library."""
+    import io
+
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(io.BytesIO(data)) as im:
+            if im.format != "PNG":
+                raise ValueError(f"not a PNG: {im.format}")
+            return dict(im.text)
+    except UnidentifiedImageError:
+        raise ValueError("not a PNG") from None
 
 
 def chromium() -> str | None:

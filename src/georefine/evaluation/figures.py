@@ -15,7 +15,7 @@ from pathlib import Path
 
 from georefine.io.files import atomic_path
 
-__all__ = ["MIN_FONT_KEY", "AXES_KEY", "figure_facts", "png_facts", "save_png"]
+__all__ = ["MIN_FONT_KEY", "AXES_KEY", "figure_facts", "save_png"]
 
 MIN_FONT_KEY = "georefine:min-font-px"
 AXES_KEY = "georefine:axes"
@@ -41,27 +41,3 @@ def save_png(fig, path: str | Path, dpi: float | None = None, protect=()) -> Pat
     with atomic_path(path, protect) as tmp:
         fig.savefig(tmp, format="png", dpi=dpi, metadata=figure_facts(fig, dpi))
     return path
-
-
-def png_facts(data: bytes) -> dict[str, str]:
-    """The text chunks of a PNG (``tEXt``; what :func:`save_png` wrote, among others)."""
-    import struct
-    import zlib
-
-    if data[:8] != b"\x89PNG\r\n\x1a\n":
-        raise ValueError("not a PNG")
-    out: dict[str, str] = {}
-    at = 8
-    while at + 8 <= len(data):
-        size, kind = struct.unpack(">I4s", data[at:at + 8])
-        body = data[at + 8:at + 8 + size]
-        if kind == b"tEXt":
-            key, _, value = body.partition(b"\0")
-            out[key.decode("latin-1")] = value.decode("latin-1")
-        elif kind == b"zTXt":
-            key, _, rest = body.partition(b"\0")
-            out[key.decode("latin-1")] = zlib.decompress(rest[1:]).decode("latin-1")
-        elif kind == b"IEND":
-            break
-        at += 12 + size
-    return out
