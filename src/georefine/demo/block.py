@@ -53,7 +53,7 @@ from georefine.evaluation.coadjust import (
 from georefine.evaluation.page import CSS, image, table
 from georefine.io import photos as pio
 from georefine.io.files import atomic_output, make_output_folder, write_json
-from georefine.lidargrammetry.bundle import PointStats
+from georefine.lidargrammetry.bundle import TIE_INLIER_LOSS_SCALES, PointStats
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import resolve_scenario, simulate_project
 from georefine.tasks import DEFAULT_SCHEDULER
@@ -315,13 +315,14 @@ def block_layout(project: Path, case_dir: Path | None) -> BlockLayout:
 
 
 def _inlier_limit_px(case_dir: Path) -> float | None:
-    """3 loss scales of the tie sigma (the adjustment's inlier limit) from ``config.resolved.yaml``."""
+    """The adjustment's inlier limit (:data:`~georefine.lidargrammetry.bundle.TIE_INLIER_LOSS_SCALES`
+    loss scales of the tie sigma) from ``config.resolved.yaml``."""
     path = case_dir / "config.resolved.yaml"
     if not path.is_file():
         return None
     st = ((yaml.safe_load(path.read_text()) or {}).get("processing") or {}).get("lidargrammetry") or {}
     try:
-        return 3.0 * float(st["tie_loss_scale"]) * float(st["tie_sigma_px"])
+        return TIE_INLIER_LOSS_SCALES * float(st["tie_loss_scale"]) * float(st["tie_sigma_px"])
     except (KeyError, TypeError, ValueError):
         return None
 

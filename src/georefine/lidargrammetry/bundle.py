@@ -51,9 +51,14 @@ from georefine.geometry.camera import Camera
 
 log = logging.getLogger(__name__)
 
-__all__ = ["CASES", "BlockImages", "ControlData", "BundleResult", "PointStats", "check_point_consistency", "coadjust",
-           "control_point_stats", "intersect_points", "point_reprojection",
+__all__ = ["CASES", "TIE_INLIER_LOSS_SCALES", "BlockImages", "ControlData", "BundleResult", "PointStats",
+           "check_point_consistency", "coadjust", "control_point_stats", "intersect_points", "point_reprojection",
            "stations_per_point"]
+
+TIE_INLIER_LOSS_SCALES = 3.0
+"""A tie observation is an inlier when its image residual after the adjustment is below this many
+loss scales of the tie sigma (``tie_loss_scale * tie_sigma_px``): the observations the tie
+reprojection RMS is taken over."""
 
 CASES = {
     1: "LiDAR refinement: photos adjusted with control points, then fixed; lidargrams adjusted",
@@ -296,7 +301,7 @@ def coadjust(
     tie_grp = ReprojectionObservation("tmp", images.cameras, tie_image, tie_point, tie_uv)
     uv, front = tie_grp.predict({"image_rotation": R, "image_position": p, "points": out["ties"]})
     err = np.linalg.norm(uv - tie_uv, axis=1)
-    inlier = front & (err < 3.0 * tie_loss_scale * tie_sigma_px)
+    inlier = front & (err < TIE_INLIER_LOSS_SCALES * tie_loss_scale * tie_sigma_px)
     rms = {kind: _rms(err[inlier & (images.is_lidargram[tie_image] == lg)])
            for kind, lg in (("photos", False), ("lidargrams", True))}
     extra["tie_inlier_fraction"] = float(inlier.mean()) if inlier.size else float("nan")
