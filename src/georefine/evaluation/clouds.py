@@ -117,10 +117,15 @@ def point_files(paths: list[Path]) -> list[Path]:
     return out
 
 
+def _header_crs(path: Path):
+    """The ``pyproj.CRS`` of a LAS/LAZ file's header (its WKT), or None."""
+    with laspy.open(path) as f:
+        return f.header.parse_crs()
+
+
 def epsg_of(path: Path) -> int | None:
     """EPSG code of a LAS/LAZ file's CRS (WKT in the header), if it has one."""
-    with laspy.open(path) as f:
-        crs = f.header.parse_crs()
+    crs = _header_crs(path)
     if crs is None:
         return None
     # The strips carry the projected CRS with ellipsoidal heights (3-D), which has no EPSG code
@@ -131,8 +136,7 @@ def epsg_of(path: Path) -> int | None:
 def vertical_epsg_of(path: Path) -> int | None:
     """EPSG code of the vertical part of a LAS/LAZ file's compound CRS, if it has one (a run's
     final clouds with gravity-related heights, ``crs.vertical_epsg``)."""
-    with laspy.open(path) as f:
-        crs = f.header.parse_crs()
+    crs = _header_crs(path)
     if crs is None or not crs.is_compound:
         return None
     vertical = [c for c in crs.sub_crs_list if c.is_vertical]
