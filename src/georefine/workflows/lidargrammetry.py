@@ -42,7 +42,6 @@ import numpy as np
 from georefine.adjustment.observations.reprojection import ReprojectionObservation
 from georefine.config import PAIR_KINDS, LidargrammetryConfig, ProjectConfig, load_project, write_yaml
 from georefine.errors import InputError
-from georefine.geometry import earth
 from georefine.geometry.camera import Camera
 from georefine.io import metashape
 from georefine.io import photos as pio
@@ -50,7 +49,6 @@ from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.lidargrammetry.bundle import (
     CASES,
     BlockImages,
-    BundleResult,
     ControlData,
     coadjust,
     intersect_points,
@@ -101,7 +99,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["PhotoProject", "CloudIndex", "PAIR_KINDS", "SECTION", "load_photo_project", "lidargrammetry_settings",
            "read_cloud", "render_lidargrams", "make_matcher", "match_block", "run_lidargrams", "run_match",
-           "run_coadjust", "export_colmap", "point_residuals"]
+           "run_coadjust", "export_colmap"]
 
 @dataclass(frozen=True)
 class BlockMatches:
@@ -567,7 +565,7 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
         counts = ReintersectionCounts.from_dict(write_cloud(cloud, refine, out / "points", protect=[pp.root],
                                                             runner=runner, progress=progress))
         timings["reintersection"] = _time.perf_counter() - t
-    point_residuals(pp, result, case).write(out / "point_residuals.csv")
+    PointResiduals.of_bundle(pp, result, case).write(out / "point_residuals.csv")
     TieResiduals(tuple(names[i] for i in tr.image[keep]), is_lg[tr.image[keep]], tr.track[keep], tr.uv[keep],
                  result.tie_residual_px, result.tie_inlier).write(out / "tie_residuals.csv")
     ex = result.extra
@@ -605,32 +603,6 @@ def block_matches(opened: _Opened, cloud: CloudIndex, blk: _Block, cache_dir, pr
         if cache is not None:
             cache.store("matches", key, matches)
     return matches
-
-
-def point_residuals(pp: PhotoProject, result: BundleResult, case: int) -> PointResiduals:
-    """Each control and check point of ``pp`` after the adjustment ``result`` of case ``case``:
-    the intersection from the adjusted photos minus the surveyed coordinates and the posterior
-    sigma, both along the output CRS's grid axes (the covariance turned from ``w`` through the
-    meridian convergence at the point), as ``point_residuals.csv`` holds them."""
-    g = pp.gcps
-    m = len(g)
-    X = result.point_xyz_w
-    ok = np.isfinite(X[:, 0]) if m else np.zeros(0, dtype=bool)
-    error = np.full((m, 3), np.nan)
-    sigma = np.full((m, 3), np.nan)
-    if ok.any():
-        error[ok] = pp.crs.from_w(pp.frame, X[ok]) - g.xyz[ok]
-    if result.point_cov_w is not None and m:
-        lat, lon, h = pp.crs.to_geodetic(g.xyz)
-        R_enu_w = np.swapaxes(earth.R_e_enu(lat, lon), 1, 2) @ pp.frame.R_e_w
-        R_grid_w = pp.crs.R_grid_enu(lat, lon, h) @ R_enu_w
-        cov = R_grid_w @ result.point_cov_w @ np.swapaxes(R_grid_w, 1, 2)
-        sigma = np.sqrt(np.einsum("kii->ki", cov))
-    role = tuple("check" if case == 3 or not c else "control" for c in g.is_control)
-    rays = result.point_rays if result.point_rays is not None else np.zeros(m, np.int64)
-    re_px = result.point_reprojection_px if result.point_reprojection_px is not None else np.full(m, np.nan)
-    return PointResiduals(tuple(g.ids), role, np.asarray(g.xyz, dtype=float).reshape(m, 3), error,
-                          np.asarray(rays, dtype=np.int64), np.asarray(re_px, dtype=float), sigma)
 
 
 def control_data(pp: PhotoProject) -> ControlData:

@@ -18,13 +18,17 @@ import csv
 import io
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from georefine.errors import InputError
+from georefine.geometry import earth
 from georefine.io.files import read_text_lines, write_csv
 from georefine.lidargrammetry.bundle import CASES, BundleResult, PointStats
+
+if TYPE_CHECKING:
+    from georefine.workflows.photo_block import PhotoProject
 
 __all__ = ["PairKindStats", "MatchSummary", "PairCount", "PhotoLidargramMatches", "TieReprojection",
            "ImagePrecision", "CheckPointPrecision", "Precision", "ColmapModel", "ReintersectionCounts",
@@ -444,6 +448,32 @@ class PointResiduals:
         """Sorted by 3-D error descending, points without an error last (stable: ties keep their order)."""
         d3 = self.error_3d_m
         return self.subset(np.argsort(np.where(np.isfinite(d3), -d3, np.inf), kind="stable"))
+
+    @classmethod
+    def of_bundle(cls, pp: PhotoProject, result: BundleResult, case: int) -> PointResiduals:
+        """Each control and check point of ``pp`` after the adjustment ``result`` of case ``case``:
+        the intersection from the adjusted photos minus the surveyed coordinates and the posterior
+        sigma, both along the output CRS's grid axes (the covariance turned from ``w`` through the
+        meridian convergence at the point), as ``point_residuals.csv`` holds them."""
+        g = pp.gcps
+        m = len(g)
+        X = result.point_xyz_w
+        ok = np.isfinite(X[:, 0]) if m else np.zeros(0, dtype=bool)
+        error = np.full((m, 3), np.nan)
+        sigma = np.full((m, 3), np.nan)
+        if ok.any():
+            error[ok] = pp.crs.from_w(pp.frame, X[ok]) - g.xyz[ok]
+        if result.point_cov_w is not None and m:
+            lat, lon, h = pp.crs.to_geodetic(g.xyz)
+            R_enu_w = np.swapaxes(earth.R_e_enu(lat, lon), 1, 2) @ pp.frame.R_e_w
+            R_grid_w = pp.crs.R_grid_enu(lat, lon, h) @ R_enu_w
+            cov = R_grid_w @ result.point_cov_w @ np.swapaxes(R_grid_w, 1, 2)
+            sigma = np.sqrt(np.einsum("kii->ki", cov))
+        role = tuple("check" if case == 3 or not c else "control" for c in g.is_control)
+        rays = result.point_rays if result.point_rays is not None else np.zeros(m, np.int64)
+        re_px = result.point_reprojection_px if result.point_reprojection_px is not None else np.full(m, np.nan)
+        return cls(tuple(g.ids), role, np.asarray(g.xyz, dtype=float).reshape(m, 3), error,
+                   np.asarray(rays, dtype=np.int64), np.asarray(re_px, dtype=float), sigma)
 
     def write(self, path: Path, protect=()) -> None:
         """``path`` (CSV, :data:`POINT_RESIDUAL_COLUMNS`), written atomically, worst first."""
