@@ -249,6 +249,23 @@ def R_n_b_from_rph(roll: np.ndarray, pitch: np.ndarray, heading: np.ndarray) -> 
     return R
 
 
+def wrap_angle(a: np.ndarray, period: float = 2.0 * np.pi, *, closed: str = "upper") -> np.ndarray:
+    """Angles wrapped into the period centred on 0.
+
+    Radians by default (``period`` 2 pi); degrees with ``period=360.0``. ``closed`` names the end
+    of the interval that is kept: ``"upper"`` gives (-period/2, period/2] (-pi becomes +pi),
+    ``"lower"`` gives [-period/2, period/2) (+180 becomes -180). Angles inside the interval come
+    back unchanged up to the rounding of one addition and one subtraction.
+    """
+    half = period / 2.0
+    a = np.asarray(a, dtype=float)
+    if closed == "upper":
+        return half - np.mod(half - a, period)
+    if closed == "lower":
+        return np.mod(a + half, period) - half
+    raise ValueError(f"closed must be 'upper' or 'lower', not {closed!r}")
+
+
 def rph_from_R_n_b(R_n_b: np.ndarray) -> np.ndarray:
     """Roll, pitch, heading (rad) of ``R_n_b``; heading in [0, 2 pi). ``(..., 3, 3) -> (..., 3)``.
 

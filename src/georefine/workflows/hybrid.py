@@ -71,7 +71,7 @@ from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.upsampling import on_knots, without_high_rate
 from georefine.config import boresight_matrix, write_yaml
 from georefine.errors import InputError
-from georefine.geometry.rotation import rph_from_R_n_b
+from georefine.geometry.rotation import rph_from_R_n_b, wrap_angle
 from georefine.io import photos as pio
 from georefine.io.files import write_json
 from georefine.lidargrammetry.bundle import (
@@ -553,7 +553,7 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     bs_deg, offset = None, cfg.scanner.time_offset_s if gil is None else gil.time_offset_s
     if hb.boresight is not None:
         bs_deg = np.degrees(rph_from_R_n_b(P.values(hb.boresight)[0]))
-        bs_deg[2] = (bs_deg[2] + 180.0) % 360.0 - 180.0
+        bs_deg[2] = wrap_angle(bs_deg[2], 360.0, closed="lower")
     if hb.lidar_group.time_offset is not None:
         offset = hb.time_offset_start.features_s + float(P.values(OFFSET_BLOCK)[0, 0])
     final = LidarAdjustment(result, 0, 0, bs_deg, None, time_offset_s=offset)
