@@ -221,7 +221,8 @@ def test_georeference_workflow_writes_orthometric_strips_that_evaluate_as_ellips
     """``georefine georeference`` (run_georeference) with a geoid grid in the project: the strips hold
     H = h - N in the compound CRS; the evaluation's reader gives back the ellipsoidal points."""
     from georefine.config import load_project
-    from georefine.evaluation.clouds import scan_clouds, vertical_epsg_of
+    from georefine.evaluation.clouds import scan_clouds
+    from georefine.io.las import vertical_epsg_of
     from georefine.workflows import run_georeference
 
     cfg = load_project(project)

@@ -13,7 +13,7 @@ import numpy as np
 import pyproj
 import pytest
 
-from georefine.evaluation.clouds import epsg_of
+from georefine.io.las import epsg_of
 from georefine.geometry.frames import OutputCRS
 from georefine.io.las import SCAN_ANGLE_UNIT_DEG, PointCloud, read_las, read_las_info
 from georefine.io.las_encode import ExtraDim, scan_angle_counts

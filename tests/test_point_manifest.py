@@ -8,7 +8,7 @@ import logging
 import pytest
 
 from georefine.errors import InputError
-from georefine.evaluation.clouds import point_files
+from georefine.io.las import point_files
 from georefine.io.point_manifest import MANIFEST, manifest_files, record_point_files
 
 

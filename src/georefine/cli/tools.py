@@ -125,7 +125,8 @@ def evaluate_reference_planes_cmd(
     """
     with user_errors():
         output_ok(out, force)
-        from georefine.evaluation.clouds import evaluate_reference_planes, point_files
+        from georefine.evaluation.clouds import evaluate_reference_planes
+        from georefine.io.las import point_files
         from georefine.evaluation.summary import ReferencePlaneFigures
         from georefine.tasks import TaskRunner
 
@@ -168,7 +169,8 @@ def evaluate_strip_differences_cmd(
     a planar surface in every view (wires, vegetation, edges) are gated."""
     with user_errors():
         output_ok(out, force)
-        from georefine.evaluation.clouds import evaluate_strip_differences, point_files
+        from georefine.evaluation.clouds import evaluate_strip_differences
+        from georefine.io.las import point_files
         from georefine.tasks import TaskRunner
 
         files = point_files(points)

@@ -71,7 +71,7 @@ from georefine.evaluation.strip_differences import (
     write_geotiff,
 )
 from georefine.io.files import atomic_output, make_output_folder, write_json
-from georefine.io.point_manifest import manifest_files
+from georefine.io.las import epsg_of, vertical_epsg_of
 from georefine.io.reference import read_reference_surfaces
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
@@ -79,7 +79,7 @@ from georefine.tasks import TaskRunner
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "DEFAULT_CHUNK_POINTS", "CLOSE_AFTER_POINTS", "NEAR_PLANE_M", "point_files", "epsg_of", "vertical_epsg_of", "plane_boxes", "reference_boxes",
+    "DEFAULT_CHUNK_POINTS", "CLOSE_AFTER_POINTS", "NEAR_PLANE_M", "plane_boxes", "reference_boxes",
     "record_ranges", "ScanSettings", "ChunkScan", "scan_chunk", "CloudScan", "scan_clouds", "evaluate_reference_planes",
     "evaluate_strip_differences",
 ]
@@ -95,52 +95,6 @@ CLOSE_AFTER_POINTS = 4_000_000
 time order: the scanner has passed it); checked, not assumed (:func:`scan_clouds`)."""
 
 _LAYER = LAYER_CODE  # layer code = point_source_id * 256 + scanner_channel
-
-
-def point_files(paths: list[Path]) -> list[Path]:
-    """LAS/LAZ files named directly or found in the named folders (sorted).
-
-    A folder Georefine wrote gives the files its manifest lists (:mod:`georefine.io.point_manifest`:
-    others are named in a warning and left out); any other folder, all its LAS/LAZ files.
-    """
-    out: list[Path] = []
-    for p in map(Path, paths):
-        if p.is_dir():
-            listed = manifest_files(p)
-            out += listed if listed is not None else sorted(q for q in p.iterdir() if q.suffix.lower() in (".las", ".laz"))
-        elif p.is_file():
-            out.append(p)
-        else:
-            raise InputError("no such file or folder", path=p)
-    if not out:
-        raise InputError("no LAS/LAZ files", path=", ".join(map(str, paths)), expected="georeferenced strips")
-    return out
-
-
-def _header_crs(path: Path):
-    """The ``pyproj.CRS`` of a LAS/LAZ file's header (its WKT), or None."""
-    with laspy.open(path) as f:
-        return f.header.parse_crs()
-
-
-def epsg_of(path: Path) -> int | None:
-    """EPSG code of a LAS/LAZ file's CRS (WKT in the header), if it has one."""
-    crs = _header_crs(path)
-    if crs is None:
-        return None
-    # The strips carry the projected CRS with ellipsoidal heights (3-D), which has no EPSG code
-    # of its own: the horizontal CRS has.
-    return crs.to_epsg() or crs.to_2d().to_epsg()
-
-
-def vertical_epsg_of(path: Path) -> int | None:
-    """EPSG code of the vertical part of a LAS/LAZ file's compound CRS, if it has one (a run's
-    final clouds with gravity-related heights, ``crs.vertical_epsg``)."""
-    crs = _header_crs(path)
-    if crs is None or not crs.is_compound:
-        return None
-    vertical = [c for c in crs.sub_crs_list if c.is_vertical]
-    return vertical[0].to_epsg() if vertical else None
 
 
 def plane_boxes(planes: list[ReferencePlane], max_distance_m: float = 0.3, margin_m: float = NEAR_PLANE_M) -> np.ndarray:

@@ -42,9 +42,11 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.io.files import PathLike
+from georefine.io.point_manifest import manifest_files
 
 __all__ = ["PointCloud", "ScanChunk", "LasInfo", "TimeIndex", "read_las_info", "iter_las_chunks",
-           "read_las", "read_las_range", "time_index", "GPS_TIME_OFFSET_S", "SCAN_ANGLE_UNIT_DEG"]
+           "read_las", "read_las_range", "time_index", "point_files", "epsg_of", "vertical_epsg_of",
+           "GPS_TIME_OFFSET_S", "SCAN_ANGLE_UNIT_DEG"]
 
 _log = logging.getLogger(__name__)
 
@@ -412,3 +414,51 @@ def read_las(path: PathLike, extra_dims: Sequence[str] | None = None) -> PointCl
         info = read_las_info(path)
         return PointCloud.empty(extra_dims or info.extra_dims)
     return PointCloud.concatenate(chunks)
+
+
+def point_files(paths: list[Path]) -> list[Path]:
+    """LAS/LAZ files named directly or found in the named folders (sorted).
+
+    A folder Georefine wrote gives the files its manifest lists (:mod:`georefine.io.point_manifest`:
+    others are named in a warning and left out); any other folder, all its LAS/LAZ files.
+    """
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            listed = manifest_files(p)
+            out += listed if listed is not None else sorted(q for q in p.iterdir() if q.suffix.lower() in (".las", ".laz"))
+        elif p.is_file():
+            out.append(p)
+        else:
+            raise InputError("no such file or folder", path=p)
+    if not out:
+        raise InputError("no LAS/LAZ files", path=", ".join(map(str, paths)), expected="georeferenced strips")
+    return out
+
+
+def _header_crs(path: Path):
+    """The ``pyproj.CRS`` of a LAS/LAZ file's header (its WKT), or None."""
+    import laspy  # deferred: heavy import
+
+    with laspy.open(path) as f:
+        return f.header.parse_crs()
+
+
+def epsg_of(path: Path) -> int | None:
+    """EPSG code of a LAS/LAZ file's CRS (WKT in the header), if it has one."""
+    crs = _header_crs(path)
+    if crs is None:
+        return None
+    # The strips carry the projected CRS with ellipsoidal heights (3-D), which has no EPSG code
+    # of its own: the horizontal CRS has.
+    return crs.to_epsg() or crs.to_2d().to_epsg()
+
+
+def vertical_epsg_of(path: Path) -> int | None:
+    """EPSG code of the vertical part of a LAS/LAZ file's compound CRS, if it has one (a run's
+    final clouds with gravity-related heights, ``crs.vertical_epsg``)."""
+    crs = _header_crs(path)
+    if crs is None or not crs.is_compound:
+        return None
+    vertical = [c for c in crs.sub_crs_list if c.is_vertical]
+    return vertical[0].to_epsg() if vertical else None

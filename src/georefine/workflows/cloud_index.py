@@ -34,7 +34,7 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.geometry.camera import Camera
-from georefine.evaluation.clouds import vertical_epsg_of
+from georefine.io.las import vertical_epsg_of
 from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.io.las import read_las_info, read_las_range
 from georefine.io.las_encode import LAZ_CHUNK_POINTS

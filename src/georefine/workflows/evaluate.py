@@ -32,7 +32,6 @@ from georefine.evaluation.clouds import (
     DEFAULT_CHUNK_POINTS,
     evaluate_reference_planes,
     evaluate_strip_differences,
-    point_files,
     reference_boxes,
     scan_clouds,
 )
@@ -56,6 +55,7 @@ from georefine.evaluation.trajectory import TrajectoryComparison
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.geometry.frames import OutputCRS
 from georefine.io.files import write_json
+from georefine.io.las import point_files
 from georefine.io.reference import read_reference_surfaces
 from georefine.io.run_metrics import WorkflowMetrics
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for

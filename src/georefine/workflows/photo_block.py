@@ -24,7 +24,7 @@ from georefine.config import (
     override_fields,
 )
 from georefine.errors import InputError
-from georefine.evaluation.clouds import point_files
+from georefine.io.las import point_files
 from georefine.geometry.camera import Camera
 from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.io import photos as pio
