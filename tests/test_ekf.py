@@ -143,7 +143,7 @@ def test_transition_matches_perturbed_mechanisation(frame, flight, seed):
     t = 50.0 + rng.uniform(0, 40) + np.arange(201) / 200.0
     s = flight.state(t)
     w, f = flight.imu(t)
-    wm, fm = sd._midpoints_from_samples(t, w), sd._midpoints_from_samples(t, f)
+    wm, fm = sd.midpoints_from_samples(t, w), sd.midpoints_from_samples(t, f)
     Phi = np.eye(21)
     tmp = [np.zeros((3, 3)) for _ in range(4)] + [np.zeros((21, 21))]
     W_ie = np.cross(np.eye(3), frame.omega_ie_w).T  # [w_ie]x

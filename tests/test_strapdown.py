@@ -43,7 +43,7 @@ def test_njit_earth_model_equals_numpy(frame, seed):
     p_w = rng.uniform([-3e4, -3e4, -500.0], [3e4, 3e4, 5000.0], (200, 3))
     p_e = frame.to_ecef(p_w)
     lat, lon, h = earth.ecef_to_geodetic(p_e)
-    R_e_w, p_e_w, _ = sd._frame_arrays(frame)
+    R_e_w, p_e_w, _ = sd.frame_arrays(frame)
     g_ref = frame.gravity_w(p_w)
     out = np.empty(3)
     for i in range(len(p_w)):
@@ -116,7 +116,7 @@ def test_stationary_stays_put(frame, flight):
 def test_step_function_equals_batch(frame, flight):
     t, s, (w, f) = truth_window(flight, 100.0, 1.0)
     result = sd.integrate(frame, t, w, f, s.p_w_b[0], s.v_w_b[0], s.R_w_b[0])
-    wm, fm = sd._midpoints_from_samples(t, w), sd._midpoints_from_samples(t, f)
+    wm, fm = sd.midpoints_from_samples(t, w), sd.midpoints_from_samples(t, f)
     state = sd.StrapdownState(s.p_w_b[0], s.v_w_b[0], s.R_w_b[0])
     for k in range(len(t) - 1):
         state = sd.strapdown_step(frame, state, w[k], f[k], w[k + 1], f[k + 1], t[k + 1] - t[k], wm[k], fm[k])

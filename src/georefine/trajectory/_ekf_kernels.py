@@ -147,8 +147,8 @@ def forward_pass(t, w, f, wm, fm, k0, k1, ep_flag, g_k, g_dt, g_z, g_R, p_b_a, P
             _corrected(fm[k - 1], nom, 0, 6, fmid)
             dt = t[k] - t[k - 1]
             _accumulate(Phi, dt, R_n[k - 1], fmid, wmid, W_ie, Gam, A, B, Wx, Dw, FX)
-            sd._step(P_n[k - 1], V_n[k - 1], R_n[k - 1], w0, f0, wmid, fmid, w1, f1, dt,
-                     R_e_w, p_e_w, w_ie, P_n[k], V_n[k], R_n[k])
+            sd.rkmk4_step(P_n[k - 1], V_n[k - 1], R_n[k - 1], w0, f0, wmid, fmid, w1, f1, dt,
+                          R_e_w, p_e_w, w_ie, P_n[k], V_n[k], R_n[k])
         if not ep_flag[k]:
             continue
         if k > k0:

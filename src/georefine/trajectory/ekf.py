@@ -386,11 +386,11 @@ def run_filter(frame: LocalFrame, t0_gps: float, imu: ImuSamples, gnss_time: np.
                          found=f"IMU {t[0]:.3f}..{t[-1]:.3f} s, {np.count_nonzero(inside)} epochs")
     if imu.kind == "increments":
         dtheta, dv = imu.increments()
-        w, wm = sd._rates_from_increments(t, dtheta)
-        f, fm = sd._rates_from_increments(t, dv)
+        w, wm = sd.rates_from_increments(t, dtheta)
+        f, fm = sd.rates_from_increments(t, dv)
     else:
         w, f = imu.gyro, imu.acc
-        wm, fm = sd._midpoints_from_samples(t, w), sd._midpoints_from_samples(t, f)
+        wm, fm = sd.midpoints_from_samples(t, w), sd.midpoints_from_samples(t, f)
     gt, gp, gc = g_time[inside], g_p[inside], g_cov[inside]
 
     # ---- alignment: attitude at the alignment epoch, carried back to the start by the gyros
@@ -441,7 +441,7 @@ def run_filter(frame: LocalFrame, t0_gps: float, imu: ImuSamples, gnss_time: np.
     nis = np.full(len(gt), np.nan)
     e = forward_pass(t, np.ascontiguousarray(w), np.ascontiguousarray(f), np.ascontiguousarray(wm),
                  np.ascontiguousarray(fm), k0, k1, ep_flag, g_k, g_dt, gp, gc, p_b_a, P0, qc, Gam,
-                 float(gate), cfg.gnss_gate_reset_s, *sd._frame_arrays(frame), P_n, V_n, R_n,
+                 float(gate), cfg.gnss_gate_reset_s, *sd.frame_arrays(frame), P_n, V_n, R_n,
                  ep_idx, ep_Pp, ep_Phi, ep_dx, ep_nom, st, nis)
     if e != n_ep:  # cannot happen: the schedule and the kernel disagree
         raise RuntimeError(f"filter produced {e} epochs, expected {n_ep}")

@@ -140,8 +140,14 @@ def _derivs(R, v, p, w_ib, f_ib, R_e_w, p_e_w, w_ie, omega_out, a_out):
 
 
 @nb.njit(cache=True)
-def _step(p, v, R, w0, f0, wm, fm, w1, f1, dt, R_e_w, p_e_w, w_ie, p_out, v_out, R_out):
-    """One RKMK4 step from (p, v, R) over ``dt`` with IMU at start, middle and end."""
+def rkmk4_step(p, v, R, w0, f0, wm, fm, w1, f1, dt, R_e_w, p_e_w, w_ie, p_out, v_out, R_out):
+    """One RKMK4 step from (p, v, R) over ``dt`` with IMU at start, middle and end (njit).
+
+    The kernel of :func:`strapdown_step` and :func:`integrate`, and of the EKF's prediction
+    (:mod:`georefine.trajectory._ekf_kernels`), which calls it from its own njit loop: all
+    arrays float64 and contiguous, the frame as :func:`frame_arrays`, the new state written
+    into ``p_out``, ``v_out``, ``R_out``.
+    """
     om = np.empty(3)
     k1, k2, k3, k4 = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     a1, a2, a3, a4 = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
@@ -194,8 +200,8 @@ def _integrate(t, w, f, wm, fm, p0, v0, R0, R_e_w, p_e_w, w_ie, P, V, RR):
     V[0] = v0
     RR[0] = R0
     for k in range(n - 1):
-        _step(P[k], V[k], RR[k], w[k], f[k], wm[k], fm[k], w[k + 1], f[k + 1], t[k + 1] - t[k],
-              R_e_w, p_e_w, w_ie, P[k + 1], V[k + 1], RR[k + 1])
+        rkmk4_step(P[k], V[k], RR[k], w[k], f[k], wm[k], fm[k], w[k + 1], f[k + 1], t[k + 1] - t[k],
+                   R_e_w, p_e_w, w_ie, P[k + 1], V[k + 1], RR[k + 1])
 
 
 # ---------------------------------------------------------------------------- interpolation
@@ -223,7 +229,7 @@ def _windows(n_nodes: int, centre: np.ndarray, m: int) -> np.ndarray:
     return start[:, None] + np.arange(m)
 
 
-def _midpoints_from_samples(t, x):
+def midpoints_from_samples(t, x):
     """Cubic (4-point Lagrange) interpolation of samples ``x`` (N,3) at interval midpoints."""
     n = len(t)
     tm = 0.5 * (t[:-1] + t[1:])
@@ -232,7 +238,7 @@ def _midpoints_from_samples(t, x):
     return np.einsum("mj,mjk->mk", W, x[idx])
 
 
-def _rates_from_increments(t, d):
+def rates_from_increments(t, d):
     """Rates at the sample times and midpoints from increments ``d`` (N,3) over (t_k-1, t_k]."""
     n = len(t)
     dt0 = t[1] - t[0]
@@ -248,7 +254,9 @@ def _rates_from_increments(t, d):
     return rate, mid
 
 
-def _frame_arrays(frame: LocalFrame):
+def frame_arrays(frame: LocalFrame):
+    """``(R_e_w, p_e_w, omega_ie_w)`` of a frame as contiguous float64 arrays, the frame
+    arguments of :func:`rkmk4_step`."""
     return (np.ascontiguousarray(frame.R_e_w), np.ascontiguousarray(frame.p_e_w, dtype=float),
             np.ascontiguousarray(frame.omega_ie_w, dtype=float))
 
@@ -293,9 +301,9 @@ def strapdown_step(
     wm = 0.5 * (w0 + w1) if gyro_mid is None else np.asarray(gyro_mid, float)
     fm = 0.5 * (f0 + f1) if acc_mid is None else np.asarray(acc_mid, float)
     p, v, R = np.empty(3), np.empty(3), np.empty((3, 3))
-    _step(np.asarray(state.p_w_b, float), np.asarray(state.v_w_b, float),
-          np.ascontiguousarray(state.R_w_b, dtype=float), w0, f0, wm, fm, w1, f1, float(dt),
-          *_frame_arrays(frame), p, v, R)
+    rkmk4_step(np.asarray(state.p_w_b, float), np.asarray(state.v_w_b, float),
+               np.ascontiguousarray(state.R_w_b, dtype=float), w0, f0, wm, fm, w1, f1, float(dt),
+               *frame_arrays(frame), p, v, R)
     return StrapdownState(p, v, R)
 
 
@@ -344,14 +352,14 @@ def integrate(
     if not np.all(np.diff(t) > 0):
         raise ValueError("IMU times must increase strictly")
     if increments:
-        w, wm = _rates_from_increments(t, gyro)
-        f, fm = _rates_from_increments(t, acc)
+        w, wm = rates_from_increments(t, gyro)
+        f, fm = rates_from_increments(t, acc)
     else:
         w, f = gyro, acc
-        wm, fm = _midpoints_from_samples(t, gyro), _midpoints_from_samples(t, acc)
+        wm, fm = midpoints_from_samples(t, gyro), midpoints_from_samples(t, acc)
     P, V, RR = np.empty((n, 3)), np.empty((n, 3)), np.empty((n, 3, 3))
     _integrate(t, np.ascontiguousarray(w), np.ascontiguousarray(f), np.ascontiguousarray(wm),
                np.ascontiguousarray(fm), np.asarray(p0_w, float).reshape(3),
                np.asarray(v0_w, float).reshape(3), np.ascontiguousarray(R0_w_b, dtype=float),
-               *_frame_arrays(frame), P, V, RR)
+               *frame_arrays(frame), P, V, RR)
     return StrapdownResult(t, P, V, RR)
