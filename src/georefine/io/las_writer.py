@@ -354,6 +354,35 @@ class LasWriter:
         self._closed = self._aborted = True
 
 
+# Where the LAS 1.4 (R15) extra-bytes descriptor, 192 bytes, keeps its "min" and "max": three
+# 8-byte values each, after reserved (2), data_type (1), options (1), name (32), unused (4) and
+# no_data (24). laspy's ExtraBytesStruct is this record as a ctypes structure.
+_EXTRA_BYTES_MIN_AT, _EXTRA_BYTES_MAX_AT = 64, 88
+_ANYTYPE = {"u": np.dtype("<u8"), "i": np.dtype("<i8"), "f": np.dtype("<f8")}
+"""The 8-byte type LAS 1.4 stores an extra dimension's no-data, min and max in, by the kind of
+the dimension's own type (unsigned, signed, floating point)."""
+
+
+def _stored_range(struct) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Writable views of the minimum and the maximum an extra-bytes descriptor states, as
+    stored (before scale and offset), one value per element; ``None`` where its options bit
+    is off, and for undocumented bytes (``data_type`` 0, no range).
+
+    laspy reads them (``min``/``max``, scaled) but sets them only in ``grow``: they are viewed
+    here in the descriptor's bytes, which a ctypes structure hands out writable (buffer protocol).
+    """
+    if struct.data_type == 0:
+        return None, None
+    record = np.frombuffer(struct, dtype=np.uint8)
+    anytype, n = _ANYTYPE[struct.dtype().base.kind], struct.num_elements()
+
+    def values(at: int) -> np.ndarray:
+        return record[at: at + 24].view(anytype)[:n]
+
+    return (values(_EXTRA_BYTES_MIN_AT) if struct.min_is_relevant() else None,
+            values(_EXTRA_BYTES_MAX_AT) if struct.max_is_relevant() else None)
+
+
 def _grow_extra_ranges(header, extremes: bytes) -> None:
     """Widen the minimum and maximum of each extra dimension in the extra-bytes VLR.
 
@@ -361,7 +390,7 @@ def _grow_extra_ranges(header, extremes: bytes) -> None:
     (:class:`~georefine.io.las_encode.EncodedPoints`). laspy's own update reads only the first
     point of every batch of a one-element dimension (``pts[..., i]``), so the file would claim a
     narrower range than its points have; the struct's stored values are set here instead
-    (``_raw_min``/``_raw_max``: views of the struct's bytes).
+    (:func:`_stored_range`: views of the struct's bytes).
     """
     ext = np.frombuffer(extremes, dtype=header.point_format.dtype())
     for struct in header.vlrs.get("ExtraBytesVlr")[0].extra_bytes_structs:
@@ -369,7 +398,7 @@ def _grow_extra_ranges(header, extremes: bytes) -> None:
         if name not in ext.dtype.names:
             continue
         lo, hi = np.atleast_1d(ext[name][0]), np.atleast_1d(ext[name][1])
-        raw_min, raw_max = struct._raw_min(), struct._raw_max()
+        raw_min, raw_max = _stored_range(struct)
         if raw_min is not None:
             raw_min[:] = np.minimum(raw_min, lo)
         if raw_max is not None:
@@ -381,7 +410,7 @@ def _close_extra_ranges(header) -> None:
     no-data values): LAS 1.4 wants the options bits off and the fields zero then."""
     vlrs = header.vlrs.get("ExtraBytesVlr")
     for struct in vlrs[0].extra_bytes_structs if vlrs else ():
-        raw_min, raw_max = struct._raw_min(), struct._raw_max()
+        raw_min, raw_max = _stored_range(struct)
         if raw_min is not None and raw_max is not None and np.any(raw_min > raw_max):
             raw_min[:] = 0
             raw_max[:] = 0
