@@ -18,7 +18,6 @@ from georefine.evaluation.plots import (
 from georefine.evaluation.trajectory import (
     compare_trajectories,
     consistency,
-    wrap_angle,
 )
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.geometry.earth import (
@@ -27,7 +26,7 @@ from georefine.geometry.earth import (
     geodetic_to_ecef,
     radii_of_curvature,
 )
-from georefine.geometry.rotation import rot_x, rot_y
+from georefine.geometry.rotation import rot_x, rot_y, wrap_angle
 from georefine.io.trajectory import SbetData, write_sbet
 
 T0 = 1_400_000_000.0  # GPS seconds (week 2314)
@@ -168,11 +167,6 @@ def test_gaps_are_not_interpolated():
 
 
 # ------------------------------------------------------------------------------ wrap-around
-
-
-def test_wrap_angle():
-    np.testing.assert_allclose(wrap_angle([np.pi, -np.pi, 2 * np.pi - 1e-3, -2 * np.pi + 1e-3, 0.0]),
-                               [np.pi, np.pi, -1e-3, 1e-3, 0.0], atol=1e-15)
 
 
 def test_heading_difference_across_north():

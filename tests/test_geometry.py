@@ -93,6 +93,30 @@ def test_roll_pitch_heading(seed):
     np.testing.assert_allclose(R, ref, atol=1e-14)
 
 
+def test_wrap_angle_radians_and_degrees_at_both_ends():
+    w = rotation.wrap_angle
+    # Radians, (-pi, pi] by default: -pi becomes +pi.
+    np.testing.assert_allclose(w([np.pi, -np.pi, 2 * np.pi - 1e-3, -2 * np.pi + 1e-3, 0.0, 3 * np.pi]),
+                               [np.pi, np.pi, -1e-3, 1e-3, 0.0, np.pi], atol=1e-15)
+    # [-pi, pi): +pi becomes -pi.
+    np.testing.assert_allclose(w([np.pi, -np.pi, 2 * np.pi - 1e-3, 0.0], closed="lower"),
+                               [-np.pi, -np.pi, -1e-3, 0.0], atol=1e-15)
+    # Degrees through the period.
+    assert list(w(np.array([180.0, -180.0, 540.0, 359.0, -181.0]), 360.0)) == [180.0, 180.0, 180.0, -1.0, 179.0]
+    assert list(w(np.array([180.0, -180.0, 540.0, 359.0, -181.0]), 360.0, closed="lower")) == [
+        -180.0, -180.0, -180.0, -1.0, 179.0]
+    # The expressions it replaced, bit for bit, on both ends and inside.
+    a = np.concatenate([np.random.default_rng(0).uniform(-1000.0, 1000.0, 1000),
+                        [180.0, -180.0, np.nextafter(180.0, 0.0), np.nextafter(-180.0, 0.0), -0.0, 720.0]])
+    assert np.array_equal(w(a, 360.0, closed="lower"), (a + 180.0) % 360.0 - 180.0)
+    r = np.radians(a)
+    assert np.array_equal(w(r, closed="lower"), (r + np.pi) % (2.0 * np.pi) - np.pi)
+    assert np.array_equal(w(r), np.pi - np.mod(np.pi - r, 2.0 * np.pi))
+    assert isinstance(w(np.float64(190.0), 360.0), np.float64)  # a scalar stays a scalar
+    with pytest.raises(ValueError):
+        w(0.0, closed="both")
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 def test_euler_rates_give_body_rate(seed):
     rng = np.random.default_rng(seed)

@@ -60,7 +60,7 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.geometry.earth import R_e_n, ecef_to_geodetic, geodetic_to_ecef
-from georefine.geometry.rotation import R_n_b_from_rph, exp_so3, log_so3, rph_from_R_n_b
+from georefine.geometry.rotation import R_n_b_from_rph, exp_so3, log_so3, rph_from_R_n_b, wrap_angle
 from georefine.io.files import SECONDS_PER_WEEK, week_from_gps_seconds
 from georefine.io.trajectory import SbetData
 from georefine.trajectory.sampled import interp_columns
@@ -69,7 +69,6 @@ __all__ = [
     "TrajectoryComparison",
     "compare_trajectories",
     "consistency",
-    "wrap_angle",
     "ATTITUDE_NAMES",
     "POSITION_NAMES",
 ]
@@ -84,11 +83,6 @@ ROTVEC_NAMES = ("rotvec_x", "rotvec_y", "rotvec_z")
 POSITION_NAMES = ("north", "east", "down")
 """Components of ``d_ned_m``."""
 _STATS = ("rmse", "mean", "std", "max_abs")
-
-
-def wrap_angle(a: np.ndarray) -> np.ndarray:
-    """Angles (rad) wrapped to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - np.asarray(a, dtype=float), 2.0 * np.pi)
 
 
 def _stats(name: str, d: np.ndarray, scale: float, unit: str) -> dict[str, float]:

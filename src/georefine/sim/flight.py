@@ -49,7 +49,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from georefine.geometry import earth
 from georefine.geometry.frames import LocalFrame
-from georefine.geometry.rotation import R_n_b_from_rph, omega_nb_b_from_rph_rates
+from georefine.geometry.rotation import R_n_b_from_rph, omega_nb_b_from_rph_rates, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -437,10 +437,6 @@ def _horizontal(cfg: FlightConfig, L: float):
     return D, t_fine, x, y, passes, t_end
 
 
-def _angle_wrap(a):
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 def _bc(n, left, right):
     z = np.zeros(n) if n > 1 else 0.0
     return ([(left[0], z), (left[1], z)], [(right[0], z), (right[1], z)])
@@ -496,7 +492,7 @@ def simulate_flight(
     track = np.arctan2(u_n[:, 1], u_n[:, 0])
     wind_w = np.array([cfg.speed_mps * np.tan(np.radians(cfg.crab_angle_deg)), 0.0, 0.0])
     air_n = np.einsum("nij,nj->ni", R_n_w, V[:, None] * u_w - wind_w)
-    crab = _angle_wrap(np.arctan2(air_n[:, 1], air_n[:, 0]) - track)
+    crab = wrap_angle(np.arctan2(air_n[:, 1], air_n[:, 0]) - track, closed="lower")
     airborne = _smoothstep((V - 3.0) / 8.0)
     heading = np.unwrap(track + airborne * crab)
     ch, sh = np.cos(heading), np.sin(heading)

@@ -61,8 +61,7 @@ from georefine.adjustment.problem import Problem
 from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.upsampling import rebuild_high_rate
 from georefine.errors import InputError
-from georefine.evaluation.trajectory import wrap_angle
-from georefine.geometry.rotation import rph_from_R_n_b
+from georefine.geometry.rotation import rph_from_R_n_b, wrap_angle
 from georefine.io.trajectory import read_sbet
 from georefine.lidar.correspondences import read_objects
 from georefine.lidar.planes import read_features

@@ -30,7 +30,7 @@ from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_
 from georefine.adjustment.upsampling import on_knots, rebuild_high_rate, without_high_rate
 from georefine.config import boresight_matrix
 from georefine.errors import InputError
-from georefine.geometry.rotation import rph_from_R_n_b
+from georefine.geometry.rotation import rph_from_R_n_b, wrap_angle
 from georefine.lidar.correspondences import PlanarObjects
 from georefine.lidar.feature_sample import feature_keys, stable_object_subset
 from georefine.lidar.planes import PlanarFeatures
@@ -240,7 +240,7 @@ def step_adjust_gil(
     if gil.boresight:
         R = P.values("boresight")[0]
         bs_deg = np.degrees(rph_from_R_n_b(R))
-        bs_deg[2] = (bs_deg[2] + 180.0) % 360.0 - 180.0
+        bs_deg[2] = wrap_angle(bs_deg[2], 360.0, closed="lower")
     offset = gil.time_offset.features_s
     if gil.estimates_offset:
         offset += float(P.values(OFFSET_BLOCK)[0, 0])
