@@ -104,7 +104,14 @@ class NotPositiveDefiniteError(GeorefineError, np.linalg.LinAlgError):
 
 
 class Factorization(Protocol):
-    """Cholesky factor of an ``n x n`` symmetric positive definite matrix ``A``."""
+    """Cholesky factor of an ``n x n`` symmetric positive definite matrix ``A``.
+
+    The backends that hand out their factor (``backend`` ``"cholmod"``, ``"cvxopt"``,
+    ``"qdldl"``) also have ``factor()``: ``(L, perm)``, ``L`` the lower triangular factor in CSC
+    and ``perm`` the pivot order with ``A[perm][:, perm] = L L^T`` (what the selected inversion
+    of :mod:`georefine.adjustment.selected_inverse` works on). With CVXOPT it leaves the
+    factorisation symbolic (``cholmod.getfactor``): ``solve`` no longer works afterwards.
+    """
 
     backend: str
     n: int
@@ -357,6 +364,17 @@ class _CholmodFactorization(_BaseFactorization):
         except cholmod.CholmodError as exc:  # a factor CHOLMOD marked as not positive definite
             raise NotPositiveDefiniteError(f"normal matrix ({self.n} unknowns) is not positive definite") from exc
 
+    def factor(self) -> tuple[sp.csc_matrix, np.ndarray]:
+        """``(L, perm)`` with ``A[perm][:, perm] = L L^T``: ``Factor.L()``, a copy of the factor in
+        ``LL^T`` form (converted from the supernodal one), and ``Factor.P()``."""
+        from sksparse import cholmod
+
+        try:
+            L = sp.csc_matrix(self._factor.L())
+        except cholmod.CholmodError as exc:  # a factor CHOLMOD itself marks as not positive definite
+            raise NotPositiveDefiniteError(f"normal matrix ({self.n} unknowns) is not positive definite") from exc
+        return L, np.asarray(self._factor.P(), dtype=np.int64)
+
 
 def _cholmod_analyse(A_lower: sp.csr_matrix, n: int) -> Any:
     from sksparse import cholmod
@@ -455,6 +473,20 @@ class _CvxoptFactorization(_BaseFactorization):
             (np.array(values).reshape(-1), np.array(rowind).reshape(-1), np.array(colptr).reshape(-1)),
             shape=(self.n, k),
         )
+
+    def factor(self) -> tuple[sp.csc_matrix, np.ndarray]:
+        """``(L, perm)`` with ``A[perm][:, perm] = L L^T``: ``perm`` from ``solve(sys=7)``
+        (``x = P b``), ``L`` from ``cholmod.getfactor``, which leaves the factorisation symbolic:
+        this object solves nothing afterwards (factorise again for solves)."""
+        from cvxopt import cholmod, matrix
+
+        p = matrix(np.arange(self.n, dtype=np.float64))
+        cholmod.solve(self._factor, p, sys=7)  # x = P b: the pivot order
+        perm = np.array(p).reshape(-1).astype(np.int64)
+        colptr, rowind, values = cholmod.getfactor(self._factor).CCS
+        L = sp.csc_matrix((np.array(values).reshape(-1), np.array(rowind).reshape(-1),
+                           np.array(colptr).reshape(-1)), shape=(self.n, self.n))
+        return L, perm
 
 
 def _cvxopt_numeric(symbolic: _CvxoptSymbolic, A_lower: sp.csr_matrix, n: int, check_pivots: bool = True

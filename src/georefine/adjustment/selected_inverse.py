@@ -388,26 +388,7 @@ def selected_inverse(
             log.debug("selected inverse: %d unit-column solves ~%.1f s, factorisation %.1f s: solving",
                       columns, solve_s, factor_s)
             return solving()
-    if factor.backend == "qdldl":
-        L, perm = factor.factor()
-    elif factor.backend == "cholmod":
-        from sksparse import cholmod
-
-        try:
-            L = sp.csc_matrix(factor._factor.L())  # LL^T form, converted from the supernodal factor
-        except cholmod.CholmodError as exc:  # a factor CHOLMOD itself marks as not positive definite
-            raise NotPositiveDefiniteError(f"normal matrix ({factor.n} unknowns) is not positive definite") from exc
-        perm = np.asarray(factor._factor.P(), dtype=np.int64)
-    else:  # CVXOPT
-        from cvxopt import cholmod, matrix
-
-        p = matrix(np.arange(factor.n, dtype=np.float64))
-        cholmod.solve(factor._factor, p, sys=7)  # x = P b: the pivot order
-        perm = np.array(p).reshape(-1).astype(np.int64)
-        colptr, rowind, values = cholmod.getfactor(factor._factor).CCS  # leaves the factor symbolic
-        n = factor.n
-        L = sp.csc_matrix((np.array(values).reshape(-1), np.array(rowind).reshape(-1),
-                           np.array(colptr).reshape(-1)), shape=(n, n))
+    L, perm = factor.factor()  # with CVXOPT this leaves the factor symbolic
     check_pivot_ratios(L.diagonal(), A.diagonal()[perm], factor.n)
     if solve_s is not None and not _recursion_pays(factor, _work(L), solve_s, columns):
         if factor.backend == "cvxopt":  # its numeric factor is gone: analyse and factorise again for the solves
