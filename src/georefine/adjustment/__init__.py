@@ -1,4 +1,4 @@
-"""Sparse non-linear least squares and the GNSS/IMU problem (layer 5, docs/ARCHITECTURE.md §1).
+"""Sparse non-linear least squares and the GNSS/IMU problem (layer 6, docs/ARCHITECTURE.md §1).
 
 ``problem``, ``blocks``, ``solver``, ``linalg``, ``robust`` and ``statistics`` are the engine
 (parameter blocks on manifolds, observation groups, Levenberg-Marquardt with sparse Cholesky,

@@ -1,4 +1,4 @@
-"""``georefine demo``: simulation, workflow, evaluation and report in one command (layer 9, docs/ARCHITECTURE.md §1).
+"""``georefine demo``: simulation, workflow, evaluation and report in one command (layer 10, docs/ARCHITECTURE.md §1).
 
 ``corridor`` (paper 000: both passes and a single pass, evaluated against the truth),
 ``block`` (paper 004: the jammed cloud and the three co-adjustment cases) and ``lanes`` (the

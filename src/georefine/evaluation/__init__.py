@@ -1,4 +1,4 @@
-"""Metrics, figures and report pages (layer 7, docs/ARCHITECTURE.md §1 and §5).
+"""Metrics, figures and report pages (layer 8, docs/ARCHITECTURE.md §1 and §5).
 
 Trajectory differences (``trajectory``, ``trajectory_files``, ``plots``), reference planes,
 strip differences and point-cloud errors (``reference_planes``, ``cell_moments``,

@@ -1,4 +1,4 @@
-"""Geometry core: rotations, the Earth, frames and the frame camera (layer 1, docs/ARCHITECTURE.md §1).
+"""Geometry core: rotations, the Earth, frames and the frame camera (layer 2, docs/ARCHITECTURE.md §1).
 
 ``rotation`` (vectorised SO(3): Exp/Log, right Jacobians, quaternions ``xyzw``, NED Euler
 angles), ``earth`` (WGS84, normal gravity, Earth rate, geodetic <-> ECEF), ``frames`` (the

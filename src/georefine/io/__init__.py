@@ -1,4 +1,4 @@
-"""File formats: readers and writers of what real systems deliver (layer 2, docs/ARCHITECTURE.md §1).
+"""File formats: readers and writers of what real systems deliver (layer 3, docs/ARCHITECTURE.md §1).
 
 One module per format (``las``, with ``las_writer`` and ``las_encode`` for writing it; ``gnss``,
 ``imu``, ``trajectory``, ``pose_files`` (TUM and trajectopy poses), ``photos``, ``reference``,

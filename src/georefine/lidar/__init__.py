@@ -1,4 +1,4 @@
-"""LiDAR algorithms of the trajectory workflow (layer 6, docs/ARCHITECTURE.md §1).
+"""LiDAR algorithms of the trajectory workflow (layer 7, docs/ARCHITECTURE.md §1).
 
 ``georeference`` (direct georeferencing of scanner-frame points, §4.5 steps 3 and 6),
 ``planes`` (planar features per view, step 4) and ``correspondences`` (matching features of

@@ -1,4 +1,4 @@
-"""Lidargrammetric co-matching and co-adjustment, paper 004 (layer 6, docs/ARCHITECTURE.md §1).
+"""Lidargrammetric co-matching and co-adjustment, paper 004 (layer 7, docs/ARCHITECTURE.md §1).
 
 ``render`` (lidargrams with their ULPI raster), ``matching`` (keypoints, verified pair
 matches, tracks), ``bundle`` (co-adjustment of photos and lidargrams, cases 1-3),

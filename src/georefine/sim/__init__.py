@@ -1,4 +1,4 @@
-"""The simulator: a physically faithful flight written as a real project folder (layer 8, docs/ARCHITECTURE.md §1).
+"""The simulator: a physically faithful flight written as a real project folder (layer 9, docs/ARCHITECTURE.md §1).
 
 Scene (``scene``, ``scene_objects``, ``texture``), true flight (``flight``), sensors (``imu``,
 ``gnss``, ``scanner``, ``camera``), writers through the real file formats (``writers``),

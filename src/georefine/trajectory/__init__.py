@@ -1,4 +1,4 @@
-"""Trajectory models and the initialisation filter (layer 4, docs/ARCHITECTURE.md §1).
+"""Trajectory models and the initialisation filter (layer 5, docs/ARCHITECTURE.md §1).
 
 ``spline`` (continuous-time trajectory on uniform knots, §4.2) and ``spline_fit``,
 ``sampled`` (the sampled ``Trajectory`` the stages exchange), ``strapdown`` (mechanisation in

@@ -1,4 +1,4 @@
-"""The workflows: project folders in, steps run and cached, products out (layer 8, docs/ARCHITECTURE.md §1).
+"""The workflows: project folders in, steps run and cached, products out (layer 9, docs/ARCHITECTURE.md §1).
 
 ``project`` (open and validate a project, ``georefine check``), ``navigation`` (loading GNSS
 and IMU, workflow steps 1-2 and direct georeferencing with a given trajectory), ``lidar``

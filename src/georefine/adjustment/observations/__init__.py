@@ -1,4 +1,4 @@
-"""Observation models of the adjustment (part of layer 5, docs/ARCHITECTURE.md §1 and §4.3).
+"""Observation models of the adjustment (part of layer 6, docs/ARCHITECTURE.md §1 and §4.3).
 
 One module per observation group: ``gnss`` (antenna positions), ``imu`` (window-averaged
 specific force and angular rate), ``bias`` (piecewise-linear biases and their random walk),
