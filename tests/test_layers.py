@@ -49,6 +49,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("georefine.evaluation",),
     ("georefine.workflows", "georefine.sim"),
     ("georefine.demo",),
+    ("georefine.api",),  # the public API: one function per CLI command, re-exported lazily by the root
     ("georefine.cli",),
     ("georefine.__main__",),
 ]

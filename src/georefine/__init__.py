@@ -35,8 +35,18 @@ Time
     1980-01-06 00:00:00 GPST; LAS files use adjusted standard GPS time (GPS seconds - 1e9,
     LAS 1.4 global-encoding bit set). In memory, times are float64 seconds relative to the
     dataset epoch ``t0`` (stored with the data) so that microseconds survive.
+
+Public API
+----------
+The functions of :mod:`georefine.api` -- one per command of the ``georefine`` command line,
+which calls them and nothing else -- their results and the project they open, re-exported
+here: ``georefine.open_project``, ``georefine.simulate``, ``georefine.run``, ... (see
+``help(georefine.api)`` and the README, "Using Georefine from Python"). They are loaded on
+first use (PEP 562), so that ``import georefine`` and the lower layers, which never import
+the API, stay light.
 """
 
+from importlib import import_module
 from importlib.metadata import PackageNotFoundError, version
 
 try:
@@ -44,4 +54,31 @@ try:
 except PackageNotFoundError:  # running from a source tree without installation
     __version__ = "0.0.0+unknown"
 
-__all__ = ["__version__"]
+API = (
+    "Flight", "Project", "open_project",
+    "adjust_hybrid", "check", "clean", "coadjust", "estimate_trajectory", "evaluate_reference_planes",
+    "evaluate_run", "evaluate_strip_differences", "evaluate_trajectory", "export_trajectory", "georeference",
+    "import_strips", "match", "render_lidargrams", "run", "run_demo", "simulate",
+    "BlockDemoResult", "CleanResult", "CoadjustResult", "DemoResult", "GeoreferenceRunResult", "HybridResult",
+    "ImportResult", "MatchSummary", "ProjectSummary", "ReferencePlaneFigures", "RunEvaluation", "SimulationResult",
+    "StripDifferenceMap", "TrajectoryComparison", "TrajectoryEvaluation", "TrajectoryExport", "TrajectoryRunResult",
+    "WorkflowResult",
+    "ConfigError", "GeorefineError", "InputError", "Progress", "TaskRunner",
+)
+"""The names of :mod:`georefine.api` re-exported here (``tests/test_api.py`` holds it to ``api.__all__``)."""
+
+__all__ = ["__version__", *API]
+
+
+def __getattr__(name: str):
+    """The API's names, imported from :mod:`georefine.api` on first use (the one reference from the
+    root to the top layer: docs/ARCHITECTURE.md §1)."""
+    if name in API:
+        value = getattr(import_module("georefine.api"), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'georefine' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(API))
