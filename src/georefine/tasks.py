@@ -65,18 +65,6 @@ def check_scheduler(value: str) -> str:
                      found=repr(value))
 
 
-class _Done:
-    """A finished result with the interface of a future (the ``sync`` scheduler)."""
-
-    __slots__ = ("_value",)
-
-    def __init__(self, value: Any) -> None:
-        self._value = value
-
-    def result(self) -> Any:
-        return self._value
-
-
 class TaskRunner:
     """Runs tile tasks on the chosen scheduler; a context manager that owns its cluster.
 

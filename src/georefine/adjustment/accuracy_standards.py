@@ -48,10 +48,6 @@ def _num(value: Any) -> float | None:
     return None if value is None else float(value)
 
 
-def _finite(value: float | None) -> float | None:
-    return None if value is None or not math.isfinite(value) else float(value)
-
-
 @dataclass(frozen=True)
 class PositionalAccuracy:
     """ASPRS 2023 and NSSDA figures of one product against ``n`` check points (module docstring).

@@ -293,14 +293,3 @@ def omega_nb_b_from_rph_rates(rph: np.ndarray, rph_dot: np.ndarray) -> np.ndarra
     return np.stack([rd - hd * sp, pd * cr + hd * sr * cp, -pd * sr + hd * cr * cp], axis=-1)
 
 
-def angle_between(R_a: np.ndarray, R_b: np.ndarray) -> np.ndarray:
-    """Rotation angle (rad) of ``R_a^T R_b``."""
-    return np.linalg.norm(log_so3(np.swapaxes(R_a, -1, -2) @ R_b), axis=-1)
-
-
-def orthonormalize(R: np.ndarray) -> np.ndarray:
-    """Nearest rotation matrices (polar decomposition via SVD)."""
-    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=float))
-    D = np.ones(U.shape[:-1])
-    D[..., -1] = np.sign(np.linalg.det(U @ Vt))
-    return (U * D[..., None, :]) @ Vt
