@@ -41,6 +41,8 @@ SEEDS = [0, 1, 2]
 class LinearGroup:
     """r = (A x - b) / sigma for one Euclidean element ``x`` (block ``block``, element 0)."""
 
+    consumed_redundancy = 0.0
+
     def __init__(self, A, b, sigma, block="x", name="linear", loss=None):
         self.A, self.b, self.sigma = np.asarray(A, float), np.asarray(b, float), np.asarray(sigma, float)
         self.block, self.name, self.loss = block, name, loss
@@ -61,6 +63,7 @@ class ExpCurveGroup:
 
     name = "curve"
     loss = None
+    consumed_redundancy = 0.0
 
     def __init__(self, t, y, sigma):
         self.t, self.y, self.sigma = t, y, sigma
@@ -81,6 +84,7 @@ class AbsoluteRotationGroup:
     """r_i = Log(Rm_i^T R_{idx_i}) / sigma: direct rotation measurements (3 rows per observation)."""
 
     loss = None
+    consumed_redundancy = 0.0
 
     def __init__(self, idx, R_meas, sigma, name="abs"):
         self.idx, self.R_meas, self.sigma, self.name = np.asarray(idx), R_meas, sigma, name
@@ -99,6 +103,7 @@ class RelativeRotationGroup:
     """r = Log(Rm_ij^T R_i^T R_j) / sigma for pairs (i, j)."""
 
     loss = None
+    consumed_redundancy = 0.0
 
     def __init__(self, i, j, R_meas, sigma, name="rel"):
         self.i, self.j, self.R_meas, self.sigma, self.name = np.asarray(i), np.asarray(j), R_meas, sigma, name
@@ -123,6 +128,7 @@ class LineGroup:
     """y_k = m x_k + q; theta = (m, q)."""
 
     name = "line"
+    consumed_redundancy = 0.0
 
     def __init__(self, x, y, sigma, loss=None):
         self.x, self.y, self.sigma, self.loss = x, y, sigma, loss
@@ -144,6 +150,7 @@ class SplineGroup:
     """
 
     loss = None
+    consumed_redundancy = 0.0
 
     def __init__(self, first, w, z, sigma, name="spline"):
         self.first, self.w, self.z, self.sigma, self.name = first, w, z, sigma, name
@@ -173,6 +180,7 @@ class DifferenceGroup:
 
     loss = None
     name = "smooth"
+    consumed_redundancy = 0.0
 
     def __init__(self, n, sigma):
         self.n, self.sigma = n, sigma
@@ -729,6 +737,7 @@ class MisfitGroup:
 
     name = "misfit"
     loss = None
+    consumed_redundancy = 0.0
 
     def __init__(self, r):
         self.r = r
@@ -780,6 +789,7 @@ class ChainGroup:
 
     name = "chain"
     loss = None
+    consumed_redundancy = 0.0
 
     def __init__(self, y, sigma_d):
         self.y, self.sigma_d = y, sigma_d
@@ -1073,6 +1083,7 @@ def test_constant_block_adds_no_columns_and_jacobians_to_it_are_dropped():
 
     class TwoBlockGroup:
         name, loss = "two", None
+        consumed_redundancy = 0.0
 
         def linearize(self, values, jacobians=True):
             r = (A1 @ values["a"][0] + A2 @ values["b"][0] - b) / 0.01

@@ -16,6 +16,8 @@ from georefine.adjustment.variance_components import group_traces, traces_needed
 class Linear:
     """r = (A x - b) / sigma for element 0 of block ``x``."""
 
+    consumed_redundancy = 0.0
+
     def __init__(self, name, A, b, sigma):
         self.name, self.A, self.b, self.sigma, self.loss = name, np.asarray(A, float), np.asarray(b, float), sigma, None
 

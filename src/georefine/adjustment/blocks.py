@@ -211,10 +211,15 @@ class ObservationGroup(Protocol):
         Unique group name (used in the statistics).
     loss
         Robust loss acting on each observation's squared whitened norm; ``None`` = plain LS.
+    consumed_redundancy
+        Degrees of freedom the observations spent before the adjustment (readings cleaned of a
+        signal fitted to themselves: ``ImuObservation``'s vibration windows), which the
+        redundancy, the variance factor and the variance components subtract; 0 for most groups.
     """
 
     name: str
     loss: RobustLoss | None
+    consumed_redundancy: float
 
     def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
         """Residuals and, if ``jacobians``, Jacobian blocks at ``values`` (block name -> array)."""

@@ -154,8 +154,9 @@ class Problem:
     # -- groups -----------------------------------------------------------------------------
     def add_group(self, group: ObservationGroup) -> None:
         """Add an observation group (names must be unique)."""
-        if not hasattr(group, "linearize") or not hasattr(group, "name"):
-            raise TypeError(f"{type(group).__name__} is not an ObservationGroup (needs name and linearize)")
+        if not all(hasattr(group, a) for a in ("linearize", "name", "consumed_redundancy")):
+            raise TypeError(f"{type(group).__name__} is not an ObservationGroup "
+                            "(needs name, consumed_redundancy and linearize)")
         if group.name in self._groups:
             raise ValueError(f"observation group {group.name!r} already exists")
         self._groups[group.name] = group
@@ -262,7 +263,7 @@ class Problem:
             factor = solver.factorize(N, lower=True, check_pivots=False)
             check_by_solve(factor, lambda v: symmetric_matvec(N, v))
             traces, sds = group_traces(J, rows, factor, probes=probes, seed=seed, which=which)
-        spent = {g.name: float(getattr(g, "consumed_redundancy", 0.0)) for g in self.groups}
+        spent = {g.name: float(g.consumed_redundancy) for g in self.groups}
         comps = variance_components(names, rows, omega, traces, sds, post.result.redundancy, pools=pools,
                                     min_redundancy=min_redundancy, consumed=[spent.get(n, 0.0) for n in names])
         scales = {c.scale for c in comps}

@@ -492,7 +492,7 @@ def _spent(layout: ColumnLayout, groups) -> float:
     """Unknowns plus the degrees of freedom the observations spent before the adjustment
     (readings cleaned of a signal fitted to themselves, ``ImuObservation.consumed_redundancy``):
     what the redundancy and the variance factor subtract from the rows."""
-    return layout.n_cols + sum(float(getattr(g, "consumed_redundancy", 0.0)) for g in groups)
+    return layout.n_cols + sum(float(g.consumed_redundancy) for g in groups)
 
 
 def _statistics(groups, state: LMState, layout: ColumnLayout, spent: float, timings: Timings, backend: str

@@ -56,6 +56,7 @@ class BiasRandomWalk:
     grid: BiasGrid
     q: np.ndarray  # (3,) random-walk density per axis (unit/s/sqrt(s) for rates)
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
 
     def __post_init__(self) -> None:
         self.q = np.broadcast_to(np.asarray(self.q, dtype=float), (3,)).copy()

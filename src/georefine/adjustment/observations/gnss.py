@@ -57,6 +57,7 @@ class GnssPositionObservation:
     cov_w: np.ndarray
     p_b_a: np.ndarray
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     name: str = "gnss"
     error_grid: BiasGrid | None = None

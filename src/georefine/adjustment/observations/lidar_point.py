@@ -129,6 +129,7 @@ class LidarPointObservation:
     time_offset: str | None = None
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
     name: str = "lidar_points"
 
     def __post_init__(self) -> None:

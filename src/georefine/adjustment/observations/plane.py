@@ -291,6 +291,7 @@ class PlaneObservation:
     time_reference: float | None = None
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
     name: str = "planes"
 
     def __post_init__(self) -> None:

@@ -46,6 +46,7 @@ class EuclideanPrior:
     mean: np.ndarray
     sigma: np.ndarray
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
     _w: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -80,6 +81,7 @@ class RotationPrior:
     mean: np.ndarray  # (n, 3, 3)
     sigma: np.ndarray  # (n, 3) rad
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
 
     def __post_init__(self) -> None:
         self.elements = np.atleast_1d(np.asarray(self.elements, dtype=np.int64))

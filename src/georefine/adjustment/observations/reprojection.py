@@ -59,6 +59,7 @@ class ReprojectionObservation:
     position_block: str = "image_position"
     point_block: str = "points"
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
     min_depth_m: float = 1e-3
     _by_camera: list = field(init=False, repr=False)
 
@@ -147,6 +148,7 @@ class DepthObservation:
     position_block: str = "image_position"
     point_block: str = "points"
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
 
     def __post_init__(self) -> None:
         self.image = np.asarray(self.image, dtype=np.int64)

@@ -77,6 +77,7 @@ class TrajectoryPoseObservation:
     error_attitude: str = "sbet_attitude_error"
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
     name: str = "sbet"
 
     def __post_init__(self) -> None:
@@ -149,6 +150,7 @@ class GaussMarkovPrior:
     sigma: np.ndarray
     tau_s: float | np.ndarray
     loss: RobustLoss | None = None
+    consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
 
     def __post_init__(self) -> None:
         self.sigma = np.broadcast_to(np.asarray(self.sigma, dtype=float), (self.grid.n_knots, 3)).copy()
