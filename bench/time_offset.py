@@ -27,6 +27,7 @@ import numpy as np
 import yaml
 
 from georefine.evaluation.trajectory_files import truth_gnss_time_offset, truth_pass_rmse
+from georefine.io.run_metrics import read_adjustment_report
 
 
 def simulate(workdir: Path, offset: float) -> Path:
@@ -62,13 +63,14 @@ def run(project: Path, out: Path, scheduler: str) -> dict:
         sys.exit(f"georefine run {project} failed:\n{proc.stderr[-3000:]}")
     wall = time.perf_counter() - t
     metrics = json.loads((out / "metrics.json").read_text())
-    report = json.loads((out / "gil" / "adjustment.json").read_text()).get("lidar_time_offset", {})
+    report = read_adjustment_report(out / "gil" / "adjustment.json").lidar_time_offset
     search = metrics["outer_iterations"][0].get("time_offset_search")
     warnings = [line.split(": ", 1)[1][:150] for line in proc.stderr.splitlines() if line.startswith("WARNING")]
     (out / "run.log").write_text(proc.stderr)
     return {
-        "wall": wall, "search": search, "estimate": report.get("estimate_s"), "sigma_ms": report.get("sigma_ms"),
-        "gnss_sigma_ms": report.get("gnss_sigma_ms"),
+        "wall": wall, "search": search, "estimate": None if report is None else report.estimate_s,
+        "sigma_ms": None if report is None else report.sigma_ms,
+        "gnss_sigma_ms": None if report is None else report.gnss_sigma_ms,
         "warnings": warnings, "outer": len(metrics["outer_iterations"]),
         "rmse": {p: truth_pass_rmse(out / "gil" / "trajectory.sbet", project, p) for p in (1, 2)},
         "gi": {p: truth_pass_rmse(out / "gi" / "trajectory.sbet", project, p) for p in (1, 2)},

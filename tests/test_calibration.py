@@ -18,7 +18,7 @@ from georefine.evaluation.calibration import (
 from georefine.evaluation.report import write_report
 from georefine.evaluation.summary import RunEvaluation
 from georefine.io.files import write_json
-from georefine.io.run_metrics import WorkflowMetrics
+from georefine.io.run_metrics import AdjustmentReport, WorkflowMetrics
 
 G0 = 9.80665
 
@@ -43,13 +43,13 @@ def test_the_figures_compare_the_adjustment_with_the_truth_at_its_knots(tmp_path
     acc_true = np.column_stack([np.interp(t0 + knots, t, bias_acc[:, i]) for i in range(3)]) / G0 * 1e6
     gyro_true = np.column_stack([np.interp(t0 + knots, t, bias_gyro[:, i]) for i in range(3)]) * 180 / np.pi * 3600
     acc_err = np.array([10.0, -20.0, 30.0])
-    adjustment = {"t0_gps": t0, "imu_errors": {
+    adjustment = AdjustmentReport("G/I/L", t0, imu_errors={
         "bias_knot_times_s": knots.tolist(),
         "acc_bias_ug": (acc_true + acc_err).tolist(), "acc_bias_sigma_ug": np.full((knots.size, 3), 15.0).tolist(),
         "gyro_bias_deg_per_h": (gyro_true - 0.5).tolist(),
         "gyro_bias_sigma_deg_per_h": np.full((knots.size, 3), 0.25).tolist(),
         "acc_scale_ppm": [-480.0, 110.0, 190.0], "acc_scale_sigma_ppm": [20.0, 20.0, 30.0],
-        "gyro_scale_ppm": [90.0, -190.0, 310.0], "gyro_scale_sigma_ppm": [10.0, 10.0, 10.0]}}
+        "gyro_scale_ppm": [90.0, -190.0, 310.0], "gyro_scale_sigma_ppm": [10.0, 10.0, 10.0]})
     f = imu_error_figures(adjustment, path)
     np.testing.assert_allclose(f.acc_bias_rms_error_ug, np.abs(acc_err), rtol=1e-9)
     np.testing.assert_allclose(f.gyro_bias_rms_error_deg_per_h, [0.5] * 3, rtol=1e-9)
@@ -58,12 +58,14 @@ def test_the_figures_compare_the_adjustment_with_the_truth_at_its_knots(tmp_path
     np.testing.assert_allclose(f.gyro_scale_true_ppm, [100.0, -200.0, 300.0])
     assert inside.sum() < knots.size  # the knots outside the truth's span were dropped, not extrapolated
     assert ImuErrorFigures.from_dict(f.to_dict()) == f
-    assert imu_error_figures({"t0_gps": t0}, path) is None
+    assert imu_error_figures(AdjustmentReport("G/I/L", t0), path) is None
 
-    b = boresight_figures({"boresight_deg": [0.062, -0.021, 0.030], "boresight_sigma_mdeg": [2.0, 2.1, 9.0]},
+    b = boresight_figures(AdjustmentReport("G/I/L", t0, boresight_deg=(0.062, -0.021, 0.030),
+                                           boresight_sigma_mdeg=(2.0, 2.1, 9.0)),
                           [0.060, -0.020, 0.034], [0.010, -0.020, 0.034])
     np.testing.assert_allclose(b.error_mdeg, [2.0, -1.0, -4.0], atol=1e-9)
-    assert BoresightFigures.from_dict(b.to_dict()) == b and boresight_figures({}, [0, 0, 0], [0, 0, 0]) is None
+    assert BoresightFigures.from_dict(b.to_dict()) == b and boresight_figures(
+        AdjustmentReport("G/I/L", t0), [0, 0, 0], [0, 0, 0]) is None
 
     # In the evaluation record, the report and the plot.
     run = tmp_path / "run"
@@ -82,6 +84,7 @@ def test_the_figures_compare_the_adjustment_with_the_truth_at_its_knots(tmp_path
 
 
 def test_without_imu_errors_in_the_truth_there_are_no_figures(tmp_path):
-    assert imu_error_figures({"t0_gps": 0.0, "imu_errors": {"bias_knot_times_s": [0.0]}}, tmp_path / "none.npz") is None
+    adjustment = AdjustmentReport("G/I", 0.0, imu_errors={"bias_knot_times_s": [0.0]})
+    assert imu_error_figures(adjustment, tmp_path / "none.npz") is None
     with pytest.raises(KeyError):
         ImuErrorFigures.from_dict({})

@@ -10,6 +10,7 @@ from __future__ import annotations
 import html
 import json
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -25,7 +26,19 @@ from georefine.evaluation.summary import (
     TrajectoryFigures,
 )
 from georefine.io.files import write_json
-from georefine.io.run_metrics import OuterIteration, PassPrecision, PointsWritten, WorkflowMetrics
+from georefine.errors import InputError
+from georefine.io.run_metrics import (
+    AdjustmentReport,
+    FilterSummary,
+    FrameOrigin,
+    LidarTimeOffset,
+    OuterIteration,
+    PassPrecision,
+    PointsWritten,
+    WorkflowMetrics,
+    read_adjustment_report,
+    write_adjustment_report,
+)
 
 
 def _figures(rng) -> TrajectoryFigures:
@@ -100,6 +113,109 @@ def test_an_evaluation_without_plots_or_clouds_reads_back():
     assert RunEvaluation.from_dict(e).plots is None and RunEvaluation.from_dict(e).single_pass is None
 
 
+def _solve_dict() -> dict:
+    """A solve's statistics as the adjustments write them (``SolveResult.to_dict``)."""
+    from georefine.adjustment.statistics import GroupStatistics, SolveResult, Timings
+    from georefine.adjustment.variance_components import VarianceComponent
+
+    groups = (GroupStatistics("gnss", "huber", 600, 1800, 0.9, 700.0, 0.4, 0.81, 12, 0.95, 0.02, (0, 3, 5)),
+              GroupStatistics("imu", None, 6000, 36000, 1.1, 1050.0, 0.6, 1.21, 0))  # no robust sigma0: null
+    comps = (VarianceComponent(("gnss", "imu"), 37800, 30000.5, 0.0, 33000.0, 1.1, 1.1),)
+    return SolveResult("function_tolerance", 6, 5, 9000.0, 1750.0, (4000.0, 1750.0), 1e-6, 7800, 6600, 37800, 30000,
+                       1.17, groups, Timings(0.5, 0.2, 0.3, 1.2, 0.1), "cholmod", 3, 1, comps).to_dict()
+
+
+def _adjustment_reports() -> dict[str, AdjustmentReport]:
+    """One report of each writer: the trajectory command's filter and G/I, a run's G/I/L, a
+    delivered trajectory's G/I/L and the hybrid adjustment."""
+    frame = FrameOrigin(48.1372, 11.5756, 519.25)
+    imu = {"bias_knot_times_s": [0.0, 60.0], "acc_bias_ug": [[1.0, 2.0, 3.0], [1.5, 2.5, 3.5]],
+           "acc_scale_ppm": [10.0, -20.0, 5.0], "acc_scale_sigma_ppm": None}
+    gnss = {"knot_times_s": [0.0, 60.0], "enu_m": [[0.01, 0.0, -0.02], [0.0, 0.01, 0.0]]}
+    offset = LidarTimeOffset(0.0, 0.00125, 0.02, 0.71, 0.001, None)
+    return {
+        "filter": AdjustmentReport("filter", 1.4e9, {"read": 0.5, "filter": 2.0}, project="/data/p", frame=frame,
+                                   filter=FilterSummary(1200, 3, 10.25)),
+        "G/I": AdjustmentReport("G/I", 1.4e9, {"filter": 2.0, "adjustment_solve": 3.0}, adjustment=_solve_dict(),
+                                imu_errors=imu, gnss_error=gnss, project="/data/p", frame=frame,
+                                filter=FilterSummary(1200, 3, None)),
+        "G/I/L": AdjustmentReport("G/I/L", 1.4e9, {"solve": 3.0}, adjustment=_solve_dict(), imu_errors=imu,
+                                  boresight_deg=(0.062, -0.021, 0.03), boresight_sigma_mdeg=(2.0, 2.1, 9.0),
+                                  lidar_time_offset=offset, project="/data/p", frame=frame),
+        "delivered": AdjustmentReport("G/I/L", 1.4e9, {"solve": 1.0}, adjustment=_solve_dict(),
+                                      sbet_errors={"knot_times_s": [0.0, 1.0], "position_m": [[0.0] * 3] * 2},
+                                      lidar_time_offset=LidarTimeOffset(0.0, 0.0, held="one strip only")),
+        "hybrid": AdjustmentReport("hybrid", 1.4e9, {"solve": 3.0}, adjustment=_solve_dict(), imu_errors=imu,
+                                   boresight_deg=(0.06, -0.02, 0.03), boresight_sigma_mdeg=(3.0, 3.5, 12.0),
+                                   lidar_time_offset=LidarTimeOffset(0.0, 0.0011, 0.05, 0.7, 0.001)),
+    }
+
+
+@pytest.mark.parametrize("kind", ["filter", "G/I", "G/I/L", "delivered", "hybrid"])
+def test_an_adjustment_report_reads_back_to_what_was_written(tmp_path, kind):
+    report = _adjustment_reports()[kind]
+    write_adjustment_report(tmp_path / "adjustment.json", report)
+    back = read_adjustment_report(tmp_path / "adjustment.json")
+    assert back == report
+    d = json.loads((tmp_path / "adjustment.json").read_text())
+    assert back.to_dict() == d and AdjustmentReport.from_dict(d) == report
+    # One schema: every key in every file, null where the writer has no such section.
+    assert list(d) == ["solution", "project", "frame", "t0_gps", "timings_s", "filter", "adjustment", "imu_errors",
+                       "sbet_errors", "gnss_error", "boresight_deg", "boresight_sigma_mdeg", "lidar_time_offset"]
+    assert (d["adjustment"] is None) == (kind == "filter")
+    assert (d["lidar_time_offset"] is None) == (kind in ("filter", "G/I"))
+    if d["lidar_time_offset"] is not None:
+        assert list(d["lidar_time_offset"]) == ["configured_s", "estimate_s", "sigma_ms", "gnss_sigma_ms", "prior_s",
+                                                "held"]
+    # The solve's statistics are SolveResult's JSON form: it reads them back to the same figures.
+    from georefine.adjustment.statistics import SolveResult
+
+    if back.adjustment is not None:
+        assert SolveResult.from_dict(back.adjustment).to_dict() == back.adjustment
+    # A section missing from the object reads as None.
+    assert AdjustmentReport.from_dict({k: v for k, v in d.items() if k not in ("filter", "frame")}) == replace(
+        report, filter=None, frame=None)
+    with pytest.raises(ValueError, match="solution must be one of"):
+        replace(report, solution="G/I/L/P")
+
+
+@pytest.mark.parametrize("change, field, expected", [
+    (lambda d: d.pop("solution"), "solution", "one of filter, G/I, G/I/L, hybrid"),
+    (lambda d: d.update(solution="gil"), "solution", "one of filter, G/I, G/I/L, hybrid"),
+    (lambda d: d.update(t0_gps="1.4e9"), "t0_gps", "a number"),
+    (lambda d: d["timings_s"].update(solve=None), "timings_s", "an object of numbers"),
+    (lambda d: d["adjustment"].pop("termination"), "adjustment.termination", "a string"),
+    (lambda d: d["adjustment"]["groups"][1].update(n_residuals=3.5), "adjustment.groups[1].n_residuals", "an integer"),
+    (lambda d: d["adjustment"]["variance_components"][0].update(scale="1"),
+     "adjustment.variance_components[0].scale", "a number or null"),
+    (lambda d: d.update(imu_errors=[1, 2]), "imu_errors", "an object or null"),
+    (lambda d: d.update(boresight_deg=[0.06, -0.02]), "boresight_deg", "three numbers or null"),
+    (lambda d: d["lidar_time_offset"].pop("estimate_s"), "lidar_time_offset.estimate_s", "a number"),
+    (lambda d: d["lidar_time_offset"].update(held=1), "lidar_time_offset.held", "a string or null"),
+])
+def test_a_malformed_adjustment_report_names_the_file_and_the_field(tmp_path, change, field, expected):
+    d = _adjustment_reports()["G/I/L"].to_dict()
+    d = json.loads(json.dumps(d))
+    change(d)
+    path = tmp_path / "adjustment.json"
+    path.write_text(json.dumps(d))
+    with pytest.raises(InputError) as err:
+        read_adjustment_report(path)
+    assert err.value.path == path and err.value.field == field and err.value.expected == expected, str(err.value)
+    assert str(path) in str(err.value) and field in str(err.value)
+
+
+def test_an_adjustment_report_that_is_not_json_is_an_input_error(tmp_path):
+    path = tmp_path / "adjustment.json"
+    path.write_text('{"solution": "G/I",\n')
+    with pytest.raises(InputError, match="not a JSON file") as err:
+        read_adjustment_report(path)
+    assert err.value.path == path and err.value.line == 2
+    path.write_text("[1, 2]")
+    with pytest.raises(InputError, match="not a JSON object"):
+        read_adjustment_report(path)
+
+
 def test_summary_rows_take_the_typed_figures():
     _, evaluation = _records(2)
     rows = summary_rows(evaluation)
@@ -156,17 +272,22 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     assert "G/I/L: median – mm, P95 – mm over 0 planar 1 m cells" in page
     assert "over 4,000 planar 1 m cells; 100 gated (grey): rough 60, steep 20, edge 15, normals 5" in page
     # The G/I/L's adjustment statistics with its variance components.
-    groups = [{"name": n, "n_observations": m, "n_residuals": 3 * m, "rms": 1.0, "variance_factor": 1.0,
-               "cost_share": 0.5, "n_downweighted": d, "expected_downweighted": e}
+    from georefine.adjustment.statistics import GroupStatistics, SolveResult, Timings
+    from georefine.adjustment.variance_components import VarianceComponent
+
+    groups = [GroupStatistics(n, None, m, 3 * m, 1.0, 10.0, 0.5, 1.0, d, expected_downweighted=e)
               for n, m, d, e in (("imu", 1000, 0, 0.0), ("planes", 5000, 1300, 0.26146))]
-    comps = [{"groups": ["planes"], "n_residuals": 15000, "redundancy": 13456.7, "redundancy_sd": 20.0,
-              "sum_wr2": 9000.0, "factor": 0.669, "scale": 1.0},
-             {"groups": ["imu", "gnss"], "n_residuals": 3000, "redundancy": 1500.0, "redundancy_sd": 20.0,
-              "sum_wr2": 3300.0, "factor": 2.2, "scale": 2.2}]
+    comps = (VarianceComponent(("planes",), 15000, 13456.7, 20.0, 9000.0, 0.669, 1.0),
+             VarianceComponent(("imu", "gnss"), 3000, 1500.0, 20.0, 3300.0, 2.2, 2.2))
+
+    def write_gil(groups) -> None:
+        solve = SolveResult("function_tolerance", 4, 4, 30.0, 20.0, (25.0, 20.0), 1e-5, 2000, 6000, 16956, 14956, 0.83,
+                            tuple(groups), Timings(0.1, 0.1, 0.2, 0.5), "cholmod", variance_components=comps)
+        write_adjustment_report(run / "gil" / "adjustment.json",
+                                AdjustmentReport("G/I/L", 1.4e9, {"solve": 0.5}, adjustment=solve.to_dict()))
+
     (run / "gil").mkdir()
-    write_json(run / "gil" / "adjustment.json", {"adjustment": {
-        "termination": "function_tolerance", "iterations": 4, "variance_factor": 0.83, "n_unknowns": 2000,
-        "redundancy": 14956, "groups": groups, "variance_components": comps}})
+    write_gil(groups)
     page = html.unescape(write_report(run).read_text())
     assert "<td>planes</td><td>15,000</td><td>13456.7</td><td>0.669</td><td>1.000</td>" in page
     assert "<td>1,300 (26.0 %)</td><td>26.1 %</td>" in page and "<td>0 (0.0 %)</td><td>0.0 %</td>" in page
@@ -175,14 +296,12 @@ def test_the_report_renders_the_records_of_a_run_folder(tmp_path):
     from georefine.adjustment.statistics import RESIDUAL_EDGES, residual_histogram
 
     rng = np.random.default_rng(3)
-    groups[1]["residual_histogram"] = residual_histogram(rng.standard_normal(15000) * 1.3)
-    groups[1]["robust_sigma0"] = 1.3
-    write_json(run / "gil" / "adjustment.json", {"adjustment": {
-        "termination": "function_tolerance", "iterations": 4, "variance_factor": 0.83, "n_unknowns": 2000,
-        "redundancy": 14956, "groups": groups, "variance_components": comps}})
+    groups[1] = replace(groups[1], residual_histogram=residual_histogram(rng.standard_normal(15000) * 1.3),
+                        robust_sigma0=1.3)
+    write_gil(groups)
     page = html.unescape(write_report(run).read_text())
     assert page.count('alt="residual histograms"') == 1 and "Whitened residuals of each group" in page
-    assert len(groups[1]["residual_histogram"]) == len(RESIDUAL_EDGES) - 1
+    assert len(groups[1].residual_histogram) == len(RESIDUAL_EDGES) - 1
     assert not list(run.rglob("residuals_*.png"))  # drawn for the page, not left in the run folder
     # A run without an evaluation still gets its report.
     (run / "evaluation" / "summary.json").unlink()

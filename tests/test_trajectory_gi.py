@@ -18,6 +18,7 @@ import yaml
 from cli_helpers import run_georefine as _georefine
 from georefine.evaluation.trajectory import consistency
 from georefine.evaluation.trajectory_files import compare_sbet_files
+from georefine.io.run_metrics import read_adjustment_report
 from georefine.io.trajectory import read_sbet, read_sbet_companion, read_smrmsg
 from georefine.io.trajectory_csv import read_trajectory_csv
 from georefine.sim.scenarios import simulate_project
@@ -118,6 +119,12 @@ def test_gnss_imu_adjustment_on_the_corridor(seed, tmp_path):
 
     rep = json.loads((tmp_path / "gi" / "adjustment.json").read_text())
     assert {g["name"] for g in rep["adjustment"]["groups"]} >= {"gnss", "imu", "gnss_error_prior"}
+    # The report reads back into its type (the trajectory command's: with the filter and the frame).
+    typed = read_adjustment_report(tmp_path / "gi" / "adjustment.json")
+    assert typed.to_dict() == rep and typed.solution == "G/I" and typed.filter.gnss_updates > 0
+    assert typed.frame is not None and typed.gnss_error is not None and typed.lidar_time_offset is None
+    if seed == 1:  # the filter alone: no adjustment
+        assert read_adjustment_report(tmp_path / "filter" / "adjustment.json").adjustment is None
     # The posterior's variance components: in the G/I one, the navigation sensors (GNSS, IMU, priors,
     # random walks), with the adjustment's redundancy and its variance factor floored at 1.
     (comp,) = rep["adjustment"]["variance_components"]
@@ -324,6 +331,8 @@ def test_trajectory_cli_writes_products(tiny, tmp_path):
     assert run.returncode == 0, run.stderr
     for name in ("trajectory.sbet", "trajectory.csv", "adjustment.json", "config.resolved.yaml"):
         assert (tmp_path / "o" / name).is_file()
+    report = read_adjustment_report(tmp_path / "o" / "adjustment.json")  # the filter alone: no adjustment
+    assert report.solution == "filter" and report.adjustment is None and report.filter.gnss_updates > 0
     _, s = _errors_against_truth(tmp_path / "o", tiny)
     assert s["3d_rmse_m"] < 0.1 and s["roll_rmse_mdeg"] < 20
     # The SBET's body specific force and angular rate are the corrected IMU readings: they match

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -104,6 +106,27 @@ def test_the_components_weight_the_posterior_group_by_group():
     np.testing.assert_allclose(problem.covariance("x", scale_by_variance_factor=False)[0], expected, rtol=1e-8)
     with pytest.raises(ValueError, match="components scale it already"):
         problem.covariance("x")
+
+
+def test_a_solve_result_reads_back_from_its_json_form_to_the_same_text(tmp_path):
+    """``SolveResult.from_dict`` (the co-adjustment's metrics.json read back) gives what ``to_dict``
+    wrote, variance components and non-finite figures (null) included."""
+    import json
+
+    from georefine.adjustment.statistics import SolveResult
+    from georefine.io.files import write_json
+
+    rng = np.random.default_rng(7)
+    problem, _, _ = _two_group_problem(rng, np.array([0.3, -1.0, 2.0]), 300, 3.0, 1.0)
+    result = problem.solve()
+    result = replace(result, variance_components=problem.use_variance_components())
+    write_json(tmp_path / "a.json", result.to_dict())
+    d = json.loads((tmp_path / "a.json").read_text())
+    back = SolveResult.from_dict(d)
+    assert back.to_dict() == d and len(back.variance_components) == 3 and back.groups == result.groups
+    write_json(tmp_path / "b.json", back.to_dict())
+    assert (tmp_path / "b.json").read_text() == (tmp_path / "a.json").read_text()
+    assert back.variance_components == result.variance_components and back.timings == result.timings
 
 
 def test_the_weighted_posterior_reuses_the_solves_analysis():

@@ -28,7 +28,7 @@ from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.summary import RunEvaluation
 from georefine.io.files import make_output_folder
 from georefine.io.las import read_las
-from georefine.io.run_metrics import WorkflowMetrics
+from georefine.io.run_metrics import WorkflowMetrics, read_adjustment_report
 from georefine.io.trajectory import read_sbet
 from georefine.io.trajectory_csv import read_trajectory_csv
 from georefine.lidar.correspondences import (
@@ -114,7 +114,14 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, full_run, tm
         assert p.gil_sigma_mdeg[2] < 0.3 * p.gi_sigma_mdeg[2]  # heading: the planes' contribution
     # Those sigmas come from two variance components: the planes, and the navigation sensors with
     # the rest of the redundancy (rows - unknowns, exact); each scale its factor floored at 1.
-    adj = json.loads((out / "gil" / "adjustment.json").read_text())["adjustment"]
+    # The adjustments' reports read back into their type, to what the files hold.
+    reports = {sol: read_adjustment_report(out / sol / "adjustment.json") for sol in ("gi", "gil")}
+    for sol, report in reports.items():
+        assert report.to_dict() == json.loads((out / sol / "adjustment.json").read_text()), sol
+        assert report.t0_gps == typed.t0_gps and report.imu_errors is not None and report.frame is not None
+    assert reports["gi"].solution == "G/I" and reports["gi"].lidar_time_offset is None
+    assert reports["gil"].solution == "G/I/L" and reports["gil"].lidar_time_offset.sigma_ms > 0
+    adj = reports["gil"].adjustment
     planes, navigation = adj["variance_components"]
     assert planes["groups"] == ["planes"] and "imu" in navigation["groups"] and "gnss" in navigation["groups"]
     assert planes["redundancy"] + navigation["redundancy"] == pytest.approx(adj["redundancy"], rel=1e-9)
@@ -289,13 +296,13 @@ def test_the_demo_report_reads_in_a_browser(demo, tmp_path):
 def test_a_single_pass_holds_the_time_offset_that_both_passes_estimate(full_run, gil_single_pass):
     """One strip cannot show a LiDAR time offset (it moves all its views alike): the single pass
     holds it where it started and says why; both passes, flown opposite ways, estimate it."""
-    both = json.loads((full_run / "gil" / "adjustment.json").read_text())["lidar_time_offset"]
-    one = json.loads((gil_single_pass / "gil" / "adjustment.json").read_text())["lidar_time_offset"]
-    assert both["held"] is None and both["sigma_ms"] > 0
-    assert one["held"].startswith("one strip only") and one["sigma_ms"] is None
-    assert one["estimate_s"] == one["configured_s"]
+    both = read_adjustment_report(full_run / "gil" / "adjustment.json").lidar_time_offset
+    one = read_adjustment_report(gil_single_pass / "gil" / "adjustment.json").lidar_time_offset
+    assert both.held is None and both.sigma_ms > 0
+    assert one.held.startswith("one strip only") and one.sigma_ms is None
+    assert one.estimate_s == one.configured_s
     last = json.loads((gil_single_pass / "metrics.json").read_text())["outer_iterations"][-1]
-    assert last["time_offset_s"] == last["time_offset_start_s"] == one["configured_s"]
+    assert last["time_offset_s"] == last["time_offset_start_s"] == one.configured_s
 
 
 def test_rerun_resumes_unchanged_steps_and_recomputes_changed_ones(sparse_project, tmp_path):

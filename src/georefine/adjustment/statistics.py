@@ -1,7 +1,8 @@
 """Results of a least-squares solve: per-iteration summaries, per-group statistics, timings.
 
 Frozen dataclasses returned by :func:`georefine.adjustment.solver.run_levenberg_marquardt` and
-:meth:`georefine.adjustment.problem.Problem.solve`, with JSON-able ``to_dict()`` for reports.
+:meth:`georefine.adjustment.problem.Problem.solve`, with JSON-able ``to_dict()`` for reports and
+``from_dict()`` to read that form back (``SolveResult.from_dict(d).to_dict() == d``).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 from scipy.special import chdtrc, chdtri  # chi-square tail and quantiles without scipy.stats (0.4 s to import)
 
 from georefine.adjustment.robust import downweight_threshold
+from georefine.adjustment.variance_components import VarianceComponent
 
 _CONVERGED = ("function_tolerance", "parameter_tolerance", "gradient_tolerance", "no_unknowns")
 
@@ -88,6 +90,14 @@ class GroupStatistics:
     expected_downweighted: float = float("nan")
     residual_histogram: tuple[int, ...] = ()  # whitened residual rows per bin of RESIDUAL_EDGES; () in older results
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> GroupStatistics:
+        """A group as :meth:`SolveResult.to_dict` writes it (the defaults where older results lack a figure)."""
+        return cls(str(d["name"]), d["robust_loss"], int(d["n_observations"]), int(d["n_residuals"]), _real(d["rms"]),
+                   _real(d["cost"]), _real(d["cost_share"]), _real(d["variance_factor"]), int(d["n_downweighted"]),
+                   _real(d.get("robust_sigma0")), _real(d.get("expected_downweighted")),
+                   tuple(int(c) for c in d.get("residual_histogram", ())))
+
 
 @dataclass(frozen=True)
 class Timings:
@@ -100,6 +110,11 @@ class Timings:
     factorization_s: float
     total_s: float
     normal_s: float = 0.0
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Timings:
+        return cls(*(_real(d[k]) for k in ("evaluation_s", "assembly_s", "factorization_s", "total_s")),
+                   _real(d.get("normal_s", 0.0)))
 
 
 @dataclass(frozen=True)
@@ -180,6 +195,20 @@ class SolveResult:
         out["sigma0"] = _jsonable(self.sigma0)
         return out
 
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> SolveResult:
+        """The result :meth:`to_dict` wrote (``converged`` and ``sigma0`` follow from it), so that
+        ``from_dict(d).to_dict() == d``: null reads as NaN, the numbers keep their JSON type."""
+        return cls(
+            str(d["termination"]), int(d["iterations"]), int(d["successful_iterations"]), _real(d["initial_cost"]),
+            _real(d["final_cost"]), tuple(_real(c) for c in d["cost_history"]), _real(d["final_lambda"]),
+            int(d["n_unknowns"]), int(d["n_observations"]), int(d["n_residuals"]), int(d["redundancy"]),
+            _real(d["variance_factor"]), tuple(GroupStatistics.from_dict(g) for g in d["groups"]),
+            Timings.from_dict(d["timings"]), str(d["backend"]), int(d.get("factorisations", 0)),
+            int(d.get("iterative_steps", 0)),
+            tuple(VarianceComponent.from_dict(c) for c in d.get("variance_components", ())),
+        )
+
     def summary(self) -> str:
         """A few lines for logs and reports."""
         lines = [
@@ -199,6 +228,12 @@ class SolveResult:
             lines.append(f"  variance component {'+'.join(c.groups)}: redundancy {c.redundancy:.1f}, "
                          f"factor {c.factor:.4g}, posterior scale {c.scale:.4g}")
         return "\n".join(lines)
+
+
+def _real(v: Any) -> float:
+    """A number of :meth:`SolveResult.to_dict`'s form: null (a non-finite number) as NaN; an
+    integer stays one, so that writing it again gives the same text."""
+    return math.nan if v is None else v
 
 
 def _jsonable(obj: Any) -> Any:

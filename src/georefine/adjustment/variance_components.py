@@ -94,6 +94,15 @@ class VarianceComponent:
     factor: float
     scale: float
 
+    @classmethod
+    def from_dict(cls, d: dict) -> VarianceComponent:
+        """A component as :meth:`~georefine.adjustment.statistics.SolveResult.to_dict` writes it (NaN as null)."""
+        def real(k: str) -> float:
+            return math.nan if d[k] is None else d[k]
+
+        return cls(tuple(str(g) for g in d["groups"]), int(d["n_residuals"]),
+                   *(real(k) for k in ("redundancy", "redundancy_sd", "sum_wr2", "factor", "scale")))
+
 
 def group_traces(J: sp.csr_matrix, row_counts: Sequence[int], factor: Factorization, *,
                  probes: int = PROBES, seed: int = 0, which: Sequence[bool] | None = None

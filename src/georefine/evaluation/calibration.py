@@ -1,6 +1,7 @@
 """Estimated IMU errors and boresight against the simulated truth (``PROJECT/truth``).
 
-The adjustments write their IMU error model into ``adjustment.json`` (``imu_errors``: scale
+The adjustments write their IMU error model into ``adjustment.json``
+(:class:`~georefine.io.run_metrics.AdjustmentReport`; ``imu_errors``: scale
 factors with sigma, piecewise-linear biases at ``bias_knot_times_s`` after ``t0_gps`` with sigma)
 and, where estimated, the boresight (``boresight_deg``, ``boresight_sigma_mdeg``). The simulator
 keeps what it applied (``truth/imu_errors.npz``: per-sample biases in rad/s and m/s^2, scale
@@ -19,6 +20,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from georefine.io.run_metrics import AdjustmentReport
 
 __all__ = ["BoresightFigures", "ImuErrorFigures", "boresight_figures", "imu_error_figures", "plot_imu_errors"]
 
@@ -90,15 +93,15 @@ def _true_biases(truth: dict[str, np.ndarray], times_gps: np.ndarray) -> tuple[n
     return acc, gyro
 
 
-def imu_error_figures(adjustment: dict[str, Any], truth_npz: Path) -> ImuErrorFigures | None:
+def imu_error_figures(adjustment: AdjustmentReport, truth_npz: Path) -> ImuErrorFigures | None:
     """Figures of one ``adjustment.json`` (its ``imu_errors`` and ``t0_gps``) against ``truth_npz``;
     None where either has no IMU errors."""
-    e = adjustment.get("imu_errors") or {}
+    e = adjustment.imu_errors or {}
     if not e or not Path(truth_npz).is_file() or not e.get("bias_knot_times_s"):
         return None
     with np.load(truth_npz) as z:
         truth = {k: np.asarray(z[k]) for k in z.files}
-    times = float(adjustment["t0_gps"]) + np.asarray(e["bias_knot_times_s"], dtype=float)
+    times = float(adjustment.t0_gps) + np.asarray(e["bias_knot_times_s"], dtype=float)
     inside = (times >= truth["time_gps"][0]) & (times <= truth["time_gps"][-1])
     acc_true, gyro_true = _true_biases(truth, times[inside])
 
@@ -118,16 +121,16 @@ def imu_error_figures(adjustment: dict[str, Any], truth_npz: Path) -> ImuErrorFi
     )
 
 
-def boresight_figures(adjustment: dict[str, Any], true_deg, stated_deg) -> BoresightFigures | None:
+def boresight_figures(adjustment: AdjustmentReport, true_deg, stated_deg) -> BoresightFigures | None:
     """The boresight of ``adjustment.json`` against ``true_deg``; None where it was not estimated."""
-    b = adjustment.get("boresight_deg")
-    if not b:
+    b = adjustment.boresight_deg
+    if b is None:
         return None
-    sigma = adjustment.get("boresight_sigma_mdeg") or [math.nan] * 3
+    sigma = adjustment.boresight_sigma_mdeg or (math.nan,) * 3
     return BoresightFigures(_triple(b), _triple(sigma), _triple(true_deg), _triple(stated_deg))
 
 
-def plot_imu_errors(adjustments: dict[str, dict[str, Any]], truth_npz: Path, path: Path) -> Path:
+def plot_imu_errors(adjustments: dict[str, AdjustmentReport], truth_npz: Path, path: Path) -> Path:
     """Estimated biases (with their 2-sigma band) of each solution against the true ones over
     time: accelerometer (micro-g) and gyro (deg/h), x, y, z."""
     import matplotlib
@@ -139,7 +142,7 @@ def plot_imu_errors(adjustments: dict[str, dict[str, Any]], truth_npz: Path, pat
 
     with np.load(truth_npz) as z:
         truth = {k: np.asarray(z[k]) for k in z.files}
-    t0 = min(float(a["t0_gps"]) for a in adjustments.values())
+    t0 = min(float(a.t0_gps) for a in adjustments.values())
     fig, axes = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True, constrained_layout=True)
     tt = truth["time_gps"][:: max(1, truth["time_gps"].size // 4000)]
     acc_true, gyro_true = _true_biases(truth, tt)
@@ -149,10 +152,10 @@ def plot_imu_errors(adjustments: dict[str, dict[str, Any]], truth_npz: Path, pat
             ax = axes[row, i]
             ax.plot(tt - t0, true[:, i], color="black", lw=1.2, label="truth")
             for (label, adj), colour in zip(adjustments.items(), ("tab:orange", "tab:blue", "tab:green")):
-                e = adj.get("imu_errors") or {}
+                e = adj.imu_errors or {}
                 if key not in e:
                     continue
-                t = float(adj["t0_gps"]) + np.asarray(e["bias_knot_times_s"]) - t0
+                t = float(adj.t0_gps) + np.asarray(e["bias_knot_times_s"]) - t0
                 v, s = np.asarray(e[key])[:, i], np.asarray(e[key.replace("_bias_", "_bias_sigma_")])[:, i]
                 ax.plot(t, v, color=colour, lw=1.0, label=label)
                 ax.fill_between(t, v - 2 * s, v + 2 * s, color=colour, alpha=0.15, lw=0)

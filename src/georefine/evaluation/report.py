@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import datetime as _dt
 import html
-import json
 import math
 import tempfile
 from pathlib import Path
@@ -29,7 +28,7 @@ from georefine.evaluation.page import CSS, image, table
 from georefine.evaluation.plots import plot_residual_histograms
 from georefine.evaluation.summary import ANGLES, RunEvaluation, SurfaceFigures
 from georefine.io.files import atomic_output
-from georefine.io.run_metrics import WorkflowMetrics
+from georefine.io.run_metrics import WorkflowMetrics, read_adjustment_report
 
 __all__ = ["PAPER_000", "write_report", "summary_rows", "summary_verdicts"]
 
@@ -170,9 +169,10 @@ def _attr(obj, name: str):
 def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Georefine report") -> Path:
     """Write ``run_dir/report.html`` (or ``path``) from the run's files; returns the path.
 
-    ``metrics.json`` and ``evaluation/summary.json`` are read into their types
-    (:class:`~georefine.io.run_metrics.WorkflowMetrics`,
-    :class:`~georefine.evaluation.summary.RunEvaluation`); a run without an evaluation gets a
+    ``metrics.json``, ``evaluation/summary.json`` and ``gi/``, ``gil/adjustment.json`` are read into
+    their types (:class:`~georefine.io.run_metrics.WorkflowMetrics`,
+    :class:`~georefine.evaluation.summary.RunEvaluation`,
+    :class:`~georefine.io.run_metrics.AdjustmentReport`); a run without an evaluation gets a
     report without its figures.
     """
     run_dir = Path(run_dir)
@@ -180,7 +180,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
     ev = run_dir / "evaluation"
     metrics = WorkflowMetrics.read(run_dir / "metrics.json")
     summary = RunEvaluation.read(ev / "summary.json") if (ev / "summary.json").is_file() else None
-    adj = {k: json.loads((run_dir / k / "adjustment.json").read_text())
+    adj = {k: read_adjustment_report(run_dir / k / "adjustment.json")
            for k in ("gi", "gil") if (run_dir / k / "adjustment.json").is_file()}
     reference = summary.reference if summary is not None else "–"
     parts = [f"<h1>{html.escape(title)}</h1>",
@@ -288,7 +288,9 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
 
     parts.append("<h2>6. Adjustment statistics and IMU errors</h2>")
     for key, a in adj.items():
-        s = a["adjustment"]
+        s = a.adjustment
+        if s is None:  # the filter alone
+            continue
         parts.append(f"<h3>{'G/I' if key == 'gi' else 'G/I/L'}: {html.escape(str(s.get('termination')))} after "
                      f"{s.get('iterations')} iterations, σ0² = {_f(s.get('variance_factor'), digits=3)}, "
                      f"{s.get('n_unknowns'):,} unknowns, redundancy {s.get('redundancy'):,}</h3>")
@@ -317,7 +319,7 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
                 ["groups", "rows", "redundancy", "σ0²", "posterior scale"],
                 [[", ".join(c["groups"]), f"{c['n_residuals']:,}", _f(c["redundancy"], digits=1),
                   _f(c["factor"], digits=3), _f(c["scale"], digits=3)] for c in s["variance_components"]]))
-        e = a.get("imu_errors", {})
+        e = a.imu_errors or {}
         if e:
             rows = []
             for name, unit in (("acc_scale_ppm", "ppm"), ("gyro_scale_ppm", "ppm")):
@@ -332,8 +334,8 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
                     rows.append([name.rsplit("_", 1)[0] + " (first knot → last)", unit] + [
                         f"{first[i]:.2f} → {last[i]:.2f}" for i in range(3)])
             parts.append(table(["IMU error", "unit", "x", "y", "z"], rows))
-        if a.get("boresight_deg"):
-            b, sg = a["boresight_deg"], a.get("boresight_sigma_mdeg") or [float("nan")] * 3
+        if a.boresight_deg is not None:
+            b, sg = a.boresight_deg, a.boresight_sigma_mdeg or (float("nan"),) * 3
             parts.append("<p>Boresight roll/pitch/yaw: " + ", ".join(
                 f"{b[i]:.4f}° ± {sg[i]:.1f} mdeg" for i in range(3)) + "</p>")
 

@@ -157,7 +157,8 @@ class BundleResult:
         return {"case": self.case, "description": CASES[self.case],
                 "control_points": None if self.control is None else self.control.to_dict(),
                 "check_points": None if self.check is None else self.check.to_dict(),
-                "tie_reprojection_px": self.tie_reprojection_px, "adjustment": self.solve.to_dict(), **self.extra}
+                "tie_reprojection_px": self.tie_reprojection_px, "adjustment": self.solve.to_dict(),
+                **{k: v.to_dict() if k == "photo_block_adjustment" else v for k, v in self.extra.items()}}
 
 
 # ---------------------------------------------------------------------------- geometry helpers
@@ -280,7 +281,7 @@ def coadjust(
                      tie_loss=tie_loss, tie_loss_scale=tie_loss_scale, options=options, depth_sigma_m=depth_sigma_m)
         R, p = pre["R"], pre["p"]
         point_cov = pre.get("cov_points")  # the check points are intersected from these photos
-        extra["photo_block_adjustment"] = pre["solve"].to_dict()
+        extra["photo_block_adjustment"] = pre["solve"]  # a SolveResult, as ``solve``
         extra["photo_block_precision"] = _precision(images, pre, control, ~control.is_control)
         fixed, use_control = photo, False
     elif case == 2:

@@ -16,7 +16,6 @@ the run folder of a single-pass run, and writes ``RUN/evaluation/``:
 
 from __future__ import annotations
 
-import json
 import logging
 from pathlib import Path
 from typing import Callable
@@ -57,7 +56,7 @@ from georefine.geometry.frames import OutputCRS
 from georefine.io.files import write_json
 from georefine.io.las import point_files
 from georefine.io.reference import read_reference_surfaces
-from georefine.io.run_metrics import WorkflowMetrics
+from georefine.io.run_metrics import WorkflowMetrics, read_adjustment_report
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.navigation import run_georeference
 from georefine.workflows.project import load_project
@@ -189,7 +188,7 @@ def _calibration(project: Path, run_dir: Path, out: Path, boresight_run: Path | 
     for label, sub in (("G/I", "gi"), ("G/I/L", "gil")):
         path = run_dir / sub / "adjustment.json"
         if path.is_file():
-            adjustments[label] = json.loads(path.read_text(encoding="utf-8"))
+            adjustments[label] = read_adjustment_report(path)
     imu, plot, boresight = {}, None, None
     if truth_npz.is_file() and adjustments:
         for label, adj in adjustments.items():
@@ -206,7 +205,7 @@ def _calibration(project: Path, run_dir: Path, out: Path, boresight_run: Path | 
         if true_deg is not None:
             stated = (yaml.safe_load(resolved.read_text())["scanner"]["boresight_deg"] if resolved.is_file()
                       else load_project(project).scanner.boresight_deg)
-            boresight = boresight_figures(json.loads(adjustment.read_text(encoding="utf-8")), true_deg, stated)
+            boresight = boresight_figures(read_adjustment_report(adjustment), true_deg, stated)
     return imu, plot, boresight
 
 

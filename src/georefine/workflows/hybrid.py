@@ -68,12 +68,14 @@ from georefine.adjustment.observations.reprojection import ReprojectionObservati
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolverOptions
+from georefine.adjustment.statistics import SolveResult
 from georefine.adjustment.upsampling import on_knots, without_high_rate
 from georefine.config import boresight_matrix, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.rotation import rph_from_R_n_b, wrap_angle
 from georefine.io import photos as pio
 from georefine.io.files import write_json
+from georefine.io.run_metrics import write_adjustment_report
 from georefine.lidargrammetry.bundle import (
     ControlData,
     PointStats,
@@ -86,6 +88,7 @@ from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, StepRunner
 from georefine.workflows.gil import LidarAdjustment, build_gil_problem
 from georefine.workflows.lidar import (
+    adjustment_report,
     features_and_objects,
     lidar_stages,
     stage_gi_products,
@@ -231,9 +234,9 @@ class HybridResult:
     control_points: PointStats | None
     check_points: PointStats | None
     tie_rms: dict[str, float]
-    adjustment: dict
+    adjustment: SolveResult
     precision: dict
-    photo_block_adjustment: dict | None
+    photo_block_adjustment: SolveResult | None  # case 1's first step, the photo block alone
     trajectory: dict
     matches: dict = field(default_factory=dict)
     timings_s: dict[str, float] = field(default_factory=dict)
@@ -247,8 +250,9 @@ class HybridResult:
             "photo_observations": self.photo_observations, "lidar_returns": self.lidar_returns,
             "control_points": None if self.control_points is None else self.control_points.to_dict(),
             "check_points": None if self.check_points is None else self.check_points.to_dict(),
-            "tie_rms": self.tie_rms, "adjustment": self.adjustment, "precision": self.precision,
-            "photo_block_adjustment": self.photo_block_adjustment, "trajectory": self.trajectory,
+            "tie_rms": self.tie_rms, "adjustment": self.adjustment.to_dict(), "precision": self.precision,
+            "photo_block_adjustment": None if self.photo_block_adjustment is None
+            else self.photo_block_adjustment.to_dict(), "trajectory": self.trajectory,
             "photo_lidargram_matches": self.matches, "timings_s": self.timings_s,
         }
 
@@ -343,13 +347,13 @@ def _check_precision(P: Problem, n_tie: int, control: ControlData, scale_by_vf: 
                                    control.xyz_w[chk], control.sigma_m[chk])
 
 
-def _photo_block(pp, st, ties: HybridTies, control: ControlData) -> tuple[np.ndarray, np.ndarray, dict, dict]:
+def _photo_block(pp, st, ties: HybridTies, control: ControlData) -> tuple[np.ndarray, np.ndarray, SolveResult, dict]:
     """Case 1's first step: the photo block alone with its control points: ``(R, p, solve, precision)``."""
     P = Problem()
     rows = _add_photos(P, pp, st, ties, control, pp.R_w_c, pp.p_w_c, fixed=False, use_control=True,
                        photo_points_only=True)
     result = P.solve(SolverOptions(max_iterations=50, function_tolerance=1e-8))
-    return (P.values("image_rotation"), P.values("image_position"), result.to_dict(),
+    return (P.values("image_rotation"), P.values("image_position"), result,
             _check_precision(P, int((rows >= 0).sum()), control, True))
 
 
@@ -426,6 +430,22 @@ def _posterior(nav: NavigationData, hb: _Built, result: GnssImuResult, n_tie: in
                   sigma_velocity_m_s=s_v)
     precision = {"check_points": _check_precision(P, n_tie, control, False)} if case == 2 else {}
     return out, precision
+
+
+def _lidar_sigma(P: Problem, hb: _Built) -> tuple[np.ndarray | None, float | None]:
+    """Posterior 1-sigma of the boresight (mdeg, roll/pitch/yaw) and of the LiDAR time offset (s)
+    where the hybrid problem estimates them (else None), after :func:`_posterior`: a few columns of
+    the inverse whose factor the trajectory's sigma made, scaled as those are (per variance component)."""
+    bs = offset = None
+    try:
+        if hb.boresight is not None:
+            cov = P.covariance(hb.boresight, scale_by_variance_factor=False)[0]
+            bs = np.degrees(np.sqrt(np.clip(np.diag(cov), 0.0, None))) * 1e3
+        if hb.lidar_group.time_offset is not None:
+            offset = float(np.sqrt(max(P.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0], 0.0)))
+    except NotPositiveDefiniteError as exc:
+        log.warning("no posterior sigma of the boresight and time offset: %s", exc)
+    return bs, offset
 
 
 def _tie_rms(P: Problem, hb: _Built) -> dict[str, float]:
@@ -549,14 +569,19 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     result, precision = _posterior(nav, hb, result, n_tie, control, case)
     if case == 1:
         precision = {"check_points": pre_precision}
+    bs_sigma, offset_sigma = _lidar_sigma(P, hb)
     timings["covariance"] = _time.perf_counter() - t
     bs_deg, offset = None, cfg.scanner.time_offset_s if gil is None else gil.time_offset_s
     if hb.boresight is not None:
         bs_deg = np.degrees(rph_from_R_n_b(P.values(hb.boresight)[0]))
         bs_deg[2] = wrap_angle(bs_deg[2], 360.0, closed="lower")
-    if hb.lidar_group.time_offset is not None:
+    estimated = hb.lidar_group.time_offset is not None
+    if estimated:
         offset = hb.time_offset_start.features_s + float(P.values(OFFSET_BLOCK)[0, 0])
-    final = LidarAdjustment(result, 0, 0, bs_deg, None, time_offset_s=offset)
+    final = LidarAdjustment(result, 0, 0, bs_deg, bs_sigma, time_offset_s=offset,
+                            time_offset_start=hb.time_offset_start, time_offset_sigma_s=offset_sigma,
+                            time_offset_gnss_sigma_s=gil.time_offset_gnss_sigma_s if estimated else None,
+                            time_offset_held=None if gil is None else gil.time_offset_held)
     # Every point with the adjusted trajectory.
     t = _time.perf_counter()
     digest = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in (
@@ -567,10 +592,7 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     timings["final_georeferencing"] = _time.perf_counter() - t
     (inputs.out / "hybrid").mkdir(exist_ok=True)
     write_trajectory_products(inputs.out / "hybrid", nav, result, inputs.crs)
-    write_json(inputs.out / "hybrid" / "adjustment.json",
-               {"adjustment": result.solve.to_dict(), "t0_gps": nav.t0_gps,
-                "imu_errors": result.imu_errors.to_dict() if result.imu_errors is not None else None,
-                "boresight_deg": None if bs_deg is None else bs_deg.tolist(), "lidar_time_offset_s": offset})
+    write_adjustment_report(inputs.out / "hybrid" / "adjustment.json", adjustment_report(nav, result, "hybrid", final))
     pio.write_eop(inputs.out / "eop_photos.csv",
                   pio.eop_from_w(pp.eop.images, R, p, pp.frame, pp.crs, pp.eop.cameras))
     stats, _ = control_point_stats(tuple(pp.camera(i) for i in range(len(pp.eop))), R, p, control)
@@ -578,7 +600,7 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
              "sigma_position_m_median": np.median(result.sigma_position_m, axis=0).tolist()}
     metrics = HybridResult(
         case, planes, len(pp.eop), len(blk.lgs), ties.n_points, len(ties.photo_image), len(ties.returns),
-        stats["control"], stats["check"], tie_rms, result.solve.to_dict(), precision, pre, sigma,
+        stats["control"], stats["check"], tie_rms, result.solve, precision, pre, sigma,
         photo_lidargram_matches(blk, matches), timings, gi=gi, result=result)
     for sub in ("gil", "features"):  # stage_read_inputs makes them; without planes they stay empty
         if (inputs.out / sub).is_dir() and not any((inputs.out / sub).iterdir()):

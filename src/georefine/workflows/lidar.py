@@ -39,7 +39,15 @@ from georefine.adjustment.upsampling import (
 from georefine.config import ProjectConfig, boresight_matrix, load_project, write_yaml
 from georefine.geometry.frames import GeoidHeights, OutputCRS
 from georefine.io.files import make_output_folder, write_json
-from georefine.io.run_metrics import OuterIteration, PointsWritten, WorkflowMetrics
+from georefine.io.run_metrics import (
+    AdjustmentReport,
+    FrameOrigin,
+    LidarTimeOffset,
+    OuterIteration,
+    PointsWritten,
+    WorkflowMetrics,
+    write_adjustment_report,
+)
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
@@ -444,42 +452,43 @@ def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, k
     return posterior.gil, posterior.key, outer.records
 
 
-def _adjustment_report(nav: NavigationData, adj: GnssImuResult, boresight: LidarAdjustment | None = None) -> dict:
-    """``adjustment.json``: statistics, IMU errors and timings of an adjustment (and the boresight)."""
-    report = {"adjustment": adj.solve.to_dict(), "t0_gps": nav.t0_gps, "timings_s": adj.timings_s}
-    if adj.imu_errors is not None:
-        report["imu_errors"] = adj.imu_errors.to_dict()
-    if adj.sbet_errors is not None:  # a delivered trajectory: its estimated error (§4.9)
-        report["sbet_errors"] = adj.sbet_errors.to_dict()
-    if adj.gnss_error is not None:  # the GNSS error that lasts minutes (§4.3)
-        report["gnss_error"] = adj.gnss_error.to_dict()
-    if boresight is not None and boresight.boresight_deg is not None:
-        report["boresight_deg"] = boresight.boresight_deg.tolist()
-        report["boresight_sigma_mdeg"] = boresight.boresight_sigma_mdeg.tolist()
-    if boresight is not None:
-        sigma = boresight.time_offset_sigma_s
-        gnss = boresight.time_offset_gnss_sigma_s
-        report["lidar_time_offset"] = {
-            "configured_s": nav.config.scanner.time_offset_s, "estimate_s": boresight.time_offset_s,
-            "sigma_ms": None if sigma is None else sigma * 1e3,
-            "gnss_sigma_ms": None if gnss is None or not np.isfinite(gnss) else gnss * 1e3,
-            "prior_s": None if boresight.time_offset_start is None else boresight.time_offset_start.prior_s,
-            "held": boresight.time_offset_held,
-        }
-    return report
+def adjustment_report(nav: NavigationData, adj: GnssImuResult, solution: str,
+                      lidar: LidarAdjustment | None = None) -> AdjustmentReport:
+    """``adjustment.json`` (:class:`~georefine.io.run_metrics.AdjustmentReport`): statistics, IMU
+    errors and timings of the adjustment ``adj``, and with ``lidar`` (G/I/L, hybrid) the boresight
+    and the LiDAR time offset."""
+    bs = bs_sigma = offset = None
+    if lidar is not None and lidar.boresight_deg is not None:
+        bs = tuple(float(v) for v in lidar.boresight_deg)
+        bs_sigma = None if lidar.boresight_sigma_mdeg is None else tuple(float(v) for v in lidar.boresight_sigma_mdeg)
+    if lidar is not None:
+        sigma, gnss = lidar.time_offset_sigma_s, lidar.time_offset_gnss_sigma_s
+        offset = LidarTimeOffset(
+            nav.config.scanner.time_offset_s, float(lidar.time_offset_s), None if sigma is None else sigma * 1e3,
+            None if gnss is None or not np.isfinite(gnss) else gnss * 1e3,
+            None if lidar.time_offset_start is None else lidar.time_offset_start.prior_s, lidar.time_offset_held)
+    return AdjustmentReport(
+        solution, nav.t0_gps, dict(adj.timings_s), adjustment=adj.solve.to_dict(),
+        imu_errors=None if adj.imu_errors is None else adj.imu_errors.to_dict(),
+        # a delivered trajectory: its estimated error (§4.9); the GNSS error that lasts minutes (§4.3)
+        sbet_errors=None if adj.sbet_errors is None else adj.sbet_errors.to_dict(),
+        gnss_error=None if adj.gnss_error is None else adj.gnss_error.to_dict(),
+        boresight_deg=bs, boresight_sigma_mdeg=bs_sigma, lidar_time_offset=offset,
+        project=str(Path(nav.root).resolve()), frame=FrameOrigin.of(nav.frame))
 
 
 def stage_gi_products(inputs: WorkflowInputs, gi: GnssImuResult) -> None:
     """``gi/``: trajectory products and ``adjustment.json`` of the G/I adjustment."""
     write_trajectory_products(inputs.out / "gi", inputs.nav, gi, inputs.crs)
-    write_json(inputs.out / "gi" / "adjustment.json", _adjustment_report(inputs.nav, gi))
+    write_adjustment_report(inputs.out / "gi" / "adjustment.json", adjustment_report(inputs.nav, gi, "G/I"))
 
 
 def stage_gil_products(inputs: WorkflowInputs, posterior: Posterior) -> None:
     """``features/`` (the matched features and objects) and ``gil/`` (trajectory products, ``adjustment.json``)."""
     _write_matched_features(inputs.out / "features", posterior.features, posterior.objects)
     write_trajectory_products(inputs.out / "gil", inputs.nav, posterior.gil.result, inputs.crs)
-    write_json(inputs.out / "gil" / "adjustment.json", _adjustment_report(inputs.nav, posterior.gil.result, posterior.gil))
+    write_adjustment_report(inputs.out / "gil" / "adjustment.json",
+                            adjustment_report(inputs.nav, posterior.gil.result, "G/I/L", posterior.gil))
 
 
 def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult, gil: LidarAdjustment | None,

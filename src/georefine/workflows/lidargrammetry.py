@@ -574,7 +574,7 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
         case, _method(st, matcher), st.use_depth, n, len(lgs), int(np.unique(tr.track[keep]).size), int(keep.sum()),
         PhotoLidargramMatches.of_pairs(pair_counts), result.control, result.check,
         TieReprojection(result.tie_reprojection_px["photos"], result.tie_reprojection_px["lidargrams"]),
-        result.solve.to_dict(), Precision.from_dict(ex["precision"]), ex["tie_inlier_fraction"],
+        result.solve, Precision.from_dict(ex["precision"]), ex["tie_inlier_fraction"],
         colmap,
         ex.get("photo_block_adjustment"), None if pbp is None else Precision.from_dict(pbp), counts, timings,
         bundle=result)

@@ -22,6 +22,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from georefine.adjustment.statistics import SolveResult
 from georefine.errors import InputError
 from georefine.geometry import earth
 from georefine.io.files import read_text_lines, write_csv
@@ -269,8 +270,8 @@ class ReintersectionCounts:
 class CoadjustResult:
     """``metrics.json`` of ``georefine coadjust`` (one case), and the adjustment behind it.
 
-    ``adjustment`` and ``photo_block_adjustment`` are the solver's reports as it writes them
-    (:mod:`georefine.adjustment.solver`); the photo block's are there for case 1 only, the
+    ``adjustment`` and ``photo_block_adjustment`` are the solves' statistics
+    (:class:`~georefine.adjustment.statistics.SolveResult`); the photo block's are there for case 1 only, the
     re-intersection for cases 1 and 2. ``bundle``: the adjusted poses and points (``None``
     when read back from a file).
     """
@@ -286,11 +287,11 @@ class CoadjustResult:
     control_points: PointStats | None
     check_points: PointStats | None
     tie_reprojection: TieReprojection
-    adjustment: dict
+    adjustment: SolveResult
     precision: Precision
     tie_inlier_fraction: float
     colmap_model: ColmapModel
-    photo_block_adjustment: dict | None = None
+    photo_block_adjustment: SolveResult | None = None
     photo_block_precision: Precision | None = None
     reintersection: ReintersectionCounts | None = None
     timings_s: dict[str, float] = field(default_factory=dict)
@@ -306,9 +307,9 @@ class CoadjustResult:
                    "tracks": self.tracks, "tie_observations": self.tie_observations,
                    "photo_lidargram_matches": self.photo_lidargram_matches.to_dict(),
                    "control_points": _stats_dict(self.control_points), "check_points": _stats_dict(self.check_points),
-                   "tie_reprojection_px": self.tie_reprojection.to_dict(), "adjustment": self.adjustment}
+                   "tie_reprojection_px": self.tie_reprojection.to_dict(), "adjustment": self.adjustment.to_dict()}
         if self.photo_block_adjustment is not None:
-            d["photo_block_adjustment"] = self.photo_block_adjustment
+            d["photo_block_adjustment"] = self.photo_block_adjustment.to_dict()
         if self.photo_block_precision is not None:
             d["photo_block_precision"] = self.photo_block_precision.to_dict()
         d["precision"] = self.precision.to_dict()
@@ -323,12 +324,14 @@ class CoadjustResult:
     def from_dict(cls, d: dict) -> CoadjustResult:
         pbp = d.get("photo_block_precision")
         ri = d.get("reintersection")
+        pba = d.get("photo_block_adjustment")
         return cls(int(d["case"]), str(d["method"]), bool(d["use_depth"]), int(d["photos"]), int(d["lidargrams"]),
                    int(d["tracks"]), int(d["tie_observations"]),
                    PhotoLidargramMatches.from_dict(d["photo_lidargram_matches"]), _stats(d["control_points"]),
-                   _stats(d["check_points"]), TieReprojection.from_dict(d["tie_reprojection_px"]), d["adjustment"],
+                   _stats(d["check_points"]), TieReprojection.from_dict(d["tie_reprojection_px"]),
+                   SolveResult.from_dict(d["adjustment"]),
                    Precision.from_dict(d["precision"]), _float(d["tie_inlier_fraction"]),
-                   ColmapModel.from_dict(d["colmap_model"]), d.get("photo_block_adjustment"),
+                   ColmapModel.from_dict(d["colmap_model"]), None if pba is None else SolveResult.from_dict(pba),
                    None if pbp is None else Precision.from_dict(pbp),
                    None if ri is None else ReintersectionCounts.from_dict(ri),
                    {k: _float(v) for k, v in d["timings_s"].items()})

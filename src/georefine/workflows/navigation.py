@@ -4,8 +4,9 @@ Implemented so far: loading and validating the navigation data, step 1 (initiali
 filter and spline fit) and step 2 (GNSS/IMU adjustment), with their products:
 ``trajectory.sbet`` (IMU rate, seconds of the GPS week; the week in ``trajectory.sbet.json``,
 the posterior sigma in ``smrmsg_trajectory.out``), ``trajectory.csv`` (output CRS,
-roll/pitch/heading and posterior sigma) and ``adjustment.json`` (per-group statistics, iterations, cost, estimated
-IMU errors, timings). Each step is a plain function returning a frozen result.
+roll/pitch/heading and posterior sigma) and ``adjustment.json`` (:class:`~georefine.io.run_metrics.AdjustmentReport`:
+per-group statistics, iterations, cost, estimated IMU errors, the filter, timings). Each step is a plain function
+returning a frozen result.
 """
 
 from __future__ import annotations
@@ -30,9 +31,10 @@ from georefine.adjustment.upsampling import adjust_upsampled
 from georefine.config import ProjectConfig, load_project, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
-from georefine.io.files import make_output_folder, write_json
+from georefine.io.files import make_output_folder
 from georefine.io.gnss import gnss_in_w
 from georefine.io.imu import ImuData
+from georefine.io.run_metrics import AdjustmentReport, FilterSummary, FrameOrigin, write_adjustment_report
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.trajectory.ekf import FilterResult, run_filter
@@ -379,24 +381,17 @@ def run_trajectory(
         write_trajectory_products(out, nav, adj, crs)
         timings["products"] = _time.perf_counter() - t
 
-    report = {
-        "project": str(nav.root),
-        "t0_gps": nav.t0_gps,
-        "frame": {"lat_deg": float(np.degrees(nav.frame.lat0_rad)), "lon_deg": float(np.degrees(nav.frame.lon0_rad)),
-                  "h_m": nav.frame.h0_m},
-        "filter": {
-            "gnss_updates": filt.n_gnss_updates, "gnss_rejected": filt.n_gnss_rejected,
-            "alignment_time_s": getattr(filt, "alignment_time", None),
-        },
-        "timings_s": timings,
-    }
+    alignment = getattr(filt, "alignment_time", None)
+    report = AdjustmentReport(
+        "filter", nav.t0_gps, dict(timings), project=str(Path(nav.root).resolve()), frame=FrameOrigin.of(nav.frame),
+        filter=FilterSummary(int(filt.n_gnss_updates), int(filt.n_gnss_rejected),
+                             None if alignment is None else float(alignment)))
     if adj is not None:
-        report["adjustment"] = adj.solve.to_dict()
-        report["imu_errors"] = adj.imu_errors.to_dict()
-        if adj.gnss_error is not None:
-            report["gnss_error"] = adj.gnss_error.to_dict()
-        report["timings_s"] = dict(timings, **{f"adjustment_{k}": v for k, v in adj.timings_s.items()})
-    write_json(out / "adjustment.json", report)
+        report = replace(
+            report, solution="G/I", adjustment=adj.solve.to_dict(), imu_errors=adj.imu_errors.to_dict(),
+            gnss_error=None if adj.gnss_error is None else adj.gnss_error.to_dict(),
+            timings_s=dict(timings, **{f"adjustment_{k}": v for k, v in adj.timings_s.items()}))
+    write_adjustment_report(out / "adjustment.json", report)
     write_yaml(out / "config.resolved.yaml", nav.config)
     return TrajectoryRunResult(out, filt, adj, timings)
 
