@@ -111,7 +111,7 @@ def main() -> None:
     from georefine.io.trajectory import read_sbet
     from georefine.tasks import TaskRunner
     from georefine.trajectory.sampled import trajectory_from_sbet
-    from georefine.workflows.navigation import load_navigation, run_georeference
+    from georefine.workflows import load_navigation, run_georeference
     from georefine.workflows.strips import read_strips, step_features
 
     nav = load_navigation(args.project)

@@ -42,7 +42,7 @@ from georefine.trajectory.spline import KnotGrid
 from georefine.workflows import run_georeference
 from georefine.workflows.import_strips import import_strips
 from georefine.workflows.lidar import run_workflow
-from georefine.workflows.project import inspect_project
+from georefine.workflows.check import inspect_project
 
 MDEG = np.radians(1e-3)
 

@@ -16,7 +16,8 @@ from georefine.geometry.frames import LocalFrame
 from georefine.io.gnss import gnss_in_w
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.imu_check import check_imu_frame, signed_permutations
-from georefine.workflows.project import load_project, read_project_gnss, read_project_imu
+from georefine.config import load_project
+from georefine.workflows.project import read_project_gnss, read_project_imu
 
 FAST_SCAN = ["scanner.pulse_rate_hz=2000", "scanner.line_rate_hz=100"]
 

@@ -213,7 +213,7 @@ def test_gnss_imu_adjustment_on_a_vibrating_platform_with_and_without_upsampling
     # would alias the vibration into the trajectory: georefine.workflows.lidar.outer_knot_interval).
     from georefine.adjustment.upsampling import high_rate_share
     from georefine.workflows.lidar import VIBRATION_SHARE
-    from georefine.workflows.navigation import load_navigation
+    from georefine.workflows.opened import load_navigation
 
     assert high_rate_share(load_navigation(project).gnss, up.adjustment) > VIBRATION_SHARE
 

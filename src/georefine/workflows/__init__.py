@@ -13,20 +13,22 @@ calls one function per command. It may import every layer below it but not its s
 
 from georefine.workflows.navigation import (
     GeoreferenceRunResult,
-    NavigationData,
     TrajectoryRunResult,
-    load_navigation,
     run_georeference,
     run_trajectory,
     step_adjust_gnss_imu,
     step_initialise,
 )
 
+from georefine.workflows.opened import NavigationData, Project, load_navigation, open_project
+
 __all__ = [
     "GeoreferenceRunResult",
     "NavigationData",
+    "Project",
     "TrajectoryRunResult",
     "load_navigation",
+    "open_project",
     "run_georeference",
     "run_trajectory",
     "step_adjust_gnss_imu",

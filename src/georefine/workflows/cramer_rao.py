@@ -68,7 +68,8 @@ from georefine.lidar.planes import read_features
 from georefine.trajectory.sampled import interp_columns, trajectory_from_sbet
 from georefine.trajectory.spline_fit import fit_spline
 from georefine.workflows.gil import build_gil_problem
-from georefine.workflows.navigation import NavigationData, knot_grid, load_navigation
+from georefine.workflows.navigation import knot_grid
+from georefine.workflows.opened import NavigationData, load_navigation
 from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart
 
 __all__ = ["CramerRaoBound", "PassBound", "SolutionBound", "cramer_rao_bound"]

@@ -59,7 +59,8 @@ from georefine.io.reference import read_reference_surfaces
 from georefine.io.run_metrics import WorkflowMetrics, read_adjustment_report
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.navigation import run_georeference
-from georefine.workflows.project import load_project
+from georefine.config import load_project
+from georefine.workflows.opened import ProjectLike, project_root
 
 log = logging.getLogger(__name__)
 
@@ -75,7 +76,7 @@ def _windows(metrics: WorkflowMetrics, inset_s: float = 1.0) -> dict[int, tuple[
 
 
 def evaluate_run(
-    project: Path,
+    project: ProjectLike,
     run_dir: Path,
     single_dir: Path | None = None,
     *,
@@ -94,7 +95,7 @@ def evaluate_run(
     computed here, their per-chunk work on ``scheduler`` (a name or a running
     :class:`~georefine.tasks.TaskRunner`, :mod:`georefine.tasks`).
     """
-    project, run_dir = Path(project), Path(run_dir)
+    project, run_dir = project_root(project), Path(run_dir)
     report = progress or (lambda *a: None)
     out = run_dir / "evaluation"
     out.mkdir(parents=True, exist_ok=True)
@@ -210,7 +211,7 @@ def _calibration(project: Path, run_dir: Path, out: Path, boresight_run: Path | 
 
 
 def evaluate_cloud(
-    project: Path,
+    project: ProjectLike,
     run_dir: Path,
     label: str,
     *,
@@ -234,7 +235,7 @@ def evaluate_cloud(
     (:func:`georefine.evaluation.clouds.scan_clouds`, docs/ARCHITECTURE.md §5): memory does not
     grow with the number of points. The G/I georeferencing runs on the same scheduler.
     """
-    project, run_dir = Path(project), Path(run_dir)
+    project, run_dir = project_root(project), Path(run_dir)
     report = progress or (lambda *a: None)
     sub = CLOUDS[label]
     if strips is None and (run_dir / "metrics.json").is_file():

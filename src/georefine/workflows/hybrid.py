@@ -45,7 +45,6 @@ from __future__ import annotations
 
 import hashlib
 import logging
-import time as _time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
@@ -84,8 +83,8 @@ from georefine.lidargrammetry.bundle import (
     stations_per_point,
 )
 from georefine.progress import Progress, no_progress
-from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
-from georefine.workflows.cache import StepCache, StepRunner
+from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
+from georefine.workflows.cache import StepCache
 from georefine.workflows.gil import LidarAdjustment, build_gil_problem
 from georefine.workflows.lidar import (
     adjustment_report,
@@ -105,6 +104,7 @@ from georefine.workflows.lidargrammetry import (
     tie_observations,
 )
 from georefine.workflows.navigation import NavigationData, write_trajectory_products
+from georefine.workflows.opened import Project, ProjectLike, Workspace, as_project, open_workspace
 from georefine.workflows.photo_block import read_cloud
 from georefine.workflows.returns import LidarReturns, returns_of_points
 from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart
@@ -480,10 +480,13 @@ def _warn_misfit(solve) -> None:
                         g.name, g.variance_factor, g.n_residuals)
 
 
-def run_hybrid(project_dir: str | Path, out: str | Path, *, case: int = 1, planes: bool = True,
+def run_hybrid(project: ProjectLike, out: str | Path, *, case: int = 1, planes: bool = True,
                overrides: Mapping[str, Any] | None = None, matcher=None, resume: bool = True,
                progress: Progress = no_progress, scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> HybridResult:
-    """Steps 1-6 of the module docstring on a project with GNSS, IMU, scans and photos.
+    """Steps 1-6 of the module docstring on a project with GNSS, IMU, scans and photos (an opened
+    :class:`~georefine.workflows.opened.Project` or its folder): the stages of ``georefine run``
+    and of the co-adjustment on one opened project, in one workspace (output folder, step cache,
+    task runner), timed by its step runner.
 
     ``case``: 1 (default) or 2 (:data:`HYBRID_CASES`); ``planes``: start from the G/I/L adjustment and keep
     its plane observations in the hybrid one; off, the G/I adjustment without planes (a scanner
@@ -502,25 +505,20 @@ def run_hybrid(project_dir: str | Path, out: str | Path, *, case: int = 1, plane
         raise InputError("unknown case of the hybrid adjustment", field="case", expected="1 or 2 (case 3 refines "
                          "the photos with the LiDAR as control and no cloud: `georefine coadjust --case 3`)",
                          found=str(case))
-    steps = StepRunner(StepCache(Path(out) / ".cache", enabled=resume))
-    with runner_for(scheduler) as runner:
-        return _run(steps, Path(project_dir), out, case, planes, overrides, matcher, progress, runner)
+    project = as_project(project)
+    with open_workspace(project, out, resume=resume, scheduler=scheduler) as ws:
+        return _run(ws, project, case, planes, overrides, matcher, progress)
 
 
-def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides, matcher, progress: Progress,
-         runner: TaskRunner) -> HybridResult:
-    timings: dict[str, float] = {}
-    t = _time.perf_counter()
-    # Settings, matcher and photos checked before anything is read or written; then the photo
-    # poses in the trajectory's frame, where the hybrid problem lives.
-    opened = open_block(root, out, overrides, matcher)
-    inputs = stage_read_inputs(steps, root, out, None, runner)
-    nav = inputs.nav
-    pp = opened.pp
-    R_w_c, p_w_c = pio.poses_in_w(pp.eop, nav.frame, pp.crs)
-    pp = replace(pp, frame=nav.frame, R_w_c=R_w_c, p_w_c=p_w_c)
-    opened = replace(opened, pp=pp)
-    st = opened.settings
+def _run(ws: Workspace, project: Project, case: int, planes: bool, overrides, matcher,
+         progress: Progress) -> HybridResult:
+    steps, runner = ws.steps, ws.runner
+    # The navigation read once (it defines w, where the hybrid problem lives); then the settings,
+    # matcher and photos checked, the photo poses built in w, before anything is written.
+    nav = project.navigation
+    opened = open_block(project, ws.out, overrides, matcher, frame=nav.frame)
+    inputs = stage_read_inputs(steps, project, ws.out, None, runner)
+    pp, st = opened.pp, opened.settings
     gi, key = stage_gnss_imu(steps, nav, progress)
     stage_gi_products(inputs, gi)
     start, gil, plane_data = gi, None, None
@@ -528,23 +526,19 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
         gil, key, _ = lidar_stages(steps, inputs, gi, key, progress)
         start = gil.result
         strips = [s.shifted(gil.time_offset_s) for s in inputs.strips]
-        features, objects, _, _ = features_and_objects(nav, start, strips, 0, untimed, progress, runner)
+        with steps.timed("plane_observations"):
+            features, objects, _, _ = features_and_objects(nav, start, strips, 0, untimed, progress, runner)
         plane_data = (features, objects)
-    timings["trajectory"] = _time.perf_counter() - t
     # The preliminary cloud: every record of every scan, in order (returns_of_points relies on it).
-    t = _time.perf_counter()
-    prelim = replace(inputs, out=inputs.out / "preliminary")
-    (prelim.out / "points").mkdir(parents=True, exist_ok=True)
-    written = stage_points(steps, prelim, start, gil, key, progress)
-    point_files = [prelim.out / "points" / w.file for w in written]
-    timings["preliminary_georeferencing"] = _time.perf_counter() - t
-    t = _time.perf_counter()
-    cloud = read_cloud(point_files, pp, runner=runner, progress=progress)
-    blk = block_images(pp, cloud, st, progress, runner)
-    timings["lidargrams"] = _time.perf_counter() - t
-    t = _time.perf_counter()
-    matches = block_matches(opened, cloud, blk, inputs.out / ".cache", progress, runner)
-    timings["matching"] = _time.perf_counter() - t
+    with steps.timed("preliminary_georeferencing"):
+        prelim = replace(inputs, out=inputs.out / "preliminary")
+        written = stage_points(steps, prelim, start, gil, key, progress)
+        point_files = [prelim.out / "points" / w.file for w in written]
+    with steps.timed("lidargrams"):
+        cloud = read_cloud(point_files, pp, runner=runner, progress=progress)
+        blk = block_images(pp, cloud, st, progress, runner)
+    with steps.timed("matching"):
+        matches = block_matches(opened, cloud, blk, inputs.out / ".cache", progress, runner)
     keep, xyz0, _ = tie_observations(blk.lgs, blk.R0, blk.p0, blk.cameras, blk.station, matches, cloud, blk.n_photos,
                           st.max_initial_reprojection_px)
     cfg = nav.config
@@ -553,24 +547,22 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     ties = hybrid_ties(blk, matches, keep, xyz0, point_files, [s.path for s in inputs.strips], nav, start, R_b_s,
                        st.return_sigma_across_px, st.return_keypoint_offset)
     control = control_data(pp)
-    t = _time.perf_counter()
-    R, p, pre, pre_precision = pp.R_w_c, pp.p_w_c, None, {}
-    if case == 1:
-        R, p, pre, pre_precision = _photo_block(pp, st, ties, control)
-    hb = _build(nav, start, gil, plane_data, pp, st, ties, control, R, p, case)
-    result = _solve(nav, hb, progress)
-    P = hb.built.problem
-    R, p = P.values("image_rotation"), P.values("image_position")
-    n_tie = int((hb.rows >= 0).sum())
-    tie_rms = _tie_rms(P, hb)
-    _warn_misfit(result.solve)
-    timings["hybrid_adjustment"] = _time.perf_counter() - t
-    t = _time.perf_counter()
-    result, precision = _posterior(nav, hb, result, n_tie, control, case)
-    if case == 1:
-        precision = {"check_points": pre_precision}
-    bs_sigma, offset_sigma = _lidar_sigma(P, hb)
-    timings["covariance"] = _time.perf_counter() - t
+    with steps.timed("hybrid_adjustment"):
+        R, p, pre, pre_precision = pp.R_w_c, pp.p_w_c, None, {}
+        if case == 1:
+            R, p, pre, pre_precision = _photo_block(pp, st, ties, control)
+        hb = _build(nav, start, gil, plane_data, pp, st, ties, control, R, p, case)
+        result = _solve(nav, hb, progress)
+        P = hb.built.problem
+        R, p = P.values("image_rotation"), P.values("image_position")
+        n_tie = int((hb.rows >= 0).sum())
+        tie_rms = _tie_rms(P, hb)
+        _warn_misfit(result.solve)
+    with steps.timed("covariance"):
+        result, precision = _posterior(nav, hb, result, n_tie, control, case)
+        if case == 1:
+            precision = {"check_points": pre_precision}
+        bs_sigma, offset_sigma = _lidar_sigma(P, hb)
     bs_deg, offset = None, cfg.scanner.time_offset_s if gil is None else gil.time_offset_s
     if hb.boresight is not None:
         bs_deg = np.degrees(rph_from_R_n_b(P.values(hb.boresight)[0]))
@@ -583,13 +575,12 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
                             time_offset_gnss_sigma_s=gil.time_offset_gnss_sigma_s if estimated else None,
                             time_offset_held=None if gil is None else gil.time_offset_held)
     # Every point with the adjusted trajectory.
-    t = _time.perf_counter()
-    digest = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in (
-        result.spline.p_w_b, result.spline.R_w_b, R_b_s, np.atleast_1d(bs_deg if bs_deg is not None else 0.0),
-        np.atleast_1d(offset)))).hexdigest()
-    hkey = StepCache.key("hybrid", key, digest)
-    stage_points(steps, inputs, result, final, hkey, progress)
-    timings["final_georeferencing"] = _time.perf_counter() - t
+    with steps.timed("final_georeferencing"):
+        digest = hashlib.sha256(b"".join(np.ascontiguousarray(a).tobytes() for a in (
+            result.spline.p_w_b, result.spline.R_w_b, R_b_s, np.atleast_1d(bs_deg if bs_deg is not None else 0.0),
+            np.atleast_1d(offset)))).hexdigest()
+        hkey = StepCache.key("hybrid", key, digest)
+        stage_points(steps, inputs, result, final, hkey, progress)
     (inputs.out / "hybrid").mkdir(exist_ok=True)
     write_trajectory_products(inputs.out / "hybrid", nav, result, inputs.crs)
     write_adjustment_report(inputs.out / "hybrid" / "adjustment.json", adjustment_report(nav, result, "hybrid", final))
@@ -601,10 +592,7 @@ def _run(steps: StepRunner, root: Path, out, case: int, planes: bool, overrides,
     metrics = HybridResult(
         case, planes, len(pp.eop), len(blk.lgs), ties.n_points, len(ties.photo_image), len(ties.returns),
         stats["control"], stats["check"], tie_rms, result.solve, precision, pre, sigma,
-        photo_lidargram_matches(blk, matches), timings, gi=gi, result=result)
-    for sub in ("gil", "features"):  # stage_read_inputs makes them; without planes they stay empty
-        if (inputs.out / sub).is_dir() and not any((inputs.out / sub).iterdir()):
-            (inputs.out / sub).rmdir()
+        photo_lidargram_matches(blk, matches), dict(steps.timings_s), gi=gi, result=result)
     write_json(inputs.out / "metrics.json", metrics.to_dict())
     write_yaml(inputs.out / "config.resolved.yaml",
                cfg.model_copy(update={"processing": cfg.processing.model_copy(update={"lidargrammetry": st})}))

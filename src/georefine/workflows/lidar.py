@@ -36,7 +36,7 @@ from georefine.adjustment.gnss_imu import (
 from georefine.adjustment.upsampling import (
     high_rate_share,
 )
-from georefine.config import ProjectConfig, boresight_matrix, load_project, write_yaml
+from georefine.config import ProjectConfig, boresight_matrix, write_yaml
 from georefine.geometry.frames import GeoidHeights, OutputCRS
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import (
@@ -66,13 +66,12 @@ from georefine.workflows.outer_checks import (
 from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
-    load_navigation,
     step_adjust_gnss_imu,
     step_initialise,
     write_trajectory_products,
 )
 from georefine.workflows.precision import pass_precision, precision_lines
-from georefine.workflows.project import output_folder
+from georefine.workflows.opened import Project, ProjectLike, Workspace, as_project, open_workspace
 from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
 from georefine.workflows.time_offset import (
     TimeOffsetStart,
@@ -304,21 +303,20 @@ def _points_key(nav: NavigationData, strips: list[StripFile], upstream: str) -> 
                          [file_stamp(s.path, nav.root) for s in strips], *geoid)
 
 
-def stage_read_inputs(steps: StepRunner, project_dir: str | Path, out: str | Path,
+def stage_read_inputs(steps: StepRunner, project: Project, out: str | Path,
                       strips: list[int] | None, runner: TaskRunner) -> WorkflowInputs:
-    """Read and check the navigation data, index the strips (time tiles); create the output folders."""
+    """Read and check the navigation data (once per project: :attr:`Project.navigation
+    <georefine.workflows.opened.Project.navigation>`), index the strips (time tiles); create the
+    output folder. Its sub-folders are made by the stages that write into them."""
     with steps.timed("read"):
-        nav = load_navigation(project_dir)
-        out = output_folder(out, nav.root)
+        nav = project.navigation
+        out = project.output_folder(out)
         strip_files = read_strips(nav, strips, slots=runner.workers)
         # A strip entirely outside the navigation is refused now, as `georefine check` does, not
         # after the adjustments (the time offset search looks ±20 s around scanner.time_offset_s).
         refuse_strips_outside([s.plan for s in strip_files], nav.span, nav.t0_gps, nav.config.scanner.time_offset_s)
     make_output_folder(out)
-    for sub in ("gi", "gil", "points", "features"):
-        (out / sub).mkdir(parents=True, exist_ok=True)
-    return WorkflowInputs(nav, strip_files, out, OutputCRS(nav.config.crs.output_epsg), runner,
-                          nav.config.crs.geoid(nav.root))
+    return WorkflowInputs(nav, strip_files, out, project.crs, runner, project.heights)
 
 
 def stage_gnss_imu(steps: StepRunner, nav: NavigationData, progress: Progress = no_progress) -> tuple[GnssImuResult, str]:
@@ -479,12 +477,15 @@ def adjustment_report(nav: NavigationData, adj: GnssImuResult, solution: str,
 
 def stage_gi_products(inputs: WorkflowInputs, gi: GnssImuResult) -> None:
     """``gi/``: trajectory products and ``adjustment.json`` of the G/I adjustment."""
+    (inputs.out / "gi").mkdir(exist_ok=True)
     write_trajectory_products(inputs.out / "gi", inputs.nav, gi, inputs.crs)
     write_adjustment_report(inputs.out / "gi" / "adjustment.json", adjustment_report(inputs.nav, gi, "G/I"))
 
 
 def stage_gil_products(inputs: WorkflowInputs, posterior: Posterior) -> None:
     """``features/`` (the matched features and objects) and ``gil/`` (trajectory products, ``adjustment.json``)."""
+    for sub in ("features", "gil"):
+        (inputs.out / sub).mkdir(exist_ok=True)
     _write_matched_features(inputs.out / "features", posterior.features, posterior.objects)
     write_trajectory_products(inputs.out / "gil", inputs.nav, posterior.gil.result, inputs.crs)
     write_adjustment_report(inputs.out / "gil" / "adjustment.json",
@@ -493,8 +494,9 @@ def stage_gil_products(inputs: WorkflowInputs, posterior: Posterior) -> None:
 
 def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult, gil: LidarAdjustment | None,
                  key: str, progress: Progress = no_progress) -> tuple[PointsWritten, ...]:
-    """Step 6: the strips in the output CRS (cached: skipped while the files are those it wrote)."""
+    """Step 6: the strips in the output CRS into ``points/`` (cached: skipped while the files are those it wrote)."""
     nav, folder = inputs.nav, inputs.out / "points"
+    folder.mkdir(parents=True, exist_ok=True)
     p_b_s = np.asarray(nav.config.scanner.lever_arm_m, dtype=float)
     R_b_s = boresight_matrix(nav.config.scanner.boresight_deg)
     if gil is not None and gil.boresight_deg is not None:
@@ -544,17 +546,17 @@ def stage_metrics(steps: StepRunner, inputs: WorkflowInputs, outer: tuple[OuterI
     return metrics
 
 
-def precompute_gnss_imu(project_dir: str | Path, cache_dir: str | Path) -> dict[str, float]:
-    """Steps 1-2 of ``project_dir`` into the step cache ``cache_dir``; their timings.
+def precompute_gnss_imu(project: ProjectLike, cache_dir: str | Path) -> dict[str, float]:
+    """Steps 1-2 of ``project`` into the step cache ``cache_dir``; their timings.
 
     They need the GNSS and IMU files only, so they can run while the scans are still being
     written (``georefine demo`` runs them in a second process during the simulation); a
     :func:`run_workflow` with the same ``cache_dir`` then resumes them. Nothing is read or
     computed when the cache already holds them.
     """
-    root, steps = Path(project_dir), StepRunner(StepCache(Path(cache_dir)))
-    if not steps.cache.exists("gi", _navigation_key(load_project(root), root)):
-        stage_gnss_imu(steps, load_navigation(root))
+    project, steps = as_project(project), StepRunner(StepCache(Path(cache_dir)))
+    if not steps.cache.exists("gi", _navigation_key(project.config, project.root)):
+        stage_gnss_imu(steps, project.navigation)
     return steps.timings_s
 
 
@@ -572,7 +574,7 @@ def _write_matched_features(folder: Path, features: PlanarFeatures, objects: Pla
 
 
 def run_workflow(
-    project_dir: str | Path,
+    project: ProjectLike,
     out: str | Path,
     *,
     strips: list[int] | None = None,
@@ -583,7 +585,8 @@ def run_workflow(
     progress: Progress = no_progress,
     scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
 ) -> WorkflowResult:
-    """Steps 1-6 on a project folder (see the module docstring for the outputs).
+    """Steps 1-6 on a project (an opened :class:`~georefine.workflows.opened.Project` or its
+    folder; see the module docstring for the outputs).
 
     Every step's result is cached in ``out/.cache`` (:mod:`georefine.workflows.cache`); with
     ``resume`` a rerun loads what its inputs and configuration have not changed, e.g. after an
@@ -599,19 +602,18 @@ def run_workflow(
     InputError
         Bad navigation data or strips (``strips``: an id no strip has), or no planar features.
     """
-    # The cache touches no file before the first step stores; the output folder is checked on reading.
-    steps = StepRunner(StepCache(Path(cache_dir) if cache_dir is not None else Path(out) / ".cache", enabled=resume))
-    if isinstance(scheduler, TaskRunner):
-        return _run_stages(steps, project_dir, out, strips, lidar, points, progress, scheduler)
-    with TaskRunner(scheduler) as runner:
-        return _run_stages(steps, project_dir, out, strips, lidar, points, progress, runner)
+    # The cache touches no file before the first step stores; the output folder is made on reading.
+    project = as_project(project)
+    with open_workspace(project, out, resume=resume, cache_dir=cache_dir, scheduler=scheduler) as ws:
+        return _run_stages(ws, project, strips, lidar, points, progress)
 
 
-def _run_stages(steps: StepRunner, project_dir, out, strips, lidar: bool, points: bool, progress: Progress,
-                runner: TaskRunner) -> WorkflowResult:
-    """The stages of :func:`run_workflow`, with the runner of the per-tile work."""
+def _run_stages(ws: Workspace, project: Project, strips, lidar: bool, points: bool,
+                progress: Progress) -> WorkflowResult:
+    """The stages of :func:`run_workflow` in the workspace ``ws`` (output folder, cache, runner)."""
+    steps = ws.steps
     progress("reading the input", 0, 1)
-    inputs = stage_read_inputs(steps, project_dir, out, strips, runner)
+    inputs = stage_read_inputs(steps, project, ws.out, strips, ws.runner)
     progress("reading the input", 1, 1)
     gi, key = stage_gnss_imu(steps, inputs.nav, progress)
     stage_gi_products(inputs, gi)

@@ -40,9 +40,10 @@ import cv2
 import numpy as np
 
 from georefine.adjustment.observations.reprojection import ReprojectionObservation
-from georefine.config import PAIR_KINDS, LidargrammetryConfig, ProjectConfig, load_project, write_yaml
+from georefine.config import PAIR_KINDS, LidargrammetryConfig, ProjectConfig, write_yaml
 from georefine.errors import InputError
 from georefine.geometry.camera import Camera
+from georefine.geometry.frames import LocalFrame
 from georefine.io import metashape
 from georefine.io import photos as pio
 from georefine.io.files import atomic_output, make_output_folder, write_json
@@ -93,7 +94,7 @@ from georefine.workflows.photo_block import (
     render_lidargrams,
     write_cloud,
 )
-from georefine.workflows.project import output_folder
+from georefine.workflows.opened import ProjectLike, as_project, output_folder
 
 log = logging.getLogger(__name__)
 
@@ -300,8 +301,8 @@ def tie_observations(lgs, imgs_R, imgs_p, cameras, station, matches: BlockMatche
 
 
 @dataclass(frozen=True)
-class _Block:
-    """Photos and the lidargrams rendered at their stations, as one list of images."""
+class RenderedBlock:
+    """Photos and the lidargrams rendered at their stations, as one list of images (:func:`block_images`)."""
 
     lgs: list
     n_photos: int
@@ -316,8 +317,8 @@ class _Block:
 
 
 @dataclass(frozen=True)
-class _Opened:
-    """A project checked for lidargrammetry, before its cloud is read."""
+class OpenedBlock:
+    """A project checked for lidargrammetry, before its cloud is read (:func:`open_block`)."""
 
     config: ProjectConfig
     settings: LidargrammetryConfig
@@ -337,21 +338,24 @@ class _Opened:
         return cloud
 
 
-def open_block(project_dir, out, overrides: Mapping[str, Any] | None, matcher=None, *,
-               matching: bool = True) -> _Opened:
+def open_block(project: ProjectLike, out, overrides: Mapping[str, Any] | None, matcher=None, *,
+               matching: bool = True, frame: LocalFrame | None = None) -> OpenedBlock:
     """Settings and matcher (the given one, else the settings'), the photo project and the output
-    folder (outside the project), checked before a cluster starts or anything is read or written."""
-    root = Path(project_dir)
-    cfg = load_project(root)
+    folder (outside the project), checked before a cluster starts or anything is read or written.
+
+    ``frame``: the mapping frame the photo poses are expressed in (the hybrid's: the
+    trajectory's); by default one of the photo block's own (:func:`load_photo_project`)."""
+    project = as_project(project)
+    root, cfg = project.root, project.config
     st = lidargrammetry_settings(cfg, overrides)
     if matcher is None and matching:
         matcher = _settings_matcher(st, root)
-    pp = load_photo_project(root, cfg)
+    pp = load_photo_project(root, cfg, frame=frame)
     for warning in pp.warnings:
         log.warning(warning)
     if matching:  # every photo decodes, is complete and has its camera's size, before any work
         pp.read_photos()
-    return _Opened(cfg, st, matcher, pp, output_folder(out, pp.root))
+    return OpenedBlock(cfg, st, matcher, pp, output_folder(out, pp.root))
 
 
 def _lidargram_name(cloud: CloudIndex, strip: int, photo: str) -> str:
@@ -362,14 +366,14 @@ def _lidargram_name(cloud: CloudIndex, strip: int, photo: str) -> str:
 
 
 def block_images(pp: PhotoProject, cloud: CloudIndex, st: LidargrammetryConfig, progress: Progress,
-                  runner: TaskRunner) -> _Block:
+                  runner: TaskRunner) -> RenderedBlock:
     lgs = render_lidargrams(pp, cloud, st, progress=progress, runner=runner)
     n = len(pp.eop)
     # Complete and of their cameras' size: a JPEG cut short decodes with a grey lower half.
     photos = pp.read_photos()
     station = np.array(list(range(n)) + [i for _, i, _ in lgs], dtype=np.int64)
     names = tuple(pp.eop.images) + tuple(_lidargram_name(cloud, s, pp.eop.images[i]) for _, i, s in lgs)
-    return _Block(lgs, n, [pp.camera(i) for i in range(n)] + [lg.camera for lg, _, _ in lgs], station,
+    return RenderedBlock(lgs, n, [pp.camera(i) for i in range(n)] + [lg.camera for lg, _, _ in lgs], station,
                   np.r_[np.zeros(n, bool), np.ones(len(lgs), bool)], pp.R_w_c[station], pp.p_w_c[station],
                   photos + [lg.image for lg, _, _ in lgs], [None] * n + [np.isfinite(lg.depth) for lg, _, _ in lgs],
                   names)
@@ -380,7 +384,7 @@ def _method(st: LidargrammetryConfig, matcher) -> str:
     return st.matcher if matcher is None else repr(matcher)
 
 
-def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str | Path, *,
+def run_lidargrams(project: ProjectLike, points: list[str | Path], out: str | Path, *,
                    overrides: Mapping[str, Any] | None = None, progress: Progress = no_progress,
                    scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> list[str]:
     """Render the lidargrams (:func:`render_lidargrams`) and write each as ``out/NAME.png`` and ``NAME.npz``.
@@ -392,7 +396,7 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
     from georefine.lidargrammetry.render import save_lidargram
 
     names = []
-    opened = open_block(project_dir, out, overrides, matching=False)
+    opened = open_block(project, out, overrides, matching=False)
     st, pp, out = opened.settings, opened.pp, opened.out
     with runner_for(scheduler) as runner:
         cloud = opened.read_cloud(points, runner, progress)
@@ -402,7 +406,7 @@ def run_lidargrams(project_dir: str | Path, points: list[str | Path], out: str |
     return names
 
 
-def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path, *,
+def run_match(project: ProjectLike, points: list[str | Path], out: str | Path, *,
               overrides: Mapping[str, Any] | None = None, matcher=None,
               progress: Progress = no_progress, scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> MatchSummary:
     """Render the lidargrams, match the pairs of the kinds asked and write the matches.
@@ -427,7 +431,7 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
 
     timings: dict[str, float] = {}
     t = _time.perf_counter()
-    opened = open_block(project_dir, out, overrides, matcher)
+    opened = open_block(project, out, overrides, matcher)
     st, matcher, pp, out = opened.settings, opened.matcher, opened.pp, opened.out
     with runner_for(scheduler) as runner:
         cloud = opened.read_cloud(points, runner, progress)
@@ -470,7 +474,7 @@ def run_match(project_dir: str | Path, points: list[str | Path], out: str | Path
     return summary
 
 
-def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | Path, case: int, *,
+def run_coadjust(project: ProjectLike, points: list[str | Path], out: str | Path, case: int, *,
                  overrides: Mapping[str, Any] | None = None, matcher=None, cache_dir: str | Path | None = None,
                  progress: Progress = no_progress, scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> CoadjustResult:
     """Steps 1-4 of the module docstring for case ``case`` (1, 2 or 3); returns the metrics written.
@@ -495,12 +499,12 @@ def run_coadjust(project_dir: str | Path, points: list[str | Path], out: str | P
     """
     if case not in CASES:
         raise InputError("unknown case", field="case", expected="1, 2 or 3", found=str(case))
-    opened = open_block(project_dir, out, overrides, matcher)
+    opened = open_block(project, out, overrides, matcher)
     with runner_for(scheduler) as runner:
         return _coadjust(opened, points, case, cache_dir, progress, runner)
 
 
-def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress, runner: TaskRunner
+def _coadjust(opened: OpenedBlock, points, case: int, cache_dir, progress: Progress, runner: TaskRunner
               ) -> CoadjustResult:
     """:func:`run_coadjust` on a checked project and a running ``runner``."""
     st, matcher, pp, out = opened.settings, opened.matcher, opened.pp, opened.out
@@ -582,7 +586,7 @@ def _coadjust(opened: _Opened, points, case: int, cache_dir, progress: Progress,
     return metrics
 
 
-def block_matches(opened: _Opened, cloud: CloudIndex, blk: _Block, cache_dir, progress: Progress,
+def block_matches(opened: OpenedBlock, cloud: CloudIndex, blk: RenderedBlock, cache_dir, progress: Progress,
                   runner: TaskRunner) -> BlockMatches:
     """:func:`match_block` on the block's photos and lidargrams, through the step cache ``cache_dir`` (or None).
 

@@ -19,21 +19,17 @@ from pathlib import Path
 import numpy as np
 
 from georefine.adjustment.gnss_imu import (
-    GnssImuData,
     GnssImuResult,
     build_gnss_imu_problem,
     solve_gnss_imu,
     start_imu_errors,
     with_posterior,
 )
-from georefine.adjustment.trajectory_prior import TrajectoryPriorData
 from georefine.adjustment.upsampling import adjust_upsampled
-from georefine.config import ProjectConfig, load_project, write_yaml
+from georefine.config import write_yaml
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.files import make_output_folder
-from georefine.io.gnss import gnss_in_w
-from georefine.io.imu import ImuData
 from georefine.io.run_metrics import AdjustmentReport, FilterSummary, FrameOrigin, write_adjustment_report
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
@@ -41,95 +37,15 @@ from georefine.trajectory.ekf import FilterResult, run_filter
 from georefine.trajectory.sampled import Trajectory, interp_columns
 from georefine.trajectory.spline import KnotGrid
 from georefine.trajectory.spline_fit import fit_spline
-from georefine.workflows.delivered import read_delivered
+from georefine.workflows.opened import NavigationData, ProjectLike, as_project, output_folder
 from georefine.workflows.products import (
     accuracy_from_sigmas,
     body_kinematics,
     write_csv_product,
     write_sbet_product,
 )
-from georefine.workflows.project import (
-    bridge_project_imu,
-    check_imu_plausible,
-    check_navigation_spans,
-    output_folder,
-    read_project_gnss,
-    read_project_imu,
-)
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class NavigationData:
-    """GNSS and IMU of a project in the mapping frame, validated; or its delivered trajectory.
-
-    A project with raw sensors has ``imu`` and ``gnss``; one with a delivered trajectory
-    (``config.delivered_trajectory``, docs/ARCHITECTURE.md §4.9) has ``prior`` instead.
-    """
-
-    config: ProjectConfig
-    root: Path
-    frame: LocalFrame
-    t0_gps: float
-    imu: ImuData | None
-    gnss: GnssImuData | None
-    prior: TrajectoryPriorData | None = None
-
-    @property
-    def sample_time(self) -> np.ndarray:
-        """The times of the trajectory products: the IMU samples, or the delivered SBET's records (s)."""
-        return self.prior.time if self.prior is not None else self.gnss.imu_time
-
-    @property
-    def span(self) -> tuple[float, float]:
-        """Where the navigation data define the trajectory (s): GNSS and IMU overlap, or the SBET."""
-        if self.prior is not None:
-            return float(self.prior.time[0]), float(self.prior.time[-1])
-        g, i = self.gnss.gnss_time, self.gnss.imu_time
-        return max(float(g[0]), float(i[0])), min(float(g[-1]), float(i[-1]))
-
-
-def load_navigation(project_dir: str | Path) -> NavigationData:
-    """Read and validate GNSS and IMU; define ``w`` at the first usable GNSS fix.
-
-    Raises
-    ------
-    InputError
-        No usable GNSS epoch, GNSS and IMU spans that do not overlap, or an IMU sampling gap longer
-        than ``imu.max_gap_s`` (shorter ones are bridged: :func:`bridge_project_imu`).
-    """
-    root = Path(project_dir)
-    cfg = load_project(root)
-    if cfg.delivered_trajectory:
-        frame, t0, prior = read_delivered(root, cfg)
-        return NavigationData(cfg, root, frame, t0, None, None, prior)
-    gnss = read_project_gnss(root, cfg)
-    imu = read_project_imu(root, cfg)
-    bridged = bridge_project_imu(root, cfg, imu)  # the same rule as `georefine check`
-    if bridged.gaps:
-        log.warning("%s: %s", cfg.imu.file, bridged.describe())
-    imu = bridged.data
-    check_imu_plausible(root, cfg, gnss, imu)
-    usable, _, _ = check_navigation_spans(root, cfg, gnss, imu)
-    if cfg.crs.reference_point is not None:
-        rp = cfg.crs.reference_point
-        frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
-    else:
-        lat, lon, h = gnss.geodetic()
-        i = int(np.flatnonzero(usable)[0])
-        frame = LocalFrame(float(lat[i]), float(lon[i]), float(h[i]))
-    t0 = float(np.floor(imu.time_gps[0]))
-    gt, gp, gc = gnss_in_w(frame, t0, gnss, cfg.gnss.min_quality)
-    data = GnssImuData(
-        frame=frame, t0_gps=t0, imu_time=imu.time_gps - t0, imu_gyro=imu.gyro, imu_acc=imu.acc,
-        imu_rate_hz=float(imu.rate_hz), gnss_time=gt, gnss_p_w=gp, gnss_cov_w=gc,
-        p_b_a=np.asarray(cfg.gnss.lever_arm_m, dtype=float),
-        imu_gyro_sigma=bridged.gyro_sigma if bridged.gaps else None,
-        imu_acc_sigma=bridged.acc_sigma if bridged.gaps else None,
-        gnss_correlated=cfg.gnss.correlated_error, imu_kind=imu.kind,
-    )
-    return NavigationData(cfg, root, frame, t0, imu, data)
 
 
 @dataclass(frozen=True)
@@ -329,7 +245,7 @@ def imu_rate_trajectory(nav: NavigationData, adj: GnssImuResult) -> Trajectory:
 
 
 def run_trajectory(
-    project_dir: str | Path,
+    project: ProjectLike,
     out: str | Path,
     *,
     filter_only: bool = False,
@@ -339,7 +255,7 @@ def run_trajectory(
     timings: dict[str, float] = {}
     t = _time.perf_counter()
     progress("reading the input", 0, 1)
-    nav = load_navigation(project_dir)
+    nav = as_project(project).navigation
     progress("reading the input", 1, 1)
     timings["read"] = _time.perf_counter() - t
     if nav.prior is not None:
@@ -412,7 +328,7 @@ class GeoreferenceRunResult:
 
 
 def run_georeference(
-    project_dir: str | Path,
+    project: ProjectLike,
     trajectory_path: str | Path,
     out: str | Path,
     *,
@@ -434,16 +350,16 @@ def run_georeference(
     from georefine.lidar.tiles import georeference_strips, plan_strip, refuse_strips_outside, tile_points
     from georefine.trajectory.sampled import trajectory_from_sbet
 
-    root = Path(project_dir)
-    cfg = load_project(root)
-    out = output_folder(out, root)
+    project = as_project(project)
+    root, cfg = project.root, project.config
+    out = project.output_folder(out)
     if gps_week is None and read_sbet_companion(trajectory_path) is None:  # else the SBET's companion states it
         gps_week = gps_week_of_strip(root / cfg.scanner.files[0])
     sbet = read_sbet(trajectory_path, gps_week=gps_week)
     frame = LocalFrame(float(sbet.lat_rad[0]), float(sbet.lon_rad[0]), float(sbet.h_m[0]))
     t0 = float(np.floor(sbet.time_gps[0]))
     traj = trajectory_from_sbet(sbet, frame, t0)
-    crs = OutputCRS(cfg.crs.output_epsg)
+    crs = project.crs
     with runner_for(scheduler) as runner:
         size = tile_points(cfg.processing.scale, runner.workers)
         offset = cfg.scanner.time_offset_s
@@ -455,6 +371,6 @@ def run_georeference(
         results = georeference_strips(
             plans, [out / (Path(rel).stem + ".laz") for rel in cfg.scanner.files], poses, t0,
             np.asarray(cfg.scanner.lever_arm_m), boresight_matrix(cfg.scanner.boresight_deg), frame, crs,
-            runner=runner, progress=progress, protect=(root,), time_offset_s=offset, heights=cfg.crs.geoid(root),
+            runner=runner, progress=progress, protect=(root,), time_offset_s=offset, heights=project.heights,
         )
     return GeoreferenceRunResult(out, tuple(results))

@@ -20,24 +20,39 @@ project folder or inside it), its step cache and the task runner of the per-tile
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING
 
+import numpy as np
+
+from georefine.adjustment.gnss_imu import GnssImuData
+from georefine.adjustment.trajectory_prior import TrajectoryPriorData
 from georefine.config import ProjectConfig, load_project
 from georefine.errors import InputError
-from georefine.geometry.frames import GeoidHeights, OutputCRS
+from georefine.io.files import check_output_folder
+from georefine.io.gnss import gnss_in_w
+from georefine.io.imu import ImuData
+from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, StepRunner
+from georefine.workflows.delivered import read_delivered
+from georefine.workflows.project import (
+    bridge_project_imu,
+    check_imu_plausible,
+    check_navigation_spans,
+    read_project_gnss,
+    read_project_imu,
+)
 
-if TYPE_CHECKING:  # navigation imports this module's types only under TYPE_CHECKING too
-    from georefine.geometry.frames import LocalFrame
-    from georefine.workflows.navigation import NavigationData
+log = logging.getLogger(__name__)
 
-__all__ = ["Flight", "Project", "ProjectLike", "Workspace", "as_project", "open_project", "open_workspace"]
+
+__all__ = ["Flight", "NavigationData", "Project", "ProjectLike", "Workspace", "as_project", "open_project", "load_navigation",
+           "open_workspace", "output_folder", "project_root"]
 
 
 @dataclass(frozen=True)
@@ -81,8 +96,6 @@ class Project:
     @cached_property
     def navigation(self) -> NavigationData:
         """GNSS and IMU in the mapping frame, validated (or the delivered trajectory); read once."""
-        from georefine.workflows.navigation import load_navigation
-
         return load_navigation(self)
 
     @property
@@ -105,11 +118,17 @@ class Project:
         return replace(self, config=config)
 
     def output_folder(self, out: str | Path) -> Path:
-        """``out`` as a Path, refused when it is the project folder or inside it (inputs stay
-        untouched), or exists and is not a folder (:func:`~georefine.workflows.project.output_folder`)."""
-        from georefine.workflows.project import output_folder
-
+        """``out`` as a Path, refused when it is the project folder or inside it (:func:`output_folder`)."""
         return output_folder(out, self.root)
+
+
+def output_folder(out: str | Path, project_root: Path) -> Path:
+    """``out`` as a Path, refusing the project folder or anything inside it (inputs stay untouched),
+    and a path that exists but is not a folder, or lies below a file."""
+    out = Path(out)
+    if out.resolve() == project_root.resolve() or project_root.resolve() in out.resolve().parents:
+        raise InputError("refusing to write into the project folder", path=out, expected="an output folder outside the inputs")
+    return check_output_folder(out)
 
 
 ProjectLike = Project | str | Path
@@ -135,6 +154,85 @@ def open_project(project_dir: str | Path) -> Project:
 def as_project(project: ProjectLike) -> Project:
     """``project`` itself, or the folder it names opened (:func:`open_project`)."""
     return project if isinstance(project, Project) else open_project(project)
+
+
+def project_root(project: ProjectLike) -> Path:
+    """The folder of ``project`` (opened or named), for steps that read files beside the
+    configuration only (the simulated truth) and open nothing."""
+    return project.root if isinstance(project, Project) else Path(project)
+
+
+@dataclass(frozen=True)
+class NavigationData:
+    """GNSS and IMU of a project in the mapping frame, validated; or its delivered trajectory.
+
+    A project with raw sensors has ``imu`` and ``gnss``; one with a delivered trajectory
+    (``config.delivered_trajectory``, docs/ARCHITECTURE.md §4.9) has ``prior`` instead.
+    """
+
+    config: ProjectConfig
+    root: Path
+    frame: LocalFrame
+    t0_gps: float
+    imu: ImuData | None
+    gnss: GnssImuData | None
+    prior: TrajectoryPriorData | None = None
+
+    @property
+    def sample_time(self) -> np.ndarray:
+        """The times of the trajectory products: the IMU samples, or the delivered SBET's records (s)."""
+        return self.prior.time if self.prior is not None else self.gnss.imu_time
+
+    @property
+    def span(self) -> tuple[float, float]:
+        """Where the navigation data define the trajectory (s): GNSS and IMU overlap, or the SBET."""
+        if self.prior is not None:
+            return float(self.prior.time[0]), float(self.prior.time[-1])
+        g, i = self.gnss.gnss_time, self.gnss.imu_time
+        return max(float(g[0]), float(i[0])), min(float(g[-1]), float(i[-1]))
+
+
+def load_navigation(project: ProjectLike) -> NavigationData:
+    """Read and validate GNSS and IMU; define ``w`` at the first usable GNSS fix (or at
+    ``crs.reference_point``). A workflow asks :attr:`Project.navigation`, which calls this once.
+
+    Raises
+    ------
+    InputError
+        No usable GNSS epoch, GNSS and IMU spans that do not overlap, or an IMU sampling gap longer
+        than ``imu.max_gap_s`` (shorter ones are bridged: :func:`bridge_project_imu`).
+    """
+    project = as_project(project)
+    root, cfg = project.root, project.config
+    if cfg.delivered_trajectory:
+        frame, t0, prior = read_delivered(root, cfg)
+        return NavigationData(cfg, root, frame, t0, None, None, prior)
+    gnss = read_project_gnss(root, cfg)
+    imu = read_project_imu(root, cfg)
+    bridged = bridge_project_imu(root, cfg, imu)  # the same rule as `georefine check`
+    if bridged.gaps:
+        log.warning("%s: %s", cfg.imu.file, bridged.describe())
+    imu = bridged.data
+    check_imu_plausible(root, cfg, gnss, imu)
+    usable, _, _ = check_navigation_spans(root, cfg, gnss, imu)
+    if cfg.crs.reference_point is not None:
+        rp = cfg.crs.reference_point
+        frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
+    else:
+        lat, lon, h = gnss.geodetic()
+        i = int(np.flatnonzero(usable)[0])
+        frame = LocalFrame(float(lat[i]), float(lon[i]), float(h[i]))
+    t0 = float(np.floor(imu.time_gps[0]))
+    gt, gp, gc = gnss_in_w(frame, t0, gnss, cfg.gnss.min_quality)
+    data = GnssImuData(
+        frame=frame, t0_gps=t0, imu_time=imu.time_gps - t0, imu_gyro=imu.gyro, imu_acc=imu.acc,
+        imu_rate_hz=float(imu.rate_hz), gnss_time=gt, gnss_p_w=gp, gnss_cov_w=gc,
+        p_b_a=np.asarray(cfg.gnss.lever_arm_m, dtype=float),
+        imu_gyro_sigma=bridged.gyro_sigma if bridged.gaps else None,
+        imu_acc_sigma=bridged.acc_sigma if bridged.gaps else None,
+        gnss_correlated=cfg.gnss.correlated_error, imu_kind=imu.kind,
+    )
+    return NavigationData(cfg, root, frame, t0, imu, data)
 
 
 @dataclass(frozen=True)

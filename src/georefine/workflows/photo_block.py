@@ -88,10 +88,13 @@ def lidargrammetry_settings(config: ProjectConfig, overrides: Mapping[str, Any] 
     return override_fields(config.processing.lidargrammetry, overrides or {}, name=SECTION)  # type: ignore[return-value]
 
 
-def load_photo_project(project_dir: str | Path, config: ProjectConfig | None = None) -> PhotoProject:
+def load_photo_project(project_dir: str | Path, config: ProjectConfig | None = None, *,
+                       frame: LocalFrame | None = None) -> PhotoProject:
     """Read and check the photo files of a project (:func:`georefine.io.photos.check_photo_block`).
 
     ``config``: the project's configuration if already loaded (else ``project.yaml`` is read).
+    ``frame``: the mapping frame of the poses (default: one at the block's centre, at the
+    control points' median height).
     The images themselves are read where they are used, and by ``georefine check``
     (:meth:`PhotoProject.read_photos`); the block's warnings are in ``warnings``.
     """
@@ -109,9 +112,10 @@ def load_photo_project(project_dir: str | Path, config: ProjectConfig | None = N
     warnings = pio.check_photo_block(block, eop_path=root / ph.eop, gcp_path=root / (ph.gcp or "gcp.csv"),
                                      image_points_path=root / (ph.image_points or "image_points.csv"))
     crs = OutputCRS(cfg.crs.output_epsg)
-    lat, lon, _ = crs.to_geodetic(eop.xyz.mean(axis=0))
-    h0 = float(np.median(gcps.xyz[:, 2])) if gcps is not None and len(gcps) else 0.0
-    frame = LocalFrame(float(lat), float(lon), h0)
+    if frame is None:
+        lat, lon, _ = crs.to_geodetic(eop.xyz.mean(axis=0))
+        h0 = float(np.median(gcps.xyz[:, 2])) if gcps is not None and len(gcps) else 0.0
+        frame = LocalFrame(float(lat), float(lon), h0)
     R, p = pio.poses_in_w(eop, frame, crs)
     empty = pio.ImagePoints((), (), np.zeros((0, 2)), np.zeros(0, np.int64))
     gc = gcps if gcps is not None else pio.ControlPoints((), np.zeros((0, 3)), np.zeros((0, 3)), ())
