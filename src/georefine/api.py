@@ -47,7 +47,7 @@ from georefine.workflows.lidargrammetry_results import CoadjustResult, MatchSumm
 from georefine.workflows.navigation import GeoreferenceRunResult, TrajectoryRunResult, run_georeference, run_trajectory
 from georefine.workflows.opened import Flight, Project, ProjectLike, open_project
 from georefine.workflows.products import TrajectoryExport
-from georefine.workflows.project import ProjectSummary, inspect_project
+from georefine.workflows.check import ProjectSummary, inspect_project
 
 __all__ = [
     # the project

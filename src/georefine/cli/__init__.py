@@ -1,6 +1,7 @@
 """The ``georefine`` command line. The only package that prints and sets exit codes.
 
-Each subcommand wires files around one library function (the commands that read results,
+Each subcommand parses its options and calls one function of the public API,
+:mod:`georefine.api`, and nothing else of the library (the commands that read results,
 ``export`` and ``evaluate``, are in :mod:`georefine.cli.tools`; what they share in
 :mod:`georefine.cli.common`). Heavy imports are deferred into
 the commands so that ``georefine --help`` stays fast. Any :class:`~georefine.errors.GeorefineError`
@@ -73,10 +74,10 @@ def simulate(
 ) -> None:
     """Simulate a flight and write a project folder with real file formats and the truth."""
     with user_errors():
-        from georefine.sim.scenarios import simulate_project
+        from georefine import api
 
         with progress() as report:
-            result = simulate_project(
+            result = api.simulate(
                 scenario,
                 out,
                 seed=seed,
@@ -97,10 +98,10 @@ def check(
 ) -> None:
     """Validate a project: project.yaml and every sensor file it names, and their time spans."""
     with user_errors():
-        from georefine.workflows.project import inspect_project
+        from georefine import api
 
         with progress() as report:
-            summary = inspect_project(project, progress=report)
+            summary = api.check(project, progress=report)
     stdout.print(summary.summary())
 
 
@@ -120,10 +121,10 @@ def trajectory(
     """
     with user_errors():
         output_ok(out, force, project)
-        from georefine.workflows import run_trajectory
+        from georefine import api
 
         with progress(out) as report:
-            result = run_trajectory(project, out, filter_only=filter_only, progress=report)
+            result = api.estimate_trajectory(project, out, filter_only=filter_only, progress=report)
     stdout.print(result.summary())
 
 
@@ -149,8 +150,8 @@ def run(
     """
     with user_errors():
         output_ok(out, force, project)
+        from georefine import api
         from georefine.errors import InputError
-        from georefine.workflows.lidar import run_workflow
 
         ids = None
         if strips:
@@ -160,8 +161,8 @@ def run(
                 raise InputError("strip ids must be integers", field="--strips", found=repr(strips)) from None
         try:
             with progress(out) as report:
-                result = run_workflow(project, out, strips=ids, lidar=not no_lidar, resume=not fresh,
-                                      points=not no_points, progress=report, scheduler=scheduler)
+                result = api.run(project, out, strips=ids, lidar=not no_lidar, resume=not fresh,
+                                 points=not no_points, progress=report, scheduler=scheduler)
         except InputError as exc:
             if exc.field != "strips":
                 raise
@@ -183,10 +184,10 @@ def georeference(
     """Georeference the project's strips with a trajectory (LAZ 1.4 in the output CRS)."""
     with user_errors():
         output_ok(out, force, project)
-        from georefine.workflows import run_georeference
+        from georefine import api
 
         with progress(out) as report:
-            result = run_georeference(project, trajectory_file, out, gps_week=gps_week, progress=report,
+            result = api.georeference(project, trajectory_file, out, gps_week=gps_week, progress=report,
                                       scheduler=scheduler)
     stdout.print(result.summary())
 
@@ -200,13 +201,13 @@ def clean(
     inside a demo's folder), after which a rerun recomputes every step; with --all the folder.
     Only folders Georefine made are touched."""
     with user_errors():
-        from georefine.io.files import clean_output
+        from georefine import api
 
-        removed, size = clean_output(out, everything)
-    if not removed:
+        result = api.clean(out, everything=everything)
+    if not result.removed:
         stdout.print(f"nothing to clean in {out}: no step cache")
         return
-    stdout.print(f"removed {', '.join(str(p) for p in removed)} ({size / 1e6:,.1f} MB)")
+    stdout.print(result.summary())
 
 
 def _vector3(text: str, option: str) -> tuple[float, float, float]:
@@ -246,11 +247,11 @@ def import_strips_cmd(
     """
     with user_errors():
         output_ok(out, force)
-        from georefine.workflows.import_strips import import_strips
+        from georefine import api
 
         arm, bs = _vector3(lever_arm, "--lever-arm"), _vector3(boresight, "--boresight")
         with progress(out) as report:
-            result = import_strips(strips, sbet, out, lever_arm_m=arm, boresight_deg=bs, smrmsg=smrmsg,
+            result = api.import_strips(strips, sbet, out, lever_arm_m=arm, boresight_deg=bs, smrmsg=smrmsg,
                                    gps_week=gps_week, imu=imu, progress=report, scheduler=scheduler)
     stdout.print(result.summary())
 
@@ -284,12 +285,11 @@ def demo(
     seed = 42 if seed is None else seed
     with user_errors():
         output_ok(out, force)
-        from georefine.demo.corridor import run_demo
+        from georefine import api
 
         with progress(out) as report:
-            result = run_demo(out, scenario=scenario, seed=seed, overrides=overrides or [], single_pass=single_pass,
-                              boresight=boresight,
-                              progress=report, scheduler=scheduler)
+            result = api.run_demo(out, scenario=scenario, seed=seed, overrides=overrides or [],
+                                  single_pass=single_pass, boresight=boresight, progress=report, scheduler=scheduler)
     from rich.table import Table
 
     m = result.metrics
@@ -314,16 +314,16 @@ def demo(
 def _block_demo(out: Path, seed: int, overrides: list[str], method: str, scheduler: str, force: bool) -> None:
     with user_errors():
         output_ok(out, force)
-        if method not in ("sift", "xfeat"):
+        if method not in ("sift", "xfeat"):  # before progress() makes the folder
             from georefine.errors import InputError
 
             raise InputError("unknown matching method for the demo", field="--method", expected="sift or xfeat",
                              found=method)
-        from georefine.demo.block import run_block_demo
+        from georefine import api
 
         with progress(out) as report:
-            result = run_block_demo(out, seed=seed, overrides=overrides, method=method, progress=report,
-                                    scheduler=scheduler)
+            result = api.run_demo(out, scenario="block", seed=seed, overrides=overrides, method=method,
+                                  progress=report, scheduler=scheduler)
     from rich.table import Table
 
     table = Table(title=f"Georefine demo (block, seed {seed}): co-adjustment, beside paper 004")
@@ -365,11 +365,11 @@ def lidargrams(
     """
     with user_errors():
         output_ok(out, force, project)
-        from georefine.workflows.lidargrammetry import run_lidargrams
+        from georefine import api
 
         with progress(out) as report:
-            names = run_lidargrams(project, points, out, progress=report, scheduler=scheduler,
-                                   overrides=_given(lidargram_scale=scale, per_strip=False if merged else None))
+            names = api.render_lidargrams(project, points, out, progress=report, scheduler=scheduler,
+                                          overrides=_given(lidargram_scale=scale, per_strip=False if merged else None))
     stdout.print(f"{len(names)} lidargrams written to {out}")
 
 
@@ -411,13 +411,13 @@ def match(
     """
     with user_errors():
         output_ok(out, force, project)
-        from georefine.workflows.lidargrammetry import run_match
+        from georefine import api
 
         kinds = None if pairs is None else [k.strip() for k in pairs.split(",") if k.strip()]
         overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
                      **_given(pair_kinds=kinds, lidargram_scale=scale)}
         with progress(out) as report:
-            summary = run_match(project, points, out, overrides=overrides, progress=report, scheduler=scheduler)
+            summary = api.match(project, points, out, overrides=overrides, progress=report, scheduler=scheduler)
     stdout.print(f"{summary.photos} photos, {summary.lidargrams} lidargrams, {summary.tracks} tracks")
     for k in summary.pair_kinds:
         stdout.print(f"  {k.kind}: {k.pairs} pairs ({k.pairs_with_matches} with matches), "
@@ -454,14 +454,14 @@ def coadjust(
     """
     with user_errors():
         output_ok(out, force, project)
-        from georefine.workflows.lidargrammetry import run_coadjust
+        from georefine import api
 
         sig_r = None if sigma_rotation is None else [v.strip() for v in sigma_rotation.split(",")]
         overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
                      **_given(use_depth=False if no_depth else None, lidargram_sigma_position_m=sigma_position,
                               lidargram_sigma_rotation_deg=sig_r)}
         with progress(out) as report:
-            m = run_coadjust(project, points, out, case, overrides=overrides, progress=report, scheduler=scheduler)
+            m = api.coadjust(project, points, out, case, overrides=overrides, progress=report, scheduler=scheduler)
     stdout.print(f"case {case}: {m.description}")
     for label, st in (("control points", m.control_points), ("check points", m.check_points)):
         if st is not None:
@@ -503,12 +503,12 @@ def hybrid(
     """
     with user_errors():
         output_ok(out, force, project)
-        from georefine.workflows.hybrid import run_hybrid
+        from georefine import api
 
         overrides = {**_matcher(method, features, extractor_weights, lightglue_weights),
                      **_given(return_keypoint_offset=True if keypoint_offset else None)}
         with progress(out) as report:
-            m = run_hybrid(project, out, case=case, planes=planes, overrides=overrides, resume=not fresh,
-                           progress=report, scheduler=scheduler)
+            m = api.adjust_hybrid(project, out, case=case, planes=planes, overrides=overrides, resume=not fresh,
+                                  progress=report, scheduler=scheduler)
     stdout.print(m.summary())
     stdout.print(f"  results in {out}")

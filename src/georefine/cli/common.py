@@ -36,13 +36,13 @@ def force_option():
 
 def output_ok(out: Optional[Path], force: bool, project: Optional[Path] = None) -> None:
     """Refuse an output folder that holds files Georefine did not write, unless --force
-    (io.files.refuse_foreign_output), and one inside ``project`` (workflows.project.output_folder):
+    (io.files.refuse_foreign_output), and one inside ``project`` (workflows.opened.output_folder):
     before :func:`progress` makes the folder for its log."""
     if out is not None:
         from georefine.io.files import refuse_foreign_output
 
         if project is not None:
-            from georefine.workflows.project import output_folder
+            from georefine.workflows.opened import output_folder
 
             output_folder(out, Path(project))
         refuse_foreign_output(out, force)

@@ -37,9 +37,9 @@ def export_trajectory_cmd(
     ATE without alignment give Georefine's own figures.
     """
     with user_errors():
-        from georefine.workflows.products import export_trajectory
+        from georefine import api
 
-        result = export_trajectory(source, out, fmt, epsg=epsg, gps_week=gps_week)
+        result = api.export_trajectory(source, out, fmt, epsg=epsg, gps_week=gps_week)
     stdout.print(result.summary())
 
 
@@ -81,16 +81,10 @@ def evaluate_trajectory(
     """
     with user_errors():
         output_ok(out, force)
-        from georefine.evaluation.trajectory_files import (
-            compare_sbet_files,
-            write_trajectory_evaluation,
-        )
+        from georefine import api
 
-        comparison = compare_sbet_files(estimate, reference, gps_week=gps_week, time_window=span)
-        files = (
-            write_trajectory_evaluation(out, comparison, protect=(estimate, reference)).all()
-            if out is not None else ()
-        )
+        evaluation = api.evaluate_trajectory(estimate, reference, out, gps_week=gps_week, span=span)
+    comparison, files = evaluation.comparison, evaluation.files
     from rich.table import Table
 
     table = Table(title=f"{estimate.name} - {reference.name}: {len(comparison)} epochs, "
@@ -125,16 +119,10 @@ def evaluate_reference_planes_cmd(
     """
     with user_errors():
         output_ok(out, force)
-        from georefine.evaluation.clouds import evaluate_reference_planes
-        from georefine.io.las import point_files
-        from georefine.evaluation.summary import ReferencePlaneFigures
-        from georefine.tasks import TaskRunner
+        from georefine import api
 
-        files = point_files(points)
-        with TaskRunner(scheduler) as runner:
-            _, summary = evaluate_reference_planes(files, reference, out, inset_m=inset, max_distance_m=max_distance,
-                                                   runner=runner)
-        figures = ReferencePlaneFigures.from_summary(summary)
+        figures = api.evaluate_reference_planes(points, reference, out, inset_m=inset, max_distance_m=max_distance,
+                                                scheduler=scheduler)
     from rich.table import Table
 
     table = Table(title=f"reference planes: {figures.n_observations} observations")
@@ -169,14 +157,11 @@ def evaluate_strip_differences_cmd(
     a planar surface in every view (wires, vegetation, edges) are gated."""
     with user_errors():
         output_ok(out, force)
-        from georefine.evaluation.clouds import evaluate_strip_differences
-        from georefine.io.las import point_files
-        from georefine.tasks import TaskRunner
+        from georefine import api
 
-        files = point_files(points)
-        with TaskRunner(scheduler) as runner:
-            m = evaluate_strip_differences(files, out, cell_size_m=cell, max_roughness_m=max_roughness,
-                                           max_slope_deg=max_slope, max_normal_angle_deg=max_normal_angle, runner=runner)
+        m = api.evaluate_strip_differences(points, out, cell_size_m=cell, max_roughness_m=max_roughness,
+                                           max_slope_deg=max_slope, max_normal_angle_deg=max_normal_angle,
+                                           scheduler=scheduler)
     s, g = m.summary(), m.gating()
     stdout.print(f"strip differences on {s['cells']:,} planar cells of {cell:g} m: median {s['median_m'] * 1e3:.1f} mm, "
                  f"P95 {s['p95_m'] * 1e3:.1f} mm")
