@@ -23,9 +23,8 @@ from pathlib import Path
 import yaml
 
 sys.path.insert(0, str(Path(__file__).parent))
-from proctree import run_measured  # noqa: E402
-
 from georefine.evaluation.coadjust import cloud_errors  # noqa: E402
+from proctree import run_measured  # noqa: E402
 
 
 def main() -> None:

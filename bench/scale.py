@@ -33,9 +33,8 @@ import numpy as np
 import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from proctree import run_measured  # noqa: E402
-
 from georefine.evaluation.trajectory_files import truth_pass_rmse as pass_rmse  # noqa: E402
+from proctree import run_measured  # noqa: E402
 
 LINE_RATE = {100_000: 120.0, 400_000: 240.0, 1_800_000: 400.0}
 """Lines per second at each pulse rate (the corridor's, between, the VUX-160's in ``corridor-paper``)."""

@@ -278,7 +278,7 @@ def report_markdown(records: list[dict]) -> None:
     print("|---|---|---:|---|---|---|---|---|---|---:|---|---|---|---|")
     for rec in records:
         name = key_of(tuple(rec["scenario"].values()), rec.get("draw", 0))
-        for kind, k, gi, gil in rows(rec):
+        for kind, _k, gi, gil in rows(rec):
             ratio = {a: gil["rmse_mdeg"][a] / gi["rmse_mdeg"][a] for a in ANGLES}
             beyond = {a: 100 * gil["beyond_3_sigma"][a] for a in ANGLES}
             print(f"| {name} | {kind} | {gi['strip']} | {fmt3(gi['rmse_mdeg'], '.2f')} | {fmt3(gil['rmse_mdeg'], '.2f')} | "
@@ -304,7 +304,7 @@ def over_draws(records: list[dict]) -> None:
         return
     print("over draws (RMS of each pass's RMSE over the scenario's draws; the same checks):")
     n_fail = 0
-    for (name, kind, k), pairs in many.items():
+    for (name, kind, _k), pairs in many.items():
         rms = [{a: float(np.sqrt(np.mean([p[i]["rmse_mdeg"][a] ** 2 for p in pairs]))) for a in ANGLES} for i in (0, 1)]
         bad = checks({"rmse_mdeg": rms[0]}, {"rmse_mdeg": rms[1]})
         n_fail += bool(bad)
@@ -322,7 +322,7 @@ def report(records: list[dict]) -> None:
     n_fail = n_fail_optima = 0
     for rec in records:
         name = key_of(tuple(rec["scenario"].values()), rec.get("draw", 0))
-        for kind, k, gi, gil in rows(rec):
+        for kind, _k, gi, gil in rows(rec):
             ratio = {a: gil["rmse_mdeg"][a] / gi["rmse_mdeg"][a] for a in ANGLES}
             fails = fails_text(gi, gil)
             n_fail += bool(fails)

@@ -47,9 +47,9 @@ from georefine.geometry.frames import OutputCRS
 from georefine.geometry.rotation import log_so3
 from georefine.io.las import read_las
 from georefine.io.trajectory import read_sbet
+from georefine.lidar.georeference import PoseInterpolator, georeference
 from georefine.trajectory.highrate import high_pass
 from georefine.trajectory.sampled import trajectory_from_sbet
-from georefine.lidar.georeference import PoseInterpolator, georeference
 from georefine.workflows.navigation import (
     imu_rate_trajectory,
     load_navigation,

@@ -38,7 +38,6 @@ from pathlib import Path
 import laspy
 import numpy as np
 
-
 ONE_CORE = ("RAYON_NUM_THREADS", "NUMBA_NUM_THREADS", "OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")
 """Thread-pool sizes set to 1 in the workers so that a worker is one core."""
 

@@ -26,6 +26,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
         os.environ.setdefault(_var, "1")
 
 import pytest
+
 from shared_projects import built_once, run_readme_example
 
 SLOW_FIRST = (

@@ -8,8 +8,9 @@ import subprocess
 from pathlib import Path
 from typing import Callable
 
-from cli_helpers import run_georefine
 from filelock import FileLock
+
+from cli_helpers import run_georefine
 
 README_SEED = 4
 """The seed of the README's smallest example (``georefine simulate corridor-tiny --seed 4``)."""

@@ -619,7 +619,7 @@ def test_rotation_averaging_converges_and_covariance_matches_monte_carlo():
     R_true = random_rotations(rng, n)
     abs_idx = np.array([0, 4, 7])
     runs, errors, covs = 150, [], None
-    for run in range(runs):
+    for _ in range(runs):
         g_abs, g_rel = _rotation_chain(rng, R_true, sigma_abs, sigma_rel, abs_idx)
         problem = Problem()
         problem.add_block("R", noisy(rng, R_true, 0.3), manifold="so3")  # ~17 deg start error

@@ -23,10 +23,10 @@ from bad_input_helpers import remove as _remove
 from bad_input_helpers import set_field as _set_field
 from bad_input_helpers import truncate as _truncate
 from bad_input_helpers import write as _write
-from cli_helpers import run_georefine as _georefine
 from cli_helpers import messages, run_georefine_here
-from test_bad_photo_inputs import PHOTO_CASES
+from cli_helpers import run_georefine as _georefine
 from georefine.sim.scenarios import simulate_project
+from test_bad_photo_inputs import PHOTO_CASES
 
 FAST_SCAN = ["scanner.pulse_rate_hz=2000", "scanner.line_rate_hz=100"]
 

@@ -16,7 +16,6 @@ from bad_input_helpers import assert_refused, edit_line, lines, remove, set_fiel
 from cli_helpers import run_georefine as _georefine
 from georefine.sim.scenarios import simulate_project
 
-
 # Photo inputs: a small block (600 x 400 px photos), consumed by the co-adjustment.
 SMALL_BLOCK = ["scene.length_m=260", "scanner.pulse_rate_hz=5000", "scanner.line_rate_hz=100",
                "photos.camera.width_px=600", "photos.camera.height_px=400", "photos.camera.focal_px=800",

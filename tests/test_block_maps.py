@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 from matplotlib.quiver import Quiver
 from matplotlib.text import Text
-from test_bundle import _block
 
 from georefine.demo.block import BlockCase, BlockDemoMetrics, BlockDemoResult, _write_report, point_table_rows
 from georefine.errors import InputError
@@ -38,6 +37,7 @@ from georefine.workflows.lidargrammetry_results import (
     TieReprojection,
     TieResiduals,
 )
+from test_bundle import _block
 
 CAM = Camera(3000, 2000, 4000.0, 4000.0, 1500.0, 1000.0, name="camera")
 NADIR = np.diag([1.0, -1.0, -1.0])  # camera x east, y south, z down: looking straight down

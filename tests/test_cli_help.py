@@ -7,9 +7,9 @@ from io import StringIO
 
 import pytest
 import typer
-from cli_helpers import run_georefine_here
 from rich.table import Table
 
+from cli_helpers import run_georefine_here
 from georefine.errors import GeorefineError
 
 

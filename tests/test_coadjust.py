@@ -13,15 +13,15 @@ import laspy
 import numpy as np
 import pytest
 import yaml
+
 from browser_helpers import check_rendered_images, chromium, rendered_images
 from colmap_helpers import colmap_checks
-
 from georefine.config import ProjectConfig, validate_model
 from georefine.demo.block import BlockDemoMetrics
 from georefine.errors import InputError
 from georefine.io import metashape, photos
-from georefine.io.files import write_json
 from georefine.io.colmap import block_from_reconstruction, read_model
+from georefine.io.files import write_json
 from georefine.lidargrammetry.crosscheck import solve_both
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows.lidargrammetry import make_matcher, run_coadjust

@@ -12,8 +12,8 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
-from colmap_helpers import colmap_checks
 
+from colmap_helpers import colmap_checks
 from georefine.geometry.camera import Camera, R_w_c_from_opk, project_points
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.colmap import (

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from browser_helpers import png_facts
 
+from browser_helpers import png_facts
 from georefine.evaluation.cell_moments import cell_keys, cell_moments
 from georefine.evaluation.coverage import CellCounts, CoverageMap, coverage_map, write_coverage_png
 from georefine.evaluation.figures import AXES_KEY, MIN_FONT_KEY, save_png

@@ -40,9 +40,9 @@ from georefine.io.trajectory import read_sbet, write_sbet
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.spline import KnotGrid
 from georefine.workflows import run_georeference
+from georefine.workflows.check import inspect_project
 from georefine.workflows.import_strips import import_strips
 from georefine.workflows.lidar import run_workflow
-from georefine.workflows.check import inspect_project
 
 MDEG = np.radians(1e-3)
 

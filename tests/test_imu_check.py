@@ -11,12 +11,12 @@ import pytest
 
 from cli_helpers import messages
 from cli_helpers import run_georefine as _georefine
+from georefine.config import load_project
 from georefine.geometry.earth import normal_gravity
 from georefine.geometry.frames import LocalFrame
 from georefine.io.gnss import gnss_in_w
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.imu_check import check_imu_frame, signed_permutations
-from georefine.config import load_project
 from georefine.workflows.project import read_project_gnss, read_project_imu
 
 FAST_SCAN = ["scanner.pulse_rate_hz=2000", "scanner.line_rate_hz=100"]

@@ -13,9 +13,8 @@ import numpy as np
 import pyproj
 import pytest
 
-from georefine.io.las import epsg_of
 from georefine.geometry.frames import OutputCRS
-from georefine.io.las import SCAN_ANGLE_UNIT_DEG, PointCloud, read_las, read_las_info
+from georefine.io.las import SCAN_ANGLE_UNIT_DEG, PointCloud, epsg_of, read_las, read_las_info
 from georefine.io.las_encode import ExtraDim, scan_angle_counts
 from georefine.io.las_writer import ELLIPSOIDAL_VERT_CS, LasWriter, las_crs_wkt, write_las
 

@@ -14,13 +14,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from synthetic_images import textured_scene
 
 from georefine.config import LidargrammetryConfig
 from georefine.errors import InputError
 from georefine.lidargrammetry import matching
 from georefine.lidargrammetry.matching import LightGlueMatcher, installed_lightglue_weights
 from georefine.workflows.lidargrammetry import _settings_matcher, make_matcher
+from synthetic_images import textured_scene
 
 FEATURES = {"aliked": ("aliked-n16.pth", "aliked_lightglue.pth"), "disk": ("disk-depth-save.pth", "disk_lightglue.pth")}
 

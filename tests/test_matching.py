@@ -5,7 +5,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from synthetic_images import textured_scene
 
 from georefine.geometry.camera import Camera
 from georefine.lidargrammetry.matching import (
@@ -18,6 +17,7 @@ from georefine.lidargrammetry.matching import (
     match_pair,
     verify_pair,
 )
+from synthetic_images import textured_scene
 
 CAM = Camera(640, 480, 600.0, 600.0, 320.0, 240.0)
 

@@ -3,7 +3,6 @@ weights, and a mounting calibration solved from returns and control points."""
 
 import numpy as np
 import pytest
-from test_observation_plane import B, RADIUS_M, DURATION_S, TRAJ_BLOCKS, random_knots, true_trajectory
 
 from georefine.adjustment.observations.lidar_point import LidarPointObservation, beam_whitening
 from georefine.adjustment.problem import Problem
@@ -11,6 +10,7 @@ from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.testing import check_jacobians
 from georefine.geometry.rotation import exp_so3, log_so3
 from georefine.trajectory.spline import KnotGrid, eval_orientation, eval_position
+from test_observation_plane import DURATION_S, RADIUS_M, TRAJ_BLOCKS, B, random_knots, true_trajectory
 
 SEEDS = [0, 1, 2]
 MDEG = np.radians(1e-3)

@@ -2,13 +2,13 @@
 
 import numpy as np
 import pytest
-from test_observations_gi import TRAJ_BLOCKS, random_knots
 
 from georefine.adjustment.observations.bias import BiasGrid
 from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior, TrajectoryPoseObservation
 from georefine.adjustment.testing import check_jacobians
 from georefine.geometry.rotation import exp_so3, log_so3
 from georefine.trajectory.spline import KnotGrid, SplineTrajectory
+from test_observations_gi import TRAJ_BLOCKS, random_knots
 
 SEEDS = [0, 1, 2]
 

@@ -36,7 +36,6 @@ Marked slow; CI runs it.
 
 from __future__ import annotations
 
-
 import numpy as np
 import pytest
 

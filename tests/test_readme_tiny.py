@@ -41,14 +41,13 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
-from shared_projects import README_COMMANDS, georefine_in, ok
-from truth_helpers import pass_rmse
-
-from trajectory_tools import assert_same_figures, evo_ape_rmse, trajectopy_ate, trajectopy_python
 
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.pose_files import read_trajectopy, read_tum
 from georefine.io.trajectory import read_sbet
+from shared_projects import README_COMMANDS, georefine_in, ok
+from trajectory_tools import assert_same_figures, evo_ape_rmse, trajectopy_ate, trajectopy_python
+from truth_helpers import pass_rmse
 
 pytestmark = pytest.mark.slow  # simulation plus two runs: minutes on two cores
 

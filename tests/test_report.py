@@ -15,6 +15,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from georefine.errors import InputError
 from georefine.evaluation.report import summary_rows, summary_verdicts, write_report
 from georefine.evaluation.summary import (
     EvaluationPlots,
@@ -26,7 +27,6 @@ from georefine.evaluation.summary import (
     TrajectoryFigures,
 )
 from georefine.io.files import write_json
-from georefine.errors import InputError
 from georefine.io.run_metrics import (
     AdjustmentReport,
     FilterSummary,

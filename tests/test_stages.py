@@ -10,7 +10,6 @@ import subprocess
 import sys
 
 from cli_helpers import STAGE_LINE, run_georefine
-
 from georefine.cli.stages import LOG_NAME, StageLog, folder_snapshot, format_duration, remove_new_empty_folders
 
 
@@ -130,7 +129,6 @@ def test_ctrl_c_says_where_it_stopped_how_to_resume_and_leaves_no_empty_folders(
 
 def test_clean_frees_the_step_caches_of_georefines_folders_only(tmp_path):
     from cli_helpers import run_georefine_here
-
     from georefine.io.files import OUTPUT_MARK, make_output_folder
 
     demo = make_output_folder(tmp_path / "demo")

@@ -17,7 +17,6 @@ from types import SimpleNamespace
 import laspy
 import numpy as np
 import pytest
-from truth_helpers import pass_rmse
 
 from georefine.evaluation.trajectory_files import truth_gnss_time_offset
 from georefine.geometry.rotation import R_n_b_from_rph
@@ -29,6 +28,7 @@ from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.sampled import Trajectory
 from georefine.workflows.outer_checks import GNSS_PULL_RATIO, warn_plane_misfit
 from georefine.workflows.time_offset import warn_time_offset
+from truth_helpers import pass_rmse
 
 SPEED = 50.0
 R_W_N = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # NED -> ENU

@@ -26,16 +26,8 @@ import numpy as np
 import pytest
 
 from cli_helpers import run_georefine
-from trajectory_tools import (
-    assert_same_figures,
-    evo_ape_rmse,
-    export_pair,
-    georefine_figures,
-    trajectopy_ate,
-    trajectopy_python,
-)
-from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.errors import InputError
+from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.geometry.rotation import exp_so3
 from georefine.io.pose_files import geodetic_from_poses, read_trajectopy, read_tum
@@ -48,6 +40,14 @@ from georefine.io.trajectory import (
 )
 from georefine.io.trajectory_csv import read_trajectory_csv
 from georefine.workflows.products import accuracy_from_sigmas, write_csv_product, write_sbet_product
+from trajectory_tools import (
+    assert_same_figures,
+    evo_ape_rmse,
+    export_pair,
+    georefine_figures,
+    trajectopy_ate,
+    trajectopy_python,
+)
 
 T0 = 1_399_708_800.0 + 3 * 86400.0 + 0.25  # GPS week 2314, Wednesday
 EPSG = 25832

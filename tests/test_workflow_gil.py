@@ -18,11 +18,9 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+
 from browser_helpers import WINDOW, check_rendered_images, chromium, rendered_images
 from cli_helpers import STAGE_LINE, messages
-from shared_projects import README_SEED
-from truth_helpers import pass_rmse
-
 from georefine.errors import InputError
 from georefine.evaluation.point_cloud import compare_with_truth
 from georefine.evaluation.summary import RunEvaluation
@@ -47,6 +45,9 @@ from georefine.workflows.lidar import (
     run_workflow,
     step_features,
 )
+from shared_projects import README_SEED
+from truth_helpers import pass_rmse
+
 
 @pytest.fixture(scope="module")
 def project(gil_project) -> Path:

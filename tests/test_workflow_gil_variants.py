@@ -16,7 +16,6 @@ import laspy
 import numpy as np
 import pytest
 import yaml
-from truth_helpers import pass_rmse
 
 from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.io.run_metrics import WorkflowMetrics
@@ -39,6 +38,8 @@ from georefine.workflows.lidar import (
     step_features,
 )
 from georefine.workflows.navigation import imu_rate_trajectory
+from truth_helpers import pass_rmse
+
 
 @pytest.fixture(scope="module")
 def project(gil_project) -> Path:

@@ -39,6 +39,7 @@ from georefine.evaluation.trajectory import TrajectoryComparison
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import SimulationResult, simulate_project
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
+from georefine.workflows.check import ProjectSummary, inspect_project
 from georefine.workflows.hybrid import HybridResult, run_hybrid
 from georefine.workflows.import_strips import ImportResult
 from georefine.workflows.lidar import WorkflowResult, run_workflow
@@ -47,7 +48,6 @@ from georefine.workflows.lidargrammetry_results import CoadjustResult, MatchSumm
 from georefine.workflows.navigation import GeoreferenceRunResult, TrajectoryRunResult, run_georeference, run_trajectory
 from georefine.workflows.opened import Flight, Project, ProjectLike, open_project
 from georefine.workflows.products import TrajectoryExport
-from georefine.workflows.check import ProjectSummary, inspect_project
 
 __all__ = [
     # the project

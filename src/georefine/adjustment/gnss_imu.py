@@ -17,13 +17,13 @@ from typing import Literal
 
 import numpy as np
 
+from georefine.adjustment.linalg import available_backends
 from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
 from georefine.adjustment.observations.imu import ImuObservation, fewest_nodes, make_imu_windows, sample_support
 from georefine.adjustment.observations.prior import EuclideanPrior
-from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
-from georefine.adjustment.linalg import available_backends
+from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolveResult, SolverOptions

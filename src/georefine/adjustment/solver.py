@@ -59,13 +59,19 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
+from georefine.adjustment.assembly import (
+    BlockTriplets,
+    JacobianAssembler,
+    column_squares,
+    lower_triangle,
+    normal_equations,
+)
 from georefine.adjustment.blocks import (
     ColumnLayout,
     Linearization,
     ObservationGroup,
     ParameterBlock,
 )
-from georefine.adjustment.assembly import BlockTriplets, JacobianAssembler, column_squares, lower_triangle, normal_equations
 from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky, available_backends
 from georefine.adjustment.lm_state import (
     PIVOT_SAFE_LAMBDA,
@@ -89,6 +95,7 @@ from georefine.adjustment.lm_state import (
     weights_settled,
     within_tolerance,
 )
+
 # PCG_STALE_ITERATIONS: the bound of the reuse rule (lm_state.tries_conjugate_gradients), importable here as before
 from georefine.adjustment.pcg import PCG_STALE_ITERATIONS, NormalSystem, pcg_step  # noqa: F401
 from georefine.adjustment.robust import irls_weights

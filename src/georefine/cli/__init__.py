@@ -18,9 +18,9 @@ from typing import Optional
 import typer
 
 from georefine import __version__
-from georefine.steps import steps_text
 from georefine.cli.common import force_option, output_ok, progress, scheduler_option, stdout, user_errors
 from georefine.cli.tools import evaluate_app, export_app
+from georefine.steps import steps_text
 
 app = typer.Typer(
     rich_markup_mode=None,  # plain help: units in brackets stay, on/off flags show as flags

@@ -45,7 +45,7 @@ from georefine.adjustment.accuracy_standards import (
     surface_vertical_errors,
 )
 from georefine.errors import InputError
-from georefine.geometry.frames import GeoidHeights, OutputCRS
+from georefine.evaluation.coverage import COVERAGE_MAPS, CoverageMap, write_coverage_png
 from georefine.evaluation.reference_planes import (
     PlaneObservation,
     ReferencePlane,
@@ -54,7 +54,6 @@ from georefine.evaluation.reference_planes import (
     reference_planes,
     summarise_observations,
 )
-from georefine.evaluation.coverage import COVERAGE_MAPS, CoverageMap, write_coverage_png
 from georefine.evaluation.strip_difference_maps import write_png
 from georefine.evaluation.strip_differences import (
     LAYER_CODE,
@@ -70,6 +69,7 @@ from georefine.evaluation.strip_differences import (
     crop,
     write_geotiff,
 )
+from georefine.geometry.frames import GeoidHeights, OutputCRS
 from georefine.io.files import atomic_output, make_output_folder, write_json
 from georefine.io.las import epsg_of, vertical_epsg_of
 from georefine.io.reference import read_reference_surfaces

@@ -21,8 +21,8 @@ from typing import Any
 
 from georefine.adjustment.accuracy_standards import PositionalAccuracy
 from georefine.evaluation.calibration import BoresightFigures, ImuErrorFigures
-from georefine.evaluation.reference_planes import ReferencePlaneSummary
 from georefine.evaluation.coverage import CoverageMap
+from georefine.evaluation.reference_planes import ReferencePlaneSummary
 from georefine.evaluation.strip_differences import StripDifferenceMap
 
 __all__ = [

@@ -65,10 +65,10 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.io.files import (
-    finite_array,
     SECONDS_PER_WEEK,
     PathLike,
     atomic_output,
+    finite_array,
     raise_if_not_increasing,
     unwrap_seconds_of_week,
     week_from_gps_seconds,

@@ -19,7 +19,6 @@ from georefine.workflows.navigation import (
     step_adjust_gnss_imu,
     step_initialise,
 )
-
 from georefine.workflows.opened import NavigationData, Project, load_navigation, open_project
 
 __all__ = [

@@ -34,9 +34,8 @@ import numpy as np
 
 from georefine.errors import InputError
 from georefine.geometry.camera import Camera
-from georefine.io.las import vertical_epsg_of
 from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
-from georefine.io.las import read_las_info, read_las_range
+from georefine.io.las import read_las_info, read_las_range, vertical_epsg_of
 from georefine.io.las_encode import LAZ_CHUNK_POINTS
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner

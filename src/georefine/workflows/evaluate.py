@@ -22,6 +22,7 @@ from typing import Callable
 
 import yaml
 
+from georefine.config import load_project
 from georefine.evaluation.calibration import (
     boresight_figures,
     imu_error_figures,
@@ -59,7 +60,6 @@ from georefine.io.reference import read_reference_surfaces
 from georefine.io.run_metrics import WorkflowMetrics, read_adjustment_report
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.navigation import run_georeference
-from georefine.config import load_project
 from georefine.workflows.opened import ProjectLike, project_root
 
 log = logging.getLogger(__name__)

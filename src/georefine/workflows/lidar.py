@@ -57,12 +57,6 @@ from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
 from georefine.workflows.delivered import step_delivered
 from georefine.workflows.gil import LidarAdjustment, add_posterior, step_adjust_gil
-from georefine.workflows.outer_checks import (
-    outer_converged,
-    trajectory_change,
-    warn_plane_misfit,
-    warn_unconverged,
-)
 from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
@@ -70,8 +64,14 @@ from georefine.workflows.navigation import (
     step_initialise,
     write_trajectory_products,
 )
-from georefine.workflows.precision import pass_precision, precision_lines
 from georefine.workflows.opened import Project, ProjectLike, Workspace, as_project, open_workspace
+from georefine.workflows.outer_checks import (
+    outer_converged,
+    trajectory_change,
+    warn_plane_misfit,
+    warn_unconverged,
+)
+from georefine.workflows.precision import pass_precision, precision_lines
 from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
 from georefine.workflows.time_offset import (
     TimeOffsetStart,

@@ -84,6 +84,7 @@ from georefine.workflows.lidargrammetry_results import (
     TieReprojection,
     TieResiduals,
 )
+from georefine.workflows.opened import ProjectLike, as_project, output_folder
 from georefine.workflows.photo_block import (
     SECTION,
     CloudIndex,
@@ -94,7 +95,6 @@ from georefine.workflows.photo_block import (
     render_lidargrams,
     write_cloud,
 )
-from georefine.workflows.opened import ProjectLike, as_project, output_folder
 
 log = logging.getLogger(__name__)
 

@@ -33,10 +33,10 @@ from georefine.adjustment.gnss_imu import GnssImuData
 from georefine.adjustment.trajectory_prior import TrajectoryPriorData
 from georefine.config import ProjectConfig, load_project
 from georefine.errors import InputError
+from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.io.files import check_output_folder
 from georefine.io.gnss import gnss_in_w
 from georefine.io.imu import ImuData
-from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, StepRunner
 from georefine.workflows.delivered import read_delivered

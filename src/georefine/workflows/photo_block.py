@@ -24,11 +24,10 @@ from georefine.config import (
     override_fields,
 )
 from georefine.errors import InputError
-from georefine.io.las import point_files
 from georefine.geometry.camera import Camera
 from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.io import photos as pio
-from georefine.io.las import PointCloud, read_las_range
+from georefine.io.las import PointCloud, point_files, read_las_range
 from georefine.io.las_encode import EncodedPoints, ExtraDim, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter, offset_near
 from georefine.lidargrammetry.reintersect import Reintersector

@@ -22,7 +22,6 @@ from georefine.trajectory.imu_check import check_imu_frame
 from georefine.trajectory.sampled import interp_columns
 
 
-
 def gnss_from_sbet(root: Path, cfg: ProjectConfig) -> GnssSolution:
     """``gnss.format: sbet``: the delivered SBET's positions at ``gnss.sbet_rate_hz`` as GNSS epochs.
 
