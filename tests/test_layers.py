@@ -80,6 +80,15 @@ def _modules(root: Path) -> dict[str, Path]:
     return out
 
 
+def _absolute(node: ast.ImportFrom, package: str) -> str:
+    """The absolute module name a ``from ... import`` names (relative imports resolved against ``package``)."""
+    if not node.level:
+        return node.module or ""
+    base = package.split(".")
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
 def _imports(module: str, path: Path, tree: ast.AST, known: set[str]) -> list[tuple[str, str, int]]:
     """``(imported module, imported name or '', line)`` for every georefine import of a module."""
     package = module if path.name == "__init__.py" else module.rpartition(".")[0]
@@ -90,12 +99,7 @@ def _imports(module: str, path: Path, tree: ast.AST, known: set[str]) -> list[tu
                 if a.name.split(".")[0] == "georefine":
                     found.append((a.name, "", node.lineno))
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - (node.level - 1)]
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
+            target = _absolute(node, package)
             if target.split(".")[0] != "georefine":
                 continue
             for a in node.names:
@@ -156,12 +160,7 @@ def _bound_by_imports(module: str, path: Path, tree: ast.AST) -> dict[str, str]:
                 top = a.name.split(".")[0]
                 bound[a.asname or top] = a.name if a.asname else top  # ``import a.b.c`` binds ``a``
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package.split(".")
-                base = base[: len(base) - (node.level - 1)]
-                target = ".".join(base + ([node.module] if node.module else []))
-            else:
-                target = node.module or ""
+            target = _absolute(node, package)
             for a in node.names:
                 bound[a.asname or a.name] = f"{target}.{a.name}"
     return bound
