@@ -1,11 +1,11 @@
 """``metrics.json`` of a ``georefine run`` and every ``adjustment.json``: the typed records and their JSON form.
 
 ``metrics.json`` (docs/ARCHITECTURE.md §4.5) is :class:`WorkflowMetrics`; ``adjustment.json``
-(§3) is :class:`AdjustmentReport`, one schema for whichever adjustment wrote it: ``georefine
-trajectory`` (the filter alone or the G/I adjustment), ``run``'s ``gi/`` and ``gil/`` (raw GNSS/IMU
-or a delivered trajectory) and ``hybrid/``.
+(its schema in the products table of §4.5) is :class:`AdjustmentReport`, one schema for whichever
+adjustment wrote it: ``georefine trajectory`` (the filter alone or the G/I adjustment), ``run``'s
+``gi/`` and ``gil/`` (raw GNSS/IMU or a delivered trajectory) and ``hybrid/``.
 
-The run (:mod:`georefine.workflows.lidar`) writes this file; the evaluation
+The run (:mod:`georefine.workflows.lidar`) writes ``metrics.json``; the evaluation
 (:mod:`georefine.workflows.evaluate`) reads the strips and their time spans from it and the
 report (:mod:`georefine.evaluation.report`) its outer iterations, timings and resumed steps.
 The report sits in ``evaluation``, a layer below ``workflows`` (docs/ARCHITECTURE.md §1), so
