@@ -8,11 +8,12 @@ function takes a :class:`Project` (or a folder, which it opens) and nothing belo
 ``project.yaml``: a command that runs several workflows (the hybrid runs the G/I, the G/I/L and
 the photo block) opens the project once.
 
-A project is made of :class:`Flight` records: the GNSS, IMU and strips of one sortie, sharing
-the scanner's calibration (lever arms, boresight, time offset) with the project's other
-flights. Today's ``project.yaml`` describes one flight; the steps read the flights through
-:attr:`Project.flights`, so a project of several flights adds records there, not parameters
-to every step.
+A project is made of :class:`Flight` records (:attr:`Project.flights`): the GNSS, IMU and
+strips of one sortie, sharing the scanner's calibration (lever arms, boresight, time offset)
+with the project's other flights. Today's ``project.yaml`` describes one flight, and the steps
+still read its sections from the configuration; a project of several flights adds records
+there and per-flight navigation beside :attr:`Project.navigation`, not parameters to every
+step (**not built yet**: docs/ARCHITECTURE.md §3).
 
 :class:`Workspace` is what one command writes to: the output folder (checked: never the
 project folder or inside it), its step cache and the task runner of the per-tile work.
@@ -23,7 +24,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
@@ -112,10 +113,6 @@ class Project:
     def heights(self) -> GeoidHeights | None:
         """The final point clouds' gravity-related heights (``crs.geoid_grid``), or None for ellipsoidal ones."""
         return self.config.crs.geoid(self.root)
-
-    def with_config(self, config: ProjectConfig) -> Project:
-        """The same folder with another configuration (derived values computed anew)."""
-        return replace(self, config=config)
 
     def output_folder(self, out: str | Path) -> Path:
         """``out`` as a Path, refused when it is the project folder or inside it (:func:`output_folder`)."""
