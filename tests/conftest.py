@@ -36,6 +36,7 @@ SLOW_FIRST = (
     "test_trajectory_gi.py",
     "test_workflow_gil_variants.py",
     "test_readme_tiny.py",
+    "test_api.py",
     "test_bad_inputs.py",
     "test_delivered.py",
     "test_time_offset.py",

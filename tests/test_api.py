@@ -29,6 +29,31 @@ ROOT = Path(__file__).resolve().parents[1]
 CLI = ROOT / "src" / "georefine" / "cli"
 
 
+def _readme_python_example() -> str:
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    section = text.split("## Using Georefine from Python", 1)[1]
+    return section.split("```python\n", 1)[1].split("```", 1)[0]
+
+
+@pytest.mark.slow
+def test_the_readme_python_example_runs_as_written(tmp_path):  # first: the file's long test (minutes)
+    code = _readme_python_example()
+    assert "gr.run(" in code and "evaluate_trajectory" in code
+    env = dict(os.environ, GEOREFINE_SCHEDULER="threads")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, env=env,
+                         timeout=1800)
+    assert out.returncode == 0, out.stderr[-3000:]
+    m = re.search(r"G/I/L attitude RMSE: roll ([\d.]+), pitch ([\d.]+), yaw ([\d.]+) mdeg; position ([\d.]+) cm",
+                  out.stdout)
+    assert m, out.stdout
+    roll, pitch, yaw, position_cm = map(float, m.groups())
+    # The whole flight of the README's smallest example (tests/test_readme_tiny.py: the same
+    # project and seed; measured there 3.3 / 2.3 / 10.1 mdeg and 44 mm for the CLI's run).
+    assert roll < 6 and pitch < 5 and yaw < 20 and position_cm < 10, m.group(0)
+    assert (tmp_path / "tiny-py-run" / "points" / "strip_1.laz").is_file()
+    assert str(Path("tiny-py-run") / "points" / "strip_1.laz") in out.stdout
+
+
 def test_the_package_re_exports_exactly_the_api():
     # The root names the API without importing it (import georefine stays light): the same list twice.
     assert list(georefine.API) == api.__all__ and len(set(api.__all__)) == len(api.__all__)
@@ -143,28 +168,3 @@ def test_the_opened_project_reads_its_configuration_once(gil_project, monkeypatc
     assert opened.as_project(project) is project
     with pytest.raises(api.InputError, match="project folder not found"):
         api.open_project(gil_project / "no such folder")
-
-
-def _readme_python_example() -> str:
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    section = text.split("## Using Georefine from Python", 1)[1]
-    return section.split("```python\n", 1)[1].split("```", 1)[0]
-
-
-@pytest.mark.slow
-def test_the_readme_python_example_runs_as_written(tmp_path):
-    code = _readme_python_example()
-    assert "gr.run(" in code and "evaluate_trajectory" in code
-    env = dict(os.environ, GEOREFINE_SCHEDULER="threads")
-    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, env=env,
-                         timeout=1800)
-    assert out.returncode == 0, out.stderr[-3000:]
-    m = re.search(r"G/I/L attitude RMSE: roll ([\d.]+), pitch ([\d.]+), yaw ([\d.]+) mdeg; position ([\d.]+) cm",
-                  out.stdout)
-    assert m, out.stdout
-    roll, pitch, yaw, position_cm = map(float, m.groups())
-    # The whole flight of the README's smallest example (tests/test_readme_tiny.py: the same
-    # project and seed; measured there 3.3 / 2.3 / 10.1 mdeg and 44 mm for the CLI's run).
-    assert roll < 6 and pitch < 5 and yaw < 20 and position_cm < 10, m.group(0)
-    assert (tmp_path / "tiny-py-run" / "points" / "strip_1.laz").is_file()
-    assert str(Path("tiny-py-run") / "points" / "strip_1.laz") in out.stdout
