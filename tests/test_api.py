@@ -4,8 +4,8 @@
   imports none of the library's heavy layers, and ``help(georefine)`` lists the API;
 * the command line calls the library through the API alone, every command one API function;
 * every API function names the command that calls it and returns a frozen result;
-* the README's Python example runs as written (slow: a simulation and a run);
-* the opened project reads ``project.yaml`` once and derives its navigation once.
+* the README's Python example runs as written (slow: a simulation and a run), and the project
+  it made, opened, reads ``project.yaml`` once and derives its navigation once.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def _readme_python_example() -> str:
 
 
 @pytest.mark.slow
-def test_the_readme_python_example_runs_as_written(tmp_path):  # first: the file's long test (minutes)
+def test_the_readme_python_example_runs_as_written(tmp_path, monkeypatch):  # first: the file's long test (minutes)
     code = _readme_python_example()
     assert "gr.run(" in code and "evaluate_trajectory" in code
     env = dict(os.environ, GEOREFINE_SCHEDULER="threads")
@@ -52,6 +52,8 @@ def test_the_readme_python_example_runs_as_written(tmp_path):  # first: the file
     assert roll < 6 and pitch < 5 and yaw < 20 and position_cm < 10, m.group(0)
     assert (tmp_path / "tiny-py-run" / "points" / "strip_1.laz").is_file()
     assert str(Path("tiny-py-run") / "points" / "strip_1.laz") in out.stdout
+    # The project it made, opened once: its navigation read once, project.yaml never again.
+    _check_the_opened_project_reads_its_configuration_once(tmp_path / "tiny-py", monkeypatch)
 
 
 def test_the_package_re_exports_exactly_the_api():
@@ -145,10 +147,10 @@ def test_every_api_function_names_its_command_and_returns_a_frozen_result():
                 assert cls.__dataclass_params__.frozen, (name, type_name)
 
 
-def test_the_opened_project_reads_its_configuration_once(gil_project, monkeypatch):
+def _check_the_opened_project_reads_its_configuration_once(project_dir, monkeypatch):
     from georefine.workflows import opened
 
-    project = api.open_project(gil_project)
+    project = api.open_project(project_dir)
     calls = []
     real = opened.load_navigation
 
@@ -167,4 +169,4 @@ def test_the_opened_project_reads_its_configuration_once(gil_project, monkeypatc
     assert [f.strip_files for f in project.flights] == [tuple(project.config.scanner.files)]
     assert opened.as_project(project) is project
     with pytest.raises(api.InputError, match="project folder not found"):
-        api.open_project(gil_project / "no such folder")
+        api.open_project(project_dir / "no such folder")
