@@ -303,14 +303,14 @@ def _points_key(nav: NavigationData, strips: list[StripFile], upstream: str) -> 
                          [file_stamp(s.path, nav.root) for s in strips], *geoid)
 
 
-def stage_read_inputs(steps: StepRunner, project: Project, out: str | Path,
+def stage_read_inputs(steps: StepRunner, project: Project, out: Path,
                       strips: list[int] | None, runner: TaskRunner) -> WorkflowInputs:
     """Read and check the navigation data (once per project: :attr:`Project.navigation
     <georefine.workflows.opened.Project.navigation>`), index the strips (time tiles); create the
-    output folder. Its sub-folders are made by the stages that write into them."""
+    output folder ``out``, a workspace's (:func:`~georefine.workflows.opened.open_workspace`
+    checked it). Its sub-folders are made by the stages that write into them."""
     with steps.timed("read"):
         nav = project.navigation
-        out = project.output_folder(out)
         strip_files = read_strips(nav, strips, slots=runner.workers)
         # A strip entirely outside the navigation is refused now, as `georefine check` does, not
         # after the adjustments (the time offset search looks ±20 s around scanner.time_offset_s).
