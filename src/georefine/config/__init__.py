@@ -12,15 +12,18 @@ Lever arms are in the body frame ``b`` (forward-right-down), metres.
 
 from __future__ import annotations
 
+import posixpath
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 from pydantic import (
     Field,
+    ValidationError,
     field_validator,
     model_validator,
 )
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from georefine.config.base import StrictModel, Vector3
 from georefine.config.crs import CrsConfig, ReferencePoint, check_output_epsg, check_vertical_epsg
@@ -39,6 +42,7 @@ __all__ = [
     "ChannelConfig",
     "CrsConfig",
     "FilterConfig",
+    "FlightConfig",
     "GnssCorrelatedError",
     "GnssFileConfig",
     "ImuErrorSpec",
@@ -93,7 +97,9 @@ class GnssCorrelatedError(StrictModel):
 
 
 class GnssFileConfig(StrictModel):
-    files: list[str] = Field(min_length=1, description="RTKLIB .pos files, relative to the project folder.")
+    files: list[str] = Field(
+        default_factory=list, description="RTKLIB .pos files, relative to the project folder (at least one; with "
+        "flights, absent or empty: each flight lists its own gnss_files).")
     lever_arm_m: Vector3 = Field(description="Antenna phase centre in the body frame, p_b_a (m).")
     min_quality: int = Field(
         2, ge=1, le=6, description="Worst RTKLIB quality flag accepted (1 fix, 2 float, ... 6 PPP)."
@@ -112,7 +118,7 @@ class GnssFileConfig(StrictModel):
 
     @model_validator(mode="after")
     def _one_sbet(self) -> "GnssFileConfig":
-        if self.format == "sbet" and len(self.files) != 1:
+        if self.format == "sbet" and len(self.files) > 1:  # none: ProjectConfig says the file is missing
             raise ValueError(f"format sbet takes one SBET file, got {len(self.files)}")
         return self
 
@@ -139,7 +145,9 @@ class ImuErrorSpec(StrictModel):
 
 
 class ImuFileConfig(StrictModel):
-    file: str = Field(description="IMU data file relative to the project folder (.csv or .imr).")
+    file: str | None = Field(
+        None, description="IMU data file relative to the project folder (.csv or .imr); with flights, absent: each "
+        "flight names its own imu_file.")
     format: Literal["csv", "imr"] = "csv"
     rate_hz: float = Field(200.0, gt=0.0, description="Nominal sample rate.")
     gps_week: int | None = Field(
@@ -167,7 +175,9 @@ def default_channels() -> list[ChannelConfig]:
 
 
 class ScannerFileConfig(StrictModel):
-    files: list[str] = Field(min_length=1, description="LAS/LAZ strips in the scanner frame s.")
+    files: list[str] = Field(
+        default_factory=list, description="LAS/LAZ strips in the scanner frame s (at least one; with flights, absent "
+        "or empty: each flight lists its own strips).")
     lever_arm_m: Vector3 = Field(description="Scanner origin in the body frame, p_b_s (m).")
     boresight_deg: Vector3 = Field(
         (0.0, 0.0, 0.0), description="Roll, pitch, yaw of R_b_s (deg), R_b_s = Rz(y) Ry(p) Rx(r)."
@@ -187,6 +197,54 @@ class ScannerFileConfig(StrictModel):
         ids = [c.id for c in v]
         if len(set(ids)) != len(ids):
             raise ValueError(f"channel ids must be unique, found {ids}")
+        return v
+
+
+def _same_file(path: str) -> str:
+    """A file name as the flights' rules compare them (``scans/./a.laz`` is ``scans/a.laz``)."""
+    return posixpath.normpath(path.replace("\\", "/"))
+
+
+class FlightConfig(StrictModel):
+    """One flight (sortie) of a project flown in several (docs/ARCHITECTURE.md §3): one take-off's GNSS, IMU
+    record and strips.
+
+    Each flight has its own IMU record (its own static alignment and turn-on biases). The scanner's
+    calibration and the sensors' specifications are those of the sections ``gnss``, ``imu`` and
+    ``scanner``, shared by all flights; a flight that states one of the optional values below
+    overrides the shared one for its own data only (a scanner remounted between flights, a
+    different IMU format).
+    """
+
+    id: int = Field(ge=0, description="The flight's number, unique in the project.")
+    name: str | None = Field(None, min_length=1, description="A label, unique in the project (default flight_<id>).")
+    gnss_files: list[str] = Field(min_length=1, description="The flight's RTKLIB .pos files, relative to the project "
+                                  "folder (several are joined in time, as gnss.files).")
+    imu_file: str = Field(description="The flight's IMU record relative to the project folder (.csv or .imr).")
+    imu_format: Literal["csv", "imr"] | None = Field(None, description="Its format, if not imu.format.")
+    imu_rate_hz: float | None = Field(None, gt=0.0, description="Its nominal sample rate, if not imu.rate_hz.")
+    imu_gps_week: int | None = Field(None, ge=0, description="GPS week of an .imr record, if not imu.gps_week.")
+    strips: list[str] = Field(min_length=1, description="The flight's LAS/LAZ strips in the scanner frame s.")
+    gnss_lever_arm_m: Vector3 | None = Field(None, description="p_b_a of this flight (m), if not gnss.lever_arm_m.")
+    scanner_lever_arm_m: Vector3 | None = Field(
+        None, description="p_b_s of this flight (m), if not scanner.lever_arm_m.")
+    boresight_deg: Vector3 | None = Field(
+        None, description="Roll, pitch, yaw of R_b_s of this flight (deg), if not scanner.boresight_deg.")
+    scanner_time_offset_s: float | None = Field(
+        None, ge=-86400.0, le=86400.0, description="The strips' time offset (s), if not scanner.time_offset_s.")
+
+    @property
+    def label(self) -> str:
+        """``name``, or ``flight_<id>``."""
+        return self.name if self.name is not None else f"flight_{self.id}"
+
+    @field_validator("strips", "gnss_files")
+    @classmethod
+    def _no_repeats(cls, v: list[str]) -> list[str]:
+        seen = [_same_file(f) for f in v]
+        twice = sorted({f for f in seen if seen.count(f) > 1})
+        if twice:
+            raise ValueError(f"each file once: {', '.join(twice)} listed more than once")
         return v
 
 
@@ -508,8 +566,21 @@ class PhotosFileConfig(StrictModel):
     image_points: str | None = Field("photos/image_points.csv", description="Image measurements of the points.")
 
 
+def _rule_error(loc: tuple[str | int, ...], message: str, found: object) -> ValidationError:
+    """The error of a rule between sections, placed at the field it is about (``loc``), so that the
+    :class:`ConfigError` names that field and its line in ``project.yaml``."""
+    return ValidationError.from_exception_data("ProjectConfig", [InitErrorDetails(
+        type=PydanticCustomError("project_rule", "{message}", {"message": message}), loc=loc, input=found)])
+
+
 class ProjectConfig(StrictModel):
-    """``project.yaml``: where the sensor files are and how the system is built."""
+    """``project.yaml``: where the sensor files are and how the system is built.
+
+    One flight: its files are ``gnss.files``, ``imu.file`` and ``scanner.files``. Several flights
+    (``flights``): each lists its own GNSS files, IMU record and strips, and those three fields
+    are absent; the rest of ``gnss``, ``imu`` and ``scanner`` is shared by the flights
+    (:meth:`flight_config`).
+    """
 
     name: str = "project"
     crs: CrsConfig = Field(default_factory=CrsConfig)
@@ -517,13 +588,17 @@ class ProjectConfig(StrictModel):
     imu: ImuFileConfig | None = None
     trajectory: TrajectoryPriorConfig | None = None
     scanner: ScannerFileConfig
+    flights: list[FlightConfig] | None = Field(
+        None, min_length=1, description="The flights of a project flown in several (docs/ARCHITECTURE.md §3); "
+        "null: one flight, made of gnss.files, imu.file and scanner.files.")
     reference: ReferenceConfig = Field(default_factory=ReferenceConfig)
     photos: PhotosFileConfig | None = None
     processing: ProcessingConfig = Field(default_factory=ProcessingConfig)
 
     @model_validator(mode="after")
     def _navigation_source(self) -> "ProjectConfig":
-        """Raw GNSS and IMU, or a delivered trajectory (docs/ARCHITECTURE.md §3, §4.9)."""
+        """Raw GNSS and IMU, or a delivered trajectory (docs/ARCHITECTURE.md §3, §4.9); the files of
+        one flight, or the list of flights."""
         raw = (self.gnss is not None, self.imu is not None)
         if self.trajectory is None and not all(raw):
             missing = " and ".join(k for k, have in zip(("gnss", "imu"), raw) if not have)
@@ -533,12 +608,127 @@ class ProjectConfig(StrictModel):
             raise ValueError("a delivered trajectory with only one of gnss and imu: give neither (the SBET is adjusted) "
                              "or both (the trajectory section is then not used; with the raw IMU, gnss.format: sbet "
                              "takes the SBET's positions)")
+        if self.flights is None:
+            self._one_flight_files()
+        else:
+            self._check_flights()
         return self
+
+    def _one_flight_files(self) -> None:
+        if self.gnss is not None and not self.gnss.files:
+            raise _rule_error(("gnss", "files"), "no GNSS file: list the .pos files here (at least one), or the "
+                              "project's flights under flights, each with its gnss_files", self.gnss.files)
+        if self.imu is not None and self.imu.file is None:
+            raise _rule_error(("imu", "file"), "no IMU file: name it here, or list the project's flights under "
+                              "flights, each with its imu_file", None)
+        if not self.scanner.files:
+            raise _rule_error(("scanner", "files"), "no strip: list the LAS/LAZ files here (at least one), or the "
+                              "project's flights under flights, each with its strips", self.scanner.files)
+
+    def _check_flights(self) -> None:
+        assert self.flights is not None
+        if self.gnss is None or self.imu is None:
+            raise _rule_error(("flights",), "flights need the sections gnss and imu (the values the flights share: "
+                              "lever arm, quality, IMU errors); a delivered trajectory (section trajectory) is one "
+                              "flight, without a flights list", None)
+        both = "given both here and under flights: with flights, each flight lists its own {}, and {} is absent " \
+               "or empty (the section keeps the values the flights share)"
+        if self.gnss.files:
+            raise _rule_error(("gnss", "files"), "GNSS files " + both.format("gnss_files", "gnss.files"),
+                              self.gnss.files)
+        if self.imu.file is not None:
+            raise _rule_error(("imu", "file"), "IMU file " + both.format("imu_file", "imu.file"), self.imu.file)
+        if self.scanner.files:
+            raise _rule_error(("scanner", "files"), "strips " + both.format("strips", "scanner.files"),
+                              self.scanner.files)
+        if self.gnss.format == "sbet":
+            raise _rule_error(("gnss", "format"), "gnss.format sbet takes the one delivered SBET of a single-flight "
+                              "project: with flights, each flight's gnss_files are RTKLIB .pos files (format pos)",
+                              self.gnss.format)
+        ids: dict[int, int] = {}
+        labels: dict[str, int] = {}
+        strips: dict[str, int] = {}
+        for k, f in enumerate(self.flights):
+            if f.id in ids:
+                raise _rule_error(("flights", k, "id"), f"flight id {f.id} is also that of flights.{ids[f.id]}: each "
+                                  "flight has its own id", f.id)
+            ids[f.id] = k
+            if f.label in labels:
+                raise _rule_error(("flights", k, "name"), f"flight name {f.label!r} is also that of "
+                                  f"flights.{labels[f.label]}: each flight has its own name", f.name)
+            labels[f.label] = k
+            for j, rel in enumerate(f.strips):
+                other = strips.get(_same_file(rel))
+                if other is not None:
+                    raise _rule_error(("flights", k, "strips", j), f"strip {rel} is also listed in flight "
+                                      f"{self.flights[other].id} (flights.{other}.strips): each strip belongs to "
+                                      "exactly one flight", rel)
+                strips[_same_file(rel)] = k
 
     @property
     def delivered_trajectory(self) -> bool:
         """True when the project has no raw GNSS/IMU and adjusts the delivered SBET (§4.9)."""
         return self.gnss is None
+
+    @property
+    def multi_flight(self) -> bool:
+        """True when ``project.yaml`` lists its flights (``flights``), even a single one."""
+        return self.flights is not None
+
+    @property
+    def flight_ids(self) -> tuple[int, ...]:
+        """The ids of the project's flights in the order listed; ``(1,)`` for a project without ``flights``."""
+        return (1,) if self.flights is None else tuple(f.id for f in self.flights)
+
+    def flight(self, flight_id: int) -> FlightConfig:
+        """The entry of ``flights`` with this id.
+
+        Raises
+        ------
+        ConfigError
+            No ``flights`` list, or no flight with this id.
+        """
+        for f in self.flights or ():
+            if f.id == flight_id:
+                return f
+        raise ConfigError("no such flight", field="flights",
+                          expected="one of the ids " + ", ".join(map(str, self.flight_ids)), found=repr(flight_id))
+
+    def flight_config(self, flight_id: int) -> "ProjectConfig":
+        """The configuration of one flight as a single-flight project: its GNSS files, IMU record and
+        strips as ``gnss.files``, ``imu.file`` and ``scanner.files``, the flight's own calibration
+        where it states one and the shared values elsewhere, no ``flights``.
+
+        What reads one flight's files (the navigation, :mod:`georefine.workflows.project`) reads
+        it as it reads a project of one flight. A project without ``flights`` is its flight 1:
+        itself.
+
+        Raises
+        ------
+        ConfigError
+            No flight with this id.
+        """
+        if self.flights is None:
+            if flight_id != 1:
+                raise ConfigError("no such flight", field="flights", expected="1 (a project without a flights list "
+                                  "is one flight)", found=repr(flight_id))
+            return self
+        f = self.flight(flight_id)
+        assert self.gnss is not None and self.imu is not None
+        gnss = self.gnss.model_copy(update={"files": list(f.gnss_files)} | (
+            {"lever_arm_m": f.gnss_lever_arm_m} if f.gnss_lever_arm_m is not None else {}), deep=True)
+        imu_update: dict[str, object] = {"file": f.imu_file}
+        for own, shared in (("imu_format", "format"), ("imu_rate_hz", "rate_hz"), ("imu_gps_week", "gps_week")):
+            if getattr(f, own) is not None:
+                imu_update[shared] = getattr(f, own)
+        scanner_update: dict[str, object] = {"files": list(f.strips)}
+        for own, shared in (("scanner_lever_arm_m", "lever_arm_m"), ("boresight_deg", "boresight_deg"),
+                            ("scanner_time_offset_s", "time_offset_s")):
+            if getattr(f, own) is not None:
+                scanner_update[shared] = getattr(f, own)
+        return self.model_copy(deep=True, update={
+            "gnss": gnss, "imu": self.imu.model_copy(update=imu_update, deep=True),
+            "scanner": self.scanner.model_copy(update=scanner_update, deep=True), "flights": None})
 
 
 def boresight_matrix(boresight_deg: Vector3) -> np.ndarray:
