@@ -9,11 +9,13 @@ function takes a :class:`Project` (or a folder, which it opens) and nothing belo
 the photo block) opens the project once.
 
 A project is made of :class:`Flight` records (:attr:`Project.flights`): the GNSS, IMU and
-strips of one sortie, sharing the scanner's calibration (lever arms, boresight, time offset)
-with the project's other flights. Today's ``project.yaml`` describes one flight, and the steps
-still read its sections from the configuration; a project of several flights adds records
-there and per-flight navigation beside :attr:`Project.navigation`, not parameters to every
-step (**not built yet**: docs/ARCHITECTURE.md §3).
+strips of one sortie, with the scanner's calibration (lever arms, boresight, time offset) the
+project's flights share unless one states its own. A ``project.yaml`` without ``flights`` is one
+flight, whose navigation is :attr:`Project.navigation`; a project of several flights
+(``flights:``, docs/ARCHITECTURE.md §3) has one navigation per flight,
+:meth:`Project.navigation_of`, all in one mapping frame (:attr:`Project.frame`). The steps read
+one flight's project (**not built yet**: the adjustment of several flights): on a project of
+several flights :attr:`Project.navigation` is an error that says so.
 
 :class:`Workspace` is what one command writes to: the output folder (checked: never the
 project folder or inside it), its step cache and the task runner of the per-tile work.
@@ -32,11 +34,11 @@ import numpy as np
 
 from georefine.adjustment.gnss_imu import GnssImuData
 from georefine.adjustment.trajectory_prior import TrajectoryPriorData
-from georefine.config import ProjectConfig, load_project
-from georefine.errors import InputError
+from georefine.config import ProjectConfig, ReferencePoint, Vector3, load_project
+from georefine.errors import ConfigError, InputError
 from georefine.geometry.frames import GeoidHeights, LocalFrame, OutputCRS
 from georefine.io.files import check_output_folder
-from georefine.io.gnss import gnss_in_w
+from georefine.io.gnss import GnssSolution, gnss_in_w
 from georefine.io.imu import ImuData
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.cache import StepCache, StepRunner
@@ -47,28 +49,50 @@ from georefine.workflows.project import (
     check_navigation_spans,
     read_project_gnss,
     read_project_imu,
+    usable_gnss,
 )
 
 log = logging.getLogger(__name__)
 
 
-__all__ = ["Flight", "NavigationData", "Project", "ProjectLike", "Workspace", "as_project", "open_project", "load_navigation",
-           "open_workspace", "output_folder", "project_root"]
+__all__ = ["Flight", "NavigationData", "Project", "ProjectLike", "Workspace", "as_project", "first_fix_frame",
+           "open_project", "load_navigation", "open_workspace", "output_folder", "project_root"]
 
 
 @dataclass(frozen=True)
 class Flight:
-    """One sortie of a project: its navigation files and strips (paths relative to the project folder).
+    """One sortie of a project: its navigation files and strips (paths relative to the project folder)
+    and the calibration its strips are georeferenced with (the project's shared values where the
+    flight states none: :meth:`georefine.config.ProjectConfig.flight_config`).
 
     ``gnss_files`` and ``imu_file`` are empty for a project with a delivered trajectory
-    (docs/ARCHITECTURE.md §4.9), whose SBET is ``trajectory_file``.
+    (docs/ARCHITECTURE.md §4.9), whose SBET is ``trajectory_file``; ``gnss_lever_arm_m`` is then None.
     """
 
+    id: int
     name: str
     gnss_files: tuple[str, ...]
     imu_file: str | None
     strip_files: tuple[str, ...]
+    scanner_lever_arm_m: Vector3
+    """``p_b_s`` (m)."""
+    boresight_deg: Vector3
+    """Roll, pitch, yaw of ``R_b_s`` (deg)."""
+    scanner_time_offset_s: float
+    gnss_lever_arm_m: Vector3 | None = None
+    """``p_b_a`` (m)."""
     trajectory_file: str | None = None
+
+
+def _flight(flight_id: int, name: str, cfg: ProjectConfig) -> Flight:
+    """The :class:`Flight` of a single-flight configuration (a project's, or one flight's view of it)."""
+    sc = cfg.scanner
+    cal = dict(scanner_lever_arm_m=tuple(sc.lever_arm_m), boresight_deg=tuple(sc.boresight_deg),
+               scanner_time_offset_s=float(sc.time_offset_s))
+    if cfg.delivered_trajectory:
+        return Flight(flight_id, name, (), None, tuple(sc.files), trajectory_file=cfg.trajectory.sbet, **cal)
+    return Flight(flight_id, name, tuple(cfg.gnss.files), cfg.imu.file, tuple(sc.files),
+                  gnss_lever_arm_m=tuple(cfg.gnss.lever_arm_m), **cal)
 
 
 @dataclass(frozen=True, eq=False)
@@ -88,21 +112,84 @@ class Project:
 
     @property
     def flights(self) -> tuple[Flight, ...]:
-        """The project's flights (one today: the sections gnss, imu and scanner of ``project.yaml``)."""
+        """The project's flights in the order ``project.yaml`` lists them; one (id 1, ``flight_1``) made of
+        the sections gnss, imu and scanner when it has no ``flights``."""
         cfg = self.config
-        if cfg.delivered_trajectory:
-            return (Flight("flight_1", (), None, tuple(cfg.scanner.files), cfg.trajectory.sbet),)
-        return (Flight("flight_1", tuple(cfg.gnss.files), cfg.imu.file, tuple(cfg.scanner.files)),)
+        if cfg.flights is None:
+            return (_flight(1, "flight_1", cfg),)
+        return tuple(_flight(f.id, f.label, cfg.flight_config(f.id)) for f in cfg.flights)
+
+    @property
+    def multi_flight(self) -> bool:
+        """True when ``project.yaml`` lists its flights (:meth:`navigation_of` then reads each)."""
+        return self.config.multi_flight
 
     @cached_property
     def navigation(self) -> NavigationData:
-        """GNSS and IMU in the mapping frame, validated (or the delivered trajectory); read once."""
+        """GNSS and IMU in the mapping frame, validated (or the delivered trajectory); read once.
+
+        Raises
+        ------
+        ConfigError
+            A project of several flights (``flights``): it has a navigation per flight, :meth:`navigation_of`.
+        """
         return load_navigation(self)
 
-    @property
+    def navigation_of(self, flight_id: int) -> NavigationData:
+        """One flight's GNSS and IMU (its files only) in the project's mapping frame, validated as
+        :func:`load_navigation` validates a project's; read once per flight. For a project without
+        ``flights``, flight 1 is :attr:`navigation`.
+
+        Raises
+        ------
+        ConfigError
+            No flight with this id.
+        InputError
+            As :func:`load_navigation`, naming the flight's files.
+        """
+        if not self.multi_flight:
+            self.config.flight_config(flight_id)  # refuses another id than 1
+            return self.navigation
+        cached = self._flight_navigation
+        if flight_id not in cached:
+            cached[flight_id] = load_navigation(self.flight_project(flight_id))
+        return cached[flight_id]
+
+    def flight_project(self, flight_id: int) -> Project:
+        """One flight of the project as a single-flight :class:`Project` (same folder): its files as
+        ``gnss.files``, ``imu.file`` and ``scanner.files``, its calibration, and, for a project of
+        several flights, the project's mapping frame as ``crs.reference_point`` (every flight's
+        navigation in the same ``w``)."""
+        cfg = self.config.flight_config(flight_id)
+        if not self.multi_flight:
+            return self
+        if cfg.crs.reference_point is None:
+            lat, lon, h = self._frame_origin_deg
+            cfg.crs.reference_point = ReferencePoint(lat_deg=lat, lon_deg=lon, h_m=h)
+        return Project(self.root, cfg)
+
+    @cached_property
+    def _flight_navigation(self) -> dict[int, NavigationData]:
+        return {}
+
+    @cached_property
+    def _frame_origin_deg(self) -> tuple[float, float, float]:
+        """Latitude, longitude (deg) and height (m) of ``w`` for a project of several flights."""
+        rp = self.config.crs.reference_point
+        if rp is not None:
+            return rp.lat_deg, rp.lon_deg, rp.h_m
+        first = self.config.flight_config(self.config.flight_ids[0])
+        f = first_fix_frame(self.root, first, read_project_gnss(self.root, first))
+        return float(np.degrees(f.lat0_rad)), float(np.degrees(f.lon0_rad)), f.h0_m
+
+    @cached_property
     def frame(self) -> LocalFrame:
-        """The mapping frame ``w`` (defined by the navigation data: :attr:`navigation`)."""
-        return self.navigation.frame
+        """The mapping frame ``w``: defined by the navigation data (:attr:`navigation`); for a project of
+        several flights, at ``crs.reference_point`` or else at the first usable GNSS fix of the first
+        flight listed (only its GNSS files are read for it), the same for every flight's navigation."""
+        if not self.multi_flight:
+            return self.navigation.frame
+        return LocalFrame.from_degrees(*self._frame_origin_deg)
 
     @cached_property
     def crs(self) -> OutputCRS:
@@ -201,6 +288,13 @@ def load_navigation(project: ProjectLike) -> NavigationData:
     """
     project = as_project(project)
     root, cfg = project.root, project.config
+    if cfg.flights is not None:
+        ids = ", ".join(map(str, cfg.flight_ids))
+        raise ConfigError(
+            "a project of several flights has one navigation per flight: read each with Project.navigation_of"
+            "(flight_id) (the adjustment of several flights in one is not built yet)",
+            path=root / "project.yaml", field="flights", expected=f"a flight id: {ids}",
+            found=f"{len(cfg.flights)} flight{'s' if len(cfg.flights) != 1 else ''}")
     if cfg.delivered_trajectory:
         frame, t0, prior = read_delivered(root, cfg)
         return NavigationData(cfg, root, frame, t0, None, None, prior)
@@ -211,14 +305,8 @@ def load_navigation(project: ProjectLike) -> NavigationData:
         log.warning("%s: %s", cfg.imu.file, bridged.describe())
     imu = bridged.data
     check_imu_plausible(root, cfg, gnss, imu)
-    usable, _, _ = check_navigation_spans(root, cfg, gnss, imu)
-    if cfg.crs.reference_point is not None:
-        rp = cfg.crs.reference_point
-        frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
-    else:
-        lat, lon, h = gnss.geodetic()
-        i = int(np.flatnonzero(usable)[0])
-        frame = LocalFrame(float(lat[i]), float(lon[i]), float(h[i]))
+    check_navigation_spans(root, cfg, gnss, imu)
+    frame = first_fix_frame(root, cfg, gnss)
     t0 = float(np.floor(imu.time_gps[0]))
     gt, gp, gc = gnss_in_w(frame, t0, gnss, cfg.gnss.min_quality)
     data = GnssImuData(
@@ -230,6 +318,18 @@ def load_navigation(project: ProjectLike) -> NavigationData:
         gnss_correlated=cfg.gnss.correlated_error, imu_kind=imu.kind,
     )
     return NavigationData(cfg, root, frame, t0, imu, data)
+
+
+def first_fix_frame(root: Path, cfg: ProjectConfig, gnss: GnssSolution) -> LocalFrame:
+    """The mapping frame ``w`` of a single-flight configuration: at ``crs.reference_point``, else at
+    the first GNSS fix of the configured quality (:func:`check_navigation_spans` refuses GNSS without one)."""
+    if cfg.crs.reference_point is not None:
+        rp = cfg.crs.reference_point
+        return LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
+    usable = usable_gnss(root, cfg, gnss)
+    lat, lon, h = gnss.geodetic()
+    i = int(np.flatnonzero(usable)[0])
+    return LocalFrame(float(lat[i]), float(lon[i]), float(h[i]))
 
 
 @dataclass(frozen=True)

@@ -77,15 +77,13 @@ def read_project_imu(root: Path, cfg: ProjectConfig) -> ImuData:
     return read_imu_csv(path, rate_hz=cfg.imu.rate_hz)
 
 
-def check_navigation_spans(
-    root: Path, cfg: ProjectConfig, gnss: GnssSolution, imu: ImuData
-) -> tuple[np.ndarray, tuple[float, float], tuple[float, float]]:
-    """Usable GNSS epochs and the GNSS/IMU time spans (GPS s); they must overlap.
+def usable_gnss(root: Path, cfg: ProjectConfig, gnss: GnssSolution) -> np.ndarray:
+    """The epochs of quality ``gnss.min_quality`` or better (a boolean mask).
 
     Raises
     ------
     InputError
-        No epoch of the configured quality, or GNSS and IMU spans that do not overlap.
+        None is, naming the first GNSS file.
     """
     usable = gnss.quality <= cfg.gnss.min_quality
     if not np.any(usable):
@@ -96,6 +94,20 @@ def check_navigation_spans(
             expected=f"Q <= {cfg.gnss.min_quality} (gnss.min_quality)",
             found=f"best Q = {int(gnss.quality.min())}",
         )
+    return usable
+
+
+def check_navigation_spans(
+    root: Path, cfg: ProjectConfig, gnss: GnssSolution, imu: ImuData
+) -> tuple[np.ndarray, tuple[float, float], tuple[float, float]]:
+    """Usable GNSS epochs and the GNSS/IMU time spans (GPS s); they must overlap.
+
+    Raises
+    ------
+    InputError
+        No epoch of the configured quality, or GNSS and IMU spans that do not overlap.
+    """
+    usable = usable_gnss(root, cfg, gnss)
     g_span = (float(gnss.time_gps[usable][0]), float(gnss.time_gps[usable][-1]))
     i_span = (float(imu.time_gps[0]), float(imu.time_gps[-1]))
     if g_span[1] <= i_span[0] or i_span[1] <= g_span[0]:
