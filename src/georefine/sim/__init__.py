@@ -1,6 +1,6 @@
 """The simulator: a physically faithful flight written as a real project folder (layer 9, docs/ARCHITECTURE.md §1).
 
-Scene (``scene``, ``scene_objects``, ``texture``), true flight (``flight``), sensors (``imu``,
+Scene (``scene``, ``scene_objects``, ``texture``), flight plans (``flight_plan``), true flight (``flight``), sensors (``imu``,
 ``gnss``, ``scanner``, ``camera``), writers through the real file formats (``writers``),
 named scenarios (``scenarios``) and the consistency check of a written project (``verify``);
 see §6. It sits beside ``workflows`` in the same layer: neither imports the other, they meet

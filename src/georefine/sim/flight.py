@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
-from typing import Callable, Literal
+from typing import Callable, Literal, Sequence
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -47,9 +47,11 @@ from scipy.integrate import cumulative_simpson
 from scipy.interpolate import BSpline, make_interp_spline
 from scipy.ndimage import gaussian_filter1d
 
+from georefine.errors import ConfigError
 from georefine.geometry import earth
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import R_n_b_from_rph, omega_nb_b_from_rph_rates, wrap_angle
+from georefine.sim.flight_plan import PlannedLine, Primitive, dubins_path
 
 log = logging.getLogger(__name__)
 
@@ -342,9 +344,8 @@ class _Design:
         return self._steps(self.agl, t, base)
 
 
-def _timeline(cfg: FlightConfig, L: float, d_m: float, tail_m: float) -> _Design:
-    """Build the closed-form design with procedure-turn straight ``d_m``."""
-    D = _Design()
+def _preamble(cfg: FlightConfig, D: _Design) -> float:
+    """Static alignment, take-off, initialisation manoeuvre and approach; returns the approach's end."""
     V = cfg.speed_mps
     ts = cfg.static_duration_s
     if ts > 0:
@@ -370,6 +371,14 @@ def _timeline(cfg: FlightConfig, L: float, d_m: float, tail_m: float) -> _Design
     t += cfg.approach_duration_s
     if t > t_a:
         D.phases.append(("approach", t_a, t))
+    return t
+
+
+def _timeline(cfg: FlightConfig, L: float, d_m: float, tail_m: float) -> _Design:
+    """Build the closed-form design with procedure-turn straight ``d_m``."""
+    D = _Design()
+    V = cfg.speed_mps
+    t = _preamble(cfg, D)
     leg = (L + cfg.lead_in_m + cfg.lead_out_m) / V
     D.marks["leg1"] = (t, t + leg)
     D.phases.append(("pass", t, t + leg))
@@ -437,15 +446,115 @@ def _horizontal(cfg: FlightConfig, L: float):
     return D, t_fine, x, y, passes, t_end
 
 
+def _integrate_from(D: _Design, t0: float, t1: float, p0: np.ndarray) -> np.ndarray:
+    """Horizontal position at ``t1`` of the design flown from ``p0`` at ``t0`` (fine grid, Simpson)."""
+    n = max(2, 2 * int(np.ceil((t1 - t0) / (2.0 * _SAMPLE_S / _FINE))))
+    t = np.linspace(t0, t1, n + 1)
+    V, psi = D.speed_at(t), D.track(t)
+    return p0 + np.array([cumulative_simpson(V * np.sin(psi), x=t)[-1], cumulative_simpson(V * np.cos(psi), x=t)[-1]])
+
+
+def _append(D: _Design, t: float, primitives, V: float, ramp: float) -> float:
+    """Add ideal ``primitives`` starting at ``t`` (each arc's roll-in centred on its ideal start); returns their end."""
+    for q in primitives:
+        if q.turn_rad == 0.0:
+            t += q.length_m / V
+        elif abs(q.turn_rad) > 1e-9:
+            # A short arc rolls in and out within its own duration (the ramps of a turn must not overlap).
+            arc_s = q.path_length_m / V
+            r = min(ramp, arc_s)
+            D.add_turn(t - 0.5 * r, q.turn_rad, V / q.radius_m, r)
+            t += arc_s
+    return t
+
+
+def _line_primitives(line: PlannedLine, cfg: FlightConfig, bend_radius_m: float):
+    """Straights and bends that fly ``line`` from its lead-in to its lead-out (ideal geometry)."""
+    v = line.vertices
+    seg = np.linalg.norm(np.diff(v, axis=0), axis=1)
+    az = np.arctan2(np.diff(v[:, 0]), np.diff(v[:, 1]))
+    bends = wrap_angle(np.diff(az), 2.0 * np.pi)
+    tangent = bend_radius_m * np.tan(np.abs(bends) / 2.0)
+    straight = seg.copy()
+    straight[0] += cfg.lead_in_m
+    straight[-1] += cfg.lead_out_m
+    straight[:-1] -= tangent
+    straight[1:] -= tangent
+    if np.any(straight < 0):
+        raise ConfigError("a bend of the flight plan does not fit its line", field="plan.bend_radius_m",
+                          expected=f"segments longer than the bends' tangents ({np.round(tangent, 1).tolist()} m)",
+                          found=f"line {line.line_id}: segments {np.round(seg, 1).tolist()} m")
+    out = []
+    for k, length in enumerate(straight):
+        out.append(Primitive(length_m=float(length)))
+        if k < len(bends):
+            out.append(Primitive(turn_rad=float(bends[k]), radius_m=bend_radius_m))
+    return out
+
+
+def _planned_horizontal(cfg: FlightConfig, lines, bend_radius_m: float, transit_m: float):
+    """Design and horizontal path of a flight plan: the preamble, then each line after a Dubins turn.
+
+    Every connection is planned from the pose the design really reaches at the end of the line
+    before (the roll-in smoothing moves it by decimetres from the ideal arcs) and re-aimed until
+    the line's lead-in starts within 1 mm of the plan; the strip is the line's straight flight,
+    lead-in and lead-out included, without the half roll-in of the turns at either end.
+    """
+    V, R, ramp = cfg.speed_mps, cfg.turn_radius_m, cfg.roll_in_s
+    D = _Design()
+    t = _preamble(cfg, D)
+    ts = D.marks["t_static"]
+    p = _integrate_from(D, ts, t, np.zeros(2))
+    az = float(D.track(np.array([t]))[0])
+    first = lines[0]
+    s1 = first.vertices[0] - cfg.lead_in_m * np.array([np.sin(first.start_heading), np.cos(first.start_heading)])
+    u1 = np.array([np.sin(first.start_heading), np.cos(first.start_heading)])
+    # The take-off pad placed so that the first line is reached by a one-sided turn (2 R to the
+    # right of the line's lead-in, ``transit_m`` further back): a pad straight behind it would
+    # make the turn to the left and the turn to the right equally short.
+    shift = s1 - (2.0 * R + transit_m) * u1 + 2.0 * R * np.array([u1[1], -u1[0]]) - p
+    p = p + shift
+    passes, worst = [], 0.0
+    for line in lines:
+        u = np.array([np.sin(line.start_heading), np.cos(line.start_heading)])
+        goal = line.vertices[0] - cfg.lead_in_m * u
+        aim, t_turn = goal.copy(), t
+        for _ in range(12):
+            trial = _Design(list(D.turns), D.speed, D.agl, D.phases, D.marks)
+            t_line = _append(trial, t, dubins_path(p, az, aim, line.start_heading, R), V, ramp)
+            reached = _integrate_from(trial, t, t_line, p)
+            miss = goal - reached
+            aim = aim + miss
+            if np.hypot(*miss) < 1e-3:
+                break
+        worst = max(worst, float(np.hypot(*miss)))
+        D.turns = trial.turns
+        if t_line > t_turn:
+            D.phases.append(("turn", t_turn, t_line))
+        t_end = _append(D, t_line, _line_primitives(line, cfg, bend_radius_m), V, ramp)
+        passes.append((line.line_id, t_line + 0.5 * ramp, t_end - 0.5 * ramp))
+        D.phases.append(("pass", t_line, t_end))
+        p = _integrate_from(D, t_line, t_end, reached)
+        az, t = line.end_heading, t_end
+    if worst > 0.05:
+        log.warning("flight plan: a line starts %.2f m from its planned position", worst)
+    t_end = t + 3.0
+    D.phases.append(("end", t, t_end))
+    t_fine = _fine_grid(ts, t_end + _TAIL_S + 5.0)
+    x, y = _integrate(D, t_fine)
+    return D, t_fine, x + shift[0], y + shift[1], passes, t_end
+
+
 def _bc(n, left, right):
     z = np.zeros(n) if n > 1 else 0.0
     return ([(left[0], z), (left[1], z)], [(right[0], z), (right[1], z)])
 
 
 def simulate_flight(
-    cfg: FlightConfig, frame: LocalFrame, corridor_length_m: float, terrain_height: TerrainFn
+    cfg: FlightConfig, frame: LocalFrame, corridor_length_m: float, terrain_height: TerrainFn,
+    lines: Sequence[PlannedLine] | None = None, *, bend_radius_m: float = 600.0, transit_m: float = 0.0,
 ) -> TrueTrajectory:
-    """Build the true trajectory of a corridor flight.
+    """Build the true trajectory of a corridor flight, or of a flight plan's ``lines``.
 
     Parameters
     ----------
@@ -456,6 +565,11 @@ def simulate_flight(
         Corridor from ``y = 0`` to ``y = corridor_length_m`` at ``x = 0`` [m].
     terrain_height : callable
         ``terrain_height(x, y) -> z`` of the ground in ``w`` [m], vectorised.
+    lines : sequence of PlannedLine, optional
+        A flight plan (:func:`georefine.sim.flight_plan.plan_lines`), flown in order after the
+        preamble with Dubins turns of ``cfg.turn_radius_m`` between the lines; bends inside a line
+        are flown at ``bend_radius_m``; ``transit_m`` of straight flight lead to the first line.
+        ``cfg.passes`` and the procedure turn are then unused; each line is a pass (strip).
 
     Returns
     -------
@@ -464,7 +578,10 @@ def simulate_flight(
     L = float(corridor_length_m)
     if not L > 0:
         raise ValueError(f"corridor_length_m must be positive, got {corridor_length_m}")
-    D, t_fine, x_f, y_f, passes, t_end = _horizontal(cfg, L)
+    if lines:
+        D, t_fine, x_f, y_f, passes, t_end = _planned_horizontal(cfg, list(lines), bend_radius_m, transit_m)
+    else:
+        D, t_fine, x_f, y_f, passes, t_end = _horizontal(cfg, L)
     ts = D.marks["t_static"]
     t_s = t_fine[::_FINE]
     x, y = x_f[::_FINE], y_f[::_FINE]

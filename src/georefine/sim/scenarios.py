@@ -62,6 +62,7 @@ from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.progress import Progress, no_progress
 from georefine.sim.camera import PhotoBlockConfig, write_photo_block
 from georefine.sim.flight import FlightConfig, TrueTrajectory, simulate_flight
+from georefine.sim.flight_plan import FlightPlanConfig, plan_lines, swath_width_m
 from georefine.sim.gnss import GnssConfig, simulate_gnss
 from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade, simulate_imu
 from georefine.sim.scanner import ScannerConfig, chunk_seed, scan
@@ -124,6 +125,9 @@ class ScenarioConfig(StrictModel):
     )
     reference_survey_sigma_m: float = Field(0.003, ge=0.0, description="RTK survey noise of the reference corners.")
     laz: bool = Field(True, description="Compress strips (LAZ) or not (LAS).")
+    plan: FlightPlanConfig | None = Field(
+        None, description="A flight plan of several lines (area block, bending or parallel corridor lines, a file of "
+        "line end points); without one the flight is the corridor's one or two passes (flight.passes).")
     jamming: JammingConfig | None = Field(None, description="GNSS outage in every pass (the LiDAR's trajectory).")
     photos: PhotoBlockConfig | None = Field(None, description="A photo block over the scene (paper 004).")
     sources: dict[str, str] = Field(
@@ -177,6 +181,33 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
             "jamming": {},
             "photos": {},
         }
+    if name == "area":
+        return {
+            "name": "area",
+            "description": "An area block: 8 parallel strips at 30 % sidelap flown in a racetrack pattern and 2 cross "
+            "strips over 2.2 x 2.3 km of rolling country with villages, a helicopter at 160 m AGL and 18 m/s after a "
+            "5-minute static alignment and a 3 km transit: over 40 minutes of flight.",
+            "scene": {"layout": "area", "length_m": 2200.0, "width_m": 2300.0, "floor_half_width_m": 1000.0,
+                      "side_rise_m": 30.0, "floor_slope_m_per_m": 0.005, "undulation_m": 4.0, "settlement_count": 6,
+                      "buildings_per_settlement": 16, "scattered_building_count": 30, "power_line": False,
+                      "reference_surfaces_per_site": [1, 1, 1, 1, 1, 1, 1, 1, 1]},
+            "flight": {"static_duration_s": 300.0},
+            "plan": {"kind": "area", "lines": 8, "sidelap": 0.3, "cross_lines": 2, "transit_m": 3000.0},
+            "scanner": {"pulse_rate_hz": 100000.0, "line_rate_hz": 120.0},
+        }
+    if name == "area-tiny":
+        return {
+            "name": "area-tiny",
+            "description": "A small block for tests: 3 parallel strips of 300 m at 30 % sidelap and 1 cross strip, "
+            "the corridor's scanner over a 60-degree field of view.",
+            "scene": {"layout": "area", "length_m": 300.0, "width_m": 520.0, "floor_half_width_m": 200.0,
+                      "side_rise_m": 10.0, "end_margin_m": 120.0, "settlement_count": 2, "buildings_per_settlement": 10,
+                      "settlement_radius_m": 60.0, "scattered_building_count": 8, "power_line": False,
+                      "reference_surfaces_per_site": [1, 1, 1, 1]},
+            "flight": {"static_duration_s": 5.0, "manoeuvre": "s_turns", "lead_in_m": 100.0, "lead_out_m": 100.0},
+            "plan": {"kind": "area", "lines": 3, "sidelap": 0.3, "cross_lines": 1},
+            "scanner": {"pulse_rate_hz": 100000.0, "line_rate_hz": 120.0, "field_of_view_deg": 60.0},
+        }
     if name == "corridor-tiny":
         return {
             "name": "corridor-tiny",
@@ -196,7 +227,7 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
     raise ConfigError("unknown scenario", field="SCENARIO", expected="one of " + ", ".join(SCENARIOS), found=repr(name))
 
 
-SCENARIOS = ("corridor", "corridor-tiny", "corridor-paper", "block")
+SCENARIOS = ("corridor", "corridor-tiny", "corridor-paper", "block", "area", "area-tiny")
 
 
 def resolve_scenario(
@@ -349,9 +380,25 @@ def flight_passes(cfg: ScenarioConfig, seed: int) -> tuple[tuple[int, float, flo
     # The scene's stream is the first child of the seed, as in the simulation (children do not
     # depend on how many are spawned); the terrain shapes the flight.
     scene = build_scene(cfg.scene, np.random.default_rng(np.random.SeedSequence(seed).spawn(1)[0]))
-    traj = simulate_flight(cfg.flight, LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m), cfg.scene.length_m,
-                           scene.terrain_height)
+    traj = fly(cfg, LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m), scene.terrain_height)
     return tuple((int(sid), float(t0), float(t1)) for sid, t0, t1 in traj.passes)
+
+
+def fly(cfg: ScenarioConfig, frame: LocalFrame, terrain_height) -> TrueTrajectory:
+    """The true trajectory of the scenario: its flight plan's lines, or the corridor passes without one."""
+    lines = None
+    if cfg.plan is not None:
+        crs = OutputCRS(cfg.output_epsg)
+        h0 = cfg.reference_point.h_m
+
+        def to_w(en: np.ndarray) -> np.ndarray:
+            return crs.to_w(frame, np.column_stack([en, np.full(len(en), h0)]))
+
+        lines = plan_lines(cfg.plan, length_m=cfg.scene.length_m, width_m=cfg.scene.width_m,
+                           swath_m=swath_width_m(cfg.flight.altitude_agl_m, cfg.scanner.field_of_view_deg), to_w=to_w)
+        return simulate_flight(cfg.flight, frame, cfg.scene.length_m, terrain_height, lines,
+                               bend_radius_m=cfg.plan.bend_radius_m, transit_m=cfg.plan.transit_m)
+    return simulate_flight(cfg.flight, frame, cfg.scene.length_m, terrain_height)
 
 
 def outage_inside_pass(cfg: ScenarioConfig, seed: int, *, strip: int = 1, start_after_s: float = 10.0,
@@ -406,7 +453,7 @@ def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, 
     timings["scene"] = _time.perf_counter() - t
 
     t = _time.perf_counter()
-    traj: TrueTrajectory = simulate_flight(cfg.flight, frame, cfg.scene.length_m, scene.terrain_height)
+    traj = fly(cfg, frame, scene.terrain_height)
     imu = simulate_imu(traj, cfg.imu, 0.0, traj.duration_s, rng_imu)
     p_b_a = np.asarray(cfg.gnss_lever_arm_m)
     gnss_cfg = cfg.gnss

@@ -45,6 +45,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numba
 import numpy as np
@@ -76,6 +77,9 @@ class SceneConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
+    layout: Literal["corridor", "area"] = Field(
+        "corridor", description="corridor: settlements and reference sites near the axis x = 0; area: spread over "
+        "the whole width (a block of parallel strips)")
     length_m: float = Field(3000.0, gt=0, description="corridor length along +y from y=0")
     width_m: float = Field(800.0, ge=100, description="terrain width across the axis (x)")
     end_margin_m: float = Field(150.0, ge=0, description="terrain beyond both corridor ends")
@@ -369,7 +373,10 @@ def build_scene(cfg: SceneConfig, rng: np.random.Generator) -> Scene:
     # settlements and roads (cross road through each settlement centre)
     n_set = cfg.settlement_count
     set_y = np.sort(rng.uniform(0.1, 0.9, n_set)) * L if n_set else np.zeros(0)
-    set_x = rng.choice([-1.0, 1.0], n_set) * rng.uniform(50.0, np.clip(half - 60, 60, 130), n_set)
+    if cfg.layout == "area":  # villages anywhere in the block, clear of its border
+        set_x = rng.uniform(-1.0, 1.0, n_set) * max(half - cfg.settlement_radius_m - 40.0, 50.0)
+    else:
+        set_x = rng.choice([-1.0, 1.0], n_set) * rng.uniform(50.0, np.clip(half - 60, 60, 130), n_set)
     cross_ang = rng.uniform(-np.pi / 6, np.pi / 6, n_set)
     hw = cfg.road_width_m / 2  # main road x = x0 + 15 sin(2 pi y / 900 m + phase)
     main = [cfg.main_road_offset_m, 15.0, 2 * np.pi / 900.0, rng.uniform(0, 2 * np.pi), hw]

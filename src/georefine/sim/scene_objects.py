@@ -151,11 +151,21 @@ def add_reference_surfaces(cfg, rng, b, height, free, occupied):
     """Horizontal square slabs at ``len(reference_surfaces_per_site)`` sites."""
     L, s = cfg.length_m, cfg.reference_size_m
     n_sites, refs, k = len(cfg.reference_surfaces_per_site), [], 0
-    pylon_y = _pylon_y(cfg)
+    pylon_y = _pylon_y(cfg) if cfg.power_line or cfg.layout == "corridor" else np.zeros(0)
+    # An area spreads its sites over a lattice of cells covering the block, so that control
+    # lies under every part of it; a corridor keeps them near the axis, along it.
+    cols = max(1, int(np.ceil(np.sqrt(n_sites * cfg.width_m / L)))) if cfg.layout == "area" else 1
+    rows = int(np.ceil(n_sites / cols))
+    inner = cfg.width_m / 2 - 60.0
     for site, n_surf in enumerate(cfg.reference_surfaces_per_site):
-        for _ in range(200):  # site centre on open ground near the axis
-            y = L * (site + 0.5 + rng.uniform(-0.25, 0.25)) / n_sites
-            x = rng.choice([-1.0, 1.0]) * rng.uniform(25.0, 90.0)
+        row, col = divmod(site, cols)
+        for _ in range(200):  # site centre on open ground
+            if cfg.layout == "area":
+                y = L * (row + 0.5 + rng.uniform(-0.3, 0.3)) / rows
+                x = -inner + 2 * inner * (col + 0.5 + rng.uniform(-0.3, 0.3)) / cols
+            else:  # near the axis
+                y = L * (site + 0.5 + rng.uniform(-0.25, 0.25)) / n_sites
+                x = rng.choice([-1.0, 1.0]) * rng.uniform(25.0, 90.0)
             if free(x, y, 8.0 * n_surf, 15.0) and np.all(np.abs(pylon_y - y) > 20):
                 break
         else:
