@@ -3,8 +3,11 @@
 Reads ``project.yaml`` and each sensor file with the strict readers of :mod:`georefine.io`
 (:mod:`georefine.workflows.project`), then checks what only the files together can tell: GNSS
 and IMU time spans overlap, the scans fall inside the navigation data, every scan point has a
-configured ``scanner_channel``. Scans are streamed in chunks, so files larger than memory are
-fine. Nothing is written.
+configured ``scanner_channel``. A project of several flights (``flights`` in ``project.yaml``,
+docs/ARCHITECTURE.md §3) is checked flight by flight: each flight's GNSS and IMU as a project's,
+each strip against its own flight's navigation span; and the flights do not overlap in time
+(unless two read the same IMU record), and no file is listed as two strips. Scans are streamed in
+chunks, so files larger than memory are fine. Nothing is written.
 """
 
 from __future__ import annotations
@@ -15,7 +18,7 @@ from typing import Callable
 
 import numpy as np
 
-from georefine.config import ProjectConfig
+from georefine.config import FlightConfig, ProjectConfig
 from georefine.errors import InputError
 from georefine.io.las import iter_las_chunks, read_las_info
 from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces
@@ -31,12 +34,13 @@ from georefine.workflows.project import (
     read_project_imu,
 )
 
-__all__ = ["ProjectSummary", "StripSummary", "inspect_project"]
+__all__ = ["FlightSummary", "ProjectSummary", "StripSummary", "inspect_project"]
 
 
 @dataclass(frozen=True)
 class StripSummary:
-    """One scan strip: file, point count, time span (GPS s), points per channel, points outside the IMU span."""
+    """One scan strip: file, point count, time span (GPS s), points per channel, points outside the IMU span
+    (of its own flight's navigation, ``flight_id``)."""
 
     path: Path
     point_count: int
@@ -44,11 +48,33 @@ class StripSummary:
     points_per_channel: dict[int, int]
     strip_ids: tuple[int, ...]
     outside_navigation: int
+    flight_id: int = 1
+
+
+@dataclass(frozen=True)
+class FlightSummary:
+    """One flight: id and name, its navigation's time span (GPS s, where its GNSS and IMU overlap), its
+    strips, IMU samples (rate, sampling gaps bridged) and GNSS epochs (of quality ``gnss.min_quality``)."""
+
+    id: int
+    name: str
+    span_gps: tuple[float, float]
+    strips: int
+    imu_samples: int
+    imu_rate_hz: float
+    imu_gaps: int
+    gnss_epochs: int
+    gnss_usable_epochs: int
 
 
 @dataclass(frozen=True)
 class ProjectSummary:
-    """What :func:`inspect_project` found."""
+    """What :func:`inspect_project` found.
+
+    For a project of several flights the GNSS and IMU figures are the flights' together (epochs and
+    samples summed, spans from the first flight's start to the last one's end, the IMU rate the
+    first flight's) and ``flights`` has one record each; a single-flight project has one record.
+    """
 
     root: Path
     config: ProjectConfig
@@ -66,15 +92,25 @@ class ProjectSummary:
     """Images, cameras, control points, check points, image measurements (None: no photos section)."""
     delivered: tuple[int, float, bool] | None = None
     """A delivered trajectory (docs/ARCHITECTURE.md §4.9): SBET records, their rate (Hz), whether an smrmsg is given."""
+    flights: tuple[FlightSummary, ...] = ()
 
     def summary(self) -> str:
         g0, g1 = self.gnss_span_gps
         i0, i1 = self.imu_span_gps
         lines = [f"Project {self.config.name!r} at {self.root}"]
+        several = self.config.multi_flight
         if self.delivered is not None:
             n, rate, acc = self.delivered
             lines.append(f"  delivered trajectory: {n:,} SBET records at {rate:.0f} Hz, {g1 - g0:.1f} s, "
                          + ("smrmsg sigmas" if acc else "default sigmas (no smrmsg)"))
+        elif several:
+            lines.append(f"  {len(self.flights)} flight{'s' if len(self.flights) != 1 else ''}:")
+            for f in self.flights:
+                a, b = f.span_gps
+                lines.append(
+                    f"    flight {f.id} ({f.name}): {a:.3f} .. {b:.3f} GPS s ({b - a:.1f} s), {f.strips} "
+                    f"strip{'s' if f.strips != 1 else ''}, IMU {f.imu_samples:,} samples at {f.imu_rate_hz:g} Hz "
+                    f"({f.imu_gaps} gaps), GNSS {f.gnss_epochs:,} epochs ({f.gnss_usable_epochs:,} usable)")
         else:
             lines += [
                 f"  GNSS: {self.gnss_epochs:,} epochs ({self.gnss_usable_epochs:,} usable), {g1 - g0:.1f} s",
@@ -82,8 +118,9 @@ class ProjectSummary:
             ]
         for s in self.strips:
             per = ", ".join(f"ch{k}: {v:,}" for k, v in sorted(s.points_per_channel.items()))
+            name = f"{_relative(s.path, self.root)} (flight {s.flight_id})" if several else s.path.name
             lines.append(
-                f"  {s.path.name}: {s.point_count:,} points over {s.time_span_gps[1] - s.time_span_gps[0]:.1f} s ({per})"
+                f"  {name}: {s.point_count:,} points over {s.time_span_gps[1] - s.time_span_gps[0]:.1f} s ({per})"
             )
         if self.reference_surfaces:
             lines.append(f"  reference surfaces: {self.reference_surfaces}")
@@ -95,6 +132,175 @@ class ProjectSummary:
         return "\n".join(lines)
 
 
+def _relative(path: Path, root: Path) -> str:
+    try:
+        return path.relative_to(root).as_posix()
+    except ValueError:
+        return str(path)
+
+
+@dataclass(frozen=True)
+class _Navigation:
+    """What the navigation check of one flight found (GPS s)."""
+
+    gnss_span: tuple[float, float]
+    imu_span: tuple[float, float]
+    gnss_epochs: int
+    gnss_usable: int
+    imu_samples: int
+    imu_rate_hz: float
+    imu_gaps: np.ndarray
+    delivered: tuple[int, float, bool] | None = None
+
+    @property
+    def span(self) -> tuple[float, float]:
+        """Where GNSS and IMU overlap: the navigation's span."""
+        return max(self.gnss_span[0], self.imu_span[0]), min(self.gnss_span[1], self.imu_span[1])
+
+
+def _check_navigation(root: Path, cfg: ProjectConfig, warnings: list[str], prefix: str = "") -> _Navigation:
+    """The GNSS and IMU of a single-flight configuration (a project's, or one flight's) read and checked
+    as the workflow reads them; the warnings (gaps bridged) appended with ``prefix``."""
+    if cfg.delivered_trajectory:  # the SBET (and smrmsg) with the workflow's reader and checks (§4.9)
+        from georefine.workflows.delivered import read_delivered
+
+        _, t0, prior = read_delivered(root, cfg)
+        span = (t0 + float(prior.time[0]), t0 + float(prior.time[-1]))
+        return _Navigation(span, span, 0, 0, 0, 0.0, np.zeros((0, 2)),
+                           (int(prior.time.size), float(prior.rate_hz), bool(cfg.trajectory.smrmsg)))
+    gnss = read_project_gnss(root, cfg)
+    imu = read_project_imu(root, cfg)
+    usable, g_span, i_span = check_navigation_spans(root, cfg, gnss, imu)
+    bridged = bridge_project_imu(root, cfg, imu)
+    check_imu_plausible(root, cfg, gnss, bridged.data)
+    gaps = np.array([(g.t_before, g.t_after) for g in bridged.gaps]).reshape(-1, 2)
+    if bridged.gaps:
+        warnings.append(prefix + bridged.describe())
+    g_gaps = gnss_gaps(gnss, usable)
+    if len(g_gaps):
+        k = int(np.argmax(g_gaps[:, 1] - g_gaps[:, 0]))
+        warnings.append(f"{prefix}{len(g_gaps)} GNSS gaps (no epoch of quality Q <= {cfg.gnss.min_quality}), the "
+                        f"longest {g_gaps[k, 1] - g_gaps[k, 0]:.1f} s from {g_gaps[k, 0]:.1f} GPS s: bridged on the "
+                        "IMU alone")
+    return _Navigation(g_span, i_span, int(gnss.time_gps.size), int(usable.sum()), int(imu.time_gps.size),
+                       float(imu.rate_hz), gaps)
+
+
+@dataclass(frozen=True)
+class _StripFlight:
+    """The flight a strip is checked against, in a project of several flights."""
+
+    flight: FlightConfig
+    span: tuple[float, float]
+    others: tuple[tuple[FlightConfig, tuple[float, float]], ...]
+
+
+def _check_strip(path: Path, cfg: ProjectConfig, nav: tuple[float, float], channels: set[int], chunk_size: int,
+                 progress: Callable[[str, float, float], None] | None, warnings: list[str],
+                 flight: _StripFlight | None = None) -> StripSummary:
+    """One strip streamed: channels configured, times inside the navigation span ``nav`` (GPS s)."""
+    shift = cfg.scanner.time_offset_s  # the strips' time stamps plus this are navigation time
+    info = read_las_info(path)
+    per: dict[int, int] = {}
+    ids: set[int] = set()
+    t_min, t_max, outside, done = np.inf, -np.inf, 0, 0
+    for chunk in iter_las_chunks(path, chunk_size):
+        ch, cnt = np.unique(chunk.scanner_channel, return_counts=True)
+        unknown = ch[~np.isin(ch, list(channels))]
+        if unknown.size:
+            first = done + int(np.flatnonzero(np.isin(chunk.scanner_channel, unknown))[0]) + 1
+            raise InputError(
+                "point with a scanner_channel not configured in project.yaml",
+                path=path, line=first, record_kind="point", field="scanner_channel",
+                expected="one of " + ", ".join(map(str, sorted(channels))), found=str(int(unknown[0])),
+            )
+        for c, k in zip(ch.tolist(), cnt.tolist()):
+            per[c] = per.get(c, 0) + k
+        ids.update(np.unique(chunk.point_source_id).tolist())
+        if len(chunk):
+            t_min = min(t_min, float(chunk.time_gps.min()))
+            t_max = max(t_max, float(chunk.time_gps.max()))
+            t = chunk.time_gps + shift
+            outside += int(np.count_nonzero((t < nav[0]) | (t > nav[1])))
+        done += len(chunk)
+        if progress is not None:
+            progress(f"check {path.name}", done, info.point_count)
+    if done == 0:
+        raise InputError("strip has no points", path=path)
+    if outside == done:  # as the workflow refuses it (lidar.tiles.refuse_strips_outside)
+        if flight is None:
+            raise strip_outside_error(path, (nav[0] - shift, nav[1] - shift), (t_min, t_max), shift)
+        raise _strip_outside_flight(path, flight, (t_min, t_max), shift)
+    name = path.name if flight is None else f"{path.name} (flight {flight.flight.id})"
+    if outside:
+        where = "the navigation's time span" if flight is None else \
+            f"its flight's navigation time span {nav[0]:.3f} .. {nav[1]:.3f} GPS s"
+        warnings.append(f"{name}: {outside:,} points outside {where} (they will be left out)")
+    missing = channels - set(per)
+    if missing:
+        warnings.append(f"{name}: no points of channel(s) {sorted(missing)}")
+    return StripSummary(path, done, (t_min, t_max), per, tuple(sorted(ids)), outside,
+                        1 if flight is None else flight.flight.id)
+
+
+def _strip_outside_flight(path: Path, flight: _StripFlight, found_gps: tuple[float, float],
+                          shift: float) -> InputError:
+    """The error for a strip none of whose points lies in its own flight's navigation span."""
+    f, (a, b) = flight.flight, flight.span
+    lo, hi = found_gps[0] + shift, found_gps[1] + shift
+    inside = [o for o, (oa, ob) in flight.others if lo <= ob and hi >= oa]
+    hint = f"; its times lie in the span of flight {inside[0].id}: listed under the wrong flight?" if inside else ""
+    return InputError(
+        f"no point of the strip lies inside the time span of its flight {f.id} ({f.label}){hint}", path=path,
+        field="gps_time",
+        expected=f"times within {a - shift:.3f} .. {b - shift:.3f} GPS s (flight {f.id}'s navigation"
+        + (f", scanner time offset {shift:g} s applied)" if shift else ")"),
+        found=f"{found_gps[0]:.3f} .. {found_gps[1]:.3f} GPS s",
+    )
+
+
+def _check_flights_apart(root: Path, flights: list[tuple[FlightConfig, _Navigation]], warnings: list[str]) -> None:
+    """Flights do not overlap in time, unless two read the same IMU record (then a warning).
+
+    Raises
+    ------
+    InputError
+        Naming the later flight's IMU file, both flights and their spans.
+    """
+    order = sorted(flights, key=lambda fn: fn[1].span[0])
+    for i, (f1, n1) in enumerate(order):
+        for f2, n2 in order[i + 1:]:
+            (a1, b1), (a2, b2) = n1.span, n2.span
+            if a2 >= b1:
+                continue
+            if (root / f1.imu_file).resolve() == (root / f2.imu_file).resolve():
+                warnings.append(f"flights {f1.id} and {f2.id} read the same IMU record {f1.imu_file}: their spans "
+                                "coincide, and each has its own IMU errors")
+                continue
+            raise InputError(
+                f"flights {f1.id} and {f2.id} overlap in time: each flight is a take-off of its own, flown one after "
+                "the other", path=root / f2.imu_file, field="time",
+                expected=f"flight {f2.id}'s navigation after flight {f1.id}'s, which spans "
+                f"{a1:.3f} .. {b1:.3f} GPS s",
+                found=f"flight {f2.id}: {a2:.3f} .. {b2:.3f} GPS s",
+            )
+
+
+def _check_strips_distinct(root: Path, cfg: ProjectConfig) -> None:
+    """No file is listed as two strips (two names of one file: a link, ``a/../b``)."""
+    seen: dict[Path, tuple[int, int, str]] = {}
+    for k, f in enumerate(cfg.flights or ()):
+        for j, rel in enumerate(f.strips):
+            key = (root / rel).resolve()
+            if key in seen:
+                fid, _, first = seen[key]
+                raise InputError(
+                    f"the same file is listed as two strips, {first} (flight {fid}) and {rel} (flight {f.id})",
+                    path=root / rel, field=f"flights.{k}.strips.{j}", expected="each strip in exactly one flight",
+                    found=f"also flight {fid}'s {first}")
+            seen[key] = (f.id, j, rel)
+
+
 def inspect_project(
     project: ProjectLike,
     *,
@@ -102,7 +308,8 @@ def inspect_project(
     progress: Callable[[str, float, float], None] | None = None,
 ) -> ProjectSummary:
     """Validate a project (an opened :class:`~georefine.workflows.opened.Project` or its folder):
-    configuration, every sensor file, and their consistency.
+    configuration, every sensor file, and their consistency; for a project of several flights,
+    every flight's files, each strip against its own flight, and the flights apart in time.
 
     Raises
     ------
@@ -112,73 +319,37 @@ def inspect_project(
     project = as_project(project)
     root, cfg = project.root, project.config
     warnings: list[str] = []
-
-    delivered = None
-    if cfg.delivered_trajectory:  # the SBET (and smrmsg) with the workflow's reader and checks (§4.9)
-        from georefine.workflows.delivered import read_delivered
-
-        _, t0, prior = read_delivered(root, cfg)
-        g_span = i_span = (t0 + float(prior.time[0]), t0 + float(prior.time[-1]))
-        delivered = (int(prior.time.size), float(prior.rate_hz), bool(cfg.trajectory.smrmsg))
-        n_gnss = n_usable = n_imu = 0
-        rate, gaps = 0.0, np.zeros((0, 2))
-    else:
-        gnss = read_project_gnss(root, cfg)
-        imu = read_project_imu(root, cfg)
-        usable, g_span, i_span = check_navigation_spans(root, cfg, gnss, imu)
-        bridged = bridge_project_imu(root, cfg, imu)
-        check_imu_plausible(root, cfg, gnss, bridged.data)
-        gaps = np.array([(g.t_before, g.t_after) for g in bridged.gaps]).reshape(-1, 2)
-        if bridged.gaps:
-            warnings.append(bridged.describe())
-        g_gaps = gnss_gaps(gnss, usable)
-        if len(g_gaps):
-            k = int(np.argmax(g_gaps[:, 1] - g_gaps[:, 0]))
-            warnings.append(f"{len(g_gaps)} GNSS gaps (no epoch of quality Q <= {cfg.gnss.min_quality}), the longest "
-                            f"{g_gaps[k, 1] - g_gaps[k, 0]:.1f} s from {g_gaps[k, 0]:.1f} GPS s: bridged on the IMU alone")
-        n_gnss, n_usable, n_imu, rate = int(gnss.time_gps.size), int(usable.sum()), int(imu.time_gps.size), float(imu.rate_hz)
-
     channels = {c.id for c in cfg.scanner.channels}
-    nav = (max(g_span[0], i_span[0]), min(g_span[1], i_span[1]))
-    shift = cfg.scanner.time_offset_s  # the strips' time stamps plus this are navigation time
-    strips = []
-    for rel in cfg.scanner.files:
-        path = root / rel
-        info = read_las_info(path)
-        per: dict[int, int] = {}
-        ids: set[int] = set()
-        t_min, t_max, outside, done = np.inf, -np.inf, 0, 0
-        for chunk in iter_las_chunks(path, chunk_size):
-            ch, cnt = np.unique(chunk.scanner_channel, return_counts=True)
-            unknown = ch[~np.isin(ch, list(channels))]
-            if unknown.size:
-                first = done + int(np.flatnonzero(np.isin(chunk.scanner_channel, unknown))[0]) + 1
-                raise InputError(
-                    "point with a scanner_channel not configured in project.yaml",
-                    path=path, line=first, record_kind="point", field="scanner_channel",
-                    expected="one of " + ", ".join(map(str, sorted(channels))), found=str(int(unknown[0])),
-                )
-            for c, k in zip(ch.tolist(), cnt.tolist()):
-                per[c] = per.get(c, 0) + k
-            ids.update(np.unique(chunk.point_source_id).tolist())
-            if len(chunk):
-                t_min = min(t_min, float(chunk.time_gps.min()))
-                t_max = max(t_max, float(chunk.time_gps.max()))
-                t = chunk.time_gps + shift
-                outside += int(np.count_nonzero((t < nav[0]) | (t > nav[1])))
-            done += len(chunk)
-            if progress is not None:
-                progress(f"check {path.name}", done, info.point_count)
-        if done == 0:
-            raise InputError("strip has no points", path=path)
-        if outside == done:  # as the workflow refuses it (lidar.tiles.refuse_strips_outside)
-            raise strip_outside_error(path, (nav[0] - shift, nav[1] - shift), (t_min, t_max), shift)
-        if outside:
-            warnings.append(f"{path.name}: {outside:,} points outside the navigation's time span (they will be left out)")
-        missing = channels - set(per)
-        if missing:
-            warnings.append(f"{path.name}: no points of channel(s) {sorted(missing)}")
-        strips.append(StripSummary(path, done, (t_min, t_max), per, tuple(sorted(ids)), outside))
+
+    strips: list[StripSummary] = []
+    if cfg.flights is None:
+        nav = _check_navigation(root, cfg, warnings)
+        flights = [FlightSummary(1, "flight_1", nav.span, len(cfg.scanner.files), nav.imu_samples, nav.imu_rate_hz,
+                                 len(nav.imu_gaps), nav.gnss_epochs, nav.gnss_usable)]
+        for rel in cfg.scanner.files:
+            strips.append(_check_strip(root / rel, cfg, nav.span, channels, chunk_size, progress, warnings))
+        g_span, i_span = nav.gnss_span, nav.imu_span
+        totals = nav
+    else:
+        checked = []
+        for f in cfg.flights:
+            fcfg = cfg.flight_config(f.id)
+            checked.append((f, fcfg, _check_navigation(root, fcfg, warnings, prefix=f"flight {f.id}: ")))
+        _check_flights_apart(root, [(f, n) for f, _, n in checked], warnings)
+        _check_strips_distinct(root, cfg)
+        for f, fcfg, n in checked:
+            others = tuple((o, on.span) for o, _, on in checked if o.id != f.id)
+            for rel in fcfg.scanner.files:
+                strips.append(_check_strip(root / rel, fcfg, n.span, channels, chunk_size, progress, warnings,
+                                           _StripFlight(f, n.span, others)))
+        flights = [FlightSummary(f.id, f.label, n.span, len(f.strips), n.imu_samples, n.imu_rate_hz,
+                                 len(n.imu_gaps), n.gnss_epochs, n.gnss_usable) for f, _, n in checked]
+        navs = [n for _, _, n in checked]
+        g_span = (min(n.gnss_span[0] for n in navs), max(n.gnss_span[1] for n in navs))
+        i_span = (min(n.imu_span[0] for n in navs), max(n.imu_span[1] for n in navs))
+        totals = _Navigation(g_span, i_span, sum(n.gnss_epochs for n in navs), sum(n.gnss_usable for n in navs),
+                             sum(n.imu_samples for n in navs), navs[0].imu_rate_hz,
+                             np.concatenate([n.imu_gaps for n in navs]).reshape(-1, 2))
 
     n_ref = 0
     if cfg.reference.surfaces:
@@ -196,8 +367,8 @@ def inspect_project(
         photos = (len(pp.eop), len(pp.cameras), control, len(pp.gcps) - control, len(pp.image_points))
 
     return ProjectSummary(
-        root=root, config=cfg, gnss_epochs=n_gnss, gnss_usable_epochs=n_usable,
-        gnss_span_gps=g_span, imu_samples=n_imu, imu_rate_hz=rate,
-        imu_span_gps=i_span, imu_gaps=gaps, strips=tuple(strips), reference_surfaces=n_ref, warnings=tuple(warnings),
-        photos=photos, delivered=delivered,
+        root=root, config=cfg, gnss_epochs=totals.gnss_epochs, gnss_usable_epochs=totals.gnss_usable,
+        gnss_span_gps=g_span, imu_samples=totals.imu_samples, imu_rate_hz=totals.imu_rate_hz,
+        imu_span_gps=i_span, imu_gaps=totals.imu_gaps, strips=tuple(strips), reference_surfaces=n_ref,
+        warnings=tuple(warnings), photos=photos, delivered=totals.delivered, flights=tuple(flights),
     )
