@@ -570,7 +570,8 @@ def _rule_error(loc: tuple[str | int, ...], message: str, found: object) -> Vali
     """The error of a rule between sections, placed at the field it is about (``loc``), so that the
     :class:`ConfigError` names that field and its line in ``project.yaml``."""
     return ValidationError.from_exception_data("ProjectConfig", [InitErrorDetails(
-        type=PydanticCustomError("project_rule", "{message}", {"message": message}), loc=loc, input=found)])
+        type=PydanticCustomError("project_rule", "{message}", {"message": message}), loc=loc,
+        input={} if found is None else found)])  # a mapping is not printed as found (validate_model)
 
 
 class ProjectConfig(StrictModel):
