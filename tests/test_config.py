@@ -244,3 +244,14 @@ def test_overrides_beat_project_yaml_which_beats_the_defaults(tmp_path):
         lidargrammetry_settings(cfg, {"pair_kinds": ["photo-sky"]})
     with pytest.raises(ConfigError, match=r"field 'processing.lidargrammetry.scale': unknown key"):
         lidargrammetry_settings(cfg, {"scale": 0.3})
+
+
+def test_a_project_without_flights_is_one_flight_of_its_top_level_files(tmp_path):
+    """project.yaml without flights (every project before them) is one flight: gnss.files, imu.file and
+    scanner.files (docs/ARCHITECTURE.md §3); flights: null says the same."""
+    cfg = validate_model(ProjectConfig, minimal_project())
+    assert cfg.flights is None and not cfg.multi_flight and cfg.flight_ids == (1,)
+    assert cfg.flight_config(1) is cfg
+    assert validate_model(ProjectConfig, {**minimal_project(), "flights": None}) == cfg
+    write_yaml(tmp_path / "project.yaml", cfg)
+    assert load_project(tmp_path) == cfg
