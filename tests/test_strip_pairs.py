@@ -36,6 +36,12 @@ from georefine.evaluation.strip_pairs import (
     write_pairs_csv,
     write_pairs_png,
 )
+from georefine.evaluation.summary import (
+    CloudEvaluation,
+    RunEvaluation,
+    StripDifferenceFigures,
+    StripPairFigures,
+)
 from georefine.io.files import write_json
 from georefine.tasks import TaskRunner
 
@@ -326,6 +332,23 @@ def test_the_record_reads_back_from_json(pairs, tmp_path):
     assert d["pairs"][1] == {"strip_a": 1, "strip_b": 3, "cells": 0, "median_mm": None, "p95_mm": None,
                              "rms_mm": None, "signed_median_mm": None}
     assert list(d) == ["cell_size_m", "min_cells", "strips", "pairs"] and d["min_cells"] == MIN_PAIR_CELLS
+
+
+def test_the_run_evaluation_holds_the_pairs_and_old_summaries_still_read(pairs, tmp_path):
+    figures = StripPairFigures(pairs, "gil/strip_pairs.csv", "gil/strip_pairs.png")
+    sd = StripDifferenceFigures(10, 0.001, 0.002, 0.001, "gil/strip_differences.png")
+    evaluation = RunEvaluation("truth", strip_differences={"G/I/L": sd}, strip_pairs={"G/I/L": figures})
+    write_json(tmp_path / "summary.json", evaluation.to_dict())
+    back = RunEvaluation.read(tmp_path / "summary.json")
+    assert back == evaluation and back.strip_pairs["G/I/L"].pairs.pair(2, 3).median_mm == pairs.pair(2, 3).median_mm
+    assert back.to_dict() == json.loads((tmp_path / "summary.json").read_text())
+    old = evaluation.to_dict()
+    del old["strip_pairs"]
+    assert RunEvaluation.from_dict(old).strip_pairs == {}
+    assert "strip_pairs" not in RunEvaluation("truth").to_dict()
+    cloud = CloudEvaluation(sd, strip_pairs=figures)
+    assert CloudEvaluation.from_dict(cloud.to_dict()) == cloud
+    assert CloudEvaluation.from_dict(CloudEvaluation(sd).to_dict()).strip_pairs is None
 
 
 def test_the_csv_has_a_row_per_pair_and_empty_figures_without_overlap(pairs, tmp_path):

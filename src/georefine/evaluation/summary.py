@@ -3,7 +3,7 @@
 :func:`georefine.workflows.evaluate.evaluate_run` computes them, :mod:`georefine.evaluation.report`
 and the command line show them. The report is built from files and sits in ``evaluation``, a
 layer below ``workflows`` (docs/ARCHITECTURE.md §1); the types live here, beside the metrics
-they summarise (trajectory differences, reference planes, strip differences), so that the
+they summarise (trajectory differences, reference planes, strip differences, strip pairs), so that the
 workflow that fills them and the report that reads them both import them downward.
 
 Each type's ``to_dict`` gives exactly the JSON written today (keys, order, values) and
@@ -24,6 +24,7 @@ from georefine.evaluation.calibration import BoresightFigures, ImuErrorFigures
 from georefine.evaluation.coverage import CoverageMap
 from georefine.evaluation.reference_planes import ReferencePlaneSummary
 from georefine.evaluation.strip_differences import StripDifferenceMap
+from georefine.evaluation.strip_pairs import StripPairDifferences
 
 __all__ = [
     "ANGLES",
@@ -33,6 +34,7 @@ __all__ = [
     "ReferencePlaneFigures",
     "CoverageFigures",
     "StripDifferenceFigures",
+    "StripPairFigures",
     "CloudEvaluation",
     "EvaluationPlots",
     "RunEvaluation",
@@ -177,6 +179,23 @@ class StripDifferenceFigures:
 
 
 @dataclass(frozen=True)
+class StripPairFigures:
+    """The strip-pair differences of a point cloud (:mod:`georefine.evaluation.strip_pairs`) and their
+    files (paths relative to ``RUN/evaluation``): ``strip_pairs.csv`` and the matrix of the medians."""
+
+    pairs: StripPairDifferences
+    csv: str
+    matrix: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"csv": self.csv, "matrix": self.matrix, **self.pairs.to_dict()}
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> StripPairFigures:
+        return cls(StripPairDifferences.from_dict(d), str(d["csv"]), str(d["matrix"]))
+
+
+@dataclass(frozen=True)
 class CoverageFigures:
     """Point density and strip overlap of a point cloud (:class:`~georefine.evaluation.coverage.CoverageMap`)
     and their maps (paths relative to ``RUN/evaluation``)."""
@@ -208,11 +227,13 @@ class CoverageFigures:
 
 @dataclass(frozen=True)
 class CloudEvaluation:
-    """One point cloud of a run (G/I or G/I/L): reference planes (when the project has them), strip differences."""
+    """One point cloud of a run (G/I or G/I/L): reference planes (when the project has them), strip
+    differences, coverage and the strip-pair differences."""
 
     strip_differences: StripDifferenceFigures
     reference_planes: ReferencePlaneFigures | None = None
     coverage: CoverageFigures | None = None
+    strip_pairs: StripPairFigures | None = None
 
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {}
@@ -221,14 +242,17 @@ class CloudEvaluation:
         d["strip_differences"] = self.strip_differences.to_dict()
         if self.coverage is not None:
             d["coverage"] = self.coverage.to_dict()
+        if self.strip_pairs is not None:
+            d["strip_pairs"] = self.strip_pairs.to_dict()
         return d
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> CloudEvaluation:
-        rp, cov = d.get("reference_planes"), d.get("coverage")
+        rp, cov, pairs = d.get("reference_planes"), d.get("coverage"), d.get("strip_pairs")
         return cls(StripDifferenceFigures.from_dict(d["strip_differences"]),
                    None if rp is None else ReferencePlaneFigures.from_dict(rp),
-                   None if cov is None else CoverageFigures.from_dict(cov))
+                   None if cov is None else CoverageFigures.from_dict(cov),
+                   None if pairs is None else StripPairFigures.from_dict(pairs))
 
 
 @dataclass(frozen=True)
@@ -266,6 +290,9 @@ class RunEvaluation:
         against it (:mod:`georefine.evaluation.calibration`).
     overview_plot, coverage
         The flight on a map; per point cloud label, its point density and strip overlap.
+    strip_pairs
+        Per point cloud label, the differences of every pair of strips (G/I before the LiDAR
+        adjustment, G/I/L after it); absent from summaries written before they were computed.
     """
 
     reference: str
@@ -278,6 +305,7 @@ class RunEvaluation:
     boresight: BoresightFigures | None = None
     overview_plot: str | None = None  # the flight on a map (evaluation.plots.plot_overview)
     coverage: dict[str, CoverageFigures] = field(default_factory=dict)  # per point cloud label
+    strip_pairs: dict[str, StripPairFigures] = field(default_factory=dict)  # per point cloud label
 
     SINGLE_PASS = "G/I/L single pass"
     """Start of the single-pass solution's label."""
@@ -304,6 +332,8 @@ class RunEvaluation:
             d["overview_plot"] = self.overview_plot
         if self.coverage:
             d["coverage"] = {k: v.to_dict() for k, v in self.coverage.items()}
+        if self.strip_pairs:
+            d["strip_pairs"] = {k: v.to_dict() for k, v in self.strip_pairs.items()}
         return d
 
     @classmethod
@@ -321,6 +351,7 @@ class RunEvaluation:
             boresight=None if d.get("boresight") is None else BoresightFigures.from_dict(d["boresight"]),
             overview_plot=d.get("overview_plot"),
             coverage={k: CoverageFigures.from_dict(v) for k, v in d.get("coverage", {}).items()},
+            strip_pairs={k: StripPairFigures.from_dict(v) for k, v in d.get("strip_pairs", {}).items()},
         )
 
     @classmethod
