@@ -379,3 +379,22 @@ def test_the_matrix_is_written_with_readable_numbers(pairs, tmp_path):
     assert min_px >= 9.0 * 110 / 72 - 0.05  # 9 pt at the saved 110 dpi
     assert width > 400 and height > 400
     assert not list(tmp_path.glob(".*.part"))  # written under a temporary name, renamed
+
+
+def test_the_evaluation_of_a_run_cloud_writes_the_pairs(files, tmp_path):
+    from georefine.workflows.evaluate import evaluate_cloud
+
+    paths, read = files
+    project, run = tmp_path / "project", tmp_path / "run"
+    project.mkdir()
+    (run / "points").mkdir(parents=True)
+    for f in paths:
+        (run / "points" / f.name).write_bytes(f.read_bytes())
+    result = evaluate_cloud(project, run, "G/I/L", scheduler="sync", chunk_points=30_000)
+    assert result.strip_pairs is not None
+    assert (result.strip_pairs.csv, result.strip_pairs.matrix) == ("gil/strip_pairs.csv", "gil/strip_pairs.png")
+    _assert_same_pairs(result.strip_pairs.pairs, strip_pair_differences(read), atol=1e-6)
+    with open(run / "evaluation" / result.strip_pairs.csv, newline="", encoding="utf-8") as fh:
+        assert len(list(csv.reader(fh))) == 11
+    assert (run / "evaluation" / result.strip_pairs.matrix).is_file()
+    assert CloudEvaluation.from_dict(json.loads(json.dumps(result.to_dict()))).strip_pairs == result.strip_pairs

@@ -8,8 +8,10 @@ the run folder of a single-pass run, and writes ``RUN/evaluation/``:
   (as the paper does) -- during the strips' time spans: ``trajectory.json`` and the Fig. 9 style
   plots ``attitude_differences.png``, ``position_differences.png``;
 * the G/I point cloud (``RUN/gi/points``; the run itself writes the G/I/L one), and for both:
-  reference planes (Table 1, when the project has ``reference`` surfaces) and the strip-difference
-  map (Fig. 7) in ``evaluation/gi/`` and ``evaluation/gil/``;
+  reference planes (Table 1, when the project has ``reference`` surfaces), the strip-difference
+  map (Fig. 7) and the differences of every pair of strips (``strip_pairs.csv``, the matrix
+  ``strip_pairs.png``: before and after the LiDAR adjustment) in ``evaluation/gi/`` and
+  ``evaluation/gil/``, all from one read of each point file;
 * ``summary.json``: every figure above (:class:`~georefine.evaluation.summary.RunEvaluation`), which
   the report and the demo's ``metrics.json`` take over.
 """
@@ -33,13 +35,13 @@ from georefine.evaluation.clouds import (
     evaluate_reference_planes,
     evaluate_strip_differences,
     reference_boxes,
-    scan_clouds,
 )
 from georefine.evaluation.plots import (
     plot_attitude_differences,
     plot_overview,
     plot_position_differences,
 )
+from georefine.evaluation.strip_pairs import scan_clouds_with_pairs, write_pairs_csv, write_pairs_png
 from georefine.evaluation.summary import (
     ANGLES,
     CloudEvaluation,
@@ -49,6 +51,7 @@ from georefine.evaluation.summary import (
     RunEvaluation,
     SolutionFigures,
     StripDifferenceFigures,
+    StripPairFigures,
     TrajectoryFigures,
 )
 from georefine.evaluation.trajectory import TrajectoryComparison
@@ -150,6 +153,7 @@ def evaluate_run(
     reference_planes: dict[str, ReferencePlaneFigures] = {}
     strip_differences: dict[str, StripDifferenceFigures] = {}
     coverage: dict[str, CoverageFigures] = {}
+    strip_pairs: dict[str, StripPairFigures] = {}
     own = None
     if any(label not in clouds for label in CLOUDS) and not isinstance(scheduler, TaskRunner):
         own = TaskRunner(scheduler)
@@ -162,11 +166,13 @@ def evaluate_run(
             strip_differences[label] = result.strip_differences
             if result.coverage is not None:
                 coverage[label] = result.coverage
+            if result.strip_pairs is not None:
+                strip_pairs[label] = result.strip_pairs
     finally:
         if own is not None:
             own.close()
     summary = RunEvaluation(reference_name, trajectory, plots, reference_planes, strip_differences, imu_errors,
-                            imu_plot, boresight, overview, coverage)
+                            imu_plot, boresight, overview, coverage, strip_pairs)
     write_json(out / "summary.json", summary.to_dict())
     return summary
 
@@ -221,7 +227,7 @@ def evaluate_cloud(
     scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
     chunk_points: int = DEFAULT_CHUNK_POINTS,
 ) -> CloudEvaluation:
-    """Reference planes and the strip-difference map of one point cloud of a run.
+    """Reference planes, the strip-difference map and the strip-pair differences of one point cloud of a run.
 
     ``label`` is ``"G/I"`` (georeferenced here into ``RUN/gi/points`` with ``trajectory``,
     by default ``RUN/gi/trajectory.sbet``, unless the points there are newer than it) or ``"G/I/L"`` (``RUN/points``,
@@ -232,8 +238,10 @@ def evaluate_cloud(
     The strip files are read once, in record ranges of ``chunk_points``, each a task on
     ``scheduler`` (a name or a running :class:`~georefine.tasks.TaskRunner`), and reduced to the
     cell sums of the strip differences and the points near the reference surfaces
-    (:func:`georefine.evaluation.clouds.scan_clouds`, docs/ARCHITECTURE.md §5): memory does not
-    grow with the number of points. The G/I georeferencing runs on the same scheduler.
+    (:func:`georefine.evaluation.clouds.scan_clouds`, docs/ARCHITECTURE.md §5); the strip pairs
+    take the same chunks' cell sums (:func:`georefine.evaluation.strip_pairs.scan_clouds_with_pairs`),
+    so each file is read once. Memory does not grow with the number of points. The G/I
+    georeferencing runs on the same scheduler.
     """
     project, run_dir = project_root(project), Path(run_dir)
     report = progress or (lambda *a: None)
@@ -266,8 +274,9 @@ def evaluate_cloud(
         cfg = load_project(project) if (project / "project.yaml").is_file() else None
         geoid = None if cfg is None else cfg.crs.geoid(project)
         heights = None if geoid is None else (OutputCRS(cfg.crs.output_epsg), geoid)
-        scan = scan_clouds(files, cell_size_m=1.0, boxes=boxes, runner=runner, chunk_points=chunk_points,
-                           progress=report, label=f"point cloud evaluation {label}", heights=heights)
+        scan, pairs = scan_clouds_with_pairs(files, cell_size_m=1.0, boxes=boxes, runner=runner,
+                                             chunk_points=chunk_points, progress=report,
+                                             label=f"point cloud evaluation {label}", heights=heights)
     planes = None
     if ref_csv.is_file():
         _, rp = evaluate_reference_planes(files, ref_csv, out, scan=scan)
@@ -278,4 +287,7 @@ def evaluate_cloud(
         sd, f"{sub}/strip_differences.png", None if zoom is None else f"{sub}/strip_differences_zoom.png")
     coverage = None if scan.coverage is None else CoverageFigures.from_map(
         scan.coverage, f"{sub}/coverage_density.png", f"{sub}/coverage_overlap.png")
-    return CloudEvaluation(differences, planes, coverage)
+    write_pairs_csv(out / "strip_pairs.csv", pairs)
+    write_pairs_png(out / "strip_pairs.png", pairs, title=f"strip-pair differences, {label}")
+    strip_pairs = StripPairFigures(pairs, f"{sub}/strip_pairs.csv", f"{sub}/strip_pairs.png")
+    return CloudEvaluation(differences, planes, coverage, strip_pairs)
