@@ -398,3 +398,34 @@ def test_the_evaluation_of_a_run_cloud_writes_the_pairs(files, tmp_path):
         assert len(list(csv.reader(fh))) == 11
     assert (run / "evaluation" / result.strip_pairs.matrix).is_file()
     assert CloudEvaluation.from_dict(json.loads(json.dumps(result.to_dict()))).strip_pairs == result.strip_pairs
+
+
+def test_the_report_shows_the_pairs_before_and_after(pairs, tmp_path):
+    import html
+    from dataclasses import replace
+
+    from georefine.evaluation.report import write_report
+    from georefine.io.run_metrics import WorkflowMetrics
+
+    run = tmp_path / "run"
+    (run / "evaluation" / "gi").mkdir(parents=True)
+    (run / "evaluation" / "gil").mkdir()
+    after = StripPairDifferences(pairs.strips, tuple(
+        replace(p, median_mm=p.median_mm / 10, p95_mm=p.p95_mm / 10, signed_median_mm=p.signed_median_mm / 10)
+        if p.measured else p for p in pairs.pairs), pairs.min_cells)
+    clouds = {}
+    for label, sub, figures in (("G/I", "gi", pairs), ("G/I/L", "gil", after)):
+        write_pairs_png(run / "evaluation" / sub / "strip_pairs.png", figures, title=label)
+        clouds[label] = StripPairFigures(figures, f"{sub}/strip_pairs.csv", f"{sub}/strip_pairs.png")
+    sd = StripDifferenceFigures(10, 0.001, 0.002, 0.001, "gil/strip_differences.png")
+    write_json(run / "metrics.json", WorkflowMetrics(1.4e9, (1, 2, 3, 4, 5), {s: (1.4e9, 1.4e9 + 9) for s in STRIPS})
+               .to_dict())
+    write_json(run / "evaluation" / "summary.json",
+               RunEvaluation("truth", strip_differences={"G/I/L": sd}, strip_pairs=clouds).to_dict())
+    page = html.unescape(write_report(run).read_text())
+    p, q = pairs.pair(2, 3), after.pair(2, 3)
+    assert (f"<td>2 – 3</td><td>{p.cells:,}</td><td>{p.median_mm:.1f}</td><td>{p.p95_mm:.1f}</td>"
+            f"<td>{p.signed_median_mm:.1f}</td><td>{q.cells:,}</td><td>{q.median_mm:.1f}</td>") in page
+    assert "<td>1 – 3</td>" not in page and "<td>1 – 5</td>" not in page  # no figures: not in the table
+    assert "G/I/L: 5 further pair(s) of strips do not overlap or share fewer than 50 planar cells." in page
+    assert page.count('alt="strip pairs G/I') == 2

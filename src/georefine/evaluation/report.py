@@ -8,7 +8,8 @@ The page shows, from the files a run and its evaluation wrote (``metrics.json``,
 2. the workflow steps with their timings and the outer iterations;
 3. trajectory differences against the reference, per strip, with the Fig. 9 style plots;
 4. the reference-plane table (Table 1) per surface, G/I beside G/I/L;
-5. the strip-difference maps (Fig. 7) of G/I and G/I/L side by side;
+5. the strip-difference maps (Fig. 7) of G/I and G/I/L side by side, and the differences of every
+   pair of strips before and after (the G/I and G/I/L clouds): a table and their matrices;
 6. the adjustment statistics per observation group and the estimated IMU errors;
 7. the configuration used.
 
@@ -151,6 +152,39 @@ def _calibration_section(summary: RunEvaluation, ev: Path) -> str:
     return "".join(parts)
 
 
+def _strip_pairs_section(summary: RunEvaluation, ev: Path) -> str:
+    """The differences of every pair of strips per cloud (before: G/I, after: G/I/L): one row per
+    pair with figures in any cloud, and the clouds' matrices of the medians."""
+    clouds = summary.strip_pairs
+    parts = ["<h3>Strip pairs</h3>",
+             '<p class="note">Per pair of strips, over the 1 m cells where both fit a plane and the cell passes '
+             "the strip-difference gate: the median and P95 of |difference| along the normal, and the signed "
+             "median (the second strip above the first positive).</p>"]
+    keys = sorted({(p.strip_a, p.strip_b) for v in clouds.values() for p in v.pairs.measured()})
+    header = ["strips"]
+    for label in clouds:
+        header += [f"{label} cells", f"{label} median (mm)", f"{label} P95 (mm)", f"{label} signed median (mm)"]
+    rows = []
+    for a, b in keys:
+        row: list = [f"{a} – {b}"]
+        for v in clouds.values():
+            p = next((q for q in v.pairs.pairs if (q.strip_a, q.strip_b) == (a, b)), None)
+            row += ["–", "–", "–", "–"] if p is None else [
+                f"{p.cells:,}", _f(p.median_mm), _f(p.p95_mm), _f(p.signed_median_mm)]
+        rows.append(row)
+    if rows:
+        parts.append(table(header, rows))
+    for label, v in clouds.items():
+        others = len(v.pairs.unmeasured())
+        if others:
+            parts.append(f'<p class="note">{html.escape(label)}: {others} further pair(s) of strips do not overlap '
+                         f"or share fewer than {v.pairs.min_cells} planar cells.</p>")
+    figs = [f"<figure>{image(ev / v.matrix, f'strip pairs {label}')}<figcaption>{html.escape(label)}: median "
+            "|difference| per pair of strips (mm)</figcaption></figure>" for label, v in clouds.items()]
+    parts.append('<div class="maps">' + "".join(figs) + "</div>")
+    return "".join(parts)
+
+
 def _downweighted(g: dict) -> str:
     n, total = g["n_downweighted"], g["n_observations"]
     return f"{n:,} ({100 * n / total:.1f} %)" if total else f"{n:,}"
@@ -285,6 +319,8 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
                     f"{k} {v.gated.get(k, 0):,}" for k in ("rough", "steep", "edge", "normals")))
             figs.append(f"<figure>{image(ev / v.map, label)}<figcaption>{html.escape(cap)}</figcaption></figure>")
         parts.append("".join(figs))  # the whole corridor at the page's width, one map under the other
+    if summary is not None and summary.strip_pairs:
+        parts.append(_strip_pairs_section(summary, ev))
 
     parts.append("<h2>6. Adjustment statistics and IMU errors</h2>")
     for key, a in adj.items():
