@@ -13,9 +13,10 @@ strips of one sortie, with the scanner's calibration (lever arms, boresight, tim
 project's flights share unless one states its own. A ``project.yaml`` without ``flights`` is one
 flight, whose navigation is :attr:`Project.navigation`; a project of several flights
 (``flights:``, docs/ARCHITECTURE.md §3) has one navigation per flight,
-:meth:`Project.navigation_of`, all in one mapping frame (:attr:`Project.frame`). The steps read
-one flight's project (**not built yet**: the adjustment of several flights): on a project of
-several flights :attr:`Project.navigation` is an error that says so.
+:meth:`Project.navigation_of`, all in one mapping frame (:attr:`Project.frame`). The workflow
+steps take a project of one flight (the steps on several flights together are **not built
+yet**): on a project of several flights :attr:`Project.navigation` is an error that says so, and
+:meth:`Project.flight_project` gives one of its flights as a project of its own.
 
 :class:`Workspace` is what one command writes to: the output folder (checked: never the
 project folder or inside it), its step cache and the task runner of the per-tile work.
@@ -291,9 +292,10 @@ def load_navigation(project: ProjectLike) -> NavigationData:
     if cfg.flights is not None:
         ids = ", ".join(map(str, cfg.flight_ids))
         raise ConfigError(
-            "a project of several flights has one navigation per flight: read each with Project.navigation_of"
-            "(flight_id) (the adjustment of several flights in one is not built yet)",
-            path=root / "project.yaml", field="flights", expected=f"a flight id: {ids}",
+            "a project of several flights has one navigation per flight, and the workflow steps read one flight's "
+            "project (the adjustment of several flights together is not built yet)",
+            path=root / "project.yaml", field="flights",
+            expected=f"the navigation of one flight, Project.navigation_of(flight_id) with flight_id one of {ids}",
             found=f"{len(cfg.flights)} flight{'s' if len(cfg.flights) != 1 else ''}")
     if cfg.delivered_trajectory:
         frame, t0, prior = read_delivered(root, cfg)
