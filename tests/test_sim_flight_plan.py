@@ -154,3 +154,36 @@ def test_area_scenarios_fly_their_plans():
     assert passes[-1][2] > 40 * 60  # over 40 minutes of flight
     tiny = flight_passes(resolve_scenario("area-tiny"), 42)
     assert [p[0] for p in tiny] == [1, 3, 2, 4]
+
+
+def test_a_bending_corridor_scene_follows_its_axis_and_the_plan_flies_it():
+    from georefine.sim.scene import SceneConfig, build_scene
+    from georefine.sim.scene_objects import CorridorAxis
+
+    axis = ((0.0, 0.0), (0.0, 500.0), (200.0, 1000.0), (200.0, 1400.0))
+    cfg = SceneConfig(length_m=1400.0, width_m=1000.0, axis_m=axis, settlement_count=2, buildings_per_settlement=5,
+                      vegetation_per_ha=4.0)
+    scene = build_scene(cfg, np.random.default_rng(5))
+    line = CorridorAxis(cfg)
+    # Pylons stand on the axis, the spacing measured along it; the reference sites lie beside it.
+    assert len(scene.pylon_bases_w) == int(line.total // cfg.pylon_spacing_m) + 1
+    np.testing.assert_allclose(line.across(scene.pylon_bases_w[:, 0], scene.pylon_bases_w[:, 1]), 0.0, atol=1e-9)
+    for r in scene.reference_surfaces:
+        c = r.corners_w.mean(axis=0)
+        assert 10.0 < abs(float(line.across(c[0], c[1]))) < 110.0
+    # The valley floor follows the bend: at y = 1200 it is centred on x = 200, not on x = 0.
+    # (floor 150 m either side, then 80 m of rise to the terrain's edge; 3 m of undulation)
+    floor, west, east = scene.terrain_height(np.array([200.0, -200.0, 480.0]), np.full(3, 1200.0))
+    assert west > floor + 20.0 and east > floor + 20.0
+    assert abs(float(scene.terrain_height(np.array([0.0]), np.array([1200.0]))[0]) - floor) < 10.0
+    # A corridor plan without its own polyline flies the scene's axis, bends inside the strip.
+    plan = FlightPlanConfig(kind="corridor", parallel_lines=1, bend_radius_m=400.0)
+    lines = plan_lines(plan, length_m=1400.0, width_m=1000.0, swath_m=380.0, axis_m=axis)
+    np.testing.assert_allclose(lines[0].vertices, axis)
+    traj = simulate_flight(FlightConfig(static_duration_s=5.0, manoeuvre="none"), FRAME, 1400.0, scene.terrain_height,
+                           lines, bend_radius_m=400.0)
+    _, t0, t1 = traj.passes[0]
+    p, _ = traj.pose(np.linspace(t0, t1, 3000))
+    inside = (p[:, 1] > 50) & (p[:, 1] < 1350)
+    # Within the arcs' cut of the corners (400 m tan(|bend| / 2): 86 m, 9 m from the vertex) the line is flown.
+    assert np.abs(line.across(p[inside, 0], p[inside, 1])).max() < 12.0

@@ -11,7 +11,7 @@ aircraft turns with the scanner off, as an operator cuts the strips. Three kinds
   pattern ``1, 1+k, 2, 2+k, ...`` (``k = ceil(lines / 2)``) that keeps consecutive lines at least
   two turn radii apart when the spacing is smaller, as crews do with a helicopter or aircraft
   that cannot turn onto the next line; ``serpentine`` flies them in order.
-* ``corridor``: a polyline axis (``polyline_m``, default the scene's straight axis ``x = 0``)
+* ``corridor``: a polyline axis (``polyline_m``, default the scene's axis ``scene.axis_m``)
   with bends flown as turns of ``bend_radius_m`` inside the strip, and ``parallel_lines``
   offset copies of it ``line_spacing_m`` apart (a wide corridor), flown back and forth.
 * ``file``: a CSV of line end points in the output CRS (``line,x0,y0,x1,y1``; one row per line,
@@ -123,11 +123,12 @@ def _unit(az: float) -> np.ndarray:
 
 
 def plan_lines(plan: FlightPlanConfig, *, length_m: float, width_m: float, swath_m: float,
-               to_w=None, base: Path | None = None) -> tuple[PlannedLine, ...]:
+               to_w=None, base: Path | None = None, axis_m=None) -> tuple[PlannedLine, ...]:
     """The plan's lines in flying order (see the module docstring).
 
     ``length_m`` and ``width_m`` are the scene's extent (``y`` from 0 to ``length_m``, ``x``
-    within ``±width_m / 2``), ``swath_m`` the scan's width; ``to_w`` maps (N, 2) output-CRS
+    within ``±width_m / 2``), ``swath_m`` the scan's width, ``axis_m`` the scene's corridor axis
+    (a corridor plan without ``polyline_m`` follows it); ``to_w`` maps (N, 2) output-CRS
     coordinates to ``w`` (for ``file`` plans, read relative to ``base``).
 
     Raises
@@ -138,7 +139,7 @@ def plan_lines(plan: FlightPlanConfig, *, length_m: float, width_m: float, swath
     if plan.kind == "area":
         lines = _area_lines(plan, length_m, swath_m)
     elif plan.kind == "corridor":
-        lines = _corridor_lines(plan, length_m)
+        lines = _corridor_lines(plan, length_m, axis_m)
     else:
         path = Path(plan.file) if base is None or Path(plan.file).is_absolute() else base / plan.file
         if to_w is None:
@@ -196,8 +197,9 @@ def _offset_polyline(vertices: np.ndarray, offset: float) -> np.ndarray:
     return vertices + offset * normals / cos_half[:, None]
 
 
-def _corridor_lines(plan: FlightPlanConfig, length_m: float) -> tuple[PlannedLine, ...]:
-    axis = np.array(plan.polyline_m if plan.polyline_m is not None else [(0.0, 0.0), (0.0, length_m)], float)
+def _corridor_lines(plan: FlightPlanConfig, length_m: float, axis_m=None) -> tuple[PlannedLine, ...]:
+    axis = np.array(plan.polyline_m if plan.polyline_m is not None else
+                    axis_m if axis_m is not None else [(0.0, 0.0), (0.0, length_m)], float)
     n = plan.parallel_lines
     out = []
     for i in range(n):

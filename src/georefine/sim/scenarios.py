@@ -395,7 +395,8 @@ def fly(cfg: ScenarioConfig, frame: LocalFrame, terrain_height) -> TrueTrajector
             return crs.to_w(frame, np.column_stack([en, np.full(len(en), h0)]))
 
         lines = plan_lines(cfg.plan, length_m=cfg.scene.length_m, width_m=cfg.scene.width_m,
-                           swath_m=swath_width_m(cfg.flight.altitude_agl_m, cfg.scanner.field_of_view_deg), to_w=to_w)
+                           swath_m=swath_width_m(cfg.flight.altitude_agl_m, cfg.scanner.field_of_view_deg), to_w=to_w,
+                           axis_m=cfg.scene.axis_m)
         return simulate_flight(cfg.flight, frame, cfg.scene.length_m, terrain_height, lines,
                                bend_radius_m=cfg.plan.bend_radius_m, transit_m=cfg.plan.transit_m)
     return simulate_flight(cfg.flight, frame, cfg.scene.length_m, terrain_height)

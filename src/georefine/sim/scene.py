@@ -53,6 +53,7 @@ import trimesh
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from georefine.sim.scene_objects import (
+    CorridorAxis,
     Material,
     MeshBuilder,
     ReferenceSurface,
@@ -81,6 +82,9 @@ class SceneConfig(BaseModel):
         "corridor", description="corridor: settlements and reference sites near the axis x = 0; area: spread over "
         "the whole width (a block of parallel strips)")
     length_m: float = Field(3000.0, gt=0, description="corridor length along +y from y=0")
+    axis_m: tuple[tuple[float, float], ...] | None = Field(
+        None, description="the corridor's axis as a polyline in w (x, y), with bends; default x = 0 from y = 0 to "
+        "length_m. The valley, the power line, the villages and the reference sites follow it.")
     width_m: float = Field(800.0, ge=100, description="terrain width across the axis (x)")
     end_margin_m: float = Field(150.0, ge=0, description="terrain beyond both corridor ends")
     grid_spacing_m: float = Field(2.0, ge=0.25, le=20, description="terrain grid spacing")
@@ -114,6 +118,13 @@ class SceneConfig(BaseModel):
             raise ValueError("reference_surfaces_per_site: every site needs >= 1 surface")
         if self.width_m / 2 < 40 + self.reference_size_m:
             raise ValueError("width_m too small for the reference sites (>= 100 m)")
+        if self.axis_m is not None:
+            v = np.asarray(self.axis_m, float)
+            if len(v) < 2 or np.any(np.linalg.norm(np.diff(v, axis=0), axis=1) < 1.0):
+                raise ValueError("axis_m needs at least two vertices at least 1 m apart")
+            if np.any(np.abs(v[:, 0]) > self.width_m / 2 - 100.0) or np.any((v[:, 1] < 0) | (v[:, 1] > self.length_m)):
+                raise ValueError(f"axis_m must lie within x ±{self.width_m / 2 - 100:.0f} m (width_m / 2 - 100) and "
+                                 f"y 0-{self.length_m:.0f} m (length_m)")
         return self
 
 
@@ -139,7 +150,7 @@ def _valley_height(x, y, cfg: SceneConfig, waves: np.ndarray):
     """Analytic terrain height [m] before road flattening; waves (J, 4) = kx, ky, amp, phase."""
     half = cfg.width_m / 2
     span = max(half - cfg.floor_half_width_m, 1e-9)
-    u = np.clip((np.abs(x) - cfg.floor_half_width_m) / span, 0.0, 1.0)
+    u = np.clip((np.abs(CorridorAxis(cfg).across(x, y)) - cfg.floor_half_width_m) / span, 0.0, 1.0)
     z = cfg.base_height_m + cfg.floor_slope_m_per_m * y + cfg.side_rise_m * u * u * (3 - 2 * u)
     for kx, ky, amp, ph in waves:
         z = z + amp * np.sin(kx * x + ky * y + ph)
@@ -372,12 +383,16 @@ def build_scene(cfg: SceneConfig, rng: np.random.Generator) -> Scene:
 
     # settlements and roads (cross road through each settlement centre)
     n_set = cfg.settlement_count
-    set_y = np.sort(rng.uniform(0.1, 0.9, n_set)) * L if n_set else np.zeros(0)
+    axis = CorridorAxis(cfg)
     if cfg.layout == "area":  # villages anywhere in the block, clear of its border
+        set_y = np.sort(rng.uniform(0.1, 0.9, n_set)) * L if n_set else np.zeros(0)
         set_x = rng.uniform(-1.0, 1.0, n_set) * max(half - cfg.settlement_radius_m - 40.0, 50.0)
-    else:
-        set_x = rng.choice([-1.0, 1.0], n_set) * rng.uniform(50.0, np.clip(half - 60, 60, 130), n_set)
-    cross_ang = rng.uniform(-np.pi / 6, np.pi / 6, n_set)
+        cross_ang = rng.uniform(-np.pi / 6, np.pi / 6, n_set)
+    else:  # beside the axis, their cross roads across it
+        set_s = np.sort(rng.uniform(0.1, 0.9, n_set)) * axis.total if n_set else np.zeros(0)
+        set_x, set_y = axis.at(set_s, rng.choice([-1.0, 1.0], n_set) * rng.uniform(
+            50.0, np.clip(half - 60, 60, 130), n_set))
+        cross_ang = rng.uniform(-np.pi / 6, np.pi / 6, n_set) - axis.azimuth(set_s)
     hw = cfg.road_width_m / 2  # main road x = x0 + 15 sin(2 pi y / 900 m + phase)
     main = [cfg.main_road_offset_m, 15.0, 2 * np.pi / 900.0, rng.uniform(0, 2 * np.pi), hw]
     roads = np.vstack([main, np.column_stack([set_x, set_y, np.cos(cross_ang), np.sin(cross_ang),
@@ -408,7 +423,7 @@ def build_scene(cfg: SceneConfig, rng: np.random.Generator) -> Scene:
     occupied = []  # (x, y, radius) of placed objects, for spacing
 
     def free(x, y, r, clear):
-        if abs(x) + r > half - 5 or abs(x) - r < clear:
+        if abs(x) + r > half - 5 or abs(axis.across(x, y)) - r < clear:
             return False
         if _road_distance(roads, np.array([x]), np.array([y]))[0][0] < hw + r + 2:
             return False
@@ -422,9 +437,9 @@ def build_scene(cfg: SceneConfig, rng: np.random.Generator) -> Scene:
 
     V, F, M = b.build()
     mesh = trimesh.Trimesh(vertices=V, faces=F, process=False, validate=False)
-    ay = np.linspace(0, L, int(np.ceil(L / 10.0)) + 1)
-    axis = np.column_stack([np.zeros_like(ay), ay, height(np.zeros_like(ay), ay)])
-    scene = Scene(mesh, M, tuple(refs), axis, pylons, cfg, int(rng.integers(1, 2**31 - 1)),
+    ay = np.linspace(0, axis.total, int(np.ceil(axis.total / 10.0)) + 1)
+    ax, ay = axis.at(ay)
+    scene = Scene(mesh, M, tuple(refs), np.column_stack([ax, ay, height(ax, ay)]), pylons, cfg, int(rng.integers(1, 2**31 - 1)),
                   gx, gy, Z, roads)
     log.info("scene built in %.2f s: %d triangles, %d buildings, %d vegetation objects, "
              "%d pylons, %d reference surfaces", time.perf_counter() - t0, len(F), n_b, n_v,

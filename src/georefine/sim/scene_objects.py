@@ -146,12 +146,63 @@ class MeshBuilder:
         return np.concatenate(self.V), np.concatenate(self.F), np.concatenate(self.M)
 
 
+# ------------------------------------------------------------------------------- axis
+class CorridorAxis:
+    """The corridor's axis in ``w``: ``scene.axis_m`` (a polyline), by default ``x = 0`` from
+    ``y = 0`` to ``length_m``. Its first and last segments extend without end, so that the
+    distance across a straight axis is exactly ``x``."""
+
+    def __init__(self, cfg):
+        v = np.array(cfg.axis_m if cfg.axis_m is not None else [(0.0, 0.0), (0.0, cfg.length_m)], float)
+        d = np.diff(v, axis=0)
+        self.segment = np.linalg.norm(d, axis=1)
+        self.u = d / self.segment[:, None]
+        self.n = np.column_stack([self.u[:, 1], -self.u[:, 0]])  # to the right of the direction
+        self.v, self.s0 = v, np.concatenate([[0.0], np.cumsum(self.segment)])
+        self.total = float(self.s0[-1])
+
+    def across(self, x, y):
+        """Signed distance (m, positive to the right) of points from the nearest segment."""
+        x, y = np.asarray(x, float), np.asarray(y, float)
+        best, off = None, None
+        last = len(self.segment) - 1
+        for k in range(last + 1):
+            dx, dy = x - self.v[k, 0], y - self.v[k, 1]
+            t = dx * self.u[k, 0] + dy * self.u[k, 1]
+            o = dx * self.n[k, 0] + dy * self.n[k, 1]
+            beyond = np.clip(t, -np.inf if k == 0 else 0.0, np.inf if k == last else self.segment[k]) - t
+            dist = np.hypot(beyond, o)
+            if best is None:
+                best, off = dist, o
+            else:
+                closer = dist < best
+                best, off = np.where(closer, dist, best), np.where(closer, o, off)
+        return off
+
+    def segment_of(self, s):
+        return np.clip(np.searchsorted(self.s0, s, side="right") - 1, 0, len(self.segment) - 1)
+
+    def at(self, s, offset=0.0):
+        """Points (x, y) at arc length ``s`` and signed distance ``offset`` across."""
+        k = self.segment_of(s)
+        ds = np.asarray(s, float) - self.s0[k]
+        x = self.v[k, 0] + ds * self.u[k, 0] + offset * self.n[k, 0]
+        y = self.v[k, 1] + ds * self.u[k, 1] + offset * self.n[k, 1]
+        return x, y
+
+    def azimuth(self, s):
+        """Grid azimuth (rad, clockwise from north) of the axis at ``s``."""
+        k = self.segment_of(s)
+        return np.arctan2(self.u[k, 0], self.u[k, 1])
+
+
 # ---------------------------------------------------------------------------- objects
 def add_reference_surfaces(cfg, rng, b, height, free, occupied):
     """Horizontal square slabs at ``len(reference_surfaces_per_site)`` sites."""
     L, s = cfg.length_m, cfg.reference_size_m
     n_sites, refs, k = len(cfg.reference_surfaces_per_site), [], 0
-    pylon_y = _pylon_y(cfg) if cfg.power_line or cfg.layout == "corridor" else np.zeros(0)
+    axis = CorridorAxis(cfg)
+    pylon_s = _pylon_s(cfg, axis.total) if cfg.power_line or cfg.layout == "corridor" else np.zeros(0)
     # An area spreads its sites over a lattice of cells covering the block, so that control
     # lies under every part of it; a corridor keeps them near the axis, along it.
     cols = max(1, int(np.ceil(np.sqrt(n_sites * cfg.width_m / L)))) if cfg.layout == "area" else 1
@@ -163,10 +214,11 @@ def add_reference_surfaces(cfg, rng, b, height, free, occupied):
             if cfg.layout == "area":
                 y = L * (row + 0.5 + rng.uniform(-0.3, 0.3)) / rows
                 x = -inner + 2 * inner * (col + 0.5 + rng.uniform(-0.3, 0.3)) / cols
+                s_site = y
             else:  # near the axis
-                y = L * (site + 0.5 + rng.uniform(-0.25, 0.25)) / n_sites
-                x = rng.choice([-1.0, 1.0]) * rng.uniform(25.0, 90.0)
-            if free(x, y, 8.0 * n_surf, 15.0) and np.all(np.abs(pylon_y - y) > 20):
+                s_site = axis.total * (site + 0.5 + rng.uniform(-0.25, 0.25)) / n_sites
+                x, y = axis.at(s_site, rng.choice([-1.0, 1.0]) * rng.uniform(25.0, 90.0))
+            if free(x, y, 8.0 * n_surf, 15.0) and np.all(np.abs(pylon_s - s_site) > 20):
                 break
         else:
             raise ConfigError(f"no free place for reference site {site + 1}; enlarge the scene",
@@ -204,28 +256,36 @@ def add_reference_surfaces(cfg, rng, b, height, free, occupied):
     return refs
 
 
-def _pylon_y(cfg):
-    n = int(np.floor(cfg.length_m / cfg.pylon_spacing_m))
-    return (cfg.length_m - n * cfg.pylon_spacing_m) / 2 + cfg.pylon_spacing_m * np.arange(n + 1)
+def _pylon_s(cfg, length_m):
+    n = int(np.floor(length_m / cfg.pylon_spacing_m))
+    return (length_m - n * cfg.pylon_spacing_m) / 2 + cfg.pylon_spacing_m * np.arange(n + 1)
 
 
 def add_power_line(cfg, b, height):
-    """Pylons on the axis and five wires per span; returns the pylon foot points."""
-    H, ys = cfg.pylon_height_m, _pylon_y(cfg)
-    z0 = height(np.zeros_like(ys), ys)
+    """Pylons on the axis (their arms across it) and five wires per span; returns the pylon foot points."""
+    axis = CorridorAxis(cfg)
+    H, ss = cfg.pylon_height_m, _pylon_s(cfg, axis.total)
+    xs, ys = axis.at(ss)
+    n_x, n_y = axis.n[axis.segment_of(ss)].T  # across each pylon
+    u_x, u_y = axis.u[axis.segment_of(ss)].T
+    z0 = height(xs, ys)
     a, top, bt = 0.09 * H, 0.85 * H, 0.025 * H
     arms = [(0.70 * H, 7.0), (0.82 * H, 5.0)]
     bars = []
-    for y, zg in zip(ys, z0):
-        base = np.column_stack([a * _SQUARE, np.full(4, zg - 0.5)]) + [0, y, 0]
-        head = np.column_stack([bt * _SQUARE, np.full(4, zg + top)]) + [0, y, 0]
+    for x, y, nx_, ny_, ux, uy, zg in zip(xs, ys, n_x, n_y, u_x, u_y, z0):
+        def place(p, q, z, x=x, y=y, nx_=nx_, ny_=ny_, ux=ux, uy=uy):  # p across, q along the axis
+            p, q = np.asarray(p, float), np.asarray(q, float)
+            return np.column_stack([x + p * nx_ + q * ux, y + p * ny_ + q * uy, np.broadcast_to(z, p.shape)])
+
+        base = place(a * _SQUARE[:, 0], a * _SQUARE[:, 1], zg - 0.5)
+        head = place(bt * _SQUARE[:, 0], bt * _SQUARE[:, 1], zg + top)
         bars.append(_bars(base, head, 0.18, 0.12))  # legs
         for f in (0.2, 0.4, 0.6):  # horizontal bracing between the legs
             lev = base + f * (head - base)
             bars.append(_bars(lev, np.roll(lev, -1, axis=0), 0.07, 0.07))
         for za, span in arms:
-            bars.append(_bars([[-span, y, zg + za]], [[span, y, zg + za]], 0.3, 0.3))
-        bars.append(_bars([[0, y, zg + top]], [[0, y, zg + H]], 1.3 * bt, 0.15))  # peak
+            bars.append(_bars(place([-span], [0.0], zg + za), place([span], [0.0], zg + za), 0.3, 0.3))
+        bars.append(_bars(place([0.0], [0.0], zg + top), place([0.0], [0.0], zg + H), 1.3 * bt, 0.15))  # peak
     hexa = np.concatenate(bars)
     Vp, Fp = _convex(hexa, _HEX_FACES)
     b.add(Vp, Fp, Material.PYLON)
@@ -233,17 +293,18 @@ def add_power_line(cfg, b, height):
     att = np.array([[-7.0, 0.70 * H - 0.3], [7.0, 0.70 * H - 0.3], [-5.0, 0.82 * H - 0.3],
                     [5.0, 0.82 * H - 0.3], [0.0, H]])
     r, ring = cfg.wire_diameter_m / 2, np.arange(6) * np.pi / 3
-    for k in range(len(ys) - 1):
-        span = ys[k + 1] - ys[k]
+    for k in range(len(ss) - 1):
+        span = ss[k + 1] - ss[k]
         S = max(8, int(np.ceil(span / 4.0))) + 1
         s = np.linspace(0, 1, S)
-        A = np.column_stack([att[:, 0], np.full(5, ys[k]), z0[k] + att[:, 1]])
-        B = np.column_stack([att[:, 0], np.full(5, ys[k + 1]), z0[k + 1] + att[:, 1]])
+        A = np.column_stack([xs[k] + att[:, 0] * n_x[k], ys[k] + att[:, 0] * n_y[k], z0[k] + att[:, 1]])
+        B = np.column_stack([xs[k + 1] + att[:, 0] * n_x[k + 1], ys[k + 1] + att[:, 0] * n_y[k + 1],
+                             z0[k + 1] + att[:, 1]])
         P = A[:, None] + s[None, :, None] * (B - A)[:, None]
         P[..., 2] -= cfg.wire_sag_m * (span / 300.0) ** 2 * 4 * s * (1 - s)  # (5, S, 3)
         T = np.gradient(P, axis=1)
         T /= np.linalg.norm(T, axis=2, keepdims=True)
-        N1 = np.cross(T, [1.0, 0.0, 0.0])
+        N1 = np.cross(T, [n_x[k], n_y[k], 0.0])
         N1 /= np.linalg.norm(N1, axis=2, keepdims=True)
         N2 = np.cross(T, N1)
         Vw = (P[:, :, None] + r * (np.cos(ring)[:, None] * N1[:, :, None]
@@ -255,7 +316,7 @@ def add_power_line(cfg, b, height):
         Fw = (quad[None] + (np.arange(5) * S * 6)[:, None, None]).reshape(-1, 3)
         ring_centre = P.reshape(-1, 3)[Fw[:, 0] // 6]  # of each face's first vertex
         b.add(Vw, _orient(Vw, Fw, ring_centre), Material.WIRE)
-    return np.column_stack([np.zeros_like(ys), ys, z0])
+    return np.column_stack([xs, ys, z0])
 
 
 def add_buildings(cfg, rng, b, height, free, occupied, set_x, set_y, cross_ang):
@@ -329,7 +390,7 @@ def add_vegetation(cfg, rng, b, height, road_distance, occupied):
     cand = np.where((rng.random(m) < 0.6)[:, None], pc[k] + rng.normal(0, 35.0, (m, 2)),
                     np.column_stack([rng.uniform(-half, half, m), rng.uniform(y_lo, y_hi, m)]))
     x, y = cand.T
-    ok = (np.abs(x) > 15) & (np.abs(x) < half - 3) & (y > y_lo + 3) & (y < y_hi - 3)
+    ok = (np.abs(CorridorAxis(cfg).across(x, y)) > 15) & (np.abs(x) < half - 3) & (y > y_lo + 3) & (y < y_hi - 3)
     ok &= road_distance(x, y) > cfg.road_width_m / 2 + 3  # road half width + 3 m
     if occupied:
         occ = np.array(occupied)
