@@ -64,7 +64,7 @@ def test_area_block_lines_spacing_order_and_cross_lines():
     for ln in lines[8:]:
         assert ln.vertices[0, 1] == pytest.approx(ln.vertices[1, 1])
         assert abs(ln.vertices[0, 0] - ln.vertices[1, 0]) == pytest.approx(7 * 0.7 * swath + swath)
-    with pytest.raises(ConfigError, match="leaves the scene"):
+    with pytest.raises(ConfigError, match="misses the scene"):
         plan_lines(plan, length_m=2000.0, width_m=1500.0, swath_m=swath)
 
 

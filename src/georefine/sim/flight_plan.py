@@ -137,7 +137,7 @@ def plan_lines(plan: FlightPlanConfig, *, length_m: float, width_m: float, swath
         A block whose swaths leave the scene, or lines too short for their bends.
     """
     if plan.kind == "area":
-        lines = _area_lines(plan, length_m, swath_m)
+        lines = _area_lines(plan, length_m, width_m, swath_m)
     elif plan.kind == "corridor":
         lines = _corridor_lines(plan, length_m, axis_m)
     else:
@@ -156,15 +156,29 @@ def plan_lines(plan: FlightPlanConfig, *, length_m: float, width_m: float, swath
     return lines
 
 
-def _area_lines(plan: FlightPlanConfig, length_m: float, swath_m: float) -> tuple[PlannedLine, ...]:
+def _clip(point: np.ndarray, direction: np.ndarray, length_m: float, width_m: float,
+          limit: float = np.inf) -> tuple[float, float] | None:
+    """Parameters ``(t0, t1)`` of the part of the line ``point + t direction`` inside the scene
+    (``|x| <= width_m / 2``, ``0 <= y <= length_m``) and within ``|t| <= limit``; None if none."""
+    lo, hi = -limit, limit
+    for k, (a, b) in enumerate(((-width_m / 2.0, width_m / 2.0), (0.0, length_m))):
+        if abs(direction[k]) < 1e-12:
+            if not a - 1e-9 <= point[k] <= b + 1e-9:
+                return None
+            continue
+        t = sorted(((a - point[k]) / direction[k], (b - point[k]) / direction[k]))
+        lo, hi = max(lo, t[0]), min(hi, t[1])
+    return (lo, hi) if hi - lo > 1.0 else None
+
+
+def _area_lines(plan: FlightPlanConfig, length_m: float, width_m: float, swath_m: float) -> tuple[PlannedLine, ...]:
     n = plan.lines
     spacing = plan.spacing_m if plan.spacing_m is not None else (1.0 - plan.sidelap) * swath_m
     az = np.radians(plan.direction_deg)
     u, v = _unit(az), _unit(az + np.pi / 2.0)  # along the lines, across them (to the right)
     centre = np.array([0.0, length_m / 2.0])
-    # Along the lines the block spans the scene's length (for a north-south block); a rotated
-    # block spans the same length along its direction.
-    half_along = length_m / 2.0
+    # Each line spans the scene along its direction (a north-south block its whole length; a
+    # rotated one is clipped to the scene's rectangle); the cross lines span the block's width.
     across = (np.arange(n) - (n - 1) / 2.0) * spacing
     if plan.order == "racetrack" and n > 2:
         k = (n + 1) // 2
@@ -172,15 +186,26 @@ def _area_lines(plan: FlightPlanConfig, length_m: float, swath_m: float) -> tupl
         order = list(dict.fromkeys(order))
     else:
         order = list(range(n))
+    def line(point, direction, line_id, limit=np.inf):
+        span = _clip(point, direction, length_m, width_m, limit)
+        if span is None:
+            raise ConfigError("a line of the flight plan misses the scene", field="plan",
+                              expected="lines that cross the scene (scene.width_m, scene.length_m, plan.spacing_m, "
+                              "plan.direction_deg)", found=f"line {line_id} through {np.round(point, 1).tolist()}")
+        return point + span[0] * direction, point + span[1] * direction
+
     out = []
     for j, i in enumerate(order):
-        a, b = centre + across[i] * v - half_along * u, centre + across[i] * v + half_along * u
+        a, b = line(centre + across[i] * v, u, i + 1)
         out.append(PlannedLine(i + 1, np.array([a, b] if j % 2 == 0 else [b, a])))
     m = plan.cross_lines
     half_across = (n - 1) / 2.0 * spacing + swath_m / 2.0
+    # Cross lines spread evenly along the parallel lines' common extent.
+    extents = [_clip(centre + a * v, u, length_m, width_m) for a in across]
+    t_lo, t_hi = max(e[0] for e in extents), min(e[1] for e in extents)
     for j in range(m):
-        s = (-0.5 + (j + 1) / (m + 1)) * 2.0 * half_along
-        a, b = centre + s * u - half_across * v, centre + s * u + half_across * v
+        s = t_lo + (j + 1) / (m + 1) * (t_hi - t_lo) if m else 0.0
+        a, b = line(centre + s * u, v, n + j + 1, limit=half_across)
         out.append(PlannedLine(n + j + 1, np.array([a, b] if j % 2 == 0 else [b, a])))
     return tuple(out)
 
