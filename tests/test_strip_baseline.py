@@ -102,6 +102,16 @@ def test_priors_from_the_gi_sigmas():
     p1 = gi_strip_priors(gi, SPANS, order=1)
     half = 0.5 * np.mean([b - a for a, b in SPANS.values()])
     np.testing.assert_allclose(p1.translation_rate_m_per_s, np.array([0.02, 0.03, 0.05]) / half)
+    # A strip turned rigidly moves its trajectory's ends, which the GNSS holds: a 40 mdeg heading
+    # sigma shrinks to the position sigma over the shortest strip's lever (500 m of span: 144 m RMS);
+    # about east and north the strips along the other axis have no lever (no bound).
+    loose = fake_gi(t, np.array([3.0, 4.0, 40.0]) * MDEG, np.array([0.02, 0.03, 0.05]))
+    bounded = gi_strip_priors(loose, SPANS, trajectory=flown())
+    lever = 500.0 / np.sqrt(12.0)
+    np.testing.assert_allclose(bounded.rotation_rad[2], np.sqrt(np.mean(np.square([0.02, 0.03, 0.05]))) / lever,
+                               rtol=0.01)
+    np.testing.assert_allclose(bounded.rotation_rad[:2], p0.rotation_rad[:2])
+    np.testing.assert_allclose(gi_strip_priors(gi, SPANS, trajectory=flown()).rotation_rad, p0.rotation_rad)
     with pytest.raises(InputError, match="posterior"):
         gi_strip_priors(fake_gi(np.zeros(0), np.zeros(3), np.zeros(3)), SPANS)
     with pytest.raises(InputError, match="inside"):

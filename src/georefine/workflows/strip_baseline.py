@@ -99,7 +99,8 @@ def strip_spans(strips: Sequence[StripFile]) -> dict[int, tuple[float, float]]:
     return {int(s.strip_id): (float(s.t_first), float(s.t_last)) for s in strips}
 
 
-def gi_strip_priors(gi: GnssImuResult, spans: Mapping[int, tuple[float, float]], order: int = 0) -> StripPriors:
+def gi_strip_priors(gi: GnssImuResult, spans: Mapping[int, tuple[float, float]], order: int = 0,
+                    trajectory: Trajectory | None = None) -> StripPriors:
     """The priors of the strip corrections from the G/I's posterior sigmas over the strips' spans.
 
     Rotation: about east and north the RMS of the roll and pitch sigmas (on a strip either one
@@ -107,6 +108,13 @@ def gi_strip_priors(gi: GnssImuResult, spans: Mapping[int, tuple[float, float]],
     translation: the position sigma per axis of ``w``; RMS over the posterior's times inside the
     spans. For ``order`` 1 the drift sigmas are these over half the mean strip duration: the
     drift may reach one sigma at either end of a strip.
+
+    With ``trajectory`` each rotation sigma is also at most the position sigma over the RMS lever
+    of the strip's trajectory positions about that axis (the shortest strip's): a strip turned
+    rigidly about its centre moves its trajectory's ends, which the GNSS holds to its position
+    sigma, while the G/I's heading sigma describes a turn of the body about its own position (on
+    ``corridor-tiny`` the G/I states 33 mdeg of heading; a strip turned by that about its centre
+    moves its ends by 17 cm; the bound is 4.4 mdeg there).
 
     Raises
     ------
@@ -128,12 +136,30 @@ def gi_strip_priors(gi: GnssImuResult, spans: Mapping[int, tuple[float, float]],
     horizontal = float(np.sqrt(np.mean(0.5 * (rph[:, 0] ** 2 + rph[:, 1] ** 2))))
     rotation = np.array([horizontal, horizontal, float(np.sqrt(np.mean(rph[:, 2] ** 2)))])
     translation = np.sqrt(np.mean(pos**2, axis=0))
+    if trajectory is not None:
+        lever = _levers(trajectory, spans)
+        bound = float(np.sqrt(np.mean(translation**2))) / np.where(lever > 0, lever, 1.0)
+        rotation = np.where(lever > 0, np.minimum(rotation, bound), rotation)
     if order == 0:
         return StripPriors(rotation, translation)
     half = 0.5 * float(np.mean([t1 - t0 for t0, t1 in spans.values()]))
     if not half > 0:
         raise InputError("the strips' time spans are empty", field="spans", expected="t1 > t0", found=str(dict(spans)))
     return StripPriors(rotation, translation, rotation / half, translation / half)
+
+
+def _levers(trajectory: Trajectory, spans: Mapping[int, tuple[float, float]]) -> np.ndarray:
+    """(3,) RMS lever (m) of the trajectory positions about the east, north and up axes through
+    their mean, the smallest over the strips (the loosest bound): ``sqrt(mean |e_k x (p - mean)|^2)``;
+    0 where no strip has positions off the axis (no bound)."""
+    out = np.full(3, np.inf)
+    for t0, t1 in spans.values():
+        p = trajectory.p_w_b[(trajectory.time >= t0) & (trajectory.time <= t1)]
+        if p.shape[0] < 2:
+            continue
+        d2 = np.mean((p - p.mean(axis=0)) ** 2, axis=0)
+        out = np.minimum(out, np.sqrt([d2[1] + d2[2], d2[0] + d2[2], d2[0] + d2[1]]))
+    return np.where(np.isfinite(out), out, 0.0)
 
 
 def strip_baseline(
@@ -192,13 +218,14 @@ def run_strip_baseline(
     ``features`` and ``objects`` must be those extracted under the G/I trajectory (the first
     outer iteration's, ``features_and_objects(nav, gi, ...)`` of :mod:`georefine.workflows.lidar`),
     ``strips`` at the time offset they were extracted at. The trajectory is the G/I at the IMU
-    samples, the priors those of :func:`gi_strip_priors` unless given, the robust loss the plane
+    samples, the priors those of :func:`gi_strip_priors` (bounded by the trajectory's levers) unless given, the robust loss the plane
     observations' (``processing.lidar.plane_loss``, ``plane_loss_scale``).
     """
     spans = strip_spans(strips)
     lcfg = nav.config.processing.lidar
-    return strip_baseline(features, objects, imu_rate_trajectory(nav, gi), spans,
-                          gi_strip_priors(gi, spans, order) if priors is None else priors, order=order,
+    trajectory = imu_rate_trajectory(nav, gi)
+    return strip_baseline(features, objects, trajectory, spans,
+                          gi_strip_priors(gi, spans, order, trajectory) if priors is None else priors, order=order,
                           loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale))
 
 
