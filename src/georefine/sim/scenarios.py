@@ -1,4 +1,4 @@
-"""Named simulation scenarios and the writer of a simulated project folder.
+"""Named simulation scenarios and the simulation of a project folder.
 
 A scenario is a :class:`ScenarioConfig`: every parameter of the scene, the flight, the IMU,
 the GNSS and the scanner, with defaults per scenario name. The user overrides any of them
@@ -15,7 +15,7 @@ the week in its companion ``truth/trajectory.sbet.json``),
 same point order as the scan file, extra dimension ``range_error_m``),
 ``truth/reference_surfaces.csv`` (exact corners), ``truth/imu_errors.npz``,
 ``truth/gnss_errors.npz`` and ``truth/scenario.yaml`` (every parameter used and the true
-sensor errors).
+sensor errors). The writing, of one sortie or several, is in :mod:`georefine.sim.project_writer`.
 
 The whole folder is written under a temporary name next to ``out`` and renamed when complete.
 Independent random streams (``SeedSequence(seed).spawn``) drive the scene, IMU, GNSS, scanner
@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import logging
 import shutil
-import time as _time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
@@ -37,35 +36,24 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from georefine.config import (
-    ChannelConfig,
-    CrsConfig,
-    GnssCorrelatedError,
-    GnssFileConfig,
-    ImuErrorSpec,
-    ImuFileConfig,
-    PhotosFileConfig,
-    ProjectConfig,
-    ReferenceConfig,
     ReferencePoint,
-    ScannerFileConfig,
     StrictModel,
     apply_overrides,
-    boresight_matrix,
     check_output_epsg,
     deep_merge,
     read_yaml,
     validate_model,
-    write_yaml,
 )
 from georefine.errors import ConfigError, InputError
-from georefine.geometry.frames import LocalFrame, OutputCRS
+from georefine.geometry.frames import LocalFrame
 from georefine.progress import Progress, no_progress
-from georefine.sim.camera import PhotoBlockConfig, write_photo_block
-from georefine.sim.flight import FlightConfig, TrueTrajectory, simulate_flight
-from georefine.sim.flight_plan import FlightPlanConfig, plan_lines, swath_width_m
-from georefine.sim.gnss import GnssConfig, simulate_gnss
-from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade, simulate_imu
-from georefine.sim.scanner import ScannerConfig, chunk_seed, scan
+from georefine.sim.camera import PhotoBlockConfig
+from georefine.sim.flight import FlightConfig
+from georefine.sim.flight_plan import FlightPlanConfig
+from georefine.sim.gnss import GnssConfig
+from georefine.sim.imu import DEFAULT_IMU_GRADE, IMU_PRESETS, ImuGrade
+from georefine.sim.project_writer import fly, write_project
+from georefine.sim.scanner import ScannerConfig
 from georefine.sim.scene import SceneConfig, build_scene
 from georefine.tasks import TaskRunner, runner_for
 
@@ -128,6 +116,11 @@ class ScenarioConfig(StrictModel):
     plan: FlightPlanConfig | None = Field(
         None, description="A flight plan of several lines (area block, bending or parallel corridor lines, a file of "
         "line end points); without one the flight is the corridor's one or two passes (flight.passes).")
+    sorties: int = Field(1, ge=1, le=9, description="Flights of the plan, each with its own take-off, static "
+                         "alignment, IMU record (its own turn-on biases), GNSS session and strips; one scanner and "
+                         "calibration (sim/project_writer.py).")
+    sortie_interval_s: float = Field(91800.0, gt=0.0, description="Take-off to take-off of consecutive sorties (s); "
+                                     "default the next day, 1.5 h later.")
     jamming: JammingConfig | None = Field(None, description="GNSS outage in every pass (the LiDAR's trajectory).")
     photos: PhotoBlockConfig | None = Field(None, description="A photo block over the scene (paper 004).")
     sources: dict[str, str] = Field(
@@ -135,16 +128,6 @@ class ScenarioConfig(StrictModel):
         "preset, the --config file, --imu-grade/--gnss-grade, each --set (filled by resolve_scenario).",
     )
 
-
-
-def _stated_gnss_error(gnss: GnssConfig) -> GnssCorrelatedError | None:
-    """The correlated GNSS error project.yaml states: the simulated one (as it states the IMU's errors)."""
-    h, u = gnss.gm_sigma_horizontal_m, gnss.gm_sigma_up_m
-    if gnss.grade != "ppk" or max(h, u) <= 0.0:
-        return None
-    floor = 1e-4  # a sigma must be positive; 0.1 mm is none to speak of
-    return GnssCorrelatedError(sigma_horizontal_m=max(h, floor), sigma_up_m=max(u, floor),
-                               time_constant_s=gnss.gm_time_constant_s)
 
 
 def _scenario_defaults(name: str) -> dict[str, Any]:
@@ -208,6 +191,11 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
             "plan": {"kind": "area", "lines": 3, "sidelap": 0.3, "cross_lines": 1},
             "scanner": {"pulse_rate_hz": 100000.0, "line_rate_hz": 120.0, "field_of_view_deg": 60.0},
         }
+    if name in ("two-flights", "two-flights-tiny"):
+        base = _scenario_defaults(name.replace("two-flights", "corridor"))
+        return {**base, "name": name, "sorties": 2,
+                "description": f"{base['description']} Flown on two days (the next day 1.5 h later): each flight its own "
+                "static alignment, IMU turn-on biases and GNSS session, the same scanner and boresight error."}
     if name == "corridor-tiny":
         return {
             "name": "corridor-tiny",
@@ -227,7 +215,8 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
     raise ConfigError("unknown scenario", field="SCENARIO", expected="one of " + ", ".join(SCENARIOS), found=repr(name))
 
 
-SCENARIOS = ("corridor", "corridor-tiny", "corridor-paper", "block", "area", "area-tiny")
+SCENARIOS = ("corridor", "corridor-tiny", "corridor-paper", "block", "area", "area-tiny", "two-flights",
+             "two-flights-tiny")
 
 
 def resolve_scenario(
@@ -365,7 +354,7 @@ def simulate_project(
     tmp = _prepare_output(out)
     try:
         with runner_for(scheduler) as runner:
-            result = _simulate_into(cfg, tmp, seed, write_imr, progress, on_navigation, runner)
+            result = write_project(cfg, tmp, seed, write_imr, progress, on_navigation, runner)
         tmp.rename(out) if not out.exists() else _replace_empty_dir(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -382,24 +371,6 @@ def flight_passes(cfg: ScenarioConfig, seed: int) -> tuple[tuple[int, float, flo
     scene = build_scene(cfg.scene, np.random.default_rng(np.random.SeedSequence(seed).spawn(1)[0]))
     traj = fly(cfg, LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m), scene.terrain_height)
     return tuple((int(sid), float(t0), float(t1)) for sid, t0, t1 in traj.passes)
-
-
-def fly(cfg: ScenarioConfig, frame: LocalFrame, terrain_height) -> TrueTrajectory:
-    """The true trajectory of the scenario: its flight plan's lines, or the corridor passes without one."""
-    lines = None
-    if cfg.plan is not None:
-        crs = OutputCRS(cfg.output_epsg)
-        h0 = cfg.reference_point.h_m
-
-        def to_w(en: np.ndarray) -> np.ndarray:
-            return crs.to_w(frame, np.column_stack([en, np.full(len(en), h0)]))
-
-        lines = plan_lines(cfg.plan, length_m=cfg.scene.length_m, width_m=cfg.scene.width_m,
-                           swath_m=swath_width_m(cfg.flight.altitude_agl_m, cfg.scanner.field_of_view_deg), to_w=to_w,
-                           axis_m=cfg.scene.axis_m)
-        return simulate_flight(cfg.flight, frame, cfg.scene.length_m, terrain_height, lines,
-                               bend_radius_m=cfg.plan.bend_radius_m, transit_m=cfg.plan.transit_m)
-    return simulate_flight(cfg.flight, frame, cfg.scene.length_m, terrain_height)
 
 
 def outage_inside_pass(cfg: ScenarioConfig, seed: int, *, strip: int = 1, start_after_s: float = 10.0,
@@ -432,129 +403,3 @@ def outage_inside_pass(cfg: ScenarioConfig, seed: int, *, strip: int = 1, start_
 def _replace_empty_dir(tmp: Path, out: Path) -> None:
     out.rmdir()
     tmp.rename(out)
-
-
-def _simulate_into(cfg: ScenarioConfig, root: Path, seed: int, write_imr: bool, progress: Progress,
-                   on_navigation: Callable[[Path], None] | None, runner: TaskRunner) -> dict:
-    from georefine.sim import writers
-
-    timings: dict[str, float] = {}
-    seeds = np.random.SeedSequence(seed).spawn(6)
-    rng_scene, rng_imu, rng_gnss, _, rng_survey, rng_photos = (np.random.default_rng(s) for s in seeds)
-    # The scan noise: one seed per strip and chunk below it (sim.scanner.chunk_seed).
-    seed_scan = seeds[3]
-    rp = cfg.reference_point
-    frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
-    crs = OutputCRS(cfg.output_epsg)
-
-    t = _time.perf_counter()
-    progress("scene", 0, 1)
-    scene = build_scene(cfg.scene, rng_scene)
-    progress("scene", 1, 1)
-    timings["scene"] = _time.perf_counter() - t
-
-    t = _time.perf_counter()
-    traj = fly(cfg, frame, scene.terrain_height)
-    imu = simulate_imu(traj, cfg.imu, 0.0, traj.duration_s, rng_imu)
-    p_b_a = np.asarray(cfg.gnss_lever_arm_m)
-    gnss_cfg = cfg.gnss
-    if cfg.jamming is not None:
-        j = cfg.jamming
-        jams = [(traj.passes[0][1] + j.after_first_pass_start_s, traj.passes[-1][2] - j.before_last_pass_end_s)]
-        gnss_cfg = gnss_cfg.model_copy(update={"outages": [*gnss_cfg.outages, *jams]})
-    gnss = simulate_gnss(traj, p_b_a, gnss_cfg, 0.0, traj.duration_s, rng_gnss)
-    timings["flight and sensors"] = _time.perf_counter() - t
-
-    t = _time.perf_counter()
-    writers.write_gnss(root / "gnss" / "rover.pos", gnss)
-    writers.write_imu(root / "imu" / "imu.csv", imu, imr_path=root / "imu" / "imu.imr" if write_imr else None)
-    writers.write_truth_trajectory(root / "truth" / "trajectory.sbet", traj, imu.time, crs.epsg)
-    writers.write_reference(root, scene.reference_surfaces, frame, crs, cfg.reference_survey_sigma_m, rng_survey)
-    np.savez_compressed(
-        root / "truth" / "imu_errors.npz", time_gps=imu.t0_gps + imu.time, bias_gyro=imu.bias_gyro,
-        bias_acc=imu.bias_acc, scale_gyro=imu.scale_gyro, scale_acc=imu.scale_acc,
-    )
-    np.savez_compressed(root / "truth" / "gnss_errors.npz", time_gps=gnss.t0_gps + gnss.time, error_ned=gnss.error_ned)
-    timings["write navigation files"] = _time.perf_counter() - t
-
-    ext = "laz" if cfg.laz else "las"
-    errors = ImuErrorSpec(**{k: v for k, v in cfg.imu.model_dump().items() if k in ImuErrorSpec.model_fields})
-    project = ProjectConfig(
-        name=cfg.name,
-        crs=CrsConfig(output_epsg=cfg.output_epsg),
-        gnss=GnssFileConfig(files=["gnss/rover.pos"], lever_arm_m=cfg.gnss_lever_arm_m,
-                            correlated_error=_stated_gnss_error(cfg.gnss)),
-        imu=ImuFileConfig(file="imu/imu.csv", format="csv", rate_hz=cfg.imu.rate_hz, errors=errors),
-        scanner=ScannerFileConfig(
-            files=[f"scans/strip_{s}.{ext}" for s, _, _ in traj.passes],
-            lever_arm_m=cfg.scanner_lever_arm_m,
-            boresight_deg=cfg.project_boresight_deg or cfg.boresight_deg,
-            range_sigma_m=cfg.scanner.range_sigma_m,
-            channels=[
-                ChannelConfig(id=i, name=n, tilt_deg=tilt)
-                for i, (n, tilt) in enumerate(zip(("nadir", "forward", "backward"), cfg.scanner.facet_tilt_deg))
-            ],
-        ),
-        reference=ReferenceConfig(surfaces="reference/surfaces.csv"),
-        photos=PhotosFileConfig() if cfg.photos is not None else None,
-    )
-    # Sensor configuration only: the processing options keep their documented defaults unless a
-    # user writes them into project.yaml.
-    write_yaml(root / "project.yaml", project.model_dump(
-        mode="json", exclude={"processing"} | ({"photos"} if project.photos is None else set())))
-    if on_navigation is not None:  # the navigation part of the project is complete
-        on_navigation(root)
-
-    photo_summary = None
-    if cfg.photos is not None:
-        t = _time.perf_counter()
-        photo_summary = write_photo_block(root, scene, cfg.photos, frame, crs, rng_photos, progress)
-        timings["photos"] = _time.perf_counter() - t
-
-    t = _time.perf_counter()
-    p_b_s = np.asarray(cfg.scanner_lever_arm_m)
-    R_b_s = boresight_matrix(cfg.boresight_deg)
-    points: dict[int, int] = {}
-    total = sum(t1 - t0 for _, t0, t1 in traj.passes)
-    done = 0.0
-    for strip_id, t0, t1 in traj.passes:
-        # Chunks of at most ~400 k pulses (1 s up to 400 kHz, as before; 0.22 s at 1.8 MHz): the
-        # memory of a chunk, not the pulse rate, bounds the simulation's memory.
-        chunk_s = min(1.0, 400_000.0 / cfg.scanner.pulse_rate_hz)
-        # Each task scans its chunk and makes its file records (the truth in the output CRS
-        # included); this process only encodes them, in time order.
-        records = scan(traj.pose, t0, t1, scene, cfg.scanner, p_b_s, R_b_s, chunk_seed(seed_scan, strip_id),
-                       chunk_duration_s=chunk_s, runner=runner, finish=writers.strip_records,
-                       finish_args=(strip_id, traj.t0_gps, frame, crs, cfg.scanner_time_offset_s))
-
-        def tick(t_gps_end: float, _t0=traj.t0_gps + t0, _done=done) -> None:
-            progress("scanning", _done + (t_gps_end - _t0), total)
-
-        points[strip_id] = writers.write_strip(
-            root / "scans" / f"strip_{strip_id}.{ext}", root / "truth" / f"strip_{strip_id}.{ext}", records, tick, crs)
-        done += t1 - t0
-    progress("scanning", total, total)  # the last chunk's end may fall a rounding short of the total
-    timings["scanning"] = _time.perf_counter() - t
-
-    truth = {
-        "seed": seed,
-        "t0_gps": traj.t0_gps,
-        "duration_s": traj.duration_s,
-        "passes": [{"strip_id": s, "t_start_s": a, "t_end_s": b} for s, a, b in traj.passes],
-        "phases": [{"name": n, "t_start_s": a, "t_end_s": b} for n, a, b in traj.phases],
-        "imu_scale_gyro_ppm": (imu.scale_gyro * 1e6).tolist(),
-        "imu_scale_acc_ppm": (imu.scale_acc * 1e6).tolist(),
-        "imu_bias_gyro_start_deg_per_h": np.degrees(imu.bias_gyro[0] * 3600).tolist(),
-        "imu_bias_acc_start_ug": (imu.bias_acc[0] / 9.80665e-6).tolist(),
-        "points_per_strip": points,
-        "scenario": cfg.model_dump(mode="json"),
-    }
-    if photo_summary is not None:
-        truth["photos"] = photo_summary
-    if gnss_cfg.outages:
-        truth["gnss_outages_s"] = [list(o) for o in gnss_cfg.outages]
-    write_yaml(root / "truth" / "scenario.yaml", truth)
-    return dict(
-        scenario=cfg, seed=seed, duration_s=traj.duration_s, points_per_strip=points,
-        n_imu=imu.time.size, n_gnss=gnss.time.size, timings_s=timings,
-    )
