@@ -391,6 +391,9 @@ class LidarAdjustmentConfig(StrictModel):
     plane_loss: Literal["cauchy", "huber", "none"] = "cauchy"
     plane_loss_scale: float = Field(2.0, gt=0.0, description="Cauchy c / Huber delta in units of sigma.")
     estimate_boresight: bool = Field(False, description="Estimate the scanner boresight (needs two passes).")
+    strip_baseline: bool = Field(
+        True, description="Also run the classical strip adjustment (a rotation and translation per strip) from the "
+        "first outer iteration's planes, as a baseline: RUN/baseline/ (docs/ARCHITECTURE.md §4.5).")
     boresight_prior_deg: float = Field(0.1, gt=0.0, description="Prior sigma of the boresight angles when estimated.")
     time_offset: TimeOffsetConfig = Field(default_factory=TimeOffsetConfig)
     max_features: int = Field(

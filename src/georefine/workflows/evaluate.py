@@ -67,10 +67,14 @@ from georefine.workflows.opened import ProjectLike, project_root
 
 log = logging.getLogger(__name__)
 
-__all__ = ["evaluate_run", "evaluate_cloud", "ANGLES", "CLOUDS"]
+__all__ = ["evaluate_run", "evaluate_cloud", "ANGLES", "BASELINE", "CLOUDS"]
 
 CLOUDS = {"G/I": "gi", "G/I/L": "gil"}
 """The point clouds a run is evaluated on and their folders under ``RUN/evaluation``."""
+BASELINE = "strip adjustment"
+"""The label of the classical strip adjustment a run makes beside the G/I/L (``RUN/baseline/``,
+:mod:`georefine.workflows.strip_baseline`), evaluated where the run has it."""
+_FOLDERS = {**CLOUDS, BASELINE: "baseline"}
 
 
 def _windows(metrics: WorkflowMetrics, inset_s: float = 1.0) -> dict[int, tuple[float, float]]:
@@ -110,7 +114,9 @@ def evaluate_run(
 
     # Trajectory differences during the strips (per strip and over all of them).
     report("trajectory differences", 0, 1)
-    cases = [("G/I", run_dir / "gi" / "trajectory.sbet", metrics), ("G/I/L", run_dir / "gil" / "trajectory.sbet", metrics)]
+    baseline = run_dir / "baseline" / "trajectory.sbet"
+    cases = [("G/I", run_dir / "gi" / "trajectory.sbet", metrics), ("G/I/L", run_dir / "gil" / "trajectory.sbet", metrics),
+             (BASELINE, baseline, metrics)]
     if not has_truth:
         cases = cases[:1]
     if single_dir is not None:
@@ -159,7 +165,7 @@ def evaluate_run(
         own = TaskRunner(scheduler)
     runner = own or scheduler
     try:
-        for label in CLOUDS:
+        for label in [*CLOUDS, *([BASELINE] if baseline.is_file() else [])]:
             result = clouds.get(label) or evaluate_cloud(project, run_dir, label, progress=report, scheduler=runner)
             if result.reference_planes is not None:
                 reference_planes[label] = result.reference_planes
@@ -230,8 +236,8 @@ def evaluate_cloud(
     """Reference planes, the strip-difference map and the strip-pair differences of one point cloud of a run.
 
     ``label`` is ``"G/I"`` (georeferenced here into ``RUN/gi/points`` with ``trajectory``,
-    by default ``RUN/gi/trajectory.sbet``, unless the points there are newer than it) or ``"G/I/L"`` (``RUN/points``,
-    written by the run); ``strips`` (default: those of ``RUN/metrics.json``, else all) selects
+    by default ``RUN/gi/trajectory.sbet``, unless the points there are newer than it), :data:`BASELINE`
+    (the same from ``RUN/baseline/``) or ``"G/I/L"`` (``RUN/points``, written by the run); ``strips`` (default: those of ``RUN/metrics.json``, else all) selects
     the strip files. Writes ``RUN/evaluation/gi`` or ``.../gil``; the reference planes are
     evaluated only when the project has reference surfaces.
 
@@ -245,15 +251,15 @@ def evaluate_cloud(
     """
     project, run_dir = project_root(project), Path(run_dir)
     report = progress or (lambda *a: None)
-    sub = CLOUDS[label]
+    sub = _FOLDERS[label]
     if strips is None and (run_dir / "metrics.json").is_file():
         strips = list(WorkflowMetrics.read(run_dir / "metrics.json").strips)
     out = run_dir / "evaluation" / sub
     out.mkdir(parents=True, exist_ok=True)
     with runner_for(scheduler) as runner:
-        if label == "G/I":
-            folder = run_dir / "gi" / "points"
-            sbet = Path(trajectory or run_dir / "gi" / "trajectory.sbet")
+        if label != "G/I/L":  # georeferenced here with the solution's trajectory
+            folder = run_dir / sub / "points"
+            sbet = Path(trajectory or run_dir / sub / "trajectory.sbet")
             laz = list(folder.glob("*.laz"))
             if not laz or min(f.stat().st_mtime_ns for f in laz) < sbet.stat().st_mtime_ns:  # none, or older
                 run_georeference(project, sbet, folder, progress=report, scheduler=runner)

@@ -72,6 +72,7 @@ from georefine.workflows.outer_checks import (
     warn_unconverged,
 )
 from georefine.workflows.precision import pass_precision, precision_lines
+from georefine.workflows.strip_baseline import stage_strip_baseline
 from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
 from georefine.workflows.time_offset import (
     TimeOffsetStart,
@@ -358,6 +359,11 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
         )
         if outcome.features is not None:
             steps.keep("gil_features", key, (outcome.features, outcome.objects))
+        if it == 1 and lcfg.strip_baseline:  # the classical strip adjustment from the same planes
+            stage_strip_baseline(
+                steps, nav, gi, inputs.strips, key, (outcome.features, outcome.objects),
+                outcome.record.time_offset_start_s, inputs.out / "baseline", inputs.crs,
+                lambda strips: features_and_objects(nav, gi, strips, 1, untimed, progress, inputs.runner)[:2], progress)
         records.append(outcome.record)
         current = outcome.gil.result
         # The next iteration extracts its features at this one's estimate of the time offset.

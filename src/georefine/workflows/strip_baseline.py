@@ -27,7 +27,7 @@ import numpy as np
 
 from georefine.adjustment.gnss_imu import GnssImuResult
 from georefine.adjustment.robust import RobustLoss, make_loss
-from georefine.errors import InputError
+from georefine.errors import GeorefineError, InputError
 from georefine.geometry.frames import OutputCRS
 from georefine.io.files import write_json
 from georefine.lidar.correspondences import PlanarObjects
@@ -39,6 +39,7 @@ from georefine.lidar.strip_adjustment import (
     apply_strip_corrections,
 )
 from georefine.trajectory.sampled import Trajectory
+from georefine.workflows.cache import StepCache
 from georefine.workflows.navigation import NavigationData, imu_rate_trajectory
 from georefine.workflows.products import write_sbet_product
 from georefine.workflows.strips import StripFile
@@ -47,6 +48,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "StripBaseline",
+    "stage_strip_baseline",
     "gi_strip_priors",
     "run_strip_baseline",
     "strip_baseline",
@@ -255,3 +257,39 @@ def _listed(v) -> list[float] | None:
 
 def _mdeg(v) -> list[float] | None:
     return None if v is None else [float(x) for x in np.degrees(np.asarray(v)) * 1e3]
+
+
+def stage_strip_baseline(steps, nav: NavigationData, gi: GnssImuResult, strips: Sequence[StripFile], key: str,
+                         planes: tuple[PlanarFeatures | None, PlanarObjects | None], offset_s: float, out: Path,
+                         crs: OutputCRS, recompute, progress=None) -> StripBaseline | None:
+    """The run's baseline stage (:func:`georefine.workflows.lidar.run_workflow`, after its first outer
+    iteration): :func:`run_strip_baseline` from that iteration's ``planes`` (features and objects,
+    extracted and matched under the G/I trajectory at the time offset ``offset_s``), cached by the
+    step runner ``steps`` under the iteration's ``key``, written to ``out`` (:func:`write_strip_baseline`).
+
+    ``recompute(strips)`` gives the features and objects again when the iteration came from the
+    cache. A project of one strip has no baseline; an adjustment that cannot be made (no object
+    seen by two strips) is logged and left out, not the run.
+    """
+    if len(strips) < 2:
+        return None
+    shifted = [s.shifted(offset_s) for s in strips]
+    report = progress or (lambda *a: None)
+
+    def compute() -> StripBaseline:
+        features, objects = planes
+        if features is None:  # the iteration came from the cache: its planes again (deterministic)
+            features, objects = recompute(shifted)
+        return run_strip_baseline(nav, gi, features, objects, shifted, order=0)
+
+    report("strip adjustment (baseline)", 0, 1)
+    try:
+        baseline = steps.cached("strip_baseline", StepCache.key("strip_baseline", key), compute,
+                                timing="strip_baseline")
+    except GeorefineError as exc:
+        log.warning("no strip-adjustment baseline: %s", exc)
+        return None
+    finally:
+        report("strip adjustment (baseline)", 1, 1)
+    write_strip_baseline(out, nav, baseline, crs)
+    return baseline
