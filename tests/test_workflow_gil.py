@@ -166,8 +166,9 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, full_run, tm
     assert proc.returncode == 0, proc.stderr
     again = json.loads((out / "metrics.json").read_text())
     n_outer = len(metrics["outer_iterations"])
-    assert again["resumed"] == ["gi", *[f"gil_{i}" for i in range(1, n_outer + 1)], "gil_features", "gil_posterior",
-                                "points"]
+    # The strip-adjustment baseline comes from the first outer iteration's planes, right after it.
+    assert again["resumed"] == ["gi", "gil_1", "strip_baseline", *[f"gil_{i}" for i in range(2, n_outer + 1)],
+                                "gil_features", "gil_posterior", "points"]
     assert len(list((out / ".cache").glob("gil_features-*.pkl"))) == 1  # the last one only
     assert again["outer_iterations"] == metrics["outer_iterations"]
     assert (out / "gil" / "trajectory.sbet").read_bytes() == before
