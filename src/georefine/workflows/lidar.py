@@ -289,7 +289,9 @@ def _lidar_key(nav: NavigationData, strips: list[StripFile], upstream: str, iter
     return StepCache.key(
         "gil", iteration, upstream, FEATURES_VERSION, [file_stamp(s.path, nav.root) for s in strips],
         cfg.scanner.model_dump(),
-        cfg.processing.planes.model_dump(), cfg.processing.matching.model_dump(), cfg.processing.lidar.model_dump(),
+        # The baseline beside the G/I/L changes nothing in it.
+        cfg.processing.planes.model_dump(), cfg.processing.matching.model_dump(),
+        cfg.processing.lidar.model_dump(exclude={"strip_baseline"}),
     )
 
 
