@@ -46,7 +46,9 @@ from georefine.workflows.time_offset import (
     add_time_offset,
 )
 
-__all__ = ["GilProblem", "LidarAdjustment", "add_posterior", "build_gil_problem", "step_adjust_gil"]
+__all__ = ["GilProblem", "LidarAdjustment", "PlaneSelection", "add_posterior", "boresight_deg_of", "build_gil_problem",
+           "plane_candidates",
+           "step_adjust_gil"]
 
 
 @dataclass(frozen=True)
@@ -119,6 +121,23 @@ class GilProblem:
     offset_held: str | None = None
 
 
+@dataclass(frozen=True)
+class PlaneSelection:
+    """The features and objects of one problem, chosen across several (the flights adjusted together,
+    :mod:`georefine.workflows.flights`) instead of by :func:`build_gil_problem` itself.
+
+    ``features``: indices (increasing) into the features given to :func:`build_gil_problem`, the ones
+    this problem observes (inside its trajectory, away from its ends where the offset is estimated);
+    ``objects``: the object ids (increasing) of every problem's selection together, the rows of the one
+    ``plane_params`` block they share; ``offset_held``: why the LiDAR time offset is held, decided
+    over all problems' features (:func:`~georefine.lidar.time_offset.offset_unobservable`), or None.
+    """
+
+    features: np.ndarray
+    objects: np.ndarray
+    offset_held: str | None = None
+
+
 def build_gil_problem(
     nav: NavigationData,
     previous: GnssImuResult,
@@ -126,16 +145,20 @@ def build_gil_problem(
     objects: PlanarObjects,
     knot_interval_s: float | None = None,
     time_offset: TimeOffsetStart | None = None,
+    selection: PlaneSelection | None = None,
 ) -> GilProblem:
     """Step 5's problem: the G/I problem started at ``previous`` plus the plane observations.
 
     Arguments as :func:`step_adjust_gil`; ``previous.high_rate`` (up-sampling, §4.6) is taken
-    out of the IMU windows.
+    out of the IMU windows. ``selection`` gives the features, the objects (the rows of
+    ``plane_params``) and the time offset's observability where several problems share the
+    objects; without it they are chosen here (matched, inside the trajectory, at most
+    ``max_features``).
 
     Raises
     ------
     InputError
-        No matched planar feature inside the trajectory span.
+        No matched planar feature inside the trajectory span (without ``selection``).
     """
     cfg = nav.config
     lcfg = cfg.processing.lidar
@@ -161,21 +184,26 @@ def build_gil_problem(
     grid = built.grid
     if time_offset is None:
         time_offset = TimeOffsetStart(cfg.scanner.time_offset_s, cfg.scanner.time_offset_s)
-    matched = (objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end)
-    held = None
-    if lcfg.time_offset.estimate:  # only strips with different tracks show an offset
-        held = offset_unobservable(features.time[matched], features.strip[matched], spline.velocity)
-    timing = add_time_offset(P, cfg, time_offset, held)
-    margin = EDGE_MARGIN_S if timing["time_offset"] else 0.0  # an estimated offset moves the feature times
-    sel = np.flatnonzero(matched & (features.time >= grid.t_start + margin) & (features.time <= grid.t_end - margin))
-    if sel.size > lcfg.max_features:
-        # Whole objects, the same ones in every outer iteration as far as the re-matching allows
-        # (ranked by a min-hash of keys fixed by strip, channel and seed voxel), not a fresh random
-        # draw, and not single features, which would leave objects with one view or one member.
-        sel = stable_object_subset(sel, feature_keys(features), objects.feature_object, lcfg.max_features)
-    if sel.size == 0:
-        raise InputError("no matched planar features inside the trajectory span", field="processing.matching")
-    used_objects, obj_index = np.unique(objects.feature_object[sel], return_inverse=True)
+    if selection is not None:  # chosen across the problems that share the objects
+        held = selection.offset_held
+        timing = add_time_offset(P, cfg, time_offset, held)
+        sel, used_objects = np.asarray(selection.features, dtype=np.int64), np.asarray(selection.objects)
+        obj_index = np.searchsorted(used_objects, objects.feature_object[sel])
+    else:
+        matched = (objects.feature_object >= 0) & (features.time >= grid.t_start) & (features.time <= grid.t_end)
+        held = None
+        if lcfg.time_offset.estimate:  # only strips with different tracks show an offset
+            held = offset_unobservable(features.time[matched], features.strip[matched], spline.velocity)
+        timing = add_time_offset(P, cfg, time_offset, held)
+        sel = plane_candidates(features, objects, (grid.t_start, grid.t_end), bool(timing["time_offset"]))
+        if sel.size > lcfg.max_features:
+            # Whole objects, the same ones in every outer iteration as far as the re-matching allows
+            # (ranked by a min-hash of keys fixed by strip, channel and seed voxel), not a fresh random
+            # draw, and not single features, which would leave objects with one view or one member.
+            sel = stable_object_subset(sel, feature_keys(features), objects.feature_object, lcfg.max_features)
+        if sel.size == 0:
+            raise InputError("no matched planar features inside the trajectory span", field="processing.matching")
+        used_objects, obj_index = np.unique(objects.feature_object[sel], return_inverse=True)
     f = features.select(sel)
     R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
     P.add_block("plane_params", np.zeros((used_objects.size, 3)))
@@ -195,6 +223,25 @@ def build_gil_problem(
     return GilProblem(built, int(sel.size), int(used_objects.size), boresight, bool(timing["time_offset"]),
                       time_offset, high_rate, tuple(g.name for g in P.groups if g.name not in gi_groups),
                       tuple(n for n in P.blocks if n not in gi_blocks), held)
+
+
+def plane_candidates(features: PlanarFeatures, objects: PlanarObjects, span: tuple[float, float],
+                     offset_estimated: bool, among: np.ndarray | None = None) -> np.ndarray:
+    """Indices of the matched features inside the trajectory ``span`` (s), :data:`EDGE_MARGIN_S` inside its ends
+    when the adjustment estimates the time offset (it moves the feature times); only those of the mask ``among``."""
+    margin = EDGE_MARGIN_S if offset_estimated else 0.0
+    t = features.time
+    keep = (objects.feature_object >= 0) & (t >= span[0] + margin) & (t <= span[1] - margin)
+    if among is not None:
+        keep &= among
+    return np.flatnonzero(keep)
+
+
+def boresight_deg_of(R_b_s: np.ndarray) -> np.ndarray:
+    """Roll, pitch, yaw (deg) of a boresight ``R_b_s``, the yaw in [0, 360)."""
+    bs_deg = np.degrees(rph_from_R_n_b(R_b_s))
+    bs_deg[2] = wrap_angle(bs_deg[2], 360.0, closed="lower")
+    return bs_deg
 
 
 def step_adjust_gil(
@@ -238,9 +285,7 @@ def step_adjust_gil(
     progress("G/I/L adjustment", 1, 1)  # it reports iterations of its limit; it ended here
     bs_deg = None
     if gil.boresight:
-        R = P.values("boresight")[0]
-        bs_deg = np.degrees(rph_from_R_n_b(R))
-        bs_deg[2] = wrap_angle(bs_deg[2], 360.0, closed="lower")
+        bs_deg = boresight_deg_of(P.values("boresight")[0])
     offset = gil.time_offset.features_s
     if gil.estimates_offset:
         offset += float(P.values(OFFSET_BLOCK)[0, 0])
