@@ -126,8 +126,8 @@ def test_every_command_calls_one_api_function():
         calls = set(re.findall(r"\bapi\.(\w+)\(", source))
         assert len(calls) == 1 and calls <= functions, (name, calls)
         called_somewhere |= calls
-    # Every API function is a command's, but the demo's evaluation and the opened project.
-    assert functions - called_somewhere == {"evaluate_run", "open_project"}
+    # Every API function is a command's, but the opened project.
+    assert functions - called_somewhere == {"open_project"}
 
 
 def test_every_api_function_names_its_command_and_returns_a_frozen_result():
@@ -138,8 +138,7 @@ def test_every_api_function_names_its_command_and_returns_a_frozen_result():
             continue
         doc = inspect.getdoc(value) or ""
         named = set(re.findall(r"``georefine ([a-z-]+(?: [a-z-]+)?)``", doc))
-        if name != "evaluate_run":
-            assert named and named <= commands | {c.split()[0] for c in commands}, (name, named)
+        assert named and named <= commands | {c.split()[0] for c in commands}, (name, named)
         returned = inspect.signature(value).return_annotation
         for type_name in re.findall(r"[A-Z]\w+", str(returned)):
             cls = getattr(api, type_name, None)

@@ -216,7 +216,8 @@ def evaluate_run(project: ProjectLike, run_dir: PathLike, single_dir: PathLike |
                  progress: Progress = no_progress,
                  scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> RunEvaluation:
     """A run of :func:`run` on a simulated project evaluated against its truth as paper 000 reports
-    it (trajectory differences, reference planes, strip differences), into ``run_dir/evaluation``.
+    it (trajectory differences, reference planes, strip differences, strip pairs), into ``run_dir/evaluation``
+    (``georefine evaluate run``).
     ``single_dir``: a single-pass run of the same project, evaluated beside it."""
     from georefine.workflows.evaluate import evaluate_run as _evaluate
 

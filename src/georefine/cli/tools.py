@@ -138,6 +138,33 @@ def evaluate_reference_planes_cmd(
         stdout.print(f"wrote {out / 'reference_planes.json'} and {out / 'reference_planes.csv'}")
 
 
+@evaluate_app.command("run")
+def evaluate_run_cmd(
+    project: Path = typer.Argument(..., help="The simulated project folder (its truth/ is the reference)."),
+    run_dir: Path = typer.Argument(..., help="The output folder of `georefine run` on it."),
+    single: Optional[Path] = typer.Option(None, "--single", help="A single-pass run of the same project, beside it."),
+    scheduler: str = scheduler_option(),
+) -> None:
+    """A run evaluated against its truth as paper 000 reports it, into RUN/evaluation: trajectory
+    differences per strip, reference planes, strip differences, and every pair of strips' differences
+    on planar surfaces, for the G/I, the G/I/L and the run's strip-adjustment baseline."""
+    with user_errors():
+        from georefine import api
+
+        ev = api.evaluate_run(project, run_dir, single, scheduler=scheduler)
+    stdout.print("roll / pitch / yaw RMSE (mdeg) against the truth, per strip:")
+    for label, t in ev.trajectory.items():
+        per = "; ".join(f"{sid}: {f.roll_rmse_mdeg:.2f} / {f.pitch_rmse_mdeg:.2f} / {f.yaw_rmse_mdeg:.2f}"
+                        for sid, f in t.strips.items())
+        stdout.print(f"  {label}: {per}")
+    for label, v in ev.strip_pairs.items():
+        measured = v.pairs.measured()
+        if measured:
+            stdout.print(f"strip pairs, {label}: median {min(p.median_mm for p in measured):.1f}-"
+                         f"{max(p.median_mm for p in measured):.1f} mm over {len(measured)} overlapping pairs")
+    stdout.print(f"wrote {Path(run_dir) / 'evaluation' / 'summary.json'} and the plots beside it")
+
+
 @evaluate_app.command("strip-differences")
 def evaluate_strip_differences_cmd(
     points: list[Path] = typer.Argument(..., help="Georeferenced LAS/LAZ strips or folders of them (output CRS)."),

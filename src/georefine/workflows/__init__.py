@@ -7,7 +7,8 @@ direct georeferencing with a given trajectory), ``lidar``
 (steps 3-6 of paper 000 with the outer iterations, ``georefine run``; the strips and their
 planar features in ``strips``), ``lidargrammetry`` (paper 004, ``georefine lidargrams``,
 ``match``, ``coadjust``; the photo block and the cloud in ``photo_block``, the typed results
-in ``lidargrammetry_results``), ``products`` (trajectory files), ``evaluate`` (a run evaluated as paper 000 reports it) and ``cache`` (the step
+in ``lidargrammetry_results``), ``products`` (trajectory files), ``strip_baseline`` (the classical strip adjustment beside the
+G/I/L), ``evaluate`` (a run evaluated as paper 000 reports it) and ``cache`` (the step
 cache); see §4.5 and §4.8. Each step is a plain function returning a frozen result, taking the
 opened project; the public API (:mod:`georefine.api`) calls one per command. It may import every
 layer below it but not its sibling ``sim`` (a workflow must run on real data alone) and nothing
