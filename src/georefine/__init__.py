@@ -62,7 +62,7 @@ API = (
     "BlockDemoResult", "CleanResult", "CoadjustResult", "DemoResult", "GeoreferenceRunResult", "HybridResult",
     "ImportResult", "MatchSummary", "ProjectSummary", "ReferencePlaneFigures", "RunEvaluation", "SimulationResult",
     "StripDifferenceMap", "TrajectoryComparison", "TrajectoryEvaluation", "TrajectoryExport", "TrajectoryRunResult",
-    "WorkflowResult",
+    "FlightsResult", "WorkflowResult",
     "ConfigError", "GeorefineError", "InputError", "Progress", "TaskRunner",
 )
 """The names of :mod:`georefine.api` re-exported here (``tests/test_api.py`` holds it to ``api.__all__``)."""

@@ -40,6 +40,7 @@ from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import SimulationResult, simulate_project
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
 from georefine.workflows.check import ProjectSummary, inspect_project
+from georefine.workflows.flights import FlightsResult
 from georefine.workflows.hybrid import HybridResult, run_hybrid
 from georefine.workflows.import_strips import ImportResult
 from georefine.workflows.lidar import WorkflowResult, run_workflow
@@ -60,7 +61,7 @@ __all__ = [
     "BlockDemoResult", "CleanResult", "CoadjustResult", "DemoResult", "GeoreferenceRunResult", "HybridResult",
     "ImportResult", "MatchSummary", "ProjectSummary", "ReferencePlaneFigures", "RunEvaluation", "SimulationResult",
     "StripDifferenceMap", "TrajectoryComparison", "TrajectoryEvaluation", "TrajectoryExport", "TrajectoryRunResult",
-    "WorkflowResult",
+    "FlightsResult", "WorkflowResult",
     # errors, progress, where the work runs
     "ConfigError", "GeorefineError", "InputError", "Progress", "TaskRunner",
 ]
@@ -114,8 +115,9 @@ def estimate_trajectory(project: ProjectLike, out: PathLike, *, filter_only: boo
 
 def run(project: ProjectLike, out: PathLike, *, strips: Sequence[int] | None = None, lidar: bool = True,
         points: bool = True, resume: bool = True, cache_dir: PathLike | None = None,
-        progress: Progress = no_progress, scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> WorkflowResult:
-    """The whole workflow of paper 000, steps 1-6, into ``out`` (``georefine run``).
+        progress: Progress = no_progress, scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> WorkflowResult | FlightsResult:
+    """The whole workflow of paper 000, steps 1-6, into ``out`` (``georefine run``); a project of
+    several flights adjusts them together and returns a :class:`FlightsResult`.
 
     Writes ``gi/`` and ``gil/`` (trajectory products, ``adjustment.json``), ``points/*.laz``,
     ``features/``, ``metrics.json`` and ``config.resolved.yaml``. ``strips``: the strip ids

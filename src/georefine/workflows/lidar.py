@@ -37,6 +37,7 @@ from georefine.adjustment.upsampling import (
     high_rate_share,
 )
 from georefine.config import ProjectConfig, boresight_matrix, write_yaml
+from georefine.errors import ConfigError
 from georefine.geometry.frames import GeoidHeights, OutputCRS
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import (
@@ -56,6 +57,7 @@ from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
 from georefine.workflows.delivered import step_delivered
+from georefine.workflows.flights import FlightsResult, run_flights
 from georefine.workflows.gil import LidarAdjustment, add_posterior, step_adjust_gil
 from georefine.workflows.navigation import (
     NavigationData,
@@ -592,9 +594,10 @@ def run_workflow(
     cache_dir: str | Path | None = None,
     progress: Progress = no_progress,
     scheduler: str | TaskRunner = DEFAULT_SCHEDULER,
-) -> WorkflowResult:
+) -> WorkflowResult | FlightsResult:
     """Steps 1-6 on a project (an opened :class:`~georefine.workflows.opened.Project` or its
-    folder; see the module docstring for the outputs).
+    folder; see the module docstring for the outputs). A project of several flights adjusts them
+    together (:func:`~georefine.workflows.flights.run_flights`, a :class:`~georefine.workflows.flights.FlightsResult`).
 
     Every step's result is cached in ``out/.cache`` (:mod:`georefine.workflows.cache`); with
     ``resume`` a rerun loads what its inputs and configuration have not changed, e.g. after an
@@ -612,6 +615,13 @@ def run_workflow(
     """
     # The cache touches no file before the first step stores; the output folder is made on reading.
     project = as_project(project)
+    if project.multi_flight:  # every flight's trajectory in one G/I/L (docs/ARCHITECTURE.md §4.5)
+        if strips is not None or not lidar:
+            raise ConfigError("a project of several flights is run whole", field="--strips" if strips else "--no-lidar",
+                              expected="all strips of all flights with the LiDAR (run one flight as a project of its "
+                              "own for less)", found=f"{len(project.flights)} flights")
+        return run_flights(project, out, resume=resume, points=points, cache_dir=cache_dir, progress=progress,
+                           scheduler=scheduler)
     with open_workspace(project, out, resume=resume, cache_dir=cache_dir, scheduler=scheduler) as ws:
         return _run_stages(ws, project, strips, lidar, points, progress)
 
