@@ -158,21 +158,31 @@ def plot_overview(trajectory_csv: Path, strip_time_gps: dict, path: Path, *,
     FigureCanvasAgg(fig)
     ax = fig.subplots()
     ax.plot(x, y, color="0.65", lw=0.8, label="trajectory")
-    colours = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
     strips = sorted(strip_time_gps.items(), key=lambda kv: kv[1][0])
+    block = len(strips) > 4  # a block of strips side by side and across, not passes over one corridor
+    if block:
+        from matplotlib import colormaps
+
+        colours = tuple(colormaps["tab20"](j) for j in (0, 2, 4, 6, 8, 10, 12, 14, 16, 18, 1, 3, 5, 7, 9, 11, 13, 15))
+    else:
+        colours = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
     for k, (sid, (t0, t1)) in enumerate(strips):
         on = (t >= t0) & (t <= t1)
         if not np.any(on):
             continue
         c = colours[k % len(colours)]
-        # Passes over one corridor overlap: each drawn thinner than the last, labelled at its own place and side.
-        ax.plot(x[on], y[on], color=c, lw=3.0 - 2.0 * k / max(len(strips), 1), label=f"strip {sid}")
+        # Passes over one corridor overlap: each drawn thinner than the last, labelled at its own
+        # place and side. A block's strips lie apart: one width, each labelled with its id at a
+        # fifth, a half or four fifths of its length in turn, so that labels on a cross strip and
+        # on the parallel strips it crosses do not meet.
+        ax.plot(x[on], y[on], color=c, lw=2.0 if block else 3.0 - 2.0 * k / max(len(strips), 1), label=f"strip {sid}")
         i = np.flatnonzero(on)
         ax.annotate("", xy=(x[i[-1]], y[i[-1]]), xytext=(x[i[-2]], y[i[-2]]) if i.size > 1 else (x[i[0]], y[i[0]]),
                     arrowprops={"arrowstyle": "-|>", "color": c, "lw": 1.5})
-        at = i[int(i.size * (k + 1) / (len(strips) + 1))]
-        ax.annotate(f"strip {sid}", (x[at], y[at]), xytext=(8 if k % 2 == 0 else -8, 0), textcoords="offset points",
-                    ha="left" if k % 2 == 0 else "right", fontsize=9, color=c)
+        at = i[int(i.size * ((0.2, 0.5, 0.8)[k % 3] if block else (k + 1) / (len(strips) + 1)))]
+        ax.annotate(str(sid) if block else f"strip {sid}", (x[at], y[at]), xytext=(8 if k % 2 == 0 else -8, 0),
+                    textcoords="offset points", ha="left" if k % 2 == 0 else "right", fontsize=9, color=c,
+                    fontweight="bold" if block else "normal")
     for label, sx, sy in sites or ():
         ax.plot(sx, sy, marker="^", ms=7, mfc="none", mec="black", mew=1.0)
         ax.annotate(label, (sx, sy), xytext=(4, 4), textcoords="offset points", fontsize=8)
@@ -188,7 +198,10 @@ def plot_overview(trajectory_csv: Path, strip_time_gps: dict, path: Path, *,
     ax.set_xlabel(f"easting [m]{crs}", fontsize=10)
     ax.set_ylabel(f"northing [m]{crs}", fontsize=10)
     ax.grid(True, lw=0.3, alpha=0.6)
-    ax.legend(loc="best", fontsize=9)
+    if block:  # beside the map: ten or more entries would cover it
+        ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=9, borderaxespad=0.0)
+    else:
+        ax.legend(loc="best", fontsize=9)
     ax.set_title(title or f"flight overview ({span / 1000:.1f} km across)", fontsize=11)
     return save_png(fig, path, 110)
 
