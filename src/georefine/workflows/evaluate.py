@@ -25,6 +25,7 @@ from typing import Callable
 import yaml
 
 from georefine.config import load_project
+from georefine.errors import ConfigError
 from georefine.evaluation.calibration import (
     boresight_figures,
     imu_error_figures,
@@ -104,6 +105,11 @@ def evaluate_run(
     """
     project, run_dir = project_root(project), Path(run_dir)
     report = progress or (lambda *a: None)
+    if (project / "project.yaml").is_file() and load_project(project).multi_flight:
+        raise ConfigError("the evaluation of a run of several flights is not built yet", field="flights",
+                          expected="a project of one flight; for several, each flight's gil/flight_<id>/trajectory.sbet "
+                          "against the truth with `georefine evaluate trajectory`, the points with `georefine evaluate "
+                          "strip-differences`", found=f"{len(load_project(project).flights)} flights in {project}")
     out = run_dir / "evaluation"
     out.mkdir(parents=True, exist_ok=True)
     metrics = WorkflowMetrics.read(run_dir / "metrics.json")
