@@ -27,7 +27,7 @@ from georefine.adjustment.gnss_imu import (
 )
 from georefine.adjustment.upsampling import adjust_upsampled
 from georefine.config import write_yaml
-from georefine.errors import InputError
+from georefine.errors import ConfigError, InputError
 from georefine.geometry.frames import LocalFrame, OutputCRS
 from georefine.io.files import make_output_folder
 from georefine.io.run_metrics import AdjustmentReport, FilterSummary, FrameOrigin, write_adjustment_report
@@ -351,6 +351,10 @@ def run_georeference(
     from georefine.trajectory.sampled import trajectory_from_sbet
 
     project = as_project(project)
+    if project.multi_flight:  # one trajectory georeferences one flight's strips
+        raise ConfigError("georeferencing with one trajectory takes a project of one flight", field="flights",
+                          expected="a project of one flight (a flight's strips with its own trajectory); `georefine "
+                          "run` writes every strip of several flights", found=f"{len(project.flights)} flights")
     root, cfg = project.root, project.config
     out = project.output_folder(out)
     if gps_week is None and read_sbet_companion(trajectory_path) is None:  # else the SBET's companion states it
