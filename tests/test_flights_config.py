@@ -295,6 +295,18 @@ def test_the_command_line_check_prints_the_flights(two_flights):
     assert "2 flights:" in proc.stdout and "flight 2 (flight_2): " in proc.stdout
 
 
+def test_commands_that_take_one_flight_refuse_several_with_the_reason(two_flights, tmp_path):
+    """One trajectory georeferences one flight; the run evaluation and a partial run take one flight."""
+    sbet = two_flights / "truth" / "trajectory.sbet"
+    for args, text in ((("georeference", str(two_flights), "--trajectory", str(sbet), "--out", str(tmp_path / "g")),
+                        "project of one flight"),
+                       (("run", str(two_flights), "--out", str(tmp_path / "r"), "--strips", "1"), "run whole"),
+                       (("evaluate", "run", str(two_flights), str(tmp_path / "r")), "several flights is not built")):
+        proc = run_georefine_here(*args)
+        assert proc.returncode == 2 and text in proc.stderr and "Traceback" not in proc.stderr, (args, proc.stderr)
+    assert not (tmp_path / "g").exists()
+
+
 def test_each_flight_has_its_navigation_in_one_mapping_frame(two_flights):
     project = open_project(two_flights)
     one, two = project.navigation_of(1), project.navigation_of(2)
