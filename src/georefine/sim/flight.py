@@ -495,10 +495,13 @@ def _line_primitives(line: PlannedLine, cfg: FlightConfig, bend_radius_m: float)
 def _planned_horizontal(cfg: FlightConfig, lines, bend_radius_m: float, transit_m: float):
     """Design and horizontal path of a flight plan: the preamble, then each line after a Dubins turn.
 
-    Every connection is planned from the pose the design really reaches at the end of the line
-    before (the roll-in smoothing moves it by decimetres from the ideal arcs) and re-aimed until
-    the line's lead-in starts within 1 mm of the plan; the strip is the line's straight flight,
-    lead-in and lead-out included, without the half roll-in of the turns at either end.
+    Every connection is planned from the pose the design reaches at the end of the line before
+    (the roll-in smoothing moves it by decimetres from the ideal arcs) and re-aimed until the
+    design flown from that pose starts the next lead-in within 1 mm of the plan. The next turn's
+    roll-in, centred on the line's end, begins half a roll-in before that pose, which the
+    re-aiming does not see: the lines as flown lie up to about 0.3 m beside the plan (measured;
+    the tests allow 0.5 m), parallel to it. The strip is the line's straight flight, lead-in and
+    lead-out included, without the half roll-in of the turns at either end.
     """
     V, R, ramp = cfg.speed_mps, cfg.turn_radius_m, cfg.roll_in_s
     D = _Design()
