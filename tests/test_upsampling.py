@@ -210,10 +210,10 @@ def test_gnss_imu_adjustment_on_a_vibrating_platform_with_and_without_upsampling
     assert any("times worse than the IMU noise model" in r.getMessage() for r in caplog.records)
     assert up.adjustment.high_rate is not None and down.adjustment.high_rate is None
     # The G/I/L then runs every outer iteration on the configured knots (no coarse first one, which
-    # would alias the vibration into the trajectory: georefine.workflows.lidar.outer_knot_interval).
+    # would alias the vibration into the trajectory: georefine.workflows.run_parts.outer_knot_interval).
     from georefine.adjustment.upsampling import high_rate_share
-    from georefine.workflows.lidar import VIBRATION_SHARE
     from georefine.workflows.opened import load_navigation
+    from georefine.workflows.run_parts import VIBRATION_SHARE
 
     assert high_rate_share(load_navigation(project).gnss, up.adjustment) > VIBRATION_SHARE
 

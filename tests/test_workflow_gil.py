@@ -436,7 +436,7 @@ def test_an_unknown_strip_id_names_the_parameter_and_the_cli_its_option(sparse_p
 
 def test_only_a_first_outer_iteration_that_others_follow_takes_coarse_knots():
     from georefine.config import LidarAdjustmentConfig as Lidar
-    from georefine.workflows.lidar import outer_knot_interval
+    from georefine.workflows.run_parts import outer_knot_interval
 
     assert outer_knot_interval(Lidar(), 0.1, 1) == 0.25 and outer_knot_interval(Lidar(), 0.1, 2) is None
     assert outer_knot_interval(Lidar(outer_iterations=1), 0.1, 1) is None  # the only one is the result

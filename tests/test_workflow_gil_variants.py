@@ -33,11 +33,11 @@ from georefine.workflows.cache import StepCache, StepRunner
 from georefine.workflows.lidar import (
     read_strips,
     run_workflow,
-    stage_gnss_imu,
     step_adjust_gil,
     step_features,
 )
 from georefine.workflows.navigation import imu_rate_trajectory
+from georefine.workflows.run_parts import stage_gnss_imu
 from truth_helpers import pass_rmse
 
 

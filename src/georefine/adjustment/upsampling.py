@@ -92,7 +92,7 @@ def without_high_rate(data: GnssImuData, result: GnssImuResult) -> GnssImuData:
 def high_rate_share(data: GnssImuData, result: GnssImuResult) -> float:
     """The share of ``result``'s rebuilt high-rate readings that stands out of the IMU noise
     (:func:`_significant`): 1.00 with rotor vibration, a few hundredths on a smooth platform with
-    a MEMS IMU (:data:`MIN_SIGNIFICANT_SHARE`; ``georefine.workflows.lidar.VIBRATION_SHARE``)."""
+    a MEMS IMU (:data:`MIN_SIGNIFICANT_SHARE`; ``georefine.workflows.run_parts.VIBRATION_SHARE``)."""
     return _significant(data, result)[2]
 
 

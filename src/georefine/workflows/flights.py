@@ -56,14 +56,11 @@ from georefine.adjustment.gnss_imu import (
 )
 from georefine.adjustment.joint import JointProblem, merge_problems
 from georefine.adjustment.solver import SolveResult
-from georefine.adjustment.upsampling import high_rate_share, rebuild_high_rate
+from georefine.adjustment.upsampling import rebuild_high_rate
 from georefine.config import boresight_matrix, write_yaml
 from georefine.errors import InputError
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import (
-    AdjustmentReport,
-    FrameOrigin,
-    LidarTimeOffset,
     OuterIteration,
     PointsWritten,
     WorkflowMetrics,
@@ -89,13 +86,12 @@ from georefine.workflows.gil import (
 from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
-    step_adjust_gnss_imu,
-    step_initialise,
     write_trajectory_products,
 )
 from georefine.workflows.opened import Flight, Project, open_workspace
 from georefine.workflows.outer_checks import outer_converged, trajectory_change, warn_plane_misfit, warn_unconverged
 from georefine.workflows.precision import pass_precision, precision_lines
+from georefine.workflows.run_parts import adjustment_report, outer_knot_interval, stage_gnss_imu, vibrating
 from georefine.workflows.strips import StripFile, read_strips, sort_features, step_features
 from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart, gnss_offset_sigma, warn_time_offset
 
@@ -417,18 +413,6 @@ class FlightsResult:
         return "\n".join(lines)
 
 
-def _frame_crs(cfg) -> dict:
-    return cfg.crs.model_dump(exclude={"geoid_grid", "vertical_epsg"})
-
-
-def _gi_key(cfg, root: Path) -> str:
-    """Key of a flight's steps 1-2 (its GNSS and IMU files and their configuration), as a single-flight run
-    of that flight keys them: a run of the flight alone with the same cache resumes it."""
-    files = [file_stamp(root / f, root) for f in [*cfg.gnss.files, cfg.imu.file, cfg.gnss.smrmsg] if f]
-    return StepCache.key("gi", files, _frame_crs(cfg), cfg.gnss.model_dump(), cfg.imu.model_dump(),
-                         cfg.processing.filter.model_dump(), cfg.processing.trajectory.model_dump())
-
-
 def _gil_key(flights: list[FlightInputs], gi_keys: list[str]) -> str:
     """Key of the joint outer iterations and posterior: every flight's G/I key and strips, the LiDAR configuration."""
     cfg = flights[0].nav.config
@@ -436,38 +420,6 @@ def _gil_key(flights: list[FlightInputs], gi_keys: list[str]) -> str:
                          [[file_stamp(s.path, f.nav.root) for s in f.strips] for f in flights],
                          [f.nav.config.scanner.model_dump() for f in flights], cfg.processing.planes.model_dump(),
                          cfg.processing.matching.model_dump(), cfg.processing.lidar.model_dump())
-
-
-def _gi(steps: StepRunner, nav: NavigationData, progress: Progress) -> GnssImuResult:
-    def compute() -> GnssImuResult:
-        progress("initialisation filter", 0, 1)
-        with steps.timed("filter"):
-            filt = step_initialise(nav)
-        progress("initialisation filter", 1, 1)
-        result = step_adjust_gnss_imu(nav, filt, progress)
-        progress("G/I adjustment", 1, 1)
-        return result
-
-    return steps.cached("gi", _gi_key(nav.config, nav.root), compute, timing="gi_adjustment")
-
-
-def _knot_interval(lcfg, fine: float, it: int, vibrating: bool) -> float | None:
-    """The coarse first outer iteration's knot interval, as a single-flight run chooses it (§4.5 step 5)."""
-    coarse = lcfg.first_knot_interval_s
-    if it == 1 and not vibrating and lcfg.outer_iterations > 1 and coarse is not None and coarse > fine * (1 + 1e-6):
-        return float(coarse)
-    return None
-
-
-VIBRATION_SHARE = 0.5
-"""As the single-flight run: a flight vibrates when at least this share of its G/I's rebuilt high-rate
-readings stands out of the IMU noise (no coarse first outer iteration for it)."""
-
-
-def _vibrating(nav: NavigationData, gi: GnssImuResult) -> bool:
-    if gi.high_rate is None:
-        return False
-    return high_rate_share(nav.gnss, gi) >= VIBRATION_SHARE
 
 
 @dataclass(frozen=True)
@@ -489,7 +441,7 @@ def _outer_iterations(flights: list[FlightInputs], gis: list[GnssImuResult], ste
     search = lcfg.time_offset.search and share_offset
     if lcfg.time_offset.search and not share_offset:
         log.info("the flights state different LiDAR time offsets: each estimates its own, no joint search")
-    vibrating = [_vibrating(f.nav, g) for f, g in zip(flights, gis)]
+    shaking = [vibrating(f.nav, g) for f, g in zip(flights, gis)]
     current = list(gis)
     starts = [TimeOffsetStart(s[0].time_offset_s, s[0].time_offset_s) for s in (f.strips for f in flights)]
     strips = [f.strips for f in flights]
@@ -500,8 +452,8 @@ def _outer_iterations(flights: list[FlightInputs], gis: list[GnssImuResult], ste
                 flights, current, strips, progress, runner, search=search and it == 1)
         if found is not None:
             starts = [TimeOffsetStart(found.offset_s, found.offset_s)] * len(flights)
-        knots = [_knot_interval(lcfg, f.nav.config.processing.trajectory.knot_interval_s, it, v)
-                 for f, v in zip(flights, vibrating)]
+        knots = [outer_knot_interval(lcfg, f.nav.config.processing.trajectory.knot_interval_s, it, v)
+                 for f, v in zip(flights, shaking)]
         with steps.timed(f"gil_adjustment_{it}"):
             adj = step_adjust_flights(flights, current, features, objects, flight_of, progress, covariance=False,
                                       knot_intervals_s=knots, time_offsets=starts)
@@ -528,28 +480,6 @@ def _outer_iterations(flights: list[FlightInputs], gis: list[GnssImuResult], ste
         adj = add_flights_posterior(adj)
     progress("G/I/L posterior sigma", 1, 1)
     return _Outcome(adj.flights, adj.solve, tuple(records), features, objects)
-
-
-def _adjustment_report(nav: NavigationData, adj: GnssImuResult, solution: str,
-                       lidar: LidarAdjustment | None = None) -> AdjustmentReport:
-    """A flight's ``adjustment.json`` (as a single-flight run writes it; with ``lidar`` the shared boresight
-    and time offset)."""
-    bs = bs_sigma = offset = None
-    if lidar is not None and lidar.boresight_deg is not None:
-        bs = tuple(float(v) for v in lidar.boresight_deg)
-        bs_sigma = None if lidar.boresight_sigma_mdeg is None else tuple(float(v) for v in lidar.boresight_sigma_mdeg)
-    if lidar is not None:
-        sigma, gnss = lidar.time_offset_sigma_s, lidar.time_offset_gnss_sigma_s
-        offset = LidarTimeOffset(
-            nav.config.scanner.time_offset_s, float(lidar.time_offset_s), None if sigma is None else sigma * 1e3,
-            None if gnss is None or not np.isfinite(gnss) else gnss * 1e3,
-            None if lidar.time_offset_start is None else lidar.time_offset_start.prior_s, lidar.time_offset_held)
-    return AdjustmentReport(
-        solution, nav.t0_gps, dict(adj.timings_s), adjustment=adj.solve.to_dict(),
-        imu_errors=None if adj.imu_errors is None else adj.imu_errors.to_dict(),
-        gnss_error=None if adj.gnss_error is None else adj.gnss_error.to_dict(),
-        boresight_deg=bs, boresight_sigma_mdeg=bs_sigma, lidar_time_offset=offset,
-        project=str(Path(nav.root).resolve()), frame=FrameOrigin.of(nav.frame))
 
 
 def _write_points(flights: list[FlightInputs], gils: tuple[LidarAdjustment, ...], project: Project, out: Path,
@@ -618,13 +548,13 @@ def run_flights(
                              found=", ".join(map(str, ids)))
         make_output_folder(ws.out)
         progress("reading the input", 1, 1)
-        gis = [_gi(steps, f.nav, progress) for f in flights]
-        gi_keys = [_gi_key(f.nav.config, f.nav.root) for f in flights]
+        staged = [stage_gnss_imu(steps, f.nav, progress) for f in flights]  # each cached as its flight alone
+        gis, gi_keys = [g for g, _ in staged], [k for _, k in staged]
         for f, gi in zip(flights, gis):
             folder = ws.out / "gi" / f"flight_{f.flight.id}"
             folder.mkdir(parents=True, exist_ok=True)
             write_trajectory_products(folder, f.nav, gi, project.crs)
-            write_adjustment_report(folder / "adjustment.json", _adjustment_report(f.nav, gi, "G/I"))
+            write_adjustment_report(folder / "adjustment.json", adjustment_report(f.nav, gi, "G/I"))
         outcome = steps.cached("flights_gil", _gil_key(flights, gi_keys),
                                lambda: _outer_iterations(flights, gis, steps, progress, runner))
         gils = tuple(replace(g, time_offset_gnss_sigma_s=gnss_offset_sigma(f.nav, gi)) if g.time_offset_sigma_s
@@ -643,7 +573,7 @@ def run_flights(
             folder = ws.out / "gil" / f"flight_{f.flight.id}"
             folder.mkdir(parents=True, exist_ok=True)
             write_trajectory_products(folder, f.nav, g.result, project.crs)
-            write_adjustment_report(folder / "adjustment.json", _adjustment_report(f.nav, g.result, "G/I/L", g))
+            write_adjustment_report(folder / "adjustment.json", adjustment_report(f.nav, g.result, "G/I/L", g))
         written = ()
         if points:
             with steps.timed("final_georeferencing"):

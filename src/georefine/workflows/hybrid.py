@@ -87,11 +87,9 @@ from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.cache import StepCache
 from georefine.workflows.gil import LidarAdjustment, build_gil_problem
 from georefine.workflows.lidar import (
-    adjustment_report,
     features_and_objects,
     lidar_stages,
     stage_gi_products,
-    stage_gnss_imu,
     stage_points,
     stage_read_inputs,
     untimed,
@@ -107,6 +105,7 @@ from georefine.workflows.navigation import NavigationData, write_trajectory_prod
 from georefine.workflows.opened import Project, ProjectLike, Workspace, as_project, open_workspace
 from georefine.workflows.photo_block import read_cloud
 from georefine.workflows.returns import LidarReturns, returns_of_points
+from georefine.workflows.run_parts import adjustment_report, stage_gnss_imu
 from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart
 
 log = logging.getLogger(__name__)

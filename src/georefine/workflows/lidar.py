@@ -33,17 +33,11 @@ import numpy as np
 from georefine.adjustment.gnss_imu import (
     GnssImuResult,
 )
-from georefine.adjustment.upsampling import (
-    high_rate_share,
-)
-from georefine.config import ProjectConfig, boresight_matrix, write_yaml
+from georefine.config import boresight_matrix, write_yaml
 from georefine.errors import ConfigError
 from georefine.geometry.frames import GeoidHeights, OutputCRS
 from georefine.io.files import make_output_folder, write_json
 from georefine.io.run_metrics import (
-    AdjustmentReport,
-    FrameOrigin,
-    LidarTimeOffset,
     OuterIteration,
     PointsWritten,
     WorkflowMetrics,
@@ -56,14 +50,11 @@ from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
-from georefine.workflows.delivered import step_delivered
 from georefine.workflows.flights import FlightsResult, run_flights
 from georefine.workflows.gil import LidarAdjustment, add_posterior, step_adjust_gil
 from georefine.workflows.navigation import (
     NavigationData,
     imu_rate_trajectory,
-    step_adjust_gnss_imu,
-    step_initialise,
     write_trajectory_products,
 )
 from georefine.workflows.opened import Project, ProjectLike, Workspace, as_project, open_workspace
@@ -74,6 +65,14 @@ from georefine.workflows.outer_checks import (
     warn_unconverged,
 )
 from georefine.workflows.precision import pass_precision, precision_lines
+from georefine.workflows.run_parts import (
+    adjustment_report,
+    frame_crs,
+    navigation_key,
+    outer_knot_interval,
+    stage_gnss_imu,
+    vibrating,
+)
 from georefine.workflows.strip_baseline import stage_strip_baseline
 from georefine.workflows.strips import FeatureCounts, StripFile, read_strips, step_features
 from georefine.workflows.time_offset import (
@@ -247,44 +246,6 @@ def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, p
     return IterationOutcome(gil, record, features, objects)
 
 
-def outer_knot_interval(lcfg, knot_interval_s: float, iteration: int, vibrating: bool = False) -> float | None:
-    """The coarser knot interval of outer iteration ``iteration`` (only the first, and only when
-    more may follow), or None for the configured ``knot_interval_s``
-    (``processing.lidar.first_knot_interval_s``).
-
-    Never on a ``vibrating`` platform (the G/I's up-sampling found vibration, §4.6): the motion
-    rebuilt above the coarse knots (2 Hz at 0.25 s) holds a band the configured knots follow,
-    and the fine iteration after it does not get that band back. A 6.5 Hz rotor line, aliased
-    by the 0.25 s knots to 2.5 Hz, stayed in the trajectory: 0.6-0.8 mdeg of roll and pitch
-    error with a navigation-grade IMU, against 0.2 with fine knots throughout (BENCHMARKS.md,
-    Operating conditions)."""
-    fine, coarse = knot_interval_s, lcfg.first_knot_interval_s
-    if (iteration == 1 and not vibrating and lcfg.outer_iterations > 1 and coarse is not None
-            and coarse > fine * (1.0 + 1e-6)):
-        return float(coarse)
-    return None
-
-
-def _frame_crs(cfg: ProjectConfig) -> dict:
-    """The ``crs`` section as the steps before the final georeferencing see it: the geoid grid
-    changes only the final point clouds' heights (step 6's key holds it)."""
-    return cfg.crs.model_dump(exclude={"geoid_grid", "vertical_epsg"})
-
-
-def _navigation_key(cfg: ProjectConfig, root: Path) -> str:
-    """Key of steps 1-2: the GNSS and IMU files and their configuration (no data read); or the delivered trajectory's."""
-    if cfg.delivered_trajectory:
-        tc = cfg.trajectory
-        files = [file_stamp(root / f, root) for f in (tc.sbet, tc.smrmsg) if f]
-        return StepCache.key("delivered", files, _frame_crs(cfg), tc.model_dump(),
-                             cfg.processing.trajectory.model_dump())
-    files = [file_stamp(root / f, root) for f in [*cfg.gnss.files, cfg.imu.file, cfg.gnss.smrmsg] if f]
-    return StepCache.key(
-        "gi", files, _frame_crs(cfg), cfg.gnss.model_dump(), cfg.imu.model_dump(),
-        cfg.processing.filter.model_dump(), cfg.processing.trajectory.model_dump(),
-    )
-
-
 def _lidar_key(nav: NavigationData, strips: list[StripFile], upstream: str, iteration: int) -> str:
     """Key of outer iteration ``iteration``: the strips, the LiDAR configuration and the key before it."""
     cfg = nav.config
@@ -304,7 +265,7 @@ def _points_key(nav: NavigationData, strips: list[StripFile], upstream: str) -> 
     crs = nav.config.crs
     geoid = ([] if crs.geoid_grid is None
              else [[crs.vertical_epsg, file_stamp(nav.root / crs.geoid_grid, nav.root)]])
-    return StepCache.key("points", upstream, _frame_crs(nav.config), nav.config.scanner.model_dump(),
+    return StepCache.key("points", upstream, frame_crs(nav.config), nav.config.scanner.model_dump(),
                          [file_stamp(s.path, nav.root) for s in strips], *geoid)
 
 
@@ -324,24 +285,6 @@ def stage_read_inputs(steps: StepRunner, project: Project, out: Path,
     return WorkflowInputs(nav, strip_files, out, project.crs, runner, project.heights)
 
 
-def stage_gnss_imu(steps: StepRunner, nav: NavigationData, progress: Progress = no_progress) -> tuple[GnssImuResult, str]:
-    """Steps 1-2 (filter, G/I adjustment), or their cached result; and the cache key."""
-
-    def compute() -> GnssImuResult:
-        if nav.prior is not None:
-            return step_delivered(nav, progress)
-        progress("initialisation filter", 0, 1)
-        with steps.timed("filter"):
-            filt = step_initialise(nav)
-        progress("initialisation filter", 1, 1)
-        result = step_adjust_gnss_imu(nav, filt, progress)
-        progress("G/I adjustment", 1, 1)  # it reports iterations of its limit; it ended here
-        return result
-
-    key = _navigation_key(nav.config, nav.root)
-    return steps.cached("gi", key, compute, timing="gi_adjustment"), key
-
-
 def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, key: str,
                            progress: Progress = no_progress) -> OuterIterations:
     """Steps 3-5 repeated from ``gi`` until the trajectory changes less than the thresholds.
@@ -351,11 +294,11 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
     """
     nav, lcfg = inputs.nav, inputs.nav.config.processing.lidar
     current, records, strips, prior = gi, [], inputs.strips, None
-    vibrating = _vibrating(nav, gi)
+    shaking = vibrating(nav, gi)
     for it in range(1, lcfg.outer_iterations + 1):
         key = _lidar_key(nav, inputs.strips, key, it)
         start = current
-        coarse = outer_knot_interval(lcfg, nav.config.processing.trajectory.knot_interval_s, it, vibrating)
+        coarse = outer_knot_interval(lcfg, nav.config.processing.trajectory.knot_interval_s, it, shaking)
         outcome = steps.cached(
             f"gil_{it}", key, partial(_outer_iteration, nav, start, strips, it, steps.timed, progress,
                                       inputs.runner, coarse, prior),
@@ -378,32 +321,6 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
     else:
         warn_unconverged(records, lcfg)
     return OuterIterations(outcome, start, key, tuple(records))
-
-
-VIBRATION_SHARE = 0.5
-"""A platform vibrates when at least this share of the G/I's rebuilt high-rate readings stands out
-of the IMU noise (:func:`~georefine.adjustment.upsampling.high_rate_share`). Measured on
-``corridor-tiny``: 0.024 with a MEMS IMU, 0.109 with a navigation-grade one (its noise is so low
-that the smooth motion between the knots stands out), 1.00 with rotor vibration. Above
-:data:`~georefine.adjustment.upsampling.MIN_SIGNIFICANT_SHARE` (0.1) the G/I re-solves; the
-smooth navigation-grade flight keeps its coarse first outer iteration, which there removes more of
-the world tilt (pitch 0.13 / 0.06 mdeg against 0.23 with fine knots throughout)."""
-
-
-def _vibrating(nav: NavigationData, gi: GnssImuResult) -> bool:
-    """Whether the G/I's up-sampling found vibration in the raw IMU (§4.6), asked only where
-    :func:`outer_knot_interval` would start coarse (logged when it then does not). A delivered
-    trajectory's faster motion comes from its SBET (§4.9) and is not tested here."""
-    if nav.prior is not None or gi.high_rate is None:
-        return False
-    if outer_knot_interval(nav.config.processing.lidar, nav.config.processing.trajectory.knot_interval_s, 1) is None:
-        return False
-    share = high_rate_share(nav.gnss, gi)
-    if share < VIBRATION_SHARE:
-        return False
-    log.info("vibration: %.0f %% of the rebuilt IMU readings stand out of the noise; every outer iteration "
-             "on the configured knots (no coarse first iteration)", 100 * share)
-    return True
 
 
 def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterIterations,
@@ -458,31 +375,6 @@ def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, k
     warn_plane_misfit(gi, posterior.gil, outer.records, inputs.nav)
     stage_gil_products(inputs, posterior)
     return posterior.gil, posterior.key, outer.records
-
-
-def adjustment_report(nav: NavigationData, adj: GnssImuResult, solution: str,
-                      lidar: LidarAdjustment | None = None) -> AdjustmentReport:
-    """``adjustment.json`` (:class:`~georefine.io.run_metrics.AdjustmentReport`): statistics, IMU
-    errors and timings of the adjustment ``adj``, and with ``lidar`` (G/I/L, hybrid) the boresight
-    and the LiDAR time offset."""
-    bs = bs_sigma = offset = None
-    if lidar is not None and lidar.boresight_deg is not None:
-        bs = tuple(float(v) for v in lidar.boresight_deg)
-        bs_sigma = None if lidar.boresight_sigma_mdeg is None else tuple(float(v) for v in lidar.boresight_sigma_mdeg)
-    if lidar is not None:
-        sigma, gnss = lidar.time_offset_sigma_s, lidar.time_offset_gnss_sigma_s
-        offset = LidarTimeOffset(
-            nav.config.scanner.time_offset_s, float(lidar.time_offset_s), None if sigma is None else sigma * 1e3,
-            None if gnss is None or not np.isfinite(gnss) else gnss * 1e3,
-            None if lidar.time_offset_start is None else lidar.time_offset_start.prior_s, lidar.time_offset_held)
-    return AdjustmentReport(
-        solution, nav.t0_gps, dict(adj.timings_s), adjustment=adj.solve.to_dict(),
-        imu_errors=None if adj.imu_errors is None else adj.imu_errors.to_dict(),
-        # a delivered trajectory: its estimated error (§4.9); the GNSS error that lasts minutes (§4.3)
-        sbet_errors=None if adj.sbet_errors is None else adj.sbet_errors.to_dict(),
-        gnss_error=None if adj.gnss_error is None else adj.gnss_error.to_dict(),
-        boresight_deg=bs, boresight_sigma_mdeg=bs_sigma, lidar_time_offset=offset,
-        project=str(Path(nav.root).resolve()), frame=FrameOrigin.of(nav.frame))
 
 
 def stage_gi_products(inputs: WorkflowInputs, gi: GnssImuResult) -> None:
@@ -565,7 +457,7 @@ def precompute_gnss_imu(project: ProjectLike, cache_dir: str | Path) -> dict[str
     computed when the cache already holds them.
     """
     project, steps = as_project(project), StepRunner(StepCache(Path(cache_dir)))
-    if not steps.cache.exists("gi", _navigation_key(project.config, project.root)):
+    if not steps.cache.exists("gi", navigation_key(project.config, project.root)):
         stage_gnss_imu(steps, project.navigation)
     return steps.timings_s
 
