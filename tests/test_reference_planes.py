@@ -133,7 +133,17 @@ def test_evaluate_commands_on_laz_files(tmp_path):
     # The layers are shifted vertically by +4, +8 and -2 mm on both surfaces: spread 10 mm.
     assert rep["cells"] > 200 and rep["median_m"] == pytest.approx(0.010, abs=3e-4)
     assert rep["epsg"] == 25832 and len(rep["layers"]) == 3
-    for name in ("strip_differences.png", "strip_differences.tif"):
+    for name in ("strip_differences.png", "strip_differences.tif", "strip_pairs.png"):
         assert (tmp_path / "sd" / name).is_file()
+    # The pair from the same read: strip 1's centre (+4 and +8 mm: +6) against strip 2's -2 mm, along
+    # the normal (n_z 0.9986 on the tilted surface): 8 mm, strip 2 below.
+    import csv
+
+    with open(tmp_path / "sd" / "strip_pairs.csv", newline="") as f:
+        (pair,) = list(csv.DictReader(f))
+    assert (pair["strip_a"], pair["strip_b"]) == ("1", "2") and int(pair["cells"]) > 200
+    assert float(pair["median_mm"]) == pytest.approx(8.0, abs=0.3)
+    assert float(pair["signed_median_mm"]) == pytest.approx(-8.0, abs=0.3)
+    assert "strip pairs: 1 of 1 overlap on planar cells" in run.output
     bad = CliRunner().invoke(app, ["evaluate", "strip-differences", str(tmp_path / "missing")])
     assert bad.exit_code == 2 and "missing" in bad.output

@@ -274,14 +274,25 @@ def evaluate_strip_differences(points: Sequence[PathLike], out: PathLike | None 
                                scheduler: str | TaskRunner = DEFAULT_SCHEDULER) -> StripDifferenceMap:
     """Strip differences of georeferenced points (files or folders) on a raster of planar cells
     (paper 000, Fig. 7; ``georefine evaluate strip-differences``); with ``out``, the map (PNG,
-    GeoTIFF), ``strip_differences.json`` and the density and overlap maps."""
+    GeoTIFF), ``strip_differences.json``, the density and overlap maps, and the differences of
+    every pair of strips from the same read (``strip_pairs.csv``, the matrix ``strip_pairs.png``;
+    :mod:`georefine.evaluation.strip_pairs`, strips told apart by their point source id)."""
     from georefine.evaluation.clouds import evaluate_strip_differences as _evaluate
+    from georefine.evaluation.strip_pairs import scan_clouds_with_pairs, write_pairs_csv, write_pairs_png
     from georefine.io.las import point_files
 
+    files = point_files([Path(p) for p in points])
+    gate = dict(cell_size_m=cell_size_m, max_roughness_m=max_roughness_m, max_slope_deg=max_slope_deg,
+                max_normal_angle_deg=max_normal_angle_deg)
     with runner_for(scheduler) as runner:
-        return _evaluate(point_files([Path(p) for p in points]), None if out is None else Path(out),
-                         cell_size_m=cell_size_m, max_roughness_m=max_roughness_m, max_slope_deg=max_slope_deg,
-                         max_normal_angle_deg=max_normal_angle_deg, runner=runner, progress=progress)
+        if out is None:
+            return _evaluate(files, None, **gate, runner=runner, progress=progress)
+        scan, pairs = scan_clouds_with_pairs(files, **gate, runner=runner, progress=progress)
+    out = Path(out)
+    result = _evaluate(files, out, **gate, scan=scan)
+    write_pairs_csv(out / "strip_pairs.csv", pairs)
+    write_pairs_png(out / "strip_pairs.png", pairs, title="strip-pair differences")
+    return result
 
 
 def export_trajectory(source: PathLike, out: PathLike, fmt: str, *, epsg: int | None = None,

@@ -202,5 +202,15 @@ def evaluate_strip_differences_cmd(
             stdout.print(f"point density: median {cov['density_median_per_m2']:.1f} points/m² on {cell:g} m cells, "
                          f"5 % of the area below {cov['density_p5_per_m2']:.1f}; "
                          f"{100 * cov['overlap_share']:.0f} % of {cov['area_km2']:.2f} km² seen from two strips or more")
-        stdout.print(f"wrote {out / 'strip_differences.png'}, .tif and .json, coverage_density.png and "
-                     "coverage_overlap.png")
+        import csv
+
+        with open(out / "strip_pairs.csv", newline="", encoding="utf-8") as f:
+            rows = list(csv.DictReader(f))
+        medians = [float(r["median_mm"]) for r in rows if r["median_mm"]]
+        if medians:
+            stdout.print(f"strip pairs: {len(medians)} of {len(rows)} overlap on planar cells, median difference "
+                         f"{min(medians):.1f}-{max(medians):.1f} mm")
+        else:
+            stdout.print(f"strip pairs: none of {len(rows)} has enough common planar cells")
+        stdout.print(f"wrote {out / 'strip_differences.png'}, .tif and .json, coverage_density.png, "
+                     "coverage_overlap.png, strip_pairs.csv and strip_pairs.png")
