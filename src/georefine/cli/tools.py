@@ -210,7 +210,9 @@ def evaluate_strip_differences_cmd(
         if medians:
             stdout.print(f"strip pairs: {len(medians)} of {len(rows)} overlap on planar cells, median difference "
                          f"{min(medians):.1f}-{max(medians):.1f} mm")
-        else:
+        elif rows:
             stdout.print(f"strip pairs: none of {len(rows)} has enough common planar cells")
+        else:
+            stdout.print("strip pairs: none, the points hold one strip (one point source id)")
         stdout.print(f"wrote {out / 'strip_differences.png'}, .tif and .json, coverage_density.png, "
                      "coverage_overlap.png, strip_pairs.csv and strip_pairs.png")
