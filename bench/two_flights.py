@@ -95,6 +95,8 @@ def main() -> None:
     ap.add_argument("--scenario", default="two-flights", choices=["two-flights", "two-flights-tiny"])
     args = ap.parse_args()
     from georefine.evaluation.trajectory_files import truth_pass_accuracy
+    from georefine.io.run_metrics import WorkflowMetrics
+    from georefine.workflows.opened import open_project
 
     args.workdir.mkdir(parents=True, exist_ok=True)
     rmse: dict[str, list[np.ndarray]] = {"together": [], "alone": []}  # per (seed, flight): RMSE over its strips
@@ -105,11 +107,11 @@ def main() -> None:
         joint = args.workdir / f"{name}-joint"
         cache = args.workdir / f"{name}-cache"
         times = {"together": measured(["georefine", "run", str(project), "--out", str(joint)], joint)}
-        flights = {1: (1, 2), 2: (3, 4)}
-        for f in flights:
-            out = args.workdir / f"{name}-alone{f}"
+        alone = {f.id: args.workdir / f"{name}-alone{f.id}" for f in open_project(project).flights}
+        for f, out in alone.items():
             times[f"flight {f} alone"] = measured(
                 [sys.executable, "-c", RUN_ALONE, str(project), str(f), str(out), str(cache)], out)
+        flights = {f: WorkflowMetrics.read(out / "metrics.json").strips for f, out in alone.items()}  # its strip ids
         print(f"\n## {args.scenario}, seed {seed}\n")
         print("| flight | strip | together roll / pitch / yaw (mdeg) | alone | sigma together / alone (yaw) "
               "| together error/sigma |")
@@ -118,8 +120,7 @@ def main() -> None:
             per_strip = {"together": [], "alone": []}
             for s in strips:
                 j = truth_pass_accuracy(joint / "gil" / f"flight_{f}" / "trajectory.sbet", project, s)
-                a = truth_pass_accuracy(args.workdir / f"{name}-alone{f}" / "gil" / "trajectory.sbet",
-                                        project, s)
+                a = truth_pass_accuracy(alone[f] / "gil" / "trajectory.sbet", project, s)
                 per_strip["together"].append(j.rmse_mdeg)
                 per_strip["alone"].append(a.rmse_mdeg)
                 print(f"| {f} | {s} | {' / '.join(f'{v:.2f}' for v in j.rmse_mdeg)} "
@@ -131,7 +132,7 @@ def main() -> None:
         print("\n| solution | boresight r / p / y (mdeg) | sigma (mdeg) | error / sigma | time offset (ms) |")
         print("|---|---|---|---|---|")
         folders = {"together": joint / "gil" / "flight_1",
-                   **{f"flight {f} alone": args.workdir / f"{name}-alone{f}" / "gil" for f in flights}}
+                   **{f"flight {f} alone": out / "gil" for f, out in alone.items()}}
         for label, folder in folders.items():
             r = report_of(folder)
             est, sig = np.array(r.boresight_deg), np.array(r.boresight_sigma_mdeg)
