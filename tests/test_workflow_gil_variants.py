@@ -163,3 +163,28 @@ def test_a_coarse_first_outer_iteration_ends_where_fine_ones_do(project, gi_cach
     assert np.all(ra <= 1.15 * rb + 0.1), (ra, rb)  # mdeg
     between = compare_sbet_files(a_out / "gil" / "trajectory.sbet", b.out / "gil" / "trajectory.sbet").stats
     assert between["attitude_angle_rmse_mdeg"] < 1.5, between  # processing.lidar.convergence_attitude_mdeg
+
+
+@pytest.mark.slow
+def test_ground_tiles_give_the_whole_flights_objects_and_trajectory(project, gi_cache, gil_full_run, tmp_path):
+    """The run (features matched in ground tiles, the default) against the whole flight's features
+    matched at once (``processing.scale.feature_tile_m: null``): the same objects, the same G/I/L
+    trajectory (docs/ARCHITECTURE.md §4.7)."""
+    whole = tmp_path / "whole"
+    shutil.copytree(project, whole)
+    cfg = yaml.safe_load((whole / "project.yaml").read_text())
+    cfg.setdefault("processing", {}).setdefault("scale", {})["feature_tile_m"] = None
+    (whole / "project.yaml").write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "out"
+    run_workflow(whole, out, points=False, cache_dir=_cache(gi_cache, tmp_path / "cache"))
+    assert (gil_full_run / "features" / "objects.csv").read_text() == (out / "features" / "objects.csv").read_text()
+    assert (gil_full_run / "features" / "features.csv").read_text() == (out / "features" / "features.csv").read_text()
+    tiled, held = read_sbet(gil_full_run / "gil" / "trajectory.sbet"), read_sbet(out / "gil" / "trajectory.sbet")
+    np.testing.assert_allclose(held.lat_rad, tiled.lat_rad, rtol=0, atol=1e-6 / 6.4e6)
+    np.testing.assert_allclose(held.lon_rad, tiled.lon_rad, rtol=0, atol=1e-6 / 6.4e6)
+    np.testing.assert_allclose(held.h_m, tiled.h_m, rtol=0, atol=1e-6)
+    for name in ("roll_rad", "pitch_rad", "heading_rad"):
+        np.testing.assert_allclose(getattr(held, name), getattr(tiled, name), rtol=0, atol=1e-6, err_msg=name)
+    a, b = WorkflowMetrics.read(gil_full_run / "metrics.json"), WorkflowMetrics.read(out / "metrics.json")
+    assert [it.features for it in a.outer_iterations] == [it.features for it in b.outer_iterations]
+    assert [it.objects for it in a.outer_iterations] == [it.objects for it in b.outer_iterations]

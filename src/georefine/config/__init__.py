@@ -545,6 +545,12 @@ class ScaleConfig(StrictModel):
 
     memory_budget_gb: float = Field(3.0, gt=0, description="memory of the point tiles in work at once (all tasks)")
     min_tile_points: int = Field(500_000, ge=10_000, description="smallest time tile (records), whatever the budget")
+    feature_tile_m: float | None = Field(
+        200.0, gt=0,
+        description="Planar features go to disk in ground tiles of this side (m, rounded to whole "
+        "processing.matching.balance_cell_m) and each tile is matched on its own: memory holds a tile, not the "
+        "flight's features (the same objects). null: match the whole flight's features held at once.",
+    )
 
 
 class ProcessingConfig(StrictModel):

@@ -71,7 +71,8 @@ from georefine.io.files import PathLike, atomic_output, data_lines, parse_float_
 from georefine.lidar.planes import PlanarFeatures
 
 __all__ = [
-    "MatchingConfig", "PlanarObjects", "candidate_pairs", "match_features", "initial_object_parameters",
+    "MatchingConfig", "PlanarObjects", "balanced", "candidate_pairs", "group_features", "match_features",
+    "objects_from_groups", "initial_object_parameters",
     "object_planes", "inject_wrong_matches", "view_ids", "write_objects", "read_objects",
 ]
 
@@ -281,8 +282,8 @@ def _star_split(active: np.ndarray, pairs: np.ndarray, sigma_d: np.ndarray) -> n
         free &= ~(seed | joined)
 
 
-def _initial_groups(features: PlanarFeatures, pairs: np.ndarray, cfg: MatchingConfig) -> np.ndarray:
-    """Group label per feature (-1 = none) from union-find plus the anti-chaining split."""
+def _initial_groups(features: PlanarFeatures, pairs: np.ndarray, cfg: MatchingConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Group label per feature (-1 = none) from union-find plus the anti-chaining split; the component of each."""
     n = len(features)
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
@@ -299,7 +300,7 @@ def _initial_groups(features: PlanarFeatures, pairs: np.ndarray, cfg: MatchingCo
     group = np.where(stars >= 0, size.size + stars, group)
     _log.debug("%d components with >= 2 features, %d split against chaining",
                int((size >= 2).sum()), int(((size >= 2) & ~compact).sum()))
-    return group
+    return group, comp
 
 
 def _relabel(group: np.ndarray) -> tuple[np.ndarray, int]:
@@ -428,22 +429,45 @@ def match_features(
     sin_vertical = np.sin(np.radians(cfg.vertical_max_tilt_deg))
     if n == 0:
         return _objects_from_groups(features, np.zeros(0, np.int64), sin_vertical)
-    pairs = candidate_pairs(features, cfg)
-    group = _initial_groups(features, pairs, cfg)
-    group = _prune(features, group, cfg, sin_vertical)
-    group = _cap_and_views(features, group, cfg)
+    group, _, n_pairs = group_features(features, cfg)
     objects = _objects_from_groups(features, group, sin_vertical)
     group = objects.feature_object.copy()
-    used = group >= 0
-    mean_sigma = np.bincount(group[used], np.asarray(features.sigma_d_m)[used], len(objects)) / objects.n_features
-    keep = _balance(objects.c0, objects.is_vertical, objects.n_views, objects.n_features, mean_sigma, cfg, track_axis)
+    keep = balanced(objects, features, cfg, track_axis)
     group[np.append(~keep, False)[group]] = -1
     objects = _objects_from_groups(features, group, sin_vertical)
     _log.info(
         "matched %d of %d features into %d planar objects (%d vertical) from %d accepted pairs",
-        int(objects.n_features.sum()), n, len(objects), int(objects.is_vertical.sum()), len(pairs),
+        int(objects.n_features.sum()), n, len(objects), int(objects.is_vertical.sum()), n_pairs,
     )
     return objects
+
+
+def group_features(features: PlanarFeatures, cfg: MatchingConfig) -> tuple[np.ndarray, np.ndarray, int]:
+    """Rules 1-6: the group of each feature (-1 = none), its connected component of accepted pairs, the pairs.
+
+    Every step works on each component of the pair graph alone (ties broken by the features'
+    order), so a component's groups are the same whatever other features are given with it
+    (:mod:`georefine.lidar.feature_tiles` matches ground tiles on that ground).
+    """
+    sin_vertical = np.sin(np.radians(cfg.vertical_max_tilt_deg))
+    pairs = candidate_pairs(features, cfg)
+    group, comp = _initial_groups(features, pairs, cfg)
+    group = _prune(features, group, cfg, sin_vertical)
+    return _cap_and_views(features, group, cfg), comp, len(pairs)
+
+
+def balanced(objects: PlanarObjects, features: PlanarFeatures, cfg: MatchingConfig,
+             track_axis: Callable[[np.ndarray], np.ndarray] | None = None) -> np.ndarray:
+    """Rule 7: (O,) bool, the ``objects`` (of ``features``) the balancing keeps; each cell on its own."""
+    group = objects.feature_object
+    used = group >= 0
+    mean_sigma = np.bincount(group[used], np.asarray(features.sigma_d_m)[used], len(objects)) / objects.n_features
+    return _balance(objects.c0, objects.is_vertical, objects.n_views, objects.n_features, mean_sigma, cfg, track_axis)
+
+
+def objects_from_groups(features: PlanarFeatures, group: np.ndarray, cfg: MatchingConfig) -> PlanarObjects:
+    """Objects (frames, counts) from a group label per feature (-1 = none), numbered by first member."""
+    return _objects_from_groups(features, group, np.sin(np.radians(cfg.vertical_max_tilt_deg)))
 
 
 def initial_object_parameters(objects: PlanarObjects, features: PlanarFeatures) -> np.ndarray:

@@ -526,7 +526,8 @@ def _run(ws: Workspace, project: Project, case: int, planes: bool, overrides, ma
         start = gil.result
         strips = [s.shifted(gil.time_offset_s) for s in inputs.strips]
         with steps.timed("plane_observations"):
-            features, objects, _, _ = features_and_objects(nav, start, strips, 0, untimed, progress, runner)
+            features, objects, _, _ = features_and_objects(nav, start, strips, 0, untimed, progress, runner,
+                                                           scratch=inputs.out)
         plane_data = (features, objects)
     # The preliminary cloud: every record of every scan, in order (returns_of_points relies on it).
     with steps.timed("preliminary_georeferencing"):

@@ -44,6 +44,7 @@ from georefine.io.run_metrics import (
     write_adjustment_report,
 )
 from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
+from georefine.lidar.feature_tiles import FeatureStore, match_store, tile_size
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
 from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
@@ -79,6 +80,7 @@ from georefine.workflows.time_offset import (
     TimeOffsetStart,
     gnss_offset_sigma,
     search_and_shift,
+    search_and_shift_store,
     warn_time_offset,
 )
 
@@ -196,13 +198,44 @@ def untimed(name: str) -> Iterator[None]:
 
 
 def features_and_objects(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner,
-                         search: bool = False):
+                         search: bool = False, scratch: Path | None = None):
     """Steps 3-4 from ``current``: planar features per view and their matching into objects.
 
-    With ``search`` the LiDAR time offset is searched between extraction and matching
+    The matched features only (the members of objects, in the order of strip, channel and time)
+    and their objects; with ``processing.scale.feature_tile_m`` the features go to ground tiles
+    on disk (in a folder in ``scratch``, default the system's temporary folder) and each tile is
+    matched on its own (:mod:`georefine.lidar.feature_tiles`: the same objects as matching the
+    whole flight's features held at once, which ``null`` does). With ``search`` the LiDAR time
+    offset is searched between extraction and matching
     (:func:`~georefine.workflows.time_offset.search_and_shift`); the search's result (or None)
     is returned last, and the features are at its offset.
     """
+    cfg = nav.config
+    tile_m = cfg.processing.scale.feature_tile_m
+    if tile_m is None:
+        return _whole_flight_features(nav, current, strip_files, it, timed, progress, runner, search)
+    found = None
+    store = FeatureStore(tile_size(tile_m, cfg.processing.matching), scratch)
+    try:
+        with timed(f"features_{it}"):
+            traj = imu_rate_trajectory(nav, current)
+            _, counts = step_features(nav, traj, strip_files, progress, runner, frame_poses=current.spline.pose,
+                                      store=store)
+        if search:
+            progress("LiDAR time offset search", 0, 1)
+            with timed("time_offset_search"):
+                found, store = search_and_shift_store(nav, traj, current.spline.pose, store,
+                                                      strip_files[0].time_offset_s)
+            progress("LiDAR time offset search", 1, 1)
+        with timed(f"matching_{it}"):
+            tiled = match_store(store, cfg.processing.matching, runner, progress)
+    finally:
+        store.close()
+    return tiled.features, tiled.objects, counts, found
+
+
+def _whole_flight_features(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner, search: bool):
+    """:func:`features_and_objects` with the whole flight's features held and matched at once."""
     found = None
     with timed(f"features_{it}"):
         traj = imu_rate_trajectory(nav, current)
@@ -216,7 +249,8 @@ def features_and_objects(nav, current: GnssImuResult, strip_files, it: int, time
     with timed(f"matching_{it}"):
         objects = match_features(features, nav.config.processing.matching)
     progress("matching planar features", 1, 1)
-    return features, objects, counts, found
+    used = objects.feature_object >= 0
+    return features.select(used), replace(objects, feature_object=objects.feature_object[used]), counts, found
 
 
 def _searches(nav, it: int) -> bool:
@@ -225,21 +259,23 @@ def _searches(nav, it: int) -> bool:
 
 
 def _outer_iteration(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner,
-                     knot_interval_s: float | None = None, prior_s: float | None = None) -> IterationOutcome:
+                     knot_interval_s: float | None = None, prior_s: float | None = None,
+                     scratch: Path | None = None) -> IterationOutcome:
     """Steps 3-5 once from ``current``: features, objects, G/I/L adjustment (no posterior) and record.
 
     ``strip_files`` are at the offset the features are extracted at; ``prior_s`` centres the
-    offset's prior (default: the search's result in the first iteration, else that offset).
+    offset's prior (default: the search's result in the first iteration, else that offset);
+    ``scratch`` holds the ground tiles' features while they are matched.
     """
     features, objects, counts, found = features_and_objects(nav, current, strip_files, it, timed, progress, runner,
-                                                            search=_searches(nav, it))
+                                                            search=_searches(nav, it), scratch=scratch)
     start_s = found.offset_s if found is not None else strip_files[0].time_offset_s
     start = TimeOffsetStart(start_s, start_s if prior_s is None else prior_s)
     with timed(f"gil_adjustment_{it}"):
         gil = step_adjust_gil(nav, current, features, objects, progress, covariance=False,
                               knot_interval_s=knot_interval_s, time_offset=start)
     d_att, d_pos = trajectory_change(current.spline, gil.result.spline)
-    record = OuterIteration(it, len(features), len(objects), gil.features_used, gil.objects_used, d_att, d_pos,
+    record = OuterIteration(it, counts.extracted, len(objects), gil.features_used, gil.objects_used, d_att, d_pos,
                             counts.points_outside_trajectory, counts.views, gil.result.spline.grid.dt,
                             start.features_s, start.prior_s, gil.time_offset_s,
                             None if found is None else found.to_dict())
@@ -301,7 +337,7 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
         coarse = outer_knot_interval(lcfg, nav.config.processing.trajectory.knot_interval_s, it, shaking)
         outcome = steps.cached(
             f"gil_{it}", key, partial(_outer_iteration, nav, start, strips, it, steps.timed, progress,
-                                      inputs.runner, coarse, prior),
+                                      inputs.runner, coarse, prior, inputs.out),
             encode=IterationOutcome.cached_form, decode=IterationOutcome.from_cached,
         )
         if outcome.features is not None:
@@ -310,7 +346,8 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
             stage_strip_baseline(
                 steps, nav, gi, inputs.strips, key, (outcome.features, outcome.objects),
                 outcome.record.time_offset_start_s, inputs.out / "baseline", inputs.crs,
-                lambda strips: features_and_objects(nav, gi, strips, 1, untimed, progress, inputs.runner)[:2], progress)
+                lambda strips: features_and_objects(nav, gi, strips, 1, untimed, progress, inputs.runner,
+                                                    scratch=inputs.out)[:2], progress)
         records.append(outcome.record)
         current = outcome.gil.result
         # The next iteration extracts its features at this one's estimate of the time offset.
@@ -340,7 +377,7 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
             features, objects, _, _ = steps.cached(
                 "gil_features", outer.key,
                 lambda: features_and_objects(nav, outer.start, strips, it, untimed, progress, inputs.runner,
-                                             search=_searches(nav, it)),
+                                             search=_searches(nav, it), scratch=inputs.out),
                 decode=lambda fo: (*fo, None, None), store=False,
             )
 

@@ -24,6 +24,7 @@ import numpy as np
 from georefine.config import boresight_matrix
 from georefine.errors import InputError
 from georefine.io.las import read_las_info, read_las_range, time_index
+from georefine.lidar.feature_tiles import FeatureStore
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import PlanarFeatures
 from georefine.lidar.tiles import StripPlan, Tile, plan_strip, shift_plan, tile_features, tile_points
@@ -130,6 +131,11 @@ class FeatureCounts:
     points_outside_trajectory: int
     views: dict[str, int]
 
+    @property
+    def extracted(self) -> int:
+        """Features extracted in all views."""
+        return int(sum(self.views.values()))
+
 
 def sort_features(features: PlanarFeatures) -> PlanarFeatures:
     """Features by strip, channel and time (stable): one order whatever the tiles."""
@@ -139,12 +145,14 @@ def sort_features(features: PlanarFeatures) -> PlanarFeatures:
 
 def step_features(
     nav: NavigationData, trajectory: Trajectory, strips: list[StripFile], progress: Progress = no_progress,
-    runner: TaskRunner | None = None, frame_poses=None,
+    runner: TaskRunner | None = None, frame_poses=None, store: FeatureStore | None = None,
 ) -> tuple[PlanarFeatures, FeatureCounts]:
     """Steps 3-4a: georeference each tile of each strip with ``trajectory`` and extract its planar features.
 
     ``frame_poses`` (``t -> (p_w_b, R_w_b)``, default the trajectory) is the pose each feature's
     scanner-frame geometry refers to: the adjustment's spline (see :func:`~georefine.lidar.tiles.tile_features`).
+    With a ``store`` each task's features go into its ground tiles as they come
+    (:mod:`georefine.lidar.feature_tiles`) and none are returned: memory holds a few tasks' features.
     """
     cfg = nav.config
     runner = runner or TaskRunner("sync")
@@ -160,7 +168,10 @@ def step_features(
     per_view: dict[tuple[int, int], int] = {}
     seen: dict[int, set[int]] = {s.strip_id: set() for s in strips}
     for (tile, *_), r in zip(tasks, runner.map(tile_features, tasks, label="planar features", progress=progress)):
-        parts.append(r.features)
+        if store is None:
+            parts.append(r.features)
+        else:
+            store.add(r.features)
         outside += r.points_outside
         seen[tile.strip_id].update(r.channels_seen)
         for c, n in r.views.items():
@@ -176,7 +187,7 @@ def step_features(
             if n == 0:
                 log.warning("%s: channel %d (%s) gave no planar features", s.path.name, c.id, c.name)
     features = sort_features(PlanarFeatures.concatenate(parts)) if parts else PlanarFeatures.empty()
-    if len(features) == 0:
+    if (len(features) if store is None else store.count) == 0:
         raise InputError("no planar features in any view", field="processing.planes",
                          expected="planar surfaces (roofs, roads, facades) in the scans")
     return features, FeatureCounts(outside, views)

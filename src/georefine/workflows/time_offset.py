@@ -27,6 +27,7 @@ import numpy as np
 from georefine.adjustment.observations.prior import EuclideanPrior
 from georefine.adjustment.problem import Problem
 from georefine.config import boresight_matrix
+from georefine.lidar.feature_tiles import FeatureStore
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.planes import PlanarFeatures
 from georefine.lidar.time_offset import TimeOffsetSearch, georeference_features, search_time_offset
@@ -35,7 +36,7 @@ from georefine.trajectory.sampled import Trajectory
 log = logging.getLogger(__name__)
 
 __all__ = ["OFFSET_BLOCK", "TimeOffsetStart", "add_time_offset", "gnss_offset_sigma", "search_and_shift",
-           "warn_time_offset"]
+           "search_and_shift_store", "warn_time_offset"]
 
 OFFSET_BLOCK = "lidar_time_offset"
 EDGE_MARGIN_S = 0.5
@@ -57,6 +58,37 @@ def search_and_shift(nav, trajectory: Trajectory, frame_poses, features: PlanarF
     ``trajectory``: the IMU-rate trajectory the features were extracted with; ``frame_poses``
     the poses their scanner-frame geometry refers to.
     """
+    result, poses = _search(nav, trajectory, features, configured_s)
+    if not result.adopted:
+        return result, features
+    return result, _shifted(nav, frame_poses, poses.span, features, result.best_s - configured_s)[0]
+
+
+def search_and_shift_store(nav, trajectory: Trajectory, frame_poses, store: FeatureStore, configured_s: float
+                           ) -> tuple[TimeOffsetSearch, FeatureStore]:
+    """:func:`search_and_shift` on the features of a ground-tiled ``store``: the search scores its sample
+    (:class:`~georefine.lidar.feature_tiles.SearchSample`, the pool the search draws anyway); at an adopted
+    offset the features move, tile by tile, into a new store (``store`` is closed), else ``store`` is returned."""
+    result, poses = _search(nav, trajectory, store.sample.features(), configured_s)
+    if not result.adopted:
+        return result, store
+    moved = FeatureStore(store.tile_m, store.parent, store.sample.size)
+    try:
+        for ij in store.tiles:
+            features, arrival = store.read_tile(ij)
+            shifted, inside = _shifted(nav, frame_poses, poses.span, features, result.best_s - configured_s)
+            moved.add(shifted, arrival[inside])
+    except BaseException:
+        moved.close()
+        raise
+    finally:
+        store.close()
+    return result, moved
+
+
+def _search(nav, trajectory: Trajectory, features: PlanarFeatures, configured_s: float
+            ) -> tuple[TimeOffsetSearch, PoseInterpolator]:
+    """The search (logged) and the trajectory's interpolator."""
     cfg = nav.config
     tcfg = cfg.processing.lidar.time_offset
     poses = PoseInterpolator(trajectory)
@@ -66,17 +98,26 @@ def search_and_shift(nav, trajectory: Trajectory, frame_poses, features: PlanarF
     result = search_time_offset(features, poses, poses.span, p_b_s, R_b_s,
                                 speed_max_m_s=float(np.percentile(speed, 99.5)), configured_s=configured_s,
                                 range_s=tcfg.search_range_s, feature_spacing_m=cfg.processing.planes.seed_spacing_m)
-    if not result.adopted:
+    if result.adopted:
+        log.warning("LiDAR time offset: %s", result.describe())
+    else:
         log.info("LiDAR time offset search: %s", result.describe())
-        return result, features
-    log.warning("LiDAR time offset: %s", result.describe())
-    delta = result.best_s - configured_s
+    return result, poses
+
+
+def _shifted(nav, frame_poses, span: tuple[float, float], features: PlanarFeatures, delta: float
+             ) -> tuple[PlanarFeatures, np.ndarray]:
+    """``features`` with their times moved by ``delta`` (s), those that stay inside ``span``, in ``w`` again;
+    the index of those kept."""
+    cfg = nav.config
+    p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
+    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
     t = features.time + delta
-    inside = (t >= poses.span[0]) & (t <= poses.span[1])
-    shifted = features.select(np.flatnonzero(inside))
+    inside = np.flatnonzero((t >= span[0]) & (t <= span[1]))
+    shifted = features.select(inside)
     t = t[inside]
     centre_w, normal_w = georeference_features(shifted, frame_poses, p_b_s, R_b_s, t)
-    return result, replace(shifted, time=t, centre_w=centre_w, normal_w=normal_w)
+    return replace(shifted, time=t, centre_w=centre_w, normal_w=normal_w), inside
 
 
 def add_time_offset(problem: Problem, cfg, start: TimeOffsetStart, unobservable: str | None = None
