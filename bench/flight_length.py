@@ -9,6 +9,9 @@ holds at the default 100 kHz. Then ``georefine run --no-points`` (steps 1-5, def
 configuration otherwise: up-sampling on, at most three outer iterations, the first on 0.25 s
 knots) runs in a fresh child process per case so that its peak memory is its own.
 
+``--feature-tiles 200 whole`` runs each flight once per ``processing.scale.feature_tile_m`` (``whole``:
+the whole flight's features held and matched at once), in folders ``corridor-<N>min-t<tiles>``.
+
 ``--knots 0.1 0.25`` runs each flight once per knot interval (``processing.trajectory.knot_interval_s``,
 IMU window a fifth of it), each in a folder ``corridor-<N>min-k<knots>`` beside the simulated
 project that links its data and holds its own ``project.yaml``.
@@ -24,7 +27,8 @@ flight relative to the first case (1.00 = linear); then log-log slopes, and a lo
 
 Usage::
 
-    python bench/flight_length.py WORKDIR [--durations 10 30 60] [--knots 0.1 0.25] [--plot flight_length.png]
+    python bench/flight_length.py WORKDIR [--durations 10 30 60] [--knots 0.1 0.25] [--feature-tiles 200 whole]
+                                  [--plot flight_length.png]
 
 Projects already in WORKDIR (``corridor-<N>min``) are reused.
 """
@@ -65,17 +69,22 @@ def simulate(workdir: Path, minutes: float) -> Path:
     return project
 
 
-def with_knots(project: Path, knots: float | None) -> Path:
-    """``project`` itself (``knots`` None), or a sibling that links its data with other knots."""
-    if knots is None:
+def with_knots(project: Path, knots: float | None, tiles: str | None = None) -> Path:
+    """``project`` itself (``knots`` and ``tiles`` None), or a sibling that links its data with other
+    knots or feature tiles (``processing.scale.feature_tile_m``: metres, or ``whole`` for null)."""
+    if knots is None and tiles is None:
         return project
-    variant = project.with_name(f"{project.name}-k{knots:g}")
+    name = project.name + ("" if knots is None else f"-k{knots:g}") + ("" if tiles is None else f"-t{tiles}")
+    variant = project.with_name(name)
     variant.mkdir(exist_ok=True)
     for entry in project.iterdir():
         if entry.name != "project.yaml" and not (variant / entry.name).exists():
             (variant / entry.name).symlink_to(entry.resolve())
     cfg = yaml.safe_load((project / "project.yaml").read_text())
-    cfg.setdefault("processing", {})["trajectory"] = {"knot_interval_s": knots, "imu_window_s": knots / 5.0}
+    if knots is not None:
+        cfg.setdefault("processing", {})["trajectory"] = {"knot_interval_s": knots, "imu_window_s": knots / 5.0}
+    if tiles is not None:
+        cfg.setdefault("processing", {})["scale"] = {"feature_tile_m": None if tiles == "whole" else float(tiles)}
     (variant / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     return variant
 
@@ -110,13 +119,16 @@ def main() -> None:
     ap.add_argument("--durations", type=float, nargs="+", default=[10.0, 30.0, 60.0], help="flight minutes")
     ap.add_argument("--knots", type=float, nargs="+", default=[None],
                     help="knot intervals (s); default: the project's configuration")
+    ap.add_argument("--feature-tiles", nargs="+", default=[None],
+                    help="processing.scale.feature_tile_m per run (metres, or 'whole': the whole flight's features "
+                         "held and matched at once); default: the project's configuration")
     ap.add_argument("--plot", type=Path, default=None, help="log-log plot (PNG); default WORKDIR/flight_length.png")
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     rows = []
-    for minutes, knots in [(m, k) for k in args.knots for m in args.durations]:
+    for minutes, knots, tiles in [(m, k, t) for t in args.feature_tiles for k in args.knots for m in args.durations]:
         simulated = simulate(args.workdir, minutes)
-        project = with_knots(simulated, knots)
+        project = with_knots(simulated, knots, tiles)
         out = args.workdir / ("run-" + project.name.removeprefix("corridor-"))
         with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
             r = pool.submit(run, str(project), str(out)).result()
@@ -127,6 +139,7 @@ def main() -> None:
         row = {
             "minutes": truth["duration_s"] / 60.0,
             "knots": cfg.get("processing", {}).get("trajectory", {}).get("knot_interval_s", 0.1),
+            "tiles": tiles or "default",
             "rpy": pass_rmse(simulated, out), "wall_s": r["wall_s"], "peak_gb": r["peak_rss_gb"],
             # "gi_adjustment" times steps 1-2 (the cached stage); the G/I adjustment is step 2.
             "filter_s": t.get("filter", np.nan), "gi_s": t.get("gi_adjustment", np.nan) - t.get("filter", 0.0),
@@ -138,31 +151,31 @@ def main() -> None:
                      for it in m["outer_iterations"]],
         }
         rows.append(row)
-        print(f"  {row['minutes']:.1f} min, {row['knots']:g} s knots: G/I {row['gi_s']:.1f} s, G/I/L {row['gil_s']:.1f} s "
+        print(f"  {row['minutes']:.1f} min, {row['knots']:g} s knots, feature tiles {row['tiles']}: G/I {row['gi_s']:.1f} s, G/I/L {row['gil_s']:.1f} s "
               f"({row['iterations']} outer iterations, {row['features']:,} features), whole run {row['wall_s']:.0f} s, "
               f"peak {row['peak_gb']:.2f} GB, G/I/L roll/pitch/yaw {np.round(row['rpy'], 2).tolist()} mdeg", flush=True)
 
     print("\n| flight | knots | filter (step 1) | G/I adjustment (step 2) | G/I/L adjustments | outer iterations (time each; change each) "
-          "| features / objects | features + matching | G/I/L posterior | whole run | peak memory | G/I per min : first | G/I/L per min : first "
+          "| features / objects | feature tiles | features + matching | G/I/L posterior | whole run | peak memory | G/I per min : first | G/I/L per min : first "
           "| G/I/L roll | pitch | yaw (mdeg) |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        first = next(f for f in rows if f["knots"] == r["knots"])
+        first = next(f for f in rows if f["knots"] == r["knots"] and f["tiles"] == r["tiles"])
         print(f"| {r['minutes']:.1f} min | {r['knots']:g} s | {r['filter_s']:.1f} s | {r['gi_s']:.1f} s | {r['gil_s']:.1f} s "
               f"| {r['iterations']} ({' + '.join(f'{t:.0f}' for t, _ in r['each'])} s; "
               f"{' / '.join(f'{c:.2f}' for _, c in r['each'])} mdeg) "
-              f"| {r['features']:,} / {r['objects']:,} | {r['features_s'] + r['matching_s']:.0f} s | {r['posterior_s']:.1f} s "
+              f"| {r['features']:,} / {r['objects']:,} | {r['tiles']} | {r['features_s'] + r['matching_s']:.0f} s | {r['posterior_s']:.1f} s "
               f"| {r['wall_s']:.0f} s | {r['peak_gb']:.2f} GB "
               f"| {r['gi_s'] / r['minutes'] / (first['gi_s'] / first['minutes']):.2f} "
               f"| {r['gil_s'] / r['minutes'] / (first['gil_s'] / first['minutes']):.2f} "
               f"| {r['rpy'][0]:.2f} | {r['rpy'][1]:.2f} | {r['rpy'][2]:.2f} |")
-    for knots in dict.fromkeys(r["knots"] for r in rows):
-        same = [r for r in rows if r["knots"] == knots]
+    for knots, tiles in dict.fromkeys((r["knots"], r["tiles"]) for r in rows):
+        same = [r for r in rows if r["knots"] == knots and r["tiles"] == tiles]
         if len(same) > 1:
             d = np.log([r["minutes"] for r in same])
             for key in ("gi_s", "gil_s", "peak_gb", "wall_s"):
                 slope = np.polyfit(d, np.log([r[key] for r in same]), 1)[0]
-                print(f"{knots:g} s knots: log-log slope of {key} against flight length: {slope:.2f} (1 = linear)")
+                print(f"{knots:g} s knots, feature tiles {tiles}: log-log slope of {key} against flight length: {slope:.2f} (1 = linear)")
     _plot(rows, args.plot or args.workdir / "flight_length.png")
 
 
