@@ -23,10 +23,9 @@ from georefine.lidar.correspondences import (
     inject_wrong_matches,
     match_features,
     object_planes,
-    read_objects,
     view_ids,
-    write_objects,
 )
+from georefine.lidar.object_files import read_objects, write_objects
 from georefine.lidar.planes import PlanarFeatures
 
 VIEWS = [(s, c) for s in (0, 1) for c in (0, 1, 2)]

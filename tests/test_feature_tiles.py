@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from georefine.lidar.correspondences import MatchingConfig, match_features
-from georefine.lidar.feature_tiles import FeatureStore, match_store, read_rect, tile_size
+from georefine.lidar.feature_tiles import FeatureStore, SearchSample, match_store, read_rect, tile_size
 from georefine.lidar.planes import PlanarFeatures
 from georefine.tasks import TaskRunner
 from georefine.workflows.strips import sort_features
@@ -104,21 +104,13 @@ def test_store_reads_a_rectangle_in_the_flights_order_and_cleans_up():
 
 def test_search_sample_is_bounded_and_independent_of_the_order():
     features = sort_features(_scene(14))
-    a = _stored(features, 50.0, np.random.default_rng(4))
-    b = _stored(features, 50.0, np.random.default_rng(5))
-    a.sample.size = b.sample.size = 500
-    # a fresh sample with a small bound, fed in two different orders
-    from georefine.lidar.feature_tiles import SearchSample
-
-    samples = []
+    samples = []  # a sample with a small bound, fed in two different orders
     for rng in (np.random.default_rng(6), np.random.default_rng(8)):
         s = SearchSample(500)
         for part in np.array_split(rng.permutation(len(features)), 9):
             part = np.sort(part)
             s.add(features.select(part), part)
         samples.append(s.features())
-    a.close()
-    b.close()
     assert len(samples[0]) == 500
     _same(samples[0], samples[1])
     n = features.normal_w / np.linalg.norm(features.normal_w, axis=1, keepdims=True)

@@ -29,9 +29,7 @@ from georefine.io.las import read_las
 from georefine.io.run_metrics import WorkflowMetrics, read_adjustment_report
 from georefine.io.trajectory import read_sbet
 from georefine.io.trajectory_csv import read_trajectory_csv
-from georefine.lidar.correspondences import (
-    read_objects,
-)
+from georefine.lidar.object_files import read_objects
 from georefine.lidar.planes import read_features
 from georefine.sim.scenarios import simulate_project
 from georefine.trajectory.sampled import Trajectory, trajectory_from_sbet

@@ -44,13 +44,15 @@ from georefine.config import MatchingConfig
 from georefine.lidar.correspondences import PlanarObjects, balanced, group_features, objects_from_groups
 from georefine.lidar.feature_sample import feature_keys
 from georefine.lidar.planes import PlanarFeatures
+from georefine.lidar.time_offset import MAX_POOL, MIN_TILTED, tilted
+from georefine.progress import no_progress
+from georefine.tasks import TaskRunner
 
-__all__ = ["DEFAULT_TILE_M", "FeatureStore", "TiledFeatures", "match_store", "match_tile", "tile_size"]
+__all__ = ["SEARCH_SAMPLE", "FeatureStore", "SearchSample", "TiledFeatures", "match_store",
+           "match_tile", "read_rect", "tile_size"]
 
 log = logging.getLogger(__name__)
 
-DEFAULT_TILE_M = 200.0
-"""Side of a ground tile (m), rounded to a whole number of balancing cells."""
 _EPS_M = 1e-6
 
 _VEC = ("centre_s", "axis1_s", "axis2_s", "normal_s", "centre_w", "normal_w")
@@ -94,22 +96,26 @@ def _from_records(rec: np.ndarray) -> tuple[PlanarFeatures, np.ndarray]:
     return PlanarFeatures(**{f.name: rec[f.name] for f in fields(PlanarFeatures)}), np.asarray(rec["arrival"])
 
 
+SEARCH_SAMPLE = 5 * MAX_POOL
+"""Features of a :class:`SearchSample`: the time offset search's fine pool, which it draws from all features."""
+
+
 class SearchSample:
     """The features of smallest key (:func:`~georefine.lidar.feature_sample.feature_keys`), at most
-    ``size`` of the tilted ones and ``size`` of all: a bottom-k sample, the same whatever the order
-    the features came in, for the time offset search (its pool, :mod:`georefine.lidar.time_offset`)."""
+    ``size`` of the tilted ones (:func:`~georefine.lidar.time_offset.tilted`) and ``size`` of all: a
+    bottom-k sample, the same whatever the order the features came in, for the time offset search
+    (its pool, :mod:`georefine.lidar.time_offset`)."""
 
-    def __init__(self, size: int, min_tilt_deg: float = 10.0):
-        self.size, self._cos = int(size), float(np.cos(np.radians(min_tilt_deg)))
+    def __init__(self, size: int = SEARCH_SAMPLE):
+        self.size = int(size)
         self._parts: dict[bool, list[tuple[np.ndarray, PlanarFeatures, np.ndarray]]] = {True: [], False: []}
         self.tilted = 0
 
     def add(self, f: PlanarFeatures, arrival: np.ndarray) -> None:
-        n = f.normal_w / np.linalg.norm(f.normal_w, axis=1, keepdims=True)
-        tilted = np.abs(n[:, 2]) < self._cos
-        self.tilted += int(tilted.sum())
+        on_tilted = tilted(f)
+        self.tilted += int(on_tilted.sum())
         keys = feature_keys(f)
-        for kind, mask in ((True, tilted), (False, np.ones(len(f), bool))):
+        for kind, mask in ((True, on_tilted), (False, np.ones(len(f), bool))):
             idx = np.flatnonzero(mask)
             self._parts[kind].append((keys[idx], f.select(idx), arrival[idx]))
             self._trim(kind)
@@ -124,10 +130,10 @@ class SearchSample:
         keep = np.argsort(keys, kind="stable")[:self.size]
         self._parts[kind] = [(keys[keep], feats.select(keep), arrival[keep])]
 
-    def features(self, min_tilted: int = 200) -> PlanarFeatures:
-        """The tilted sample when the flight has ``min_tilted`` tilted features, else the sample of all,
-        in the flight's order."""
-        parts = self._parts[self.tilted >= min_tilted]
+    def features(self) -> PlanarFeatures:
+        """The tilted sample when the flight has :data:`~georefine.lidar.time_offset.MIN_TILTED` tilted
+        features, else the sample of all, in the flight's order."""
+        parts = self._parts[self.tilted >= MIN_TILTED]
         if not parts:
             return PlanarFeatures.empty()
         keys = np.concatenate([k for k, _, _ in parts])
@@ -143,7 +149,7 @@ class FeatureStore:
     that removes its files). They go to a new folder in ``parent`` (default the system's temporary
     folder); the tiles' tasks read them, so on a cluster ``parent`` must be one the workers see."""
 
-    def __init__(self, tile_m: float, parent: Path | None = None, sample_size: int = 150_000):
+    def __init__(self, tile_m: float, parent: Path | None = None, sample_size: int = SEARCH_SAMPLE):
         self.tile_m = float(tile_m)
         self.parent = parent
         if parent is not None:
@@ -300,9 +306,6 @@ def match_store(store: FeatureStore, cfg: MatchingConfig, runner=None, progress=
     """Every tile of ``store`` matched (:func:`match_tile`, one task each on ``runner``); the objects
     and their features as :func:`~georefine.lidar.correspondences.match_features` gives them for the
     matched features of the whole flight."""
-    from georefine.progress import no_progress
-    from georefine.tasks import TaskRunner
-
     runner = runner or TaskRunner("sync")
     tiles = store.tiles
     if not tiles:

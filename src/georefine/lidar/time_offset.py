@@ -56,8 +56,8 @@ from georefine.lidar.planes import PlanarFeatures
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MIN_TRACK_ANGLE_DEG", "MOVING_M_S", "TimeOffsetSearch", "georeference_features", "offset_unobservable",
-           "search_time_offset", "time_offset_score"]
+__all__ = ["MAX_POOL", "MIN_TILTED", "MIN_TRACK_ANGLE_DEG", "MOVING_M_S", "TimeOffsetSearch", "georeference_features", "offset_unobservable",
+           "search_time_offset", "tilted", "time_offset_score"]
 
 MIN_TRACK_ANGLE_DEG = 30.0
 """Strips whose tracks differ by less than this cannot show a time offset (:func:`offset_unobservable`)."""
@@ -65,7 +65,10 @@ MOVING_M_S = 5.0
 """Slower than this a strip has no track (hover, turn on the spot): its features show no offset."""
 
 _MIN_TILT_DEG = 10.0  # features on planes tilted more than this take part ...
-_MIN_TILTED = 200  # ... when there are at least this many of them
+MIN_TILTED = 200
+"""... when there are at least this many of them (:func:`tilted`)."""
+MAX_POOL = 30_000
+"""Default possible counterparts of the coarse scan; the fine scan's are five times as many (:func:`search_time_offset`)."""
 _COARSE_D_MAX_M = 8.0
 _FINE_D_MAX_M = 0.4
 _MIN_INSIDE = 0.5  # a candidate must keep this fraction of the features inside the span
@@ -218,11 +221,17 @@ def _scan(features, queries, poses, span, p_b_s, R_b_s, deltas, d_max_m, radius_
     return np.array([scorer.score(poses, span, float(d), d_max_m=d_max_m, radius_m=radius_m) for d in deltas])
 
 
+def tilted(features: PlanarFeatures) -> np.ndarray:
+    """(F,) bool: the features on planes tilted more than 10 degrees, the ones the search scores when there
+    are :data:`MIN_TILTED` of them (flat ground agrees with itself at any along-track shift)."""
+    normal_w = features.normal_w / np.linalg.norm(features.normal_w, axis=1, keepdims=True)
+    return np.abs(normal_w[:, 2]) < np.cos(np.radians(_MIN_TILT_DEG))
+
+
 def _pool(features: PlanarFeatures, max_pool: int, rng: np.random.Generator) -> PlanarFeatures:
     """The features on tilted planes (all if too few), at most ``max_pool`` of them."""
-    normal_w = features.normal_w / np.linalg.norm(features.normal_w, axis=1, keepdims=True)
-    tilted = np.flatnonzero(np.abs(normal_w[:, 2]) < np.cos(np.radians(_MIN_TILT_DEG)))
-    pool = tilted if tilted.size >= _MIN_TILTED else np.arange(len(features))
+    on_tilted = np.flatnonzero(tilted(features))
+    pool = on_tilted if on_tilted.size >= MIN_TILTED else np.arange(len(features))
     if pool.size > max_pool:
         pool = np.sort(rng.choice(pool, max_pool, replace=False))
     return features.select(pool)
@@ -284,7 +293,7 @@ def _velocity(poses, span: tuple[float, float], h: float = 0.5):
 def search_time_offset(
     features: PlanarFeatures, poses, span: tuple[float, float], p_b_s: np.ndarray, R_b_s: np.ndarray,
     *, speed_max_m_s: float, configured_s: float = 0.0, range_s: float = 20.0, max_features: int = 3000,
-    max_pool: int = 30_000, min_gain: float = 0.05, seed: int = 0, feature_spacing_m: float = 2.0,
+    max_pool: int = MAX_POOL, min_gain: float = 0.05, seed: int = 0, feature_spacing_m: float = 2.0,
 ) -> TimeOffsetSearch:
     """Search the LiDAR time offset that makes the strips agree best (module docstring).
 

@@ -63,7 +63,7 @@ from georefine.adjustment.upsampling import rebuild_high_rate
 from georefine.errors import InputError
 from georefine.geometry.rotation import rph_from_R_n_b, wrap_angle
 from georefine.io.trajectory import read_sbet
-from georefine.lidar.correspondences import read_objects
+from georefine.lidar.object_files import read_objects
 from georefine.lidar.planes import read_features
 from georefine.trajectory.sampled import interp_columns, trajectory_from_sbet
 from georefine.trajectory.spline_fit import fit_spline

@@ -66,9 +66,10 @@ from georefine.io.run_metrics import (
     WorkflowMetrics,
     write_adjustment_report,
 )
-from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
+from georefine.lidar.correspondences import PlanarObjects, match_features
 from georefine.lidar.feature_sample import feature_keys, stable_object_subset
 from georefine.lidar.georeference import PoseInterpolator
+from georefine.lidar.object_files import write_objects
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
 from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
 from georefine.lidar.time_offset import georeference_features, offset_unobservable, search_time_offset

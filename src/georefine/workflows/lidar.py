@@ -43,9 +43,10 @@ from georefine.io.run_metrics import (
     WorkflowMetrics,
     write_adjustment_report,
 )
-from georefine.lidar.correspondences import PlanarObjects, match_features, write_objects
+from georefine.lidar.correspondences import PlanarObjects, match_features
 from georefine.lidar.feature_tiles import FeatureStore, match_store, tile_size
 from georefine.lidar.georeference import PoseInterpolator
+from georefine.lidar.object_files import write_objects
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
 from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
 from georefine.progress import Progress, no_progress
@@ -212,43 +213,33 @@ def features_and_objects(nav, current: GnssImuResult, strip_files, it: int, time
     """
     cfg = nav.config
     tile_m = cfg.processing.scale.feature_tile_m
-    if tile_m is None:
-        return _whole_flight_features(nav, current, strip_files, it, timed, progress, runner, search)
+    store = None if tile_m is None else FeatureStore(tile_size(tile_m, cfg.processing.matching), scratch)
     found = None
-    store = FeatureStore(tile_size(tile_m, cfg.processing.matching), scratch)
     try:
         with timed(f"features_{it}"):
             traj = imu_rate_trajectory(nav, current)
-            _, counts = step_features(nav, traj, strip_files, progress, runner, frame_poses=current.spline.pose,
-                                      store=store)
+            features, counts = step_features(nav, traj, strip_files, progress, runner,
+                                             frame_poses=current.spline.pose, store=store)
         if search:
             progress("LiDAR time offset search", 0, 1)
             with timed("time_offset_search"):
-                found, store = search_and_shift_store(nav, traj, current.spline.pose, store,
-                                                      strip_files[0].time_offset_s)
+                if store is None:
+                    found, features = search_and_shift(nav, traj, current.spline.pose, features,
+                                                       strip_files[0].time_offset_s)
+                else:
+                    found, store = search_and_shift_store(nav, traj, current.spline.pose, store,
+                                                          strip_files[0].time_offset_s)
             progress("LiDAR time offset search", 1, 1)
         with timed(f"matching_{it}"):
-            tiled = match_store(store, cfg.processing.matching, runner, progress)
+            if store is not None:  # the tasks show their progress
+                tiled = match_store(store, cfg.processing.matching, runner, progress)
+                return tiled.features, tiled.objects, counts, found
+            progress("matching planar features", 0, 1)
+            objects = match_features(features, cfg.processing.matching)
+            progress("matching planar features", 1, 1)
     finally:
-        store.close()
-    return tiled.features, tiled.objects, counts, found
-
-
-def _whole_flight_features(nav, current: GnssImuResult, strip_files, it: int, timed, progress, runner, search: bool):
-    """:func:`features_and_objects` with the whole flight's features held and matched at once."""
-    found = None
-    with timed(f"features_{it}"):
-        traj = imu_rate_trajectory(nav, current)
-        features, counts = step_features(nav, traj, strip_files, progress, runner, frame_poses=current.spline.pose)
-    if search:
-        progress("LiDAR time offset search", 0, 1)
-        with timed("time_offset_search"):
-            found, features = search_and_shift(nav, traj, current.spline.pose, features, strip_files[0].time_offset_s)
-        progress("LiDAR time offset search", 1, 1)
-    progress("matching planar features", 0, 1)
-    with timed(f"matching_{it}"):
-        objects = match_features(features, nav.config.processing.matching)
-    progress("matching planar features", 1, 1)
+        if store is not None:
+            store.close()
     used = objects.feature_object >= 0
     return features.select(used), replace(objects, feature_object=objects.feature_object[used]), counts, found
 
@@ -500,16 +491,16 @@ def precompute_gnss_imu(project: ProjectLike, cache_dir: str | Path) -> dict[str
 
 
 def _write_matched_features(folder: Path, features: PlanarFeatures, objects: PlanarObjects) -> None:
-    """``features.csv`` and ``objects.csv`` of the matched features (members of objects).
+    """``features.csv`` and ``objects.csv`` of the matched features (members of objects), which
+    :func:`features_and_objects` returns.
 
     Only the features the adjustment can observe are written (about 4 % of the extracted features on ``corridor``:
     all 1.75 M of them made a 0.5 GB table that took 17 s to write); the objects' member
     indices refer to rows of this ``features.csv``. The extracted count per view is in
     ``metrics.json``.
     """
-    used = np.flatnonzero(objects.feature_object >= 0)
-    write_features(folder / "features.csv", features.select(used))
-    write_objects(folder / "objects.csv", replace(objects, feature_object=objects.feature_object[used]))
+    write_features(folder / "features.csv", features)
+    write_objects(folder / "objects.csv", objects)
 
 
 def run_workflow(
