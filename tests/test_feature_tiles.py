@@ -13,7 +13,7 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from georefine.lidar.correspondences import MatchingConfig, match_features
+from georefine.lidar.correspondences import MatchingConfig, group_features, match_features
 from georefine.lidar.feature_tiles import FeatureStore, SearchSample, match_store, read_rect, tile_size
 from georefine.lidar.planes import PlanarFeatures
 from georefine.tasks import TaskRunner
@@ -53,8 +53,8 @@ def _stored(features: PlanarFeatures, tile_m: float, rng, chunks: int = 7) -> Fe
                                               (MatchingConfig(), 0.5)],
                          ids=["balanced", "unbalanced", "narrow-margin"])
 def test_tiles_give_the_whole_flights_objects(cfg, margin_m):
-    """Also from a first margin far narrower than an object (0.5 m): the tiles whose components reach
-    past it are matched again with a wider one (without that, objects on the tiles' edges differ)."""
+    """Also from a first margin far narrower than an object (0.5 m): the tiles whose features near
+    them are not settled are matched again with a wider one."""
     rng = np.random.default_rng(7)
     features = sort_features(_scene(11))
     whole = match_features(features, cfg)
@@ -64,7 +64,8 @@ def test_tiles_give_the_whole_flights_objects(cfg, margin_m):
         assert store.count == len(features) and len(store.tiles) > 20
         tiled = match_store(store, cfg, margin_m=margin_m)
     assert tiled.extracted == len(features)
-    assert tiled.grown > (len(store.tiles) if margin_m else 0)  # the road's chains reach past the first margin
+    if margin_m:  # the anti-chaining split reaches past the first margin in every tile
+        assert tiled.grown >= len(store.tiles)
     _same(tiled.features, features.select(matched))
     for name in ("c0", "k1", "k2", "n0", "n_features", "n_views", "is_vertical"):
         np.testing.assert_array_equal(getattr(tiled.objects, name), getattr(whole, name), err_msg=name)
@@ -117,3 +118,44 @@ def test_search_sample_is_bounded_and_independent_of_the_order():
     assert np.all(np.abs(samples[0].normal_w[:, 2] / np.linalg.norm(samples[0].normal_w, axis=1))
                   < np.cos(np.radians(10.0)))
     assert (np.abs(n[:, 2]) < np.cos(np.radians(10.0))).sum() > 500
+
+
+def _member_sets(group: np.ndarray, ids: np.ndarray) -> dict[int, frozenset]:
+    """Feature id -> the ids of its group's members (features in a group only)."""
+    sets = {}
+    for g in np.unique(group[group >= 0]):
+        members = frozenset(ids[group == g].tolist())
+        sets.update(dict.fromkeys(members, members))
+    return sets
+
+
+def test_settled_features_are_grouped_as_in_the_whole_flight():
+    """Cut rectangles out of the scene: every feature ``group_features`` calls settled is in the
+    group (as a set of features) that it is in when the whole scene is matched, and features near
+    the cut that it does not call settled are, some of them, grouped otherwise."""
+    cfg = MatchingConfig()
+    features = sort_features(_scene(15))
+    ids = np.arange(len(features))
+    whole = _member_sets(group_features(features, cfg).group, ids)
+    rng = np.random.default_rng(4)
+    xy = features.centre_w[:, :2]
+    lo, hi = xy.min(axis=0), xy.max(axis=0)
+    settled_total = differ_unsettled = 0
+    for _ in range(12):
+        a = rng.uniform(lo, hi - 20.0)
+        b = a + rng.uniform(15.0, 60.0, 2)
+        inside = np.all((xy >= a) & (xy < b), axis=1)
+        cut = features.select(inside)
+        cxy = cut.centre_w[:, :2]
+        inner = cfg.max_centre_distance_m + 1e-6
+        open_ = np.any((cxy <= a + inner) | (cxy >= b - inner), axis=1)
+        grouping = group_features(cut, cfg, open_)
+        part = _member_sets(grouping.group, ids[inside])
+        for k, i in enumerate(ids[inside]):
+            same = part.get(int(i)) == whole.get(int(i))
+            if grouping.settled[k]:
+                assert same, f"feature {i} settled but grouped otherwise"
+                settled_total += 1
+            elif not same:
+                differ_unsettled += 1
+    assert settled_total > 500 and differ_unsettled > 0

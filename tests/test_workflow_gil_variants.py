@@ -167,16 +167,18 @@ def test_a_coarse_first_outer_iteration_ends_where_fine_ones_do(project, gi_cach
 
 @pytest.mark.slow
 def test_ground_tiles_give_the_whole_flights_objects_and_trajectory(project, gi_cache, gil_full_run, tmp_path):
-    """The run (the whole flight's features matched at once, the default) against the features
-    matched in ground tiles (``processing.scale.feature_tile_m: 50``): the same objects, the same
-    G/I/L trajectory (docs/ARCHITECTURE.md §4.7)."""
-    whole = tmp_path / "tiled"
-    shutil.copytree(project, whole)
-    cfg = yaml.safe_load((whole / "project.yaml").read_text())
-    cfg.setdefault("processing", {}).setdefault("scale", {})["feature_tile_m"] = 50.0
-    (whole / "project.yaml").write_text(yaml.safe_dump(cfg))
+    """The run (features matched in ground tiles of 200 m, the default) against the whole flight's
+    features matched at once (``processing.scale.feature_tile_m: null``): the same objects, the
+    same G/I/L trajectory (docs/ARCHITECTURE.md §4.7)."""
+    held_project = tmp_path / "held"
+    shutil.copytree(project, held_project)
+    cfg = yaml.safe_load((held_project / "project.yaml").read_text())
+    cfg.setdefault("processing", {}).setdefault("scale", {})["feature_tile_m"] = None
+    (held_project / "project.yaml").write_text(yaml.safe_dump(cfg))
     out = tmp_path / "out"
-    run_workflow(whole, out, points=False, cache_dir=_cache(gi_cache, tmp_path / "cache"))
+    run_workflow(held_project, out, points=False, cache_dir=_cache(gi_cache, tmp_path / "cache"))
+    resolved = yaml.safe_load((gil_full_run / "config.resolved.yaml").read_text())
+    assert resolved["processing"]["scale"]["feature_tile_m"] == 200.0  # the default run is the tiled one
     assert (gil_full_run / "features" / "objects.csv").read_text() == (out / "features" / "objects.csv").read_text()
     assert (gil_full_run / "features" / "features.csv").read_text() == (out / "features" / "features.csv").read_text()
     tiled, held = read_sbet(gil_full_run / "gil" / "trajectory.sbet"), read_sbet(out / "gil" / "trajectory.sbet")

@@ -546,11 +546,11 @@ class ScaleConfig(StrictModel):
     memory_budget_gb: float = Field(3.0, gt=0, description="memory of the point tiles in work at once (all tasks)")
     min_tile_points: int = Field(500_000, ge=10_000, description="smallest time tile (records), whatever the budget")
     feature_tile_m: float | None = Field(
-        None, gt=0,
+        200.0, gt=0,
         description="Planar features go to disk in ground tiles of this side (m, rounded to whole "
-        "processing.matching.balance_cell_m) and each tile is matched on its own: memory holds a tile, not the "
-        "flight's features (the same objects). null (the default): match the whole flight's features held at "
-        "once. Not yet the default: on a 10-minute corridor the tiles' widening margins made the run 20x slower.",
+        "processing.matching.balance_cell_m) and each tile is matched on its own with a margin that settles its "
+        "objects: memory holds a tile, not the flight's features, and the objects are the whole flight's. null: "
+        "match the whole flight's features held at once (the same objects; memory grows with the flight).",
     )
 
 

@@ -61,14 +61,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse.csgraph import connected_components, dijkstra
 from scipy.spatial import cKDTree
 
 from georefine.config import MatchingConfig
 from georefine.lidar.planes import PlanarFeatures
 
 __all__ = [
-    "MatchingConfig", "PlanarObjects", "balanced", "candidate_pairs", "group_features", "match_features",
+    "Grouping", "MatchingConfig", "PlanarObjects", "balanced", "candidate_pairs", "group_features", "match_features",
     "objects_from_groups", "initial_object_parameters",
     "object_planes", "inject_wrong_matches", "view_ids",
 ]
@@ -242,18 +242,23 @@ def candidate_pairs(features: PlanarFeatures, cfg: MatchingConfig) -> np.ndarray
     return pairs[ok].astype(np.int64)
 
 
-def _star_split(active: np.ndarray, pairs: np.ndarray, sigma_d: np.ndarray) -> np.ndarray:
+def _star_split(active: np.ndarray, pairs: np.ndarray, sigma_d: np.ndarray) -> tuple[np.ndarray, int]:
     """Split the features flagged ``active`` into disjoint stars (rule 3); -1 = unassigned.
 
-    Returns the seed feature index of each feature's star (seeds map to themselves).
+    Returns the seed feature index of each feature's star (seeds map to themselves), and the
+    rounds that assigned features. A round decides a feature from the free features within 3
+    hops of the pair graph (its and its neighbours' degrees make the seeds, a seed's neighbours
+    join it), so after ``K`` rounds a feature's state depends on the features within ``3 K`` hops.
     """
     n = active.size
     star = np.full(n, -1, np.int64)
     free = active.copy()
+    rounds = 0
     while True:
         e = pairs[free[pairs[:, 0]] & free[pairs[:, 1]]]
         if e.size == 0:
-            return star
+            return star, rounds
+        rounds += 1
         a, b = e[:, 0], e[:, 1]
         degree = np.bincount(a, minlength=n) + np.bincount(b, minlength=n)
         rank = np.empty(n, np.int64)
@@ -274,8 +279,18 @@ def _star_split(active: np.ndarray, pairs: np.ndarray, sigma_d: np.ndarray) -> n
         free &= ~(seed | joined)
 
 
-def _initial_groups(features: PlanarFeatures, pairs: np.ndarray, cfg: MatchingConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Group label per feature (-1 = none) from union-find plus the anti-chaining split; the component of each."""
+@dataclass(frozen=True)
+class _Initial:
+    """Rules 2-3: the group of each feature before the member check, its component, the split's rounds."""
+
+    group: np.ndarray
+    comp: np.ndarray
+    rounds: int
+    compact: np.ndarray  # (components,) bool
+
+
+def _initial_groups(features: PlanarFeatures, pairs: np.ndarray, cfg: MatchingConfig) -> _Initial:
+    """Group label per feature (-1 = none) from union-find plus the anti-chaining split."""
     n = len(features)
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
     _, comp = connected_components(graph, directed=False)
@@ -288,11 +303,53 @@ def _initial_groups(features: PlanarFeatures, pairs: np.ndarray, cfg: MatchingCo
     np.maximum.at(spread, comp, radius)
     compact = spread <= cfg.max_object_radius_m
     group = np.where(in_pair & compact[comp], comp, -1)
-    stars = _star_split(in_pair & ~compact[comp], pairs, np.asarray(features.sigma_d_m, np.float64))
+    stars, rounds = _star_split(in_pair & ~compact[comp], pairs, np.asarray(features.sigma_d_m, np.float64))
     group = np.where(stars >= 0, size.size + stars, group)
-    _log.debug("%d components with >= 2 features, %d split against chaining",
-               int((size >= 2).sum()), int(((size >= 2) & ~compact).sum()))
-    return group, comp
+    _log.debug("%d components with >= 2 features, %d split against chaining in %d rounds",
+               int((size >= 2).sum()), int(((size >= 2) & ~compact).sum()), rounds)
+    return _Initial(group, comp, rounds, compact)
+
+
+def _settled(features: PlanarFeatures, pairs: np.ndarray, init: _Initial, open_: np.ndarray,
+             cfg: MatchingConfig) -> np.ndarray:
+    """(F,) bool: the features whose group before the member check (rules 2-3) is, as a set of
+    features, the one that ``features`` together with any features not given make; ``open_`` flags
+    the features that may pair with one not given (rule 1 pairs only within ``max_centre_distance_m``).
+
+    A component without an open member is a whole component. One with an open member is surely not
+    compact when two of its members are more than ``2 max_object_radius_m`` apart along an axis;
+    otherwise its members may be grouped differently. The star split decides a feature from those
+    within ``3 K`` hops (``K`` rounds, :func:`_star_split`): every feature within ``3 K + 1`` hops of
+    an unsure one is unsure, and a group is settled when none of its members is within one more hop
+    (a member the given features miss would be a neighbour of its seed). Rules 4-6 work on each group
+    alone, so a settled group gives the same object whatever else is given.
+    """
+    n = len(features)
+    comp = init.comp
+    n_comp = int(comp.max(initial=-1)) + 1
+    has_open = np.bincount(comp[open_], minlength=n_comp) > 0
+    centre = np.asarray(features.centre_w, np.float64)
+    lo = np.full((n_comp, 3), np.inf)
+    hi = np.full((n_comp, 3), -np.inf)
+    np.minimum.at(lo, comp, centre)
+    np.maximum.at(hi, comp, centre)
+    spread_out = np.any(hi - lo > 2.0 * cfg.max_object_radius_m, axis=1)
+    unsure = open_ | (has_open & ~spread_out)[comp]
+    if not unsure.any():
+        return np.ones(n, bool)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)).tocsr()
+    hops = 3 * init.rounds + 2
+    dist = dijkstra(graph, directed=False, indices=np.flatnonzero(unsure), unweighted=True, min_only=True,
+                    limit=hops + 0.5)
+    state_unsure = dist <= hops - 1
+    near_unsure = dist <= hops
+    group = init.group
+    used = group >= 0
+    labels, inverse = np.unique(group[used], return_inverse=True)
+    bad = np.bincount(inverse.ravel(), near_unsure[used], labels.size) > 0
+    settled = ~state_unsure
+    settled[used] = ~bad[inverse.ravel()]
+    return settled
 
 
 def _relabel(group: np.ndarray) -> tuple[np.ndarray, int]:
@@ -421,7 +478,8 @@ def match_features(
     sin_vertical = np.sin(np.radians(cfg.vertical_max_tilt_deg))
     if n == 0:
         return _objects_from_groups(features, np.zeros(0, np.int64), sin_vertical)
-    group, _, n_pairs = group_features(features, cfg)
+    grouping = group_features(features, cfg)
+    group, n_pairs = grouping.group, grouping.n_pairs
     objects = _objects_from_groups(features, group, sin_vertical)
     group = objects.feature_object.copy()
     keep = balanced(objects, features, cfg, track_axis)
@@ -434,18 +492,35 @@ def match_features(
     return objects
 
 
-def group_features(features: PlanarFeatures, cfg: MatchingConfig) -> tuple[np.ndarray, np.ndarray, int]:
-    """Rules 1-6: the group of each feature (-1 = none), its connected component of accepted pairs, the pairs.
+@dataclass(frozen=True)
+class Grouping:
+    """Rules 1-6 on a set of features (:func:`group_features`)."""
+
+    group: np.ndarray
+    """(F,) int64 object of each feature (-1 = none), numbered by first member."""
+    n_pairs: int
+    """Accepted pairs (rule 1)."""
+    settled: np.ndarray | None
+    """(F,) bool, with ``open_``: the features whose group is the one the features not given would
+    not change (``settled`` before the member check, :func:`_settled`); None without ``open_``."""
+    rounds: int
+    """Rounds of the anti-chaining split (rule 3)."""
+
+
+def group_features(features: PlanarFeatures, cfg: MatchingConfig, open_: np.ndarray | None = None) -> Grouping:
+    """Rules 1-6: the group of each feature (-1 = none).
 
     Every step works on each component of the pair graph alone (ties broken by the features'
-    order), so a component's groups are the same whatever other features are given with it
-    (:mod:`georefine.lidar.feature_tiles` matches ground tiles on that ground).
+    order); with ``open_`` (the features that may pair with features not given) the result says
+    which features' groups those others cannot change (:mod:`georefine.lidar.feature_tiles`
+    matches ground tiles on that ground).
     """
     sin_vertical = np.sin(np.radians(cfg.vertical_max_tilt_deg))
     pairs = candidate_pairs(features, cfg)
-    group, comp = _initial_groups(features, pairs, cfg)
-    group = _prune(features, group, cfg, sin_vertical)
-    return _cap_and_views(features, group, cfg), comp, len(pairs)
+    init = _initial_groups(features, pairs, cfg)
+    settled = None if open_ is None else _settled(features, pairs, init, np.asarray(open_, bool), cfg)
+    group = _prune(features, init.group, cfg, sin_vertical)
+    return Grouping(_cap_and_views(features, group, cfg), len(pairs), settled, init.rounds)
 
 
 def balanced(objects: PlanarObjects, features: PlanarFeatures, cfg: MatchingConfig,

@@ -7,20 +7,24 @@ stream from the extraction tasks into a :class:`FeatureStore`, files of one grou
 matched on its own (:func:`match_tile`, one task per tile): memory holds a tile and its margin,
 and the matched features that the adjustment takes.
 
-**The same objects as the whole flight's matching.** :func:`~georefine.lidar.correspondences.match_features`
-decides every object from the connected component of accepted pairs it belongs to (rules 1-6 of
-:mod:`georefine.lidar.correspondences`, each applied to every component alone, ties broken by the
-features' order) and balances each cell of ``balance_cell_m`` alone (rule 7). A tile is matched
-with the features within ``margin`` of it, kept in the whole flight's order (strip, channel,
-time, then the order they came in). A component none of whose members lies within
-``max_centre_distance_m`` of the margin's edge has no accepted pair outside the margin: it is a
-whole component of the flight and gives the flight's objects. An object of the tile's own
-cells has every member within ``max_object_radius_m`` of them; when a component with such a
-member reaches the margin's edge (a chain of patches along a road, longer than the margin), the
-margin doubles and the tile is matched again, up to the whole flight. The tile keeps the
-objects whose centre ``c0`` lies in its own balancing cells; the tiles' objects, put back into
-the flight's order, are those of the whole flight's matching, with the same frames to the last
-bit (the sums run over the same members in the same order; ``tests/test_feature_tiles.py``).
+**The same objects as the whole flight's matching.**
+:func:`~georefine.lidar.correspondences.match_features` decides every object from the connected
+component of accepted pairs it belongs to (rules 1-6 of :mod:`georefine.lidar.correspondences`,
+ties broken by the features' order) and balances each cell of ``balance_cell_m`` alone (rule 7).
+A tile is matched with the features within ``margin`` of it, kept in the whole flight's order
+(strip, channel, time, then the order they came in). Only the features within
+``max_centre_distance_m`` of the margin's edge can pair with one beyond it; from them
+:func:`~georefine.lidar.correspondences.group_features` bounds which features' groups the
+features beyond could change (the anti-chaining split decides a feature from those within 3 hops
+per round, so a road chained over kilometres is decided locally) and calls the others settled.
+An object of the tile's own cells has every member within ``2 max_object_radius_m`` of them; when
+one of those is not settled the margin widens (to what the split's rounds need, :func:`margin_for`)
+and the tile is matched again. The tile keeps the objects whose centre ``c0`` lies in its own
+balancing cells; the tiles' objects, put back into the flight's order, are those of the whole
+flight's matching, with the same frames to the last bit (the sums run over the same members in
+the same order; ``tests/test_feature_tiles.py``). The first margin (:data:`TYPICAL_ROUNDS`)
+settles the tiles of a 10-minute corridor at once: matching in tiles of 200 m takes 1.6 times
+the whole flight's matching in one process (the margins are matched twice), and runs as tasks.
 
 Only the matched features leave the tiles: a feature no object took is used nowhere after
 matching. The store also keeps a bounded sample of the features (:class:`SearchSample`) for the
@@ -48,8 +52,8 @@ from georefine.lidar.time_offset import MAX_POOL, MIN_TILTED, tilted
 from georefine.progress import no_progress
 from georefine.tasks import TaskRunner
 
-__all__ = ["SEARCH_SAMPLE", "FeatureStore", "SearchSample", "TiledFeatures", "match_store",
-           "match_tile", "read_rect", "tile_size"]
+__all__ = ["SEARCH_SAMPLE", "TYPICAL_ROUNDS", "FeatureStore", "SearchSample", "TiledFeatures", "margin_for",
+           "match_store", "match_tile", "read_rect", "tile_size"]
 
 log = logging.getLogger(__name__)
 
@@ -232,6 +236,23 @@ def read_rect(folder: Path, tile_m: float, rect: tuple[float, float, float, floa
     return f.select(order), arrival[order]
 
 
+TYPICAL_ROUNDS = 5
+"""Rounds of the anti-chaining split that the first margin allows for: its priorities (degree, then
+``sigma_d_m``) behave like random ones, whose rounds grow with the logarithm of a component's size;
+a 10-minute corridor's tiles take 5."""
+
+
+def margin_for(rounds: int, cfg: MatchingConfig) -> float:
+    """The margin (m) that settles a tile's objects when the split takes ``rounds`` rounds: unsure
+    features lie within ``max_centre_distance_m`` ``d`` of the margin's edge, or in small components
+    that touch that band (within ``d + 2 r sqrt 3``, ``r = max_object_radius_m``); the unsure reach
+    ``3 K + 3`` hops of at most ``d`` further
+    (:func:`~georefine.lidar.correspondences.group_features`), and an object of the tile has its
+    members within ``2 r`` of it."""
+    d, r = cfg.max_centre_distance_m, cfg.max_object_radius_m
+    return (3 * rounds + 4) * d + 2.0 * r * np.sqrt(3.0) + 2.0 * r + 1.0
+
+
 @dataclass(frozen=True)
 class TileObjects:
     """One tile's objects: their member features (flight's order), arrival numbers, and object of each (0..)."""
@@ -246,11 +267,12 @@ def match_tile(folder: Path, tile_m: float, tile: tuple[int, int], extent: tuple
                cfg: MatchingConfig, margin_m: float | None = None) -> TileObjects:
     """The objects whose centre lies in ``tile``'s own balancing cells, as the whole flight's matching
     makes them (module docstring); ``extent`` bounds the store's features (the margin grows to it at most).
-    ``margin_m``: the first margin, default ``2 (max_centre_distance_m + max_object_radius_m) + 1``."""
+    ``margin_m``: the first margin, default :func:`margin_for` :data:`TYPICAL_ROUNDS`; it widens
+    while features within ``2 max_object_radius_m`` of the tile are not settled."""
     x0, y0 = tile[0] * tile_m, tile[1] * tile_m
     x1, y1 = x0 + tile_m, y0 + tile_m
     d, r = cfg.max_centre_distance_m, cfg.max_object_radius_m
-    margin, grown = (2.0 * (d + r) + 1.0 if margin_m is None else float(margin_m)), 0
+    margin, grown = (margin_for(TYPICAL_ROUNDS, cfg) if margin_m is None else float(margin_m)), 0
     cells_per_tile = round(tile_m / cfg.balance_cell_m)
     while True:
         rect = (x0 - margin, y0 - margin, x1 + margin, y1 + margin)
@@ -258,19 +280,20 @@ def match_tile(folder: Path, tile_m: float, tile: tuple[int, int], extent: tuple
         f, arrival = read_rect(folder, tile_m, rect)
         if len(f) == 0:
             return TileObjects(PlanarFeatures.empty(), np.zeros(0, np.int64), np.zeros(0, np.int64), grown)
-        group, comp, _ = group_features(f, cfg)
         xy = f.centre_w[:, :2]
+        inner = d + _EPS_M  # a feature this near the margin's edge may pair with one beyond it
+        open_ = None if whole else ((xy[:, 0] <= rect[0] + inner) | (xy[:, 0] >= rect[2] - inner)
+                                    | (xy[:, 1] <= rect[1] + inner) | (xy[:, 1] >= rect[3] - inner))
+        grouping = group_features(f, cfg, open_)
+        group = grouping.group
         if not whole:
-            inner = d + _EPS_M  # a member this near the margin's edge may pair with a feature beyond it
-            open_member = ((xy[:, 0] <= rect[0] + inner) | (xy[:, 0] >= rect[2] - inner)
-                           | (xy[:, 1] <= rect[1] + inner) | (xy[:, 1] >= rect[3] - inner))
-            near = ((xy[:, 0] >= x0 - r - _EPS_M) & (xy[:, 0] < x1 + r + _EPS_M)
-                    & (xy[:, 1] >= y0 - r - _EPS_M) & (xy[:, 1] < y1 + r + _EPS_M))
-            n_comp = int(comp.max()) + 1
-            is_open = np.bincount(comp[open_member], minlength=n_comp) > 0
-            touches = np.bincount(comp[near], minlength=n_comp) > 0
-            if np.any(is_open & touches):
-                margin *= 2.0
+            # An object of the tile's cells has every member within 2 r of its c0 (the members
+            # before the member check lie within 2 r of each other), so those must be settled.
+            reach = 2.0 * r + _EPS_M
+            near = ((xy[:, 0] >= x0 - reach) & (xy[:, 0] < x1 + reach)
+                    & (xy[:, 1] >= y0 - reach) & (xy[:, 1] < y1 + reach))
+            if not np.all(grouping.settled[near]):
+                margin = max(2.0 * margin, margin_for(grouping.rounds, cfg))
                 grown += 1
                 continue
         objects = objects_from_groups(f, group, cfg)
@@ -285,8 +308,8 @@ def match_tile(folder: Path, tile_m: float, tile: tuple[int, int], extent: tuple
         local[keep] = np.arange(int(keep.sum()))
         sel = np.flatnonzero(member)
         if grown:
-            log.debug("ground tile %s matched with a %.0f m margin (a component reached the %.0f m one)",
-                      tile, margin, margin / 2.0)
+            log.debug("ground tile %s matched with a %.0f m margin after %d narrower ones left features near it "
+                      "unsettled", tile, margin, grown)
         return TileObjects(f.select(sel), arrival[sel], local[g[sel]], grown)
 
 
