@@ -12,6 +12,9 @@ knots) runs in a fresh child process per case so that its peak memory is its own
 ``--feature-tiles 200 whole`` runs each flight once per ``processing.scale.feature_tile_m`` (``whole``:
 the whole flight's features held and matched at once), in folders ``corridor-<N>min-t<tiles>``.
 
+``--budget 7000 20000`` runs each flight once per ``processing.lidar.max_features_per_minute``, in
+folders ``corridor-<N>min-b<budget>``.
+
 ``--knots 0.1 0.25`` runs each flight once per knot interval (``processing.trajectory.knot_interval_s``,
 IMU window a fifth of it), each in a folder ``corridor-<N>min-k<knots>`` beside the simulated
 project that links its data and holds its own ``project.yaml``.
@@ -28,6 +31,7 @@ flight relative to the first case (1.00 = linear); then log-log slopes, and a lo
 Usage::
 
     python bench/flight_length.py WORKDIR [--durations 10 30 60] [--knots 0.1 0.25] [--feature-tiles 200 whole]
+                                  [--budget 7000 20000]
                                   [--plot flight_length.png]
 
 Projects already in WORKDIR (``corridor-<N>min``) are reused.
@@ -69,12 +73,14 @@ def simulate(workdir: Path, minutes: float) -> Path:
     return project
 
 
-def with_knots(project: Path, knots: float | None, tiles: str | None = None) -> Path:
-    """``project`` itself (``knots`` and ``tiles`` None), or a sibling that links its data with other
-    knots or feature tiles (``processing.scale.feature_tile_m``: metres, or ``whole`` for null)."""
-    if knots is None and tiles is None:
+def with_knots(project: Path, knots: float | None, tiles: str | None = None, budget: int | None = None) -> Path:
+    """``project`` itself (``knots``, ``tiles`` and ``budget`` None), or a sibling that links its data
+    with other knots, feature tiles (``processing.scale.feature_tile_m``: metres, or ``whole`` for
+    null) or features per minute (``processing.lidar.max_features_per_minute``)."""
+    if knots is None and tiles is None and budget is None:
         return project
-    name = project.name + ("" if knots is None else f"-k{knots:g}") + ("" if tiles is None else f"-t{tiles}")
+    name = (project.name + ("" if knots is None else f"-k{knots:g}") + ("" if tiles is None else f"-t{tiles}")
+            + ("" if budget is None else f"-b{budget}"))
     variant = project.with_name(name)
     variant.mkdir(exist_ok=True)
     for entry in project.iterdir():
@@ -85,6 +91,8 @@ def with_knots(project: Path, knots: float | None, tiles: str | None = None) -> 
         cfg.setdefault("processing", {})["trajectory"] = {"knot_interval_s": knots, "imu_window_s": knots / 5.0}
     if tiles is not None:
         cfg.setdefault("processing", {})["scale"] = {"feature_tile_m": None if tiles == "whole" else float(tiles)}
+    if budget is not None:
+        cfg.setdefault("processing", {})["lidar"] = {"max_features_per_minute": int(budget)}
     (variant / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     return variant
 
@@ -122,13 +130,16 @@ def main() -> None:
     ap.add_argument("--feature-tiles", nargs="+", default=[None],
                     help="processing.scale.feature_tile_m per run (metres, or 'whole': the whole flight's features "
                          "held and matched at once); default: the project's configuration")
+    ap.add_argument("--budget", type=int, nargs="+", default=[None],
+                    help="processing.lidar.max_features_per_minute per run; default: the project's configuration")
     ap.add_argument("--plot", type=Path, default=None, help="log-log plot (PNG); default WORKDIR/flight_length.png")
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     rows = []
-    for minutes, knots, tiles in [(m, k, t) for t in args.feature_tiles for k in args.knots for m in args.durations]:
+    for minutes, knots, tiles, budget in [(m, k, t, b) for b in args.budget for t in args.feature_tiles
+                                          for k in args.knots for m in args.durations]:
         simulated = simulate(args.workdir, minutes)
-        project = with_knots(simulated, knots, tiles)
+        project = with_knots(simulated, knots, tiles, budget)
         out = args.workdir / ("run-" + project.name.removeprefix("corridor-"))
         with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
             r = pool.submit(run, str(project), str(out)).result()
@@ -140,6 +151,7 @@ def main() -> None:
             "minutes": truth["duration_s"] / 60.0,
             "knots": cfg.get("processing", {}).get("trajectory", {}).get("knot_interval_s", 0.1),
             "tiles": tiles or "default",
+            "budget": budget or "default",
             "rpy": pass_rmse(simulated, out), "wall_s": r["wall_s"], "peak_gb": r["peak_rss_gb"],
             # "gi_adjustment" times steps 1-2 (the cached stage); the G/I adjustment is step 2.
             "filter_s": t.get("filter", np.nan), "gi_s": t.get("gi_adjustment", np.nan) - t.get("filter", 0.0),
@@ -151,31 +163,31 @@ def main() -> None:
                      for it in m["outer_iterations"]],
         }
         rows.append(row)
-        print(f"  {row['minutes']:.1f} min, {row['knots']:g} s knots, feature tiles {row['tiles']}: G/I {row['gi_s']:.1f} s, G/I/L {row['gil_s']:.1f} s "
+        print(f"  {row['minutes']:.1f} min, {row['knots']:g} s knots, feature tiles {row['tiles']}, budget {row['budget']}: G/I {row['gi_s']:.1f} s, G/I/L {row['gil_s']:.1f} s "
               f"({row['iterations']} outer iterations, {row['features']:,} features), whole run {row['wall_s']:.0f} s, "
               f"peak {row['peak_gb']:.2f} GB, G/I/L roll/pitch/yaw {np.round(row['rpy'], 2).tolist()} mdeg", flush=True)
 
     print("\n| flight | knots | filter (step 1) | G/I adjustment (step 2) | G/I/L adjustments | outer iterations (time each; change each) "
-          "| features / objects | feature tiles | features + matching | G/I/L posterior | whole run | peak memory | G/I per min : first | G/I/L per min : first "
+          "| features / objects | feature tiles | features per minute | features + matching | G/I/L posterior | whole run | peak memory | G/I per min : first | G/I/L per min : first "
           "| G/I/L roll | pitch | yaw (mdeg) |")
-    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     for r in rows:
-        first = next(f for f in rows if f["knots"] == r["knots"] and f["tiles"] == r["tiles"])
+        first = next(f for f in rows if (f["knots"], f["tiles"], f["budget"]) == (r["knots"], r["tiles"], r["budget"]))
         print(f"| {r['minutes']:.1f} min | {r['knots']:g} s | {r['filter_s']:.1f} s | {r['gi_s']:.1f} s | {r['gil_s']:.1f} s "
               f"| {r['iterations']} ({' + '.join(f'{t:.0f}' for t, _ in r['each'])} s; "
               f"{' / '.join(f'{c:.2f}' for _, c in r['each'])} mdeg) "
-              f"| {r['features']:,} / {r['objects']:,} | {r['tiles']} | {r['features_s'] + r['matching_s']:.0f} s | {r['posterior_s']:.1f} s "
+              f"| {r['features']:,} / {r['objects']:,} | {r['tiles']} | {r['budget']} | {r['features_s'] + r['matching_s']:.0f} s | {r['posterior_s']:.1f} s "
               f"| {r['wall_s']:.0f} s | {r['peak_gb']:.2f} GB "
               f"| {r['gi_s'] / r['minutes'] / (first['gi_s'] / first['minutes']):.2f} "
               f"| {r['gil_s'] / r['minutes'] / (first['gil_s'] / first['minutes']):.2f} "
               f"| {r['rpy'][0]:.2f} | {r['rpy'][1]:.2f} | {r['rpy'][2]:.2f} |")
-    for knots, tiles in dict.fromkeys((r["knots"], r["tiles"]) for r in rows):
-        same = [r for r in rows if r["knots"] == knots and r["tiles"] == tiles]
+    for knots, tiles, budget in dict.fromkeys((r["knots"], r["tiles"], r["budget"]) for r in rows):
+        same = [r for r in rows if (r["knots"], r["tiles"], r["budget"]) == (knots, tiles, budget)]
         if len(same) > 1:
             d = np.log([r["minutes"] for r in same])
             for key in ("gi_s", "gil_s", "peak_gb", "wall_s"):
                 slope = np.polyfit(d, np.log([r[key] for r in same]), 1)[0]
-                print(f"{knots:g} s knots, feature tiles {tiles}: log-log slope of {key} against flight length: {slope:.2f} (1 = linear)")
+                print(f"{knots:g} s knots, feature tiles {tiles}, budget {budget}: log-log slope of {key} against flight length: {slope:.2f} (1 = linear)")
     _plot(rows, args.plot or args.workdir / "flight_length.png")
 
 
@@ -187,12 +199,14 @@ def _plot(rows: list[dict], path: Path) -> None:
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.8))
     styles = ("o-", "s--", "^-.", "d:")
-    for i, knots in enumerate(dict.fromkeys(r["knots"] for r in rows)):
-        same = [r for r in rows if r["knots"] == knots]
+    for i, case in enumerate(dict.fromkeys((r["knots"], r["tiles"], r["budget"]) for r in rows)):
+        same = [r for r in rows if (r["knots"], r["tiles"], r["budget"]) == case]
         x, style = np.array([r["minutes"] for r in same]), styles[i % len(styles)]
+        name = f"{case[0]:g} s knots" + (f", tiles {case[1]}" if case[1] != "default" else "") + (
+            f", {case[2]}/min" if case[2] != "default" else "")
         for j, (key, label) in enumerate((("gi_s", "G/I"), ("gil_s", "G/I/L"), ("wall_s", "whole run"))):
-            a.loglog(x, [r[key] for r in same], style, color=f"C{j}", label=f"{label}, {knots:g} s knots")
-        b.loglog(x, [r["peak_gb"] for r in same], style, color="C0", label=f"peak memory, {knots:g} s knots")
+            a.loglog(x, [r[key] for r in same], style, color=f"C{j}", label=f"{label}, {name}")
+        b.loglog(x, [r["peak_gb"] for r in same], style, color="C0", label=f"peak memory, {name}")
     x = np.array(sorted({r["minutes"] for r in rows}))
     a.loglog(x, 300.0 * x / x[-1], "k:", label="linear (5 min at the longest)")
     a.set_xlabel("flight (min)")

@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from georefine.errors import InputError
-from georefine.lidar.feature_sample import feature_keys, stable_object_subset
+from georefine.lidar.feature_sample import feature_keys, shared_budget, time_windows, windowed_object_subset
 from georefine.lidar.planes import (
     CSV_COLUMNS,
     PlanarFeatures,
@@ -334,8 +334,8 @@ def test_features_keep_their_keys_when_the_trajectory_changes_a_little(simulated
     assert shared >= 0.97 * min(len(f), len(g))
     size = len(f) // 10
     # each feature its own object: the sample is the features of smallest key (bottom-k)
-    a = stable_object_subset(np.arange(len(f)), kf, np.arange(len(f)), size)
-    b = stable_object_subset(np.arange(len(g)), kg, np.arange(len(g)), size)
+    a = _one_window_subset(np.arange(len(f)), kf, np.arange(len(f)), size)
+    b = _one_window_subset(np.arange(len(g)), kg, np.arange(len(g)), size)
     assert a.size == b.size == size and np.all(np.diff(a) > 0)
     assert np.intersect1d(kf[a], kg[b]).size >= 0.95 * size
     # keys do not depend on the feature order, and differ between views of the same places
@@ -348,21 +348,74 @@ def test_features_keep_their_keys_when_the_trajectory_changes_a_little(simulated
     assert np.all(np.abs(counts - size / 4) < 4 * np.sqrt(size / 4))
 
 
-def test_stable_object_subset_small_and_exact():
+def _one_window_subset(index, keys, obj, size):
+    """One window, one strip, no facades: the objects of smallest min-hash that fit ``size``."""
+    n = keys.size
+    return windowed_object_subset(index, keys, obj, np.zeros(n, np.int64), np.ones(n, np.int64),
+                                  np.zeros(int(obj.max()) + 1, bool), size)
+
+
+def test_windowed_object_subset_small_and_exact():
     keys = np.array([9, 3, 7, 1, 5, 2, 8], dtype=np.uint64)
     obj = np.array([0, 1, 0, 2, 1, 0, 2])  # min-hashes: object 2 -> 1, object 0 -> 2, object 1 -> 3
-    np.testing.assert_array_equal(stable_object_subset(np.arange(7), keys, obj, 7), np.arange(7))
-    np.testing.assert_array_equal(stable_object_subset(np.array([6, 3, 0]), keys, obj, 5), [0, 3, 6])
-    np.testing.assert_array_equal(stable_object_subset(np.arange(7), keys, obj, 5), [0, 2, 3, 5, 6])
-    # a prefix of the ranking: object 1 would fit after object 0 is refused, but is not taken
-    np.testing.assert_array_equal(stable_object_subset(np.arange(7), keys, obj, 4), [3, 6])
+    np.testing.assert_array_equal(_one_window_subset(np.arange(7), keys, obj, 7), np.arange(7))
+    np.testing.assert_array_equal(_one_window_subset(np.array([6, 3, 0]), keys, obj, 5), [0, 3, 6])
+    np.testing.assert_array_equal(_one_window_subset(np.arange(7), keys, obj, 5), [0, 2, 3, 5, 6])
+    # greedy: object 0 (3 members) does not fit after object 2, object 1 (2 members) does
+    np.testing.assert_array_equal(_one_window_subset(np.arange(7), keys, obj, 4), [1, 3, 4, 6])
     # object 0 without its smallest-keyed member ranks by its next one (7), after object 1 (3)
-    np.testing.assert_array_equal(stable_object_subset(np.array([0, 1, 2, 3, 4, 6]), keys, obj, 4), [1, 3, 4, 6])
+    np.testing.assert_array_equal(_one_window_subset(np.array([0, 1, 2, 3, 4, 6]), keys, obj, 4), [1, 3, 4, 6])
     with pytest.raises(ValueError, match="object"):
-        stable_object_subset(np.arange(7), keys, np.array([0, 1, 0, -1, 1, 0, 2]), 3)
+        _one_window_subset(np.arange(7), keys, np.array([0, 1, 0, -1, 1, 0, 2]), 3)
 
 
-def test_stable_object_subset_keeps_whole_objects_and_its_sample_through_a_rematching():
+def test_windowed_object_subset_keeps_each_windows_budget_and_prefers_what_constrains_more():
+    """Two windows of flight time: each keeps its own budget (a long flight keeps a short one's
+    density), an object counts in every window its members lie in, objects seen from two strips
+    come first, then facades, then the min-hash."""
+    keys = np.arange(10, dtype=np.uint64)[::-1].copy()  # later features have smaller keys
+    obj = np.array([0, 0, 1, 1, 2, 2, 3, 3, 4, 4])
+    window = np.array([0, 0, 0, 0, 0, 1, 1, 1, 1, 1])
+    strip = np.array([1, 1, 1, 1, 1, 2, 1, 1, 2, 2])  # object 2 is seen from strips 1 and 2
+    vertical = np.array([False, True, False, False, False])
+    pick = windowed_object_subset(np.arange(10), keys, obj, window, strip, vertical, 3)
+    # object 2 (two strips, one member in each window) first, then the facade 1 in window 0
+    # (room for 2 more there), then 4 (smallest min-hash) in window 1; 0 and 3 find no room.
+    np.testing.assert_array_equal(pick, [2, 3, 4, 5, 8, 9])
+    per_window = np.bincount(window[pick])
+    assert per_window.max() <= 3
+    # under the budget in every window: all
+    np.testing.assert_array_equal(windowed_object_subset(np.arange(10), keys, obj, window, strip, vertical, 6),
+                                  np.arange(10))
+    # a ceiling of 5 in all: the windows share it evenly (2 each); object 2 takes one in each, and
+    # no object of two members in one window fits beside it
+    capped = windowed_object_subset(np.arange(10), keys, obj, window, strip, vertical, 6, total=5)
+    np.testing.assert_array_equal(capped, [4, 5])
+    capped = windowed_object_subset(np.arange(10), keys, obj, window, strip, vertical, 6, total=6)
+    np.testing.assert_array_equal(capped, [2, 3, 4, 5, 8, 9])  # 3 each: the facade 1 and object 4 fit
+    # the windows follow the clock, apart per flight
+    t = np.array([0.0, 59.9, 60.0, 125.0])
+    np.testing.assert_array_equal(time_windows(t, 60.0), [0, 0, 1, 2])
+    w = time_windows(t, 60.0, flight=np.array([0, 0, 1, 1]))
+    assert w[0] == w[1] and len(set(w[1:].tolist())) == 3
+
+
+def test_shared_budget_fills_the_windows_evenly():
+    """Water-filling: the windows below the level are taken whole, the others share what is left."""
+    assert shared_budget([10, 100, 100], 1000, 150) == 70
+    assert shared_budget([10, 20, 30], 1000, 60) == 1000  # all fit
+    assert shared_budget([10, 20, 30], 1000, 59) == 29
+    assert shared_budget([10, 100, 100], 50, 1000) == 50  # the per-window budget binds first
+    assert shared_budget([5, 5], 1000, 3) == 1
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        counts = rng.integers(0, 500, rng.integers(1, 30))
+        total = int(rng.integers(0, counts.sum() + 1))
+        b = shared_budget(counts, 10_000, total)
+        assert np.minimum(counts, b).sum() <= total < np.minimum(counts, b + 1).sum() or b >= counts.max()
+
+
+def test_windowed_object_subset_keeps_whole_objects_and_its_sample_through_a_rematching():
     """The sample is whole objects; after a re-matching that moves a few members between
     objects and drops others, most sampled objects are sampled again (two random draws of a
     fifth of the objects would share a fifth)."""
@@ -372,7 +425,7 @@ def test_stable_object_subset_keeps_whole_objects_and_its_sample_through_a_remat
     obj = np.repeat(np.arange(n_obj), size_of)
     keys = rng.integers(0, 2**63, obj.size, dtype=np.uint64)
     cap = obj.size // 5
-    a = stable_object_subset(np.arange(obj.size), keys, obj, cap)
+    a = _one_window_subset(np.arange(obj.size), keys, obj, cap)
     assert a.size <= cap and a.size > cap - 12 and np.all(np.diff(a) > 0)
     taken = np.unique(obj[a])
     np.testing.assert_array_equal(np.bincount(obj[a], minlength=n_obj)[taken], size_of[taken])  # whole
@@ -381,10 +434,9 @@ def test_stable_object_subset_keeps_whole_objects_and_its_sample_through_a_remat
     moved = rng.random(obj.size) < 0.03
     obj2[moved] = rng.integers(0, n_obj, int(moved.sum()))
     kept = np.flatnonzero(rng.random(obj.size) >= 0.03)
-    b = stable_object_subset(kept, keys, obj2, cap)
+    b = _one_window_subset(kept, keys, obj2, cap)
     shared = np.intersect1d(taken, np.unique(obj2[b])).size
     assert shared >= 0.8 * taken.size
-
 
 
 # --------------------------------------------------------------------------- container and files

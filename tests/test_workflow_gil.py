@@ -458,7 +458,7 @@ def test_outer_iterations_that_do_not_converge_are_reported_with_their_figures(c
         warn_unconverged(moving, lcfg)
     text = caplog.text
     assert "did not converge" in text and "2.43 mdeg" in text and "57.70 mdeg, 2.60 mdeg" in text
-    assert "200,000 of 15,555,953" in text and "processing.lidar.max_features" in text
+    assert "200,000 of 15,555,953" in text and "processing.lidar.max_features, max_features_per_minute" in text
     caplog.clear()
     settled = [*moving[:2], dataclasses.replace(moving[2], attitude_change_mdeg=0.9)]
     assert outer_converged(settled[-1], lcfg) and not outer_converged(moving[-1], lcfg)

@@ -397,9 +397,24 @@ class LidarAdjustmentConfig(StrictModel):
     boresight_prior_deg: float = Field(0.1, gt=0.0, description="Prior sigma of the boresight angles when estimated.")
     time_offset: TimeOffsetConfig = Field(default_factory=TimeOffsetConfig)
     max_features: int = Field(
-        200_000, ge=100, description="Cap on matched features in the adjustment: beyond it whole objects are "
-        "taken, the same ones in every outer iteration as far as the re-matching allows.",
+        200_000, ge=100, description="Ceiling on matched features in the adjustment, which today's solver needs to "
+        "bound its memory on long flights: the windows of selection_window_s share it evenly (each the same budget, "
+        "a window with fewer features leaving its room to the others), as whole objects.",
     )
+    max_features_per_minute: int = Field(
+        20_000, ge=100, description="Budget of matched features per minute of flight: in every window of "
+        "selection_window_s at most this many (pro rata) are taken, as whole objects, those seen from more strips "
+        "first, then facades, then by a min-hash that keeps the same ones in every outer iteration as far as the "
+        "re-matching allows (lidar/feature_sample.py).",
+    )
+    selection_window_s: float = Field(
+        60.0, gt=0.0, description="Window of flight time over which max_features_per_minute applies.")
+
+    @property
+    def window_budget(self) -> int:
+        """Matched features taken at most per window of ``selection_window_s`` (before ``max_features``)."""
+        return max(1, round(self.max_features_per_minute * self.selection_window_s / 60.0))
+
     function_tolerance: float = Field(
         1e-3, gt=0.0,
         description="Stop the G/I/L Levenberg-Marquardt when an iteration lowers the cost by less than this "

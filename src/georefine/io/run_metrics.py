@@ -47,7 +47,7 @@ class OuterIteration:
         Planar features extracted in all views and planar objects matched from them.
     features_used, objects_used
         Features and objects that entered the adjustment (matched, inside the trajectory span,
-        at most ``processing.lidar.max_features``).
+        within ``processing.lidar.max_features`` and ``max_features_per_minute``).
     attitude_change_mdeg, position_change_m
         RMS change of the trajectory at the knots against the iteration's start (the
         convergence criterion).

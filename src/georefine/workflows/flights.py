@@ -67,7 +67,7 @@ from georefine.io.run_metrics import (
     write_adjustment_report,
 )
 from georefine.lidar.correspondences import PlanarObjects, match_features
-from georefine.lidar.feature_sample import feature_keys, stable_object_subset
+from georefine.lidar.feature_sample import feature_keys, time_windows, windowed_object_subset
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.object_files import write_objects
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
@@ -230,8 +230,12 @@ def step_adjust_flights(
     estimated = lcfg.time_offset.estimate and held is None
     sel = [plane_candidates(features, objects, spans[k], estimated, among=flight_of == k) for k in range(n)]
     every = np.concatenate(sel)
-    if every.size > lcfg.max_features:  # whole objects across the flights, as one flight does it
-        every = stable_object_subset(np.sort(every), feature_keys(features), objects.feature_object, lcfg.max_features)
+    # Whole objects across the flights, within the budget of each window of each flight's time.
+    chosen = windowed_object_subset(np.sort(every), feature_keys(features), objects.feature_object,
+                                    time_windows(features.time, lcfg.selection_window_s, flight_of), features.strip,
+                                    objects.is_vertical, lcfg.window_budget, lcfg.max_features)
+    if chosen.size < every.size:
+        every = chosen
         sel = [np.intersect1d(s, every) for s in sel]
     if every.size == 0:
         raise InputError("no matched planar features inside the trajectory span of any flight",

@@ -32,7 +32,7 @@ from georefine.config import boresight_matrix
 from georefine.errors import InputError
 from georefine.geometry.rotation import rph_from_R_n_b, wrap_angle
 from georefine.lidar.correspondences import PlanarObjects
-from georefine.lidar.feature_sample import feature_keys, stable_object_subset
+from georefine.lidar.feature_sample import feature_keys, time_windows, windowed_object_subset
 from georefine.lidar.planes import PlanarFeatures
 from georefine.lidar.time_offset import offset_unobservable
 from georefine.progress import Progress, no_progress
@@ -153,7 +153,7 @@ def build_gil_problem(
     out of the IMU windows. ``selection`` gives the features, the objects (the rows of
     ``plane_params``) and the time offset's observability where several problems share the
     objects; without it they are chosen here (matched, inside the trajectory, at most
-    ``max_features``).
+    ``max_features_per_minute`` in each ``selection_window_s`` and ``max_features`` in all).
 
     Raises
     ------
@@ -196,11 +196,13 @@ def build_gil_problem(
             held = offset_unobservable(features.time[matched], features.strip[matched], spline.velocity)
         timing = add_time_offset(P, cfg, time_offset, held)
         sel = plane_candidates(features, objects, (grid.t_start, grid.t_end), bool(timing["time_offset"]))
-        if sel.size > lcfg.max_features:
-            # Whole objects, the same ones in every outer iteration as far as the re-matching allows
-            # (ranked by a min-hash of keys fixed by strip, channel and seed voxel), not a fresh random
-            # draw, and not single features, which would leave objects with one view or one member.
-            sel = stable_object_subset(sel, feature_keys(features), objects.feature_object, lcfg.max_features)
+        # Whole objects within a budget per window of flight time, the same ones in every outer
+        # iteration as far as the re-matching allows (ranked by a min-hash of keys fixed by strip,
+        # channel and seed voxel), not a fresh random draw, and not single features, which would
+        # leave objects with one view or one member.
+        sel = windowed_object_subset(sel, feature_keys(features), objects.feature_object,
+                                     time_windows(features.time, lcfg.selection_window_s), features.strip,
+                                     objects.is_vertical, lcfg.window_budget, lcfg.max_features)
         if sel.size == 0:
             raise InputError("no matched planar features inside the trajectory span", field="processing.matching")
         used_objects, obj_index = np.unique(objects.feature_object[sel], return_inverse=True)

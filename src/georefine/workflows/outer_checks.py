@@ -67,7 +67,7 @@ def warn_unconverged(records: list[OuterIteration], lcfg) -> None:
     log.warning(
         "the G/I/L outer iterations did not converge: after %d (processing.lidar.outer_iterations) the last one "
         "still moved the trajectory by %.2f mdeg and %.1f mm RMS (thresholds %.2f mdeg and %.1f mm; changes "
-        "before it: %s); it used %s of %s features extracted (processing.lidar.max_features)",
+        "before it: %s); it used %s of %s features extracted (processing.lidar.max_features, max_features_per_minute)",
         len(records), last.attitude_change_mdeg, last.position_change_m * 1e3, lcfg.convergence_attitude_mdeg,
         lcfg.convergence_position_m * 1e3,
         ", ".join(f"{r.attitude_change_mdeg:.2f} mdeg" for r in records[:-1]) or "none",
