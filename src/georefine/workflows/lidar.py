@@ -326,6 +326,9 @@ def stage_outer_iterations(steps: StepRunner, inputs: WorkflowInputs, gi: GnssIm
         key = _lidar_key(nav, inputs.strips, key, it)
         start = current
         coarse = outer_knot_interval(lcfg, nav.config.processing.trajectory.knot_interval_s, it, shaking)
+        # The previous iteration's problem and factorisation go before this one is built: held
+        # through the next extraction and adjustment they doubled the G/I/L's share of the peak.
+        outcome = None
         outcome = steps.cached(
             f"gil_{it}", key, partial(_outer_iteration, nav, start, strips, it, steps.timed, progress,
                                       inputs.runner, coarse, prior, inputs.out),
