@@ -9,6 +9,7 @@ flights' attitude together is as good as alone, with honest sigmas.
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +18,7 @@ import yaml
 
 from georefine.evaluation.trajectory_files import truth_pass_accuracy
 from georefine.io.run_metrics import WorkflowMetrics, read_adjustment_report
+from georefine.io.trajectory import read_sbet
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows.flights import run_flights
 from georefine.workflows.lidar import run_workflow
@@ -129,3 +131,29 @@ def test_attitude_against_alone(runs, project):
     z = np.asarray(z)
     assert np.all(z <= 2.5), z
     assert 0.4 <= float(np.sqrt(np.mean(z**2))) <= 2.5, z
+
+
+def test_ground_tiles_give_the_flights_objects_and_trajectories_held_whole(runs, project, tmp_path):
+    """The joint run (every flight's features in one store of ground tiles, the default) against
+    the flights' features held and matched at once (``feature_tile_m: null``): the same objects,
+    the same trajectories (docs/ARCHITECTURE.md §4.7)."""
+    held = tmp_path / "held"
+    shutil.copytree(project, held, symlinks=True)
+    cfg = yaml.safe_load((held / "project.yaml").read_text())
+    cfg.setdefault("processing", {}).setdefault("scale", {})["feature_tile_m"] = None
+    (held / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+    out = tmp_path / "out"
+    run_flights(open_project(held), out, cache_dir=tmp_path / "cache", scheduler="sync")
+    joint = runs / "joint"
+    assert yaml.safe_load((joint / "config.resolved.yaml").read_text())["processing"]["scale"]["feature_tile_m"] == 200
+    for name in ("objects.csv", "features.csv"):
+        assert (joint / "features" / name).read_text() == (out / "features" / name).read_text(), name
+    a, b = WorkflowMetrics.read(joint / "metrics.json"), WorkflowMetrics.read(out / "metrics.json")
+    assert [it.features for it in a.outer_iterations] == [it.features for it in b.outer_iterations]
+    for flight in STRIPS:
+        tiled = read_sbet(joint / "gil" / f"flight_{flight}" / "trajectory.sbet")
+        whole = read_sbet(out / "gil" / f"flight_{flight}" / "trajectory.sbet")
+        np.testing.assert_allclose(whole.h_m, tiled.h_m, rtol=0, atol=1e-6)
+        for name in ("roll_rad", "pitch_rad", "heading_rad"):
+            np.testing.assert_allclose(getattr(whole, name), getattr(tiled, name), rtol=0, atol=1e-6, err_msg=name)
+        np.testing.assert_allclose(whole.lat_rad, tiled.lat_rad, rtol=0, atol=1e-6 / 6.4e6)

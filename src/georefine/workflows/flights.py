@@ -68,6 +68,7 @@ from georefine.io.run_metrics import (
 )
 from georefine.lidar.correspondences import PlanarObjects, match_features
 from georefine.lidar.feature_sample import feature_keys, time_windows, windowed_object_subset
+from georefine.lidar.feature_tiles import FeatureStore, match_store, tile_size
 from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.object_files import write_objects
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
@@ -317,41 +318,61 @@ def _strip_flight(flights: list[FlightInputs]) -> dict[int, int]:
 
 
 def joint_features(flights: list[FlightInputs], currents: list[GnssImuResult], strips: list[list[StripFile]],
-                   progress: Progress, runner: TaskRunner, search: bool = False):
+                   progress: Progress, runner: TaskRunner, search: bool = False, scratch: Path | None = None):
     """Steps 3-4 for all flights: each flight's features extracted with its own trajectory, then matched together.
 
-    Returns ``(features, objects, flight_of, views, outside, found)``: the features of all flights
-    (sorted by strip, channel, time; each with its own flight's times), their objects, each
-    feature's flight index, the features per view, the points outside the trajectories, and the
-    time offset search (or None). With ``search`` the offset is searched over all strips of all
-    flights before matching; an adopted offset shifts and re-georeferences every flight's features.
+    Returns ``(features, objects, flight_of, views, outside, found, extracted)``: the matched
+    features of all flights (sorted by strip, channel, time; each with its own flight's times),
+    their objects, each feature's flight index, the features per view, the points outside the
+    trajectories, the time offset search (or None) and the features extracted in all. With
+    ``processing.scale.feature_tile_m`` every flight's features go to one store of ground tiles (in
+    a folder in ``scratch``; strip ids are unique across the flights) and each tile is matched on
+    its own (:mod:`georefine.lidar.feature_tiles`: the objects of matching them all at once, which
+    ``null`` does). With ``search`` the offset is searched over all strips of all flights before
+    matching; an adopted offset shifts and re-georeferences every flight's features.
     """
-    parts, views, outside = [], {}, 0
-    trajs = []
-    for f, cur, s in zip(flights, currents, strips):
-        traj = imu_rate_trajectory(f.nav, cur)
-        trajs.append(traj)
-        feats, counts = step_features(f.nav, traj, s, progress, runner, frame_poses=cur.spline.pose)
-        parts.append(feats)
-        views.update(counts.views)
-        outside += counts.points_outside_trajectory
-    found = None
-    if search:
-        progress("LiDAR time offset search", 0, 1)
-        found, parts = _search_flights(flights, trajs, currents, parts, strips[0][0].time_offset_s)
-        progress("LiDAR time offset search", 1, 1)
-    features = sort_features(PlanarFeatures.concatenate(parts))
+    cfg = flights[0].nav.config
+    mcfg = cfg.processing.matching
+    tile_m = cfg.processing.scale.feature_tile_m
+    store = None if tile_m is None else FeatureStore(tile_size(tile_m, mcfg), scratch)
     by_strip = _strip_flight(flights)
+    try:
+        parts, views, outside, trajs = [], {}, 0, []
+        for f, cur, s in zip(flights, currents, strips):
+            traj = imu_rate_trajectory(f.nav, cur)
+            trajs.append(traj)
+            feats, counts = step_features(f.nav, traj, s, progress, runner, frame_poses=cur.spline.pose, store=store)
+            parts.append(feats)
+            views.update(counts.views)
+            outside += counts.points_outside_trajectory
+        found = None
+        if search:
+            progress("LiDAR time offset search", 0, 1)
+            if store is None:
+                found, parts = _search_flights(flights, trajs, currents, parts, strips[0][0].time_offset_s)
+            else:
+                found, store = _search_flights_store(flights, trajs, currents, store, strips[0][0].time_offset_s,
+                                                     by_strip)
+            progress("LiDAR time offset search", 1, 1)
+        if store is None:
+            features = sort_features(PlanarFeatures.concatenate(parts))
+            progress("matching planar features", 0, 1)
+            objects = match_features(features, mcfg)
+            progress("matching planar features", 1, 1)
+            used = objects.feature_object >= 0
+            features, objects = features.select(used), replace(objects, feature_object=objects.feature_object[used])
+        else:  # the tiles' tasks show their progress
+            tiled = match_store(store, mcfg, runner, progress)
+            features, objects = tiled.features, tiled.objects
+    finally:
+        if store is not None:
+            store.close()
     flight_of = np.array([by_strip[int(s)] for s in features.strip], dtype=np.int64)
-    progress("matching planar features", 0, 1)
-    objects = match_features(features, flights[0].nav.config.processing.matching)
-    progress("matching planar features", 1, 1)
-    return features, objects, flight_of, views, outside, found
+    return features, objects, flight_of, views, outside, found, int(sum(views.values()))
 
 
-def _search_flights(flights, trajs: list[Trajectory], currents, parts: list[PlanarFeatures], configured_s: float):
-    """The time offset search over the features of all flights in one time base (:data:`SEARCH_SHIFT_S`);
-    the features at the adopted offset."""
+def _joint_search(flights, trajs: list[Trajectory], features: list[PlanarFeatures], configured_s: float):
+    """The time offset search over every flight's ``features`` in one time base (:data:`SEARCH_SHIFT_S`), logged."""
     cfg = flights[0].nav.config
     tcfg = cfg.processing.lidar.time_offset
     p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
@@ -359,25 +380,67 @@ def _search_flights(flights, trajs: list[Trajectory], currents, parts: list[Plan
     joint = Trajectory(np.concatenate([t.time + k * SEARCH_SHIFT_S for k, t in enumerate(trajs)]),
                        np.concatenate([t.p_w_b for t in trajs]), np.concatenate([t.R_w_b for t in trajs]))
     poses = PoseInterpolator(joint)
-    shifted = [replace(p, time=p.time + k * SEARCH_SHIFT_S) for k, p in enumerate(parts)]
+    shifted = [replace(p, time=p.time + k * SEARCH_SHIFT_S) for k, p in enumerate(features)]
     speed = np.concatenate([np.linalg.norm(np.diff(t.p_w_b, axis=0), axis=1) / np.diff(t.time) for t in trajs])
     result = search_time_offset(PlanarFeatures.concatenate(shifted), poses, poses.span, p_b_s, R_b_s,
                                 speed_max_m_s=float(np.percentile(speed, 99.5)), configured_s=configured_s,
                                 range_s=tcfg.search_range_s, feature_spacing_m=cfg.processing.planes.seed_spacing_m)
-    if not result.adopted:
+    if result.adopted:
+        log.warning("LiDAR time offset (%d flights): %s", len(flights), result.describe())
+    else:
         log.info("LiDAR time offset search over %d flights: %s", len(flights), result.describe())
+    return result
+
+
+def _moved(cfg, traj: Trajectory, cur: GnssImuResult, p: PlanarFeatures, delta: float
+           ) -> tuple[PlanarFeatures, np.ndarray]:
+    """``p`` with its times moved by ``delta`` (s), those that stay inside ``traj``, in ``w`` again; their index."""
+    p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
+    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
+    t = p.time + delta
+    inside = np.flatnonzero((t >= traj.time[0]) & (t <= traj.time[-1]))
+    moved = p.select(inside)
+    centre_w, normal_w = georeference_features(moved, cur.spline.pose, p_b_s, R_b_s, t[inside])
+    return replace(moved, time=t[inside], centre_w=centre_w, normal_w=normal_w), inside
+
+
+def _search_flights(flights, trajs: list[Trajectory], currents, parts: list[PlanarFeatures], configured_s: float):
+    """The joint time offset search over the features of all flights; the features at the adopted offset."""
+    result = _joint_search(flights, trajs, parts, configured_s)
+    if not result.adopted:
         return result, parts
-    log.warning("LiDAR time offset (%d flights): %s", len(flights), result.describe())
     delta = result.best_s - configured_s
-    out = []
-    for traj, cur, p in zip(trajs, currents, parts):
-        t = p.time + delta
-        inside = (t >= traj.time[0]) & (t <= traj.time[-1])
-        moved = p.select(np.flatnonzero(inside))
-        t = t[inside]
-        centre_w, normal_w = georeference_features(moved, cur.spline.pose, p_b_s, R_b_s, t)
-        out.append(replace(moved, time=t, centre_w=centre_w, normal_w=normal_w))
-    return result, out
+    cfg = flights[0].nav.config
+    return result, [_moved(cfg, traj, cur, p, delta)[0] for traj, cur, p in zip(trajs, currents, parts)]
+
+
+def _search_flights_store(flights, trajs: list[Trajectory], currents, store: FeatureStore, configured_s: float,
+                          by_strip: dict[int, int]) -> tuple:
+    """:func:`_search_flights` on a ground-tiled ``store``: the search scores its sample; at an adopted
+    offset every flight's features move, tile by tile, into a new store (``store`` is closed)."""
+    sample = store.sample.features()
+    of = np.array([by_strip[int(s)] for s in sample.strip], dtype=np.int64)
+    result = _joint_search(flights, trajs, [sample.select(np.flatnonzero(of == k)) for k in range(len(flights))],
+                           configured_s)
+    if not result.adopted:
+        return result, store
+    delta = result.best_s - configured_s
+    cfg = flights[0].nav.config
+    moved = FeatureStore(store.tile_m, store.parent, store.sample.size)
+    try:
+        for ij in store.tiles:
+            features, arrival = store.read_tile(ij)
+            of = np.array([by_strip[int(s)] for s in features.strip], dtype=np.int64)
+            for k, (traj, cur) in enumerate(zip(trajs, currents)):
+                mine = np.flatnonzero(of == k)
+                shifted, inside = _moved(cfg, traj, cur, features.select(mine), delta)
+                moved.add(shifted, arrival[mine][inside])
+    except BaseException:
+        moved.close()
+        raise
+    finally:
+        store.close()
+    return result, moved
 
 
 # --- the run ------------------------------------------------------------------------------
@@ -439,7 +502,7 @@ class _Outcome:
 
 
 def _outer_iterations(flights: list[FlightInputs], gis: list[GnssImuResult], steps: StepRunner, progress: Progress,
-                      runner: TaskRunner) -> _Outcome:
+                      runner: TaskRunner, scratch: Path | None = None) -> _Outcome:
     cfg = flights[0].nav.config
     lcfg = cfg.processing.lidar
     share_bs, share_offset = shared_calibration(flights)
@@ -453,8 +516,8 @@ def _outer_iterations(flights: list[FlightInputs], gis: list[GnssImuResult], ste
     records = []
     for it in range(1, lcfg.outer_iterations + 1):
         with steps.timed(f"features_{it}"):
-            features, objects, flight_of, views, outside, found = joint_features(
-                flights, current, strips, progress, runner, search=search and it == 1)
+            features, objects, flight_of, views, outside, found, extracted = joint_features(
+                flights, current, strips, progress, runner, search=search and it == 1, scratch=scratch)
         if found is not None:
             starts = [TimeOffsetStart(found.offset_s, found.offset_s)] * len(flights)
         knots = [outer_knot_interval(lcfg, f.nav.config.processing.trajectory.knot_interval_s, it, v)
@@ -465,7 +528,7 @@ def _outer_iterations(flights: list[FlightInputs], gis: list[GnssImuResult], ste
         changes = [trajectory_change(c.spline, a.result.spline) for c, a in zip(current, adj.flights)]
         d_att, d_pos = max(c[0] for c in changes), max(c[1] for c in changes)
         g0 = adj.flights[0]
-        record = OuterIteration(it, len(features), len(objects), adj.features_used, adj.objects_used, d_att, d_pos,
+        record = OuterIteration(it, extracted, len(objects), adj.features_used, adj.objects_used, d_att, d_pos,
                                 outside, views, g0.result.spline.grid.dt, starts[0].features_s, starts[0].prior_s,
                                 g0.time_offset_s, None if found is None else found.to_dict())
         records.append(record)
@@ -561,7 +624,7 @@ def run_flights(
             write_trajectory_products(folder, f.nav, gi, project.crs)
             write_adjustment_report(folder / "adjustment.json", adjustment_report(f.nav, gi, "G/I"))
         outcome = steps.cached("flights_gil", _gil_key(flights, gi_keys),
-                               lambda: _outer_iterations(flights, gis, steps, progress, runner))
+                               lambda: _outer_iterations(flights, gis, steps, progress, runner, ws.out))
         gils = tuple(replace(g, time_offset_gnss_sigma_s=gnss_offset_sigma(f.nav, gi)) if g.time_offset_sigma_s
                      is not None else g for f, g, gi in zip(flights, outcome.gil, gis))
         cfg = flights[0].nav.config
