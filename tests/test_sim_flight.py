@@ -208,3 +208,21 @@ def test_config_rejects_unknown_fields():
         FlightConfig(speed=18.0)
     with pytest.raises(ValidationError):
         VibrationConfig(frequencies_hz=(0.1,))
+
+
+def test_the_papers_whole_corridor_is_an_hour_of_strips_at_its_pulse_rate():
+    """``corridor-paper-full``: paper 000's 30 km corridor flown twice at 1.8 MHz (about 6 G pulses
+    over 56 minutes of strips), the pulse rate overridable for benchmarks."""
+    from georefine.sim.scenarios import SCENARIOS, resolve_scenario
+
+    assert "corridor-paper-full" in SCENARIOS
+    cfg = resolve_scenario("corridor-paper-full")
+    assert cfg.scene.length_m == 30_000.0 and cfg.flight.passes == 2
+    assert cfg.scanner.pulse_rate_hz == 1.8e6 and cfg.scanner.line_rate_hz == 400.0
+    rp = cfg.reference_point
+    frame = LocalFrame.from_degrees(rp.lat_deg, rp.lon_deg, rp.h_m)
+    flight = simulate_flight(cfg.flight, frame, cfg.scene.length_m, lambda x, y: np.zeros(np.shape(x)))
+    strips_s = sum(b - a for name, a, b in flight.phases if name == "pass")
+    assert 50 * 60 < strips_s < 70 * 60, strips_s
+    assert 5.0e9 < cfg.scanner.pulse_rate_hz * strips_s < 6.5e9
+    assert resolve_scenario("corridor-paper-full", seed_overrides=["scanner.pulse_rate_hz=400000"]).scanner.pulse_rate_hz == 4e5

@@ -79,7 +79,7 @@ def simulate(scenario: str, out: PathLike, *, seed: int = 42, overrides: Sequenc
     """Simulate a flight into the project folder ``out``: the files a real system writes, and the truth
     (``georefine simulate``; docs/ARCHITECTURE.md §6).
 
-    ``scenario``: ``corridor``, ``corridor-tiny``, ``corridor-paper``, ``block``, ``area`` or ``area-tiny``;
+    ``scenario``: ``corridor``, ``corridor-tiny``, ``corridor-paper``, ``corridor-paper-full``, ``block``, ``area`` or ``area-tiny``;
     ``overrides``: ``"key.sub=value"`` strings; ``config_file``: a YAML file of overrides;
     ``imu_grade`` (``navigation``, ``tactical``, ``mems``, ``ideal``) and ``gnss_grade`` (``ppk``,
     ``ideal``): presets; ``write_imr``: the IMU also as a NovAtel ``.imr`` file. The same seed

@@ -61,7 +61,7 @@ def main(
 
 @app.command()
 def simulate(
-    scenario: str = typer.Argument(..., help="Scenario name: corridor, corridor-tiny, corridor-paper (1.8 MHz), block (photos and jammed GNSS), area (8 parallel and 2 cross strips) or area-tiny."),
+    scenario: str = typer.Argument(..., help="Scenario name: corridor, corridor-tiny, corridor-paper (1.8 MHz), corridor-paper-full (30 km at 1.8 MHz), block (photos and jammed GNSS), area (8 parallel and 2 cross strips) or area-tiny."),
     out: Path = typer.Option(..., "--out", "-o", help="Project folder to create (must not exist or be empty)."),
     seed: int = typer.Option(42, "--seed", help="Random seed; the same seed gives the same files."),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="Override a parameter: key.sub=value (repeatable)."),

@@ -151,6 +151,15 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
             # --set scene.length_m=... (both passes grow).
             "scanner": {"pulse_rate_hz": 1800000.0, "line_rate_hz": 400.0},
         }
+    if name == "corridor-paper-full":
+        return {
+            "name": "corridor-paper-full",
+            "description": "Paper 000's whole flight: the corridor over 30 km, flown N->S and S->N with a RIEGL VUX-160 "
+            "at 1.8 MHz and 400 lines/s (about an hour of strips, about 5.5 G points); for benchmarks lower the pulse "
+            "rate with --set scanner.pulse_rate_hz=400000 (about 1.2 G points).",
+            "scanner": {"pulse_rate_hz": 1800000.0, "line_rate_hz": 400.0},
+            "scene": {"length_m": 30000.0},
+        }
     if name == "block":
         return {
             "name": "block",
@@ -215,7 +224,7 @@ def _scenario_defaults(name: str) -> dict[str, Any]:
     raise ConfigError("unknown scenario", field="SCENARIO", expected="one of " + ", ".join(SCENARIOS), found=repr(name))
 
 
-SCENARIOS = ("corridor", "corridor-tiny", "corridor-paper", "block", "area", "area-tiny", "two-flights",
+SCENARIOS = ("corridor", "corridor-tiny", "corridor-paper", "corridor-paper-full", "block", "area", "area-tiny", "two-flights",
              "two-flights-tiny")
 
 
