@@ -97,13 +97,17 @@ def with_knots(project: Path, knots: float | None, tiles: str | None = None, bud
     return variant
 
 
-def pass_rmse(project: Path, out: Path) -> np.ndarray:
-    """Roll, pitch, yaw RMSE (mdeg) of the G/I/L trajectory over both passes."""
-    from georefine.evaluation.trajectory_files import truth_pass_rmse
+def pass_rmse(project: Path, out: Path) -> tuple[np.ndarray, list[float]]:
+    """Roll, pitch, yaw RMSE (mdeg) of the G/I/L trajectory over both passes, and the mean roll
+    error of each pass (mdeg): opposite means on passes flown in opposite directions are one tilt
+    of the world, which the planes both passes share cannot see."""
+    from georefine.evaluation.trajectory_files import truth_pass_comparison
 
     truth = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())
-    per_pass = [truth_pass_rmse(out / "gil" / "trajectory.sbet", project, int(p["strip_id"])) for p in truth["passes"]]
-    return np.sqrt(np.mean(np.square(per_pass), axis=0))
+    stats = [truth_pass_comparison(out / "gil" / "trajectory.sbet", project, int(p["strip_id"])).stats
+             for p in truth["passes"]]
+    per_pass = [[st[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")] for st in stats]
+    return np.sqrt(np.mean(np.square(per_pass), axis=0)), [st["roll_mean_mdeg"] for st in stats]
 
 
 def run(project: str, out: str) -> dict:
@@ -152,7 +156,7 @@ def main() -> None:
             "knots": cfg.get("processing", {}).get("trajectory", {}).get("knot_interval_s", 0.1),
             "tiles": tiles or "default",
             "budget": budget or "default",
-            "rpy": pass_rmse(simulated, out), "wall_s": r["wall_s"], "peak_gb": r["peak_rss_gb"],
+            "rpy": pass_rmse(simulated, out)[0], "roll_mean": pass_rmse(simulated, out)[1], "wall_s": r["wall_s"], "peak_gb": r["peak_rss_gb"],
             # "gi_adjustment" times steps 1-2 (the cached stage); the G/I adjustment is step 2.
             "filter_s": t.get("filter", np.nan), "gi_s": t.get("gi_adjustment", np.nan) - t.get("filter", 0.0),
             "gil_s": _sum(t, "gil_adjustment_"),
@@ -165,7 +169,8 @@ def main() -> None:
         rows.append(row)
         print(f"  {row['minutes']:.1f} min, {row['knots']:g} s knots, feature tiles {row['tiles']}, budget {row['budget']}: G/I {row['gi_s']:.1f} s, G/I/L {row['gil_s']:.1f} s "
               f"({row['iterations']} outer iterations, {row['features']:,} features), whole run {row['wall_s']:.0f} s, "
-              f"peak {row['peak_gb']:.2f} GB, G/I/L roll/pitch/yaw {np.round(row['rpy'], 2).tolist()} mdeg", flush=True)
+              f"peak {row['peak_gb']:.2f} GB, G/I/L roll/pitch/yaw {np.round(row['rpy'], 2).tolist()} mdeg "
+              f"(mean roll per pass {', '.join(f'{m:+.2f}' for m in row['roll_mean'])})", flush=True)
 
     print("\n| flight | knots | filter (step 1) | G/I adjustment (step 2) | G/I/L adjustments | outer iterations (time each; change each) "
           "| features / objects | feature tiles | features per minute | features + matching | G/I/L posterior | whole run | peak memory | G/I per min : first | G/I/L per min : first "

@@ -207,12 +207,13 @@ def truth_pass_rmse(sbet: PathLike, project: PathLike, strip: int) -> np.ndarray
 
     The pass's span comes from ``truth/scenario.yaml``, shortened by 1 s at both ends.
     """
-    cmp = _truth_pass_comparison(sbet, project, strip)
+    cmp = truth_pass_comparison(sbet, project, strip)
     return np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
 
 
-def _truth_pass_comparison(sbet: PathLike, project: PathLike, strip: int) -> TrajectoryComparison:
-    """``sbet`` against a simulated project's truth during pass ``strip`` (``truth/scenario.yaml``, 1 s inset)."""
+def truth_pass_comparison(sbet: PathLike, project: PathLike, strip: int) -> TrajectoryComparison:
+    """``sbet`` against a simulated project's truth during pass ``strip`` (``truth/scenario.yaml``, 1 s inset):
+    the comparison's ``stats`` hold each angle's RMSE, mean, sigma and largest error (mdeg)."""
     import yaml
 
     project = Path(project)
@@ -262,7 +263,7 @@ def truth_pass_accuracy(sbet: PathLike, project: PathLike, strip: int) -> PassAc
     from georefine.io.trajectory import read_smrmsg, smrmsg_path
 
     sbet = Path(sbet)
-    cmp = _truth_pass_comparison(sbet, project, strip)
+    cmp = truth_pass_comparison(sbet, project, strip)
     rmse = np.array([cmp.stats[f"{a}_rmse_mdeg"] for a in ("roll", "pitch", "yaw")])
     z_rms = beyond = sigma_rms = np.full(3, np.nan)
     accuracy = smrmsg_path(sbet)
