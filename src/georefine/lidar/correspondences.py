@@ -286,7 +286,6 @@ class _Initial:
     group: np.ndarray
     comp: np.ndarray
     rounds: int
-    compact: np.ndarray  # (components,) bool
 
 
 def _initial_groups(features: PlanarFeatures, pairs: np.ndarray, cfg: MatchingConfig) -> _Initial:
@@ -307,7 +306,7 @@ def _initial_groups(features: PlanarFeatures, pairs: np.ndarray, cfg: MatchingCo
     group = np.where(stars >= 0, size.size + stars, group)
     _log.debug("%d components with >= 2 features, %d split against chaining in %d rounds",
                int((size >= 2).sum()), int(((size >= 2) & ~compact).sum()), rounds)
-    return _Initial(group, comp, rounds, compact)
+    return _Initial(group, comp, rounds)
 
 
 def _settled(features: PlanarFeatures, pairs: np.ndarray, init: _Initial, open_: np.ndarray,

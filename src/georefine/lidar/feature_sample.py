@@ -3,11 +3,11 @@
 With more matched features in a window of flight time than the budget
 (``max_features_per_minute`` over ``selection_window_s``, lowered evenly where the whole flight
 has more than ``max_features``), each outer iteration adjusts a sample of whole planar objects
-(:func:`windowed_object_subset`): every minute of flight keeps its share of the features. A fresh random
-draw would change the sample, and with it the trajectory, from one outer iteration to the next;
-here every feature has a pseudo-random key fixed by what it is (strip, channel, seed voxel),
-every object is ranked by what it constrains and then by the smallest key among its members (a
-min-hash), so an object matched again keeps its place.
+(:func:`windowed_object_subset`): every minute of flight keeps its share of the features. A
+fresh random draw would change the sample, and with it the trajectory, from one outer
+iteration to the next; here every feature has a pseudo-random key fixed by what it is (strip,
+channel, seed voxel), every object is ranked by what it constrains and then by the smallest key
+among its members (a min-hash), so an object matched again keeps its place.
 """
 
 from __future__ import annotations
@@ -93,15 +93,16 @@ def windowed_object_subset(index: np.ndarray, keys: np.ndarray, feature_object: 
     and at most ``total`` in all (the windows' budget lowered evenly, :func:`shared_budget`), in
     increasing order.
 
-    The objects are taken by what they constrain, then by their min-hash (as
-    a min-hash: each object ranked by the smallest key among its members, so that an object
-    that keeps that member, and gains none with a smaller key, keeps its place however its other
-    members change): first those seen
-    from more strips (an object two passes share ties them together and fixes what one pass alone
-    cannot, a common tilt), then facades (``object_vertical``: the horizontal position) before
-    roofs and roads; each in turn while every window its members lie in has room for them (a
-    greedy pass, written by hand in numba: an object that does not fit leaves the room to the
-    next). Where the matched features of a window are under the budget all are taken.
+    The objects are offered by what they constrain: first those seen from more strips (an object
+    two passes share ties them together and fixes what one pass alone cannot), then facades
+    (``object_vertical``: the horizontal position) before roofs and roads, then by min-hash (each
+    object ranked by the smallest key among its members, so that an object that keeps that
+    member, and gains none with a smaller key, keeps its place however its other members change).
+    Each is taken while every window its members lie in has room for them (a greedy pass, written
+    by hand in numba: an object that does not fit leaves the room to the next). Where the matched
+    features of every window are under the budget all are taken. Unlike a sample of single
+    features, every object taken keeps all its views: an object with one member adds three
+    unknowns and no redundancy.
     """
     index = np.asarray(index)
     obj = np.asarray(feature_object)[index]
