@@ -164,7 +164,7 @@ def step_features(
         frame_poses = runner.share(frame_poses)
     tasks = [(tile, poses, s.epoch(nav.t0_gps), p_b_s, R_b_s, channels, cfg.processing.planes, frame_poses)
              for s in strips for tile in s.tiles]
-    parts, outside = [], 0
+    parts, outside, stored = [], 0, 0
     per_view: dict[tuple[int, int], int] = {}
     seen: dict[int, set[int]] = {s.strip_id: set() for s in strips}
     for (tile, *_), r in zip(tasks, runner.map(tile_features, tasks, label="planar features", progress=progress)):
@@ -172,6 +172,7 @@ def step_features(
             parts.append(r.features)
         else:
             store.add(r.features)
+            stored += len(r.features)
         outside += r.points_outside
         seen[tile.strip_id].update(r.channels_seen)
         for c, n in r.views.items():
@@ -187,7 +188,7 @@ def step_features(
             if n == 0:
                 log.warning("%s: channel %d (%s) gave no planar features", s.path.name, c.id, c.name)
     features = sort_features(PlanarFeatures.concatenate(parts)) if parts else PlanarFeatures.empty()
-    if (len(features) if store is None else store.count) == 0:
+    if (len(features) if store is None else stored) == 0:  # these strips' features (a store may hold others')
         raise InputError("no planar features in any view", field="processing.planes",
                          expected="planar surfaces (roofs, roads, facades) in the scans")
     return features, FeatureCounts(outside, views)
