@@ -12,6 +12,9 @@ knots) runs in a fresh child process per case so that its peak memory is its own
 ``--feature-tiles 200 whole`` runs each flight once per ``processing.scale.feature_tile_m`` (``whole``:
 the whole flight's features held and matched at once), in folders ``corridor-<N>min-t<tiles>``.
 
+``--rate 100000`` simulates the corridor's own scanner (100 kHz, 120 lines/s) and keeps the default
+1 m feature radius, in folders ``corridor-<N>min-100khz``.
+
 ``--budget 7000 20000`` runs each flight once per ``processing.lidar.max_features_per_minute``, in
 folders ``corridor-<N>min-b<budget>``.
 
@@ -56,19 +59,28 @@ from trajectory_scaling import corridor_length_for  # noqa: E402
 
 SIM_OVERRIDES = ["scanner.pulse_rate_hz=25000", "scanner.line_rate_hz=60"]
 PROCESSING = {"planes": {"radius_m": 2.0}}
+FULL_RATE = 100_000
+"""``--rate 100000``: the corridor's own scanner (100 kHz, 120 lines/s) and the default 1 m feature radius."""
 
 
-def simulate(workdir: Path, minutes: float) -> Path:
+def simulate(workdir: Path, minutes: float, rate: int | None = None) -> Path:
+    """The ``corridor`` lengthened to ``minutes`` of flight in WORKDIR (kept), at 25 kHz with a 2 m
+    feature radius, or at the corridor's 100 kHz with the default radius (``rate`` 100000)."""
     from georefine.sim.scenarios import simulate_project
 
-    project = workdir / f"corridor-{minutes:g}min"
+    full = rate == FULL_RATE
+    if rate not in (None, FULL_RATE):
+        raise SystemExit(f"--rate: 100000 (the corridor's scanner) or none (25 kHz), got {rate}")
+    project = workdir / (f"corridor-{minutes:g}min" + ("-100khz" if full else ""))
     if not (project / "truth" / "scenario.yaml").exists():
         length = corridor_length_for(60.0 * minutes)
         t = time.perf_counter()
-        simulate_project("corridor", project, seed=42, overrides=[*SIM_OVERRIDES, f"scene.length_m={length}"])
-        cfg = yaml.safe_load((project / "project.yaml").read_text())
-        cfg["processing"] = PROCESSING
-        (project / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
+        simulate_project("corridor", project, seed=42,
+                         overrides=[*([] if full else SIM_OVERRIDES), f"scene.length_m={length}"])
+        if not full:
+            cfg = yaml.safe_load((project / "project.yaml").read_text())
+            cfg["processing"] = PROCESSING
+            (project / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
         print(f"simulated {project.name} ({length:.0f} m) in {time.perf_counter() - t:.0f} s", flush=True)
     return project
 
@@ -136,13 +148,16 @@ def main() -> None:
                          "held and matched at once); default: the project's configuration")
     ap.add_argument("--budget", type=int, nargs="+", default=[None],
                     help="processing.lidar.max_features_per_minute per run; default: the project's configuration")
+    ap.add_argument("--rate", type=int, default=None,
+                    help="100000: the corridor's own 100 kHz scanner and 1 m feature radius (folders "
+                         "corridor-<N>min-100khz); default 25 kHz with a 2 m radius")
     ap.add_argument("--plot", type=Path, default=None, help="log-log plot (PNG); default WORKDIR/flight_length.png")
     args = ap.parse_args()
     args.workdir.mkdir(parents=True, exist_ok=True)
     rows = []
     for minutes, knots, tiles, budget in [(m, k, t, b) for b in args.budget for t in args.feature_tiles
                                           for k in args.knots for m in args.durations]:
-        simulated = simulate(args.workdir, minutes)
+        simulated = simulate(args.workdir, minutes, args.rate)
         project = with_knots(simulated, knots, tiles, budget)
         out = args.workdir / ("run-" + project.name.removeprefix("corridor-"))
         with ProcessPoolExecutor(max_workers=1, mp_context=mp.get_context("spawn")) as pool:
