@@ -19,20 +19,14 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import psutil
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from demo_time import tree_rss  # noqa: E402
+
 STAGE = re.compile(r"^\S+ \S+\s+(?P<stage>.+?): (?P<what>started|done in)")
-
-
-def _tree_rss(proc: psutil.Process) -> int:
-    total = 0
-    for p in [proc, *proc.children(recursive=True)]:
-        try:
-            total += p.memory_info().rss
-        except psutil.Error:
-            pass
-    return total
 
 
 def main() -> None:
@@ -59,7 +53,7 @@ def main() -> None:
     start = time.monotonic()
     while child.poll() is None:
         try:
-            samples.append((time.monotonic(), _tree_rss(proc) / 2**30))
+            samples.append((time.monotonic(), tree_rss(proc) / 2**30))
         except psutil.Error:
             break
         time.sleep(args.interval)

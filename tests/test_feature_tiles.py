@@ -159,3 +159,38 @@ def test_settled_features_are_grouped_as_in_the_whole_flight():
             elif not same:
                 differ_unsettled += 1
     assert settled_total > 500 and differ_unsettled > 0
+
+
+def test_a_transformed_store_keeps_the_arrival_order_and_closes_the_old_one():
+    """What the time offset does to a store: every tile through a function (here: later times,
+    the first feature of each tile dropped) into a new store, in the flight's order."""
+    features = sort_features(_scene(16))
+    store = _stored(features, 40.0, np.random.default_rng(9))
+    old_folder = store.folder
+    everything, arrival = store.read_all()
+
+    def later(f, a):
+        keep = np.arange(1, len(f))
+        moved = f.select(keep)
+        return PlanarFeatures(**{**{fld.name: getattr(moved, fld.name) for fld in fields(PlanarFeatures)},
+                                 "time": moved.time + 0.5}), a[keep]
+
+    new = store.transformed(later)
+    assert not old_folder.exists() and new.folder.exists()
+    got, got_arrival = new.read_all()
+    assert len(got) == len(features) - len(store.tiles)
+    dropped = set(arrival.tolist()) - set(got_arrival.tolist())
+    assert len(dropped) == len(store.tiles)
+    kept = np.isin(arrival, got_arrival)
+    np.testing.assert_array_equal(got.time, everything.time[kept] + 0.5)  # the same order, shifted
+    np.testing.assert_array_equal(got_arrival, arrival[kept])
+    new.close()
+    broken = _stored(features, 40.0, np.random.default_rng(10))
+    before = set(broken.folder.parent.glob("georefine-features-*"))
+
+    def fail(f, a):
+        raise RuntimeError("boom")
+
+    with pytest.raises(RuntimeError):  # a failing function leaves neither store's folder behind
+        broken.transformed(fail)
+    assert set(broken.folder.parent.glob("georefine-features-*")) == before - {broken.folder}

@@ -208,6 +208,21 @@ class FeatureStore:
         """The features of tile ``ij`` (as stored) and their arrival numbers."""
         return _from_records(np.fromfile(self.folder / _tile_name(ij), RECORD))
 
+    def transformed(self, fn) -> FeatureStore:
+        """A new store (same tiles' size, folder's parent and sample size) of every tile's features
+        passed through ``fn(features, arrival) -> (features, arrival)``; this store is closed, and
+        the new one too if ``fn`` fails."""
+        out = FeatureStore(self.tile_m, self.parent, self.sample.size)
+        try:
+            for ij in self.tiles:
+                out.add(*fn(*self.read_tile(ij)))
+        except BaseException:
+            out.close()
+            raise
+        finally:
+            self.close()
+        return out
+
     def read_all(self) -> tuple[PlanarFeatures, np.ndarray]:
         """Every feature, in the flight's order (tests, and small flights)."""
         return read_rect(self.folder, self.tile_m, self.extent())

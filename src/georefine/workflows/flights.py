@@ -426,21 +426,18 @@ def _search_flights_store(flights, trajs: list[Trajectory], currents, store: Fea
         return result, store
     delta = result.best_s - configured_s
     cfg = flights[0].nav.config
-    moved = FeatureStore(store.tile_m, store.parent, store.sample.size)
-    try:
-        for ij in store.tiles:
-            features, arrival = store.read_tile(ij)
-            of = np.array([by_strip[int(s)] for s in features.strip], dtype=np.int64)
-            for k, (traj, cur) in enumerate(zip(trajs, currents)):
-                mine = np.flatnonzero(of == k)
-                shifted, inside = _moved(cfg, traj, cur, features.select(mine), delta)
-                moved.add(shifted, arrival[mine][inside])
-    except BaseException:
-        moved.close()
-        raise
-    finally:
-        store.close()
-    return result, moved
+
+    def shift(features: PlanarFeatures, arrival: np.ndarray) -> tuple[PlanarFeatures, np.ndarray]:
+        of = np.array([by_strip[int(s)] for s in features.strip], dtype=np.int64)
+        parts, kept = [], []
+        for k, (traj, cur) in enumerate(zip(trajs, currents)):
+            mine = np.flatnonzero(of == k)
+            shifted, inside = _moved(cfg, traj, cur, features.select(mine), delta)
+            parts.append(shifted)
+            kept.append(arrival[mine][inside])
+        return PlanarFeatures.concatenate(parts), np.concatenate(kept)
+
+    return result, store.transformed(shift)
 
 
 # --- the run ------------------------------------------------------------------------------

@@ -72,18 +72,11 @@ def search_and_shift_store(nav, trajectory: Trajectory, frame_poses, store: Feat
     result, poses = _search(nav, trajectory, store.sample.features(), configured_s)
     if not result.adopted:
         return result, store
-    moved = FeatureStore(store.tile_m, store.parent, store.sample.size)
-    try:
-        for ij in store.tiles:
-            features, arrival = store.read_tile(ij)
-            shifted, inside = _shifted(nav, frame_poses, poses.span, features, result.best_s - configured_s)
-            moved.add(shifted, arrival[inside])
-    except BaseException:
-        moved.close()
-        raise
-    finally:
-        store.close()
-    return result, moved
+    def shift(features: PlanarFeatures, arrival: np.ndarray) -> tuple[PlanarFeatures, np.ndarray]:
+        shifted, inside = _shifted(nav, frame_poses, poses.span, features, result.best_s - configured_s)
+        return shifted, arrival[inside]
+
+    return result, store.transformed(shift)
 
 
 def _search(nav, trajectory: Trajectory, features: PlanarFeatures, configured_s: float
