@@ -121,9 +121,9 @@ def windowed_object_subset(index: np.ndarray, keys: np.ndarray, feature_object: 
     k = keys[index]
     min_key = np.full(n_obj, np.iinfo(np.uint64).max, np.uint64)
     np.minimum.at(min_key, obj_local, k)
-    strips = np.unique(obj_local.astype(np.int64) * (int(np.max(strip, initial=0)) + 1)
-                       + np.asarray(strip, np.int64)[index]) // (int(np.max(strip, initial=0)) + 1)
-    n_strips = np.bincount(strips, minlength=n_obj)
+    span = int(np.max(strip, initial=0)) + 1  # distinct (object, strip) pairs per object
+    n_strips = np.bincount(np.unique(obj_local.astype(np.int64) * span + np.asarray(strip, np.int64)[index]) // span,
+                           minlength=n_obj)
     not_vertical = ~np.asarray(object_vertical, bool)[objs]
     rank = np.lexsort((min_key, not_vertical, -n_strips))  # objects in the order they are offered
     position = np.empty(n_obj, np.int64)

@@ -73,7 +73,7 @@ from georefine.lidar.georeference import PoseInterpolator
 from georefine.lidar.object_files import write_objects
 from georefine.lidar.planes import FEATURES_VERSION, PlanarFeatures, write_features
 from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
-from georefine.lidar.time_offset import georeference_features, offset_unobservable, search_time_offset
+from georefine.lidar.time_offset import offset_unobservable, search_time_offset
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.trajectory.sampled import Trajectory
@@ -95,7 +95,13 @@ from georefine.workflows.outer_checks import outer_converged, trajectory_change,
 from georefine.workflows.precision import pass_precision, precision_lines
 from georefine.workflows.run_parts import adjustment_report, outer_knot_interval, stage_gnss_imu, vibrating
 from georefine.workflows.strips import StripFile, read_strips, sort_features, step_features
-from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart, gnss_offset_sigma, warn_time_offset
+from georefine.workflows.time_offset import (
+    OFFSET_BLOCK,
+    TimeOffsetStart,
+    gnss_offset_sigma,
+    shifted_features,
+    warn_time_offset,
+)
 
 log = logging.getLogger(__name__)
 
@@ -367,8 +373,12 @@ def joint_features(flights: list[FlightInputs], currents: list[GnssImuResult], s
     finally:
         if store is not None:
             store.close()
-    flight_of = np.array([by_strip[int(s)] for s in features.strip], dtype=np.int64)
-    return features, objects, flight_of, views, outside, found, int(sum(views.values()))
+    return features, objects, _flight_of(by_strip, features.strip), views, outside, found, int(sum(views.values()))
+
+
+def _flight_of(by_strip: dict[int, int], strip: np.ndarray) -> np.ndarray:
+    """(F,) int64 index of each feature's flight from its strip."""
+    return np.array([by_strip[int(s)] for s in strip], dtype=np.int64)
 
 
 def _joint_search(flights, trajs: list[Trajectory], features: list[PlanarFeatures], configured_s: float):
@@ -392,26 +402,15 @@ def _joint_search(flights, trajs: list[Trajectory], features: list[PlanarFeature
     return result
 
 
-def _moved(cfg, traj: Trajectory, cur: GnssImuResult, p: PlanarFeatures, delta: float
-           ) -> tuple[PlanarFeatures, np.ndarray]:
-    """``p`` with its times moved by ``delta`` (s), those that stay inside ``traj``, in ``w`` again; their index."""
-    p_b_s = np.asarray(cfg.scanner.lever_arm_m, dtype=float)
-    R_b_s = boresight_matrix(cfg.scanner.boresight_deg)
-    t = p.time + delta
-    inside = np.flatnonzero((t >= traj.time[0]) & (t <= traj.time[-1]))
-    moved = p.select(inside)
-    centre_w, normal_w = georeference_features(moved, cur.spline.pose, p_b_s, R_b_s, t[inside])
-    return replace(moved, time=t[inside], centre_w=centre_w, normal_w=normal_w), inside
-
-
 def _search_flights(flights, trajs: list[Trajectory], currents, parts: list[PlanarFeatures], configured_s: float):
     """The joint time offset search over the features of all flights; the features at the adopted offset."""
     result = _joint_search(flights, trajs, parts, configured_s)
     if not result.adopted:
         return result, parts
     delta = result.best_s - configured_s
-    cfg = flights[0].nav.config
-    return result, [_moved(cfg, traj, cur, p, delta)[0] for traj, cur, p in zip(trajs, currents, parts)]
+    nav = flights[0].nav  # the first flight's scanner calibration, as the search itself
+    return result, [shifted_features(nav, cur.spline.pose, (traj.time[0], traj.time[-1]), p, delta)[0]
+                    for traj, cur, p in zip(trajs, currents, parts)]
 
 
 def _search_flights_store(flights, trajs: list[Trajectory], currents, store: FeatureStore, configured_s: float,
@@ -419,20 +418,21 @@ def _search_flights_store(flights, trajs: list[Trajectory], currents, store: Fea
     """:func:`_search_flights` on a ground-tiled ``store``: the search scores its sample; at an adopted
     offset every flight's features move, tile by tile, into a new store (``store`` is closed)."""
     sample = store.sample.features()
-    of = np.array([by_strip[int(s)] for s in sample.strip], dtype=np.int64)
+    of = _flight_of(by_strip, sample.strip)
     result = _joint_search(flights, trajs, [sample.select(np.flatnonzero(of == k)) for k in range(len(flights))],
                            configured_s)
     if not result.adopted:
         return result, store
     delta = result.best_s - configured_s
-    cfg = flights[0].nav.config
+    nav = flights[0].nav  # the first flight's scanner calibration, as the search itself
 
     def shift(features: PlanarFeatures, arrival: np.ndarray) -> tuple[PlanarFeatures, np.ndarray]:
-        of = np.array([by_strip[int(s)] for s in features.strip], dtype=np.int64)
+        of = _flight_of(by_strip, features.strip)
         parts, kept = [], []
         for k, (traj, cur) in enumerate(zip(trajs, currents)):
             mine = np.flatnonzero(of == k)
-            shifted, inside = _moved(cfg, traj, cur, features.select(mine), delta)
+            shifted, inside = shifted_features(nav, cur.spline.pose, (traj.time[0], traj.time[-1]),
+                                               features.select(mine), delta)
             parts.append(shifted)
             kept.append(arrival[mine][inside])
         return PlanarFeatures.concatenate(parts), np.concatenate(kept)

@@ -36,7 +36,7 @@ from georefine.trajectory.sampled import Trajectory
 log = logging.getLogger(__name__)
 
 __all__ = ["OFFSET_BLOCK", "TimeOffsetStart", "add_time_offset", "gnss_offset_sigma", "search_and_shift",
-           "search_and_shift_store", "warn_time_offset"]
+           "search_and_shift_store", "shifted_features", "warn_time_offset"]
 
 OFFSET_BLOCK = "lidar_time_offset"
 EDGE_MARGIN_S = 0.5
@@ -61,7 +61,7 @@ def search_and_shift(nav, trajectory: Trajectory, frame_poses, features: PlanarF
     result, poses = _search(nav, trajectory, features, configured_s)
     if not result.adopted:
         return result, features
-    return result, _shifted(nav, frame_poses, poses.span, features, result.best_s - configured_s)[0]
+    return result, shifted_features(nav, frame_poses, poses.span, features, result.best_s - configured_s)[0]
 
 
 def search_and_shift_store(nav, trajectory: Trajectory, frame_poses, store: FeatureStore, configured_s: float
@@ -73,7 +73,7 @@ def search_and_shift_store(nav, trajectory: Trajectory, frame_poses, store: Feat
     if not result.adopted:
         return result, store
     def shift(features: PlanarFeatures, arrival: np.ndarray) -> tuple[PlanarFeatures, np.ndarray]:
-        shifted, inside = _shifted(nav, frame_poses, poses.span, features, result.best_s - configured_s)
+        shifted, inside = shifted_features(nav, frame_poses, poses.span, features, result.best_s - configured_s)
         return shifted, arrival[inside]
 
     return result, store.transformed(shift)
@@ -98,7 +98,7 @@ def _search(nav, trajectory: Trajectory, features: PlanarFeatures, configured_s:
     return result, poses
 
 
-def _shifted(nav, frame_poses, span: tuple[float, float], features: PlanarFeatures, delta: float
+def shifted_features(nav, frame_poses, span: tuple[float, float], features: PlanarFeatures, delta: float
              ) -> tuple[PlanarFeatures, np.ndarray]:
     """``features`` with their times moved by ``delta`` (s), those that stay inside ``span``, in ``w`` again;
     the index of those kept."""
