@@ -36,6 +36,7 @@ from georefine.errors import ConfigError, GeorefineError, InputError
 from georefine.evaluation.strip_differences import StripDifferenceMap
 from georefine.evaluation.summary import ReferencePlaneFigures, RunEvaluation
 from georefine.evaluation.trajectory import TrajectoryComparison
+from georefine.heap import bound_heap
 from georefine.progress import Progress, no_progress
 from georefine.sim.scenarios import SimulationResult, simulate_project
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner, runner_for
@@ -49,6 +50,8 @@ from georefine.workflows.lidargrammetry_results import CoadjustResult, MatchSumm
 from georefine.workflows.navigation import GeoreferenceRunResult, TrajectoryRunResult, run_georeference, run_trajectory
 from georefine.workflows.opened import Flight, Project, ProjectLike, open_project
 from georefine.workflows.products import TrajectoryExport
+
+bound_heap()  # freed arrays go back to the system (georefine.heap)
 
 __all__ = [
     # the project

@@ -34,6 +34,7 @@ from contextlib import contextmanager
 from typing import Any
 
 from georefine.errors import InputError
+from georefine.heap import bound_heap
 from georefine.progress import Progress, no_progress
 
 log = logging.getLogger(__name__)
@@ -85,6 +86,9 @@ class TaskRunner:
     def __init__(self, scheduler: str = DEFAULT_SCHEDULER, *, workers: int | None = None,
                  memory_limit: str | int | None = None, timeout: str = "30s") -> None:
         self.scheduler = check_scheduler(scheduler)
+        # glibc's heap thresholds fixed (georefine.heap), here and, through the environment, in a
+        # local cluster's worker processes, before any of them starts.
+        bound_heap()
         self._client = None
         self._cluster = None
         self._workers = workers or machine_cores()
