@@ -35,11 +35,16 @@ PROBE = textwrap.dedent("""
 """)
 
 
-def _probe(mode: str, **env: str) -> list[str]:
+def _run(code: str, *args: str, **env: str) -> list[str]:
+    """``code`` in a fresh interpreter whose environment holds no heap setting but ``env``; its printed words."""
     clean = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GEOREFINE_HEAP"}
-    out = subprocess.run([sys.executable, "-c", PROBE, mode], env={**clean, **env}, capture_output=True, text=True,
+    out = subprocess.run([sys.executable, "-c", code, *args], env={**clean, **env}, capture_output=True, text=True,
                          check=True)
     return out.stdout.split()
+
+
+def _probe(mode: str, **env: str) -> list[str]:
+    return _run(PROBE, mode, **env)
 
 
 def test_freed_arrays_go_back_to_the_system_only_with_the_thresholds_fixed():
@@ -58,6 +63,4 @@ def test_the_environment_can_keep_glibcs_own_behaviour():
 def test_a_task_runner_passes_the_thresholds_to_the_processes_it_starts():
     code = ("import os; from georefine.tasks import TaskRunner; TaskRunner('sync'); "
             "print(os.environ.get('MALLOC_MMAP_THRESHOLD_'), os.environ.get('MALLOC_TRIM_THRESHOLD_'))")
-    clean = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GEOREFINE_HEAP"}
-    out = subprocess.run([sys.executable, "-c", code], env=clean, capture_output=True, text=True, check=True)
-    assert out.stdout.split() == [str(4 * 2**20)] * 2
+    assert _run(code) == [str(4 * 2**20)] * 2
