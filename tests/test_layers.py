@@ -38,7 +38,7 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src"
 
 LAYERS: list[tuple[str, ...]] = [
-    ("georefine", "georefine.errors", "georefine.progress", "georefine.steps"),  # conventions, errors, progress, steps
+    ("georefine", "georefine.errors", "georefine.progress", "georefine.steps", "georefine.heap"),  # conventions, errors, progress, steps, the heap
     ("georefine.tasks",),  # where per-tile work runs (sync, threads, processes, a Dask cluster)
     ("georefine.geometry",),
     ("georefine.io",),
