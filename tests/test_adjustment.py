@@ -706,6 +706,38 @@ def test_a_factor_that_needed_many_conjugate_gradient_iterations_is_replaced_nex
         assert ("cg", "cg") in pairs
 
 
+def test_an_accepted_step_lets_the_spent_normal_equations_go_before_the_next_assembly(monkeypatch):
+    """The J and N of the last linearisation are released before the next are evaluated and
+    assembled (held, they doubled the G/I/L's J and N at every assembly); the result is unchanged."""
+    import gc
+    import weakref
+
+    from georefine.adjustment import solver
+
+    rng = np.random.default_rng(21)
+    R_true = random_rotations(rng, 400)
+    g_abs, g_rel = _rotation_chain(rng, R_true, 0.02, 0.005, np.array([0, 100, 250, 399]))
+    start = noisy(rng, R_true, 0.3)
+    assembled, alive_at_assembly = [], []
+    normal_equations = solver._normal_equations
+
+    def watched(*args, **kwargs):
+        gc.collect()
+        alive_at_assembly.append(sum(ref() is not None for ref in assembled))
+        normal = normal_equations(*args, **kwargs)
+        assembled.append(weakref.ref(normal))
+        return normal
+
+    monkeypatch.setattr(solver, "_normal_equations", watched)
+    problem = Problem()
+    problem.add_block("R", start, manifold="so3")
+    problem.add_group(g_abs)
+    problem.add_group(g_rel)
+    result = problem.solve(SolverOptions(reuse_factor_from=0, function_tolerance=1e-12))
+    assert result.converged and len(assembled) >= 3, result.termination
+    assert alive_at_assembly == [0] * len(assembled)
+
+
 def _line_with_outliers(n=400, sigma=0.1):
     """``n`` points of y = 0.7 x - 1.2 with noise ``sigma``, a fifth of them 3-8 m too high (seeded)."""
     rng = np.random.default_rng(22)

@@ -210,7 +210,7 @@ class LMState:
 
     values: dict[str, np.ndarray]  # the current estimate (read-only arrays)
     current: Evaluation  # its evaluation (Jacobians dropped once ``normal`` is assembled)
-    normal: NormalSystem  # J, g and D at the last assembly
+    normal: NormalSystem | None  # J, g and D at the last assembly (None between an accepted step and the next assembly)
     lam: float  # the damping, relative to D
     nu: float = 2.0  # the factor of the next rise of the damping
     normal_is_current: bool = True

@@ -476,6 +476,10 @@ def _accept(run: _Solve, state: LMState, values: dict[str, np.ndarray], trial: E
     state.settled = weights_settled(state.current, trial, fit_scale(trial, run.layout.n_cols, run.spent, options),
                                     options)
     state.values = values
+    # The last linearisation's J and N are spent: let them go before the new ones are evaluated and
+    # assembled (the factor stays, the next step's preconditioner). Held, they doubled the solve's
+    # J and N at the assembly, which set the G/I/L's peak.
+    state.normal = None
     if not trial.has_jacobians:
         trial = run.evaluate(state, values, True)
     state.current = trial
