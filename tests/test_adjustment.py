@@ -1241,6 +1241,47 @@ def test_sparse_cholesky_reuses_the_analysis_while_the_pattern_holds(backend):
     np.testing.assert_allclose(solver.factorize(A2).solve(B[:, 0]), np.linalg.solve(A2.toarray(), B[:, 0]), rtol=1e-9)
 
 
+@pytest.mark.skipif("cvxopt" not in linalg.available_backends(), reason="CVXOPT not installed")
+@pytest.mark.parametrize("split", [False, True])
+def test_cvxopt_builds_matrices_with_long_columns_apart_to_the_same_pattern_and_solves(split, monkeypatch):
+    """An arrowhead (a few columns beside every other, as the strip adjustment's strip columns, and an
+    explicit zero as the normal pattern keeps for unobserved columns): built with the long columns
+    apart (transposed) or in one, CVXOPT holds the same column-major pattern and values as SciPy's CSC,
+    and the factor solves the system, also after a refactorisation with new values."""
+    if split:  # the long-column path on a small matrix
+        monkeypatch.setattr(linalg, "_LONG_COLUMN", 5)
+        monkeypatch.setattr(linalg, "_LONG_COLUMN_COST", 0)
+    rng = np.random.default_rng(14)
+    n, k = 300, 4
+    rows = np.repeat(np.arange(k, n), k)
+    cols = np.tile(np.arange(k), n - k)
+    B = sp.csr_matrix((rng.normal(size=rows.size), (rows, cols)), shape=(n, n))
+    A = (B @ B.T + B + B.T + sp.diags(np.full(n, 50.0))).tocsr()
+    A_lower = sp.tril(A, format="csr")
+    A_lower.sum_duplicates()
+    data = A_lower.data.copy()
+    data[A_lower.indptr[7]] = 0.0  # an explicit zero keeps its slot
+    A_lower = sp.csr_matrix((data, A_lower.indices, A_lower.indptr), shape=(n, n))
+    r, order = linalg._rows_and_csc_order(A_lower.indptr.astype(np.int64), A_lower.indices, n)
+    M = linalg._cvxopt_spmatrix(A_lower, r, order, n)
+    colptr, rowind, values = (np.array(x).ravel() for x in M.CCS)
+    C = A_lower.tocsc()
+    C.sort_indices()
+    np.testing.assert_array_equal(colptr, C.indptr)
+    np.testing.assert_array_equal(rowind, C.indices)
+    np.testing.assert_array_equal(values, C.data)
+    full = (A_lower + sp.tril(A_lower, k=-1).T).toarray()
+    b = rng.normal(size=n)
+    solver = linalg.SparseCholesky("cvxopt")
+    np.testing.assert_allclose(solver.factorize(A_lower, lower=True).solve(b), np.linalg.solve(full, b), rtol=1e-9)
+    data = A_lower.data.copy()
+    data[A_lower.indptr[1:] - 1] += 3.0  # the diagonal, last in every row: same pattern, new values
+    A2 = sp.csr_matrix((data, A_lower.indices, A_lower.indptr), shape=(n, n))
+    np.testing.assert_allclose(solver.factorize(A2, lower=True).solve(b), np.linalg.solve(full + 3.0 * np.eye(n), b),
+                               rtol=1e-9)
+    assert solver.analyses == 1
+
+
 def test_cholespy_reads_only_the_lower_triangle():
     """Documents the pitfall the linalg wrapper avoids: cholespy silently ignores the upper part."""
     cholespy = pytest.importorskip("cholespy")
