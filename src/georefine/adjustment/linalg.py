@@ -461,6 +461,9 @@ def _cvxopt_analyse(A_lower: sp.csr_matrix, n: int) -> _CvxoptSymbolic:
     rows, order = _rows_and_csc_order(A_lower.indptr.astype(np.int64, copy=False), A_lower.indices, n)
     # CVXOPT stores the values column-major, hence the gather order for later value updates.
     M = _cvxopt_spmatrix(A_lower, rows, order, n)
+    del rows
+    if order.size <= _INT32_MAX:  # kept for every refactorisation: half the memory of int64
+        order = order.astype(np.int32)
     return _CvxoptSymbolic(M, order, cholmod.symbolic(M, uplo="L"))
 
 
