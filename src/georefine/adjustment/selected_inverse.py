@@ -52,7 +52,7 @@ from georefine.adjustment.linalg import (
     symmetric_matvec,
 )
 
-__all__ = ["SelectedInverse", "selected_inverse"]
+__all__ = ["SelectedInverse", "invert_factor", "selected_inverse"]
 
 log = logging.getLogger(__name__)
 
@@ -368,7 +368,21 @@ def selected_inverse(
     # else by a solve (with scikit-sparse the pivot test copies the whole factor, 9.1 s for a
     # 60-minute G/I/L matrix, and the solves' path would not use the copy).
     factor = solver.factorize(A, lower=lower, check_pivots=False)
-    factor_s = time.perf_counter() - t
+    return invert_factor(A, factor, solver, always=always, columns=columns, lower=lower,
+                         factor_s=time.perf_counter() - t)
+
+
+def invert_factor(
+    A: sp.spmatrix | sp.sparray, factor: Factorization, solver: SparseCholesky, *, always: bool = False,
+    columns: int = EXPECTED_COLUMNS, lower: bool = False, factor_s: float | None = None,
+) -> tuple[SelectedInverse | None, Factorization | None]:
+    """:func:`selected_inverse` from a factorisation of ``A`` already made by ``solver`` (the same
+    choice between the recursion and unit-column solves, the same results).
+
+    ``factor_s``: the factorisation's seconds, where known (scikit-sparse's early choice of the
+    solves weighs them against it; unknown, the choice goes on to the recursion's work).
+    """
+    A = sp.csr_matrix(A)
 
     def solving(f: Factorization = factor) -> tuple[None, Factorization]:
         check_by_solve(f, lambda v: symmetric_matvec(A, v) if lower else A @ v)
@@ -384,7 +398,7 @@ def selected_inverse(
         # recursion cannot win. CVXOPT's probe (a batch of sparse substitutions) underrates what
         # the covariance blocks then cost (0.86 s against 0.22 s predicted on the corridor's G/I),
         # so there the recursion's work decides, from the factor.
-        if factor.backend == "cholmod" and solve_s < MIN_SOLVES_PER_FACTORISATION * factor_s:
+        if factor.backend == "cholmod" and factor_s is not None and solve_s < MIN_SOLVES_PER_FACTORISATION * factor_s:
             log.debug("selected inverse: %d unit-column solves ~%.1f s, factorisation %.1f s: solving",
                       columns, solve_s, factor_s)
             return solving()
