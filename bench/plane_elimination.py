@@ -57,7 +57,7 @@ from georefine.adjustment.gnss_imu import solve_gnss_imu, trajectory_solver_opti
 from georefine.adjustment.linalg import NotPositiveDefiniteError, SparseCholesky
 from georefine.lidar.object_files import read_objects
 from georefine.lidar.planes import read_features
-from georefine.workflows.cramer_rao import _truth_start
+from georefine.workflows.cramer_rao import truth_start
 from georefine.workflows.gil import build_gil_problem
 from georefine.workflows.opened import load_navigation
 
@@ -118,9 +118,8 @@ def _element_of_rows(Jz: sp.csr_matrix, d: int) -> np.ndarray:
 
 def _block_inverse(Jz: sp.csr_matrix, damp_z: np.ndarray, d: int, n_el: int) -> sp.csr_matrix:
     """``(J_z^T J_z + diag(damp_z))^-1``, block diagonal with ``d x d`` blocks, as a sparse matrix."""
-    C = (Jz.T @ Jz).tocsr()
+    coo = (Jz.T @ Jz).tocoo()
     dense = np.zeros((n_el, d, d))
-    coo = C.tocoo()
     dense[coo.row // d, coo.row % d, coo.col % d] += coo.data
     dense[:, np.arange(d), np.arange(d)] += damp_z.reshape(n_el, d)
     try:
@@ -261,7 +260,7 @@ def first_normal_system(project: Path, run: Path) -> tuple[dict, float]:
     nav = load_navigation(project)
     features = read_features(run / "features" / "features.csv")
     objects = read_objects(run / "features" / "objects.csv")
-    gil = build_gil_problem(nav, _truth_start(nav, project), features, objects)
+    gil = build_gil_problem(nav, truth_start(nav, project), features, objects)
     saved: dict = {}
     solve_step = solver._solve_step
 

@@ -72,7 +72,7 @@ from georefine.workflows.navigation import knot_grid
 from georefine.workflows.opened import NavigationData, load_navigation
 from georefine.workflows.time_offset import OFFSET_BLOCK, TimeOffsetStart
 
-__all__ = ["CramerRaoBound", "PassBound", "SolutionBound", "cramer_rao_bound"]
+__all__ = ["CramerRaoBound", "PassBound", "SolutionBound", "cramer_rao_bound", "truth_start"]
 
 ANGLES = ("roll", "pitch", "yaw")
 NUISANCE_ITERATIONS = 10
@@ -184,7 +184,7 @@ def _truth(root: Path) -> dict:
     return yaml.safe_load(path.read_text())
 
 
-def _truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
+def truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
     """The starting point at the truth: the knots fitted to the true trajectory, the simulated
     IMU errors at the bias knots, the simulated GNSS error (east, north, up) at its knots."""
     tcfg = nav.config.processing.trajectory
@@ -317,7 +317,7 @@ def cramer_rao_bound(project_dir: str | Path, run_dir: str | Path, optimum: bool
     configured = nav.config.scanner.time_offset_s
     start_s, prior_s = (configured if last.get(k) is None else float(last[k])
                         for k in ("time_offset_start_s", "time_offset_prior_s"))
-    gil = build_gil_problem(nav, _truth_start(nav, root), features, objects,
+    gil = build_gil_problem(nav, truth_start(nav, root), features, objects,
                             time_offset=TimeOffsetStart(start_s, prior_s))
     P, blocks = gil.built.problem, gil.built.blocks
     if gil.estimates_offset:  # the scan times run the simulated offset behind GPS time
