@@ -21,6 +21,7 @@ from georefine.io.files import write_json
 from georefine.io.run_metrics import AdjustmentReport, WorkflowMetrics
 
 G0 = 9.80665
+MISALIGNED = np.array([[0.0, 4e-4, -1e-4], [2e-4, 0.0, 3e-4], [-5e-4, 6e-4, 0.0]])
 
 
 def _truth(tmp_path, rng):
@@ -30,7 +31,7 @@ def _truth(tmp_path, rng):
     bias_gyro = np.radians(np.array([-5.0, 3.0, 7.0]) + walk) / 3600.0  # rad/s
     path = tmp_path / "imu_errors.npz"
     np.savez(path, time_gps=t, bias_gyro=bias_gyro, bias_acc=bias_acc, scale_gyro=np.array([1e-4, -2e-4, 3e-4]),
-             scale_acc=np.array([-5e-4, 1e-4, 2e-4]))
+             scale_acc=np.array([-5e-4, 1e-4, 2e-4]), misalignment_acc=MISALIGNED, misalignment_gyro=np.zeros((3, 3)))
     return path, t, bias_acc, bias_gyro
 
 
@@ -49,8 +50,12 @@ def test_the_figures_compare_the_adjustment_with_the_truth_at_its_knots(tmp_path
         "gyro_bias_deg_per_h": (gyro_true - 0.5).tolist(),
         "gyro_bias_sigma_deg_per_h": np.full((knots.size, 3), 0.25).tolist(),
         "acc_scale_ppm": [-480.0, 110.0, 190.0], "acc_scale_sigma_ppm": [20.0, 20.0, 30.0],
-        "gyro_scale_ppm": [90.0, -190.0, 310.0], "gyro_scale_sigma_ppm": [10.0, 10.0, 10.0]})
+        "gyro_scale_ppm": [90.0, -190.0, 310.0], "gyro_scale_sigma_ppm": [10.0, 10.0, 10.0],
+        "acc_misalignment_mrad": [0.45, -0.1, 0.2, 0.3, -0.5, 0.6], "acc_misalignment_sigma_mrad": [0.05] * 6})
     f = imu_error_figures(adjustment, path)
+    # The misalignment elements xy, xz, yx, yz, zx, zy of the true matrix; the gyro's was not estimated.
+    np.testing.assert_allclose(f.acc_misalignment_true_mrad, [0.4, -0.1, 0.2, 0.3, -0.5, 0.6], atol=1e-12)
+    assert f.gyro_misalignment_mrad is None and f.acc_misalignment_sigma_mrad == (0.05,) * 6
     np.testing.assert_allclose(f.acc_bias_rms_error_ug, np.abs(acc_err), rtol=1e-9)
     np.testing.assert_allclose(f.gyro_bias_rms_error_deg_per_h, [0.5] * 3, rtol=1e-9)
     np.testing.assert_allclose(f.acc_bias_rms_sigma_ug, [15.0] * 3)
@@ -80,6 +85,8 @@ def test_the_figures_compare_the_adjustment_with_the_truth_at_its_knots(tmp_path
     assert "against the simulated truth" in page and page.count("data:image/png;base64,") >= 1
     assert "<td>G/I/L</td><td>accelerometer bias (µg): RMS error : RMS sigma</td><td>10 : 15</td>" in page
     assert "<td>error (mdeg)</td><td>2.0</td><td>-1.0</td><td>-4.0</td>" in page
+    assert ("<td>G/I/L</td><td>accelerometer misalignment (mrad)</td><td>0.450 / 0.400 ± 0.050</td>"
+            "<td>-0.100 / -0.100 ± 0.050</td>") in page and "gyro misalignment" not in page
     assert math.isclose(f.gyro_scale_ppm[0], 90.0)
 
 

@@ -5,7 +5,13 @@ import pytest
 
 from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
-from georefine.adjustment.observations.imu import ImuObservation, discrete_gauss_rule, fewest_nodes, make_imu_windows
+from georefine.adjustment.observations.imu import (
+    ImuObservation,
+    discrete_gauss_rule,
+    fewest_nodes,
+    make_imu_windows,
+    triad_matrix,
+)
 from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
 from georefine.adjustment.testing import check_jacobians
@@ -107,6 +113,41 @@ def test_imu_jacobians(seed, window_samples, kind):
     blocks = dict(TRAJ_BLOCKS, acc_bias="euclidean", gyro_bias="euclidean", acc_scale="euclidean", gyro_scale="euclidean")
     chk = check_jacobians(group, values, blocks, eps=1e-4)
     assert chk.max_rel_error < 1e-6, chk
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("kind", ["rates", "increments"])
+def test_imu_jacobians_with_misalignment(seed, kind):
+    """Both triads' misalignment blocks, and the trajectory and scale Jacobians through the full
+    sensitivity matrix ``I + S + A``."""
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    rate = 200.0
+    t = np.arange(0.01, grid.t_end - 0.01, 1 / rate)
+    wins = make_imu_windows(t, rng.normal(0, 0.1, (t.size, 3)), rng.normal(0, 1, (t.size, 3)) + [0, 0, -9.8],
+                            rate, 10 / rate, kind=kind)
+    bg = BiasGrid(0.0, 0.5, 4)
+    values |= {"acc_bias": rng.normal(0, 0.01, (4, 3)), "gyro_bias": rng.normal(0, 1e-4, (4, 3)),
+               "acc_scale": rng.normal(0, 1e-3, (1, 3)), "gyro_scale": rng.normal(0, 1e-3, (1, 3)),
+               "acc_mis": rng.normal(0, 1e-3, (1, 6)), "gyro_mis": rng.normal(0, 1e-3, (1, 6))}
+    group = ImuObservation(grid, wins, FRAME, bg, bg, sigma_acc=0.01, sigma_gyro=1e-4, nodes=3,
+                           acc_misalignment="acc_mis", gyro_misalignment="gyro_mis")
+    blocks = dict(TRAJ_BLOCKS, acc_bias="euclidean", gyro_bias="euclidean", acc_scale="euclidean",
+                  gyro_scale="euclidean", acc_mis="euclidean", gyro_mis="euclidean")
+    chk = check_jacobians(group, values, blocks, eps=1e-4)
+    assert chk.max_rel_error < 1e-6, chk
+    # The model is M x with M = I + S + A: the misaligned readings are the aligned ones' sensed axes mixed.
+    plain = ImuObservation(grid, wins, FRAME, bg, bg, sigma_acc=0.01, sigma_gyro=1e-4, nodes=3)
+    zero_bias = values | {"acc_bias": np.zeros((4, 3)), "gyro_bias": np.zeros((4, 3)),
+                          "acc_scale": np.zeros((1, 3)), "gyro_scale": np.zeros((1, 3))}
+    f0, w0 = plain.predict(zero_bias)
+    f1, w1 = group.predict(zero_bias)
+    m_f, m_g = triad_matrix(np.zeros(3), values["acc_mis"]), triad_matrix(np.zeros(3), values["gyro_mis"])
+    np.testing.assert_allclose(f1, f0 @ m_f.T, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(w1, w0 @ m_g.T, rtol=1e-12, atol=1e-15)
+    assert m_f[0, 1] == values["acc_mis"][0, 0] and m_f[2, 1] == values["acc_mis"][0, 5]
 
 
 def _readings(grid, values, t, kind, rate):

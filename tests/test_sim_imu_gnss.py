@@ -94,6 +94,32 @@ def test_turn_on_bias_and_scale_factor_spread(flight):
     np.testing.assert_allclose(d.acc, (1.0 + d.scale_acc) * f, rtol=0, atol=1e-14)
 
 
+def test_misalignment_mixes_the_axes_and_leaves_the_other_draws_alone(flight):
+    """``(I + S + A) x``: each triad's misalignment drawn with its sigma (zero diagonal), the readings
+    its mix of the true axes; a grade without misalignment draws the rest as before."""
+    plain = imu_grade("mems")
+    skew = plain.model_copy(update={"gyro_misalignment_mrad": 0.5, "acc_misalignment_mrad": 1.0})
+    a = simulate_imu(flight, plain, 0.0, 20.0, np.random.default_rng(4))
+    b = simulate_imu(flight, skew, 0.0, 20.0, np.random.default_rng(4))
+    for name in ("bias_gyro", "bias_acc", "scale_gyro", "scale_acc"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert not np.any(a.misalignment_gyro) and not np.any(a.misalignment_acc)
+    w, f = flight.imu(b.time)
+    for read, plain_read, true, scale, mis in ((b.gyro, a.gyro, w, b.scale_gyro, b.misalignment_gyro),
+                                                (b.acc, a.acc, f, b.scale_acc, b.misalignment_acc)):
+        assert np.all(np.diag(mis) == 0) and np.all(mis[~np.eye(3, dtype=bool)] != 0)
+        np.testing.assert_allclose(read - plain_read, true @ mis.T, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(read, true @ (np.eye(3) + np.diag(scale) + mis).T
+                                   + (plain_read - (1.0 + scale) * true), rtol=1e-12, atol=1e-12)
+    draws = np.array([simulate_imu(flight, ImuGrade(acc_misalignment_mrad=0.8), 0.0, 0.1,
+                                   np.random.default_rng(s)).misalignment_acc for s in range(300)])
+    off = draws[:, ~np.eye(3, dtype=bool)]
+    np.testing.assert_allclose(off.std(), 0.8e-3, rtol=0.1)
+    assert np.all(draws[:, np.eye(3, dtype=bool)] == 0)
+    with pytest.raises(ValueError, match="zero diagonal"):
+        type(a)(**{**a.__dict__, "misalignment_gyro": np.eye(3)})
+
+
 # ---------------------------------------------------------------------------- GNSS
 def test_ideal_gnss_is_the_true_antenna(flight):
     g = simulate_gnss(flight, P_B_A, GnssConfig(grade="ideal"), 0.0, flight.duration_s,

@@ -1,9 +1,11 @@
 """The GNSS/IMU adjustment of a continuous-time trajectory (docs/ARCHITECTURE.md §4.5 step 2).
 
 Parameters: the spline knots (positions, velocities, accelerations, attitudes, body rates),
-piecewise-linear accelerometer and gyro biases, and constant diagonal scale factors.
+piecewise-linear accelerometer and gyro biases, constant diagonal scale factors and, where
+estimated (:func:`misalignment_prior`), each triad's constant misalignment.
 Observations: GNSS antenna positions (robust loss), window-averaged IMU readings, the bias
-random walk, and priors on the turn-on biases and the scale factors from the datasheet.
+random walk, and priors on the turn-on biases, the scale factors and the misalignments from the
+datasheet.
 The same problem later receives the LiDAR plane observations (step 5), so the builder
 returns the :class:`~georefine.adjustment.problem.Problem` for further groups.
 """
@@ -20,7 +22,13 @@ import numpy as np
 from georefine.adjustment.linalg import available_backends
 from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
-from georefine.adjustment.observations.imu import ImuObservation, fewest_nodes, make_imu_windows, sample_support
+from georefine.adjustment.observations.imu import (
+    ImuObservation,
+    fewest_nodes,
+    make_imu_windows,
+    sample_support,
+    triad_matrix,
+)
 from georefine.adjustment.observations.prior import EuclideanPrior
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
 from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior
@@ -128,7 +136,9 @@ def white_gnss_covariance(cov_w: np.ndarray, model: GnssCorrelatedError, knot_in
 
 @dataclass(frozen=True)
 class ImuErrorEstimate:
-    """Estimated IMU errors: biases on their knots and scale factors, with 1-sigma."""
+    """Estimated IMU errors: biases on their knots, scale factors and, where estimated, each triad's
+    misalignment (six off-diagonal elements, :data:`~georefine.adjustment.observations.imu.OFF_DIAGONAL`
+    order), with 1-sigma."""
 
     bias_grid: BiasGrid
     acc_bias: np.ndarray
@@ -139,6 +149,18 @@ class ImuErrorEstimate:
     gyro_bias_sigma: np.ndarray | None = None
     acc_scale_sigma: np.ndarray | None = None
     gyro_scale_sigma: np.ndarray | None = None
+    acc_misalignment: np.ndarray | None = None
+    gyro_misalignment: np.ndarray | None = None
+    acc_misalignment_sigma: np.ndarray | None = None
+    gyro_misalignment_sigma: np.ndarray | None = None
+
+    def acc_matrix(self) -> np.ndarray:
+        """The accelerometer triad's sensitivity ``I + S_f + A_f`` (3, 3)."""
+        return triad_matrix(self.acc_scale, self.acc_misalignment)
+
+    def gyro_matrix(self) -> np.ndarray:
+        """The gyro triad's sensitivity ``I + S_g + A_g`` (3, 3)."""
+        return triad_matrix(self.gyro_scale, self.gyro_misalignment)
 
     def to_dict(self) -> dict:
         def arr(x, f=1.0):
@@ -154,6 +176,10 @@ class ImuErrorEstimate:
             "gyro_scale_ppm": arr(self.gyro_scale, 1e6),
             "acc_scale_sigma_ppm": arr(self.acc_scale_sigma, 1e6),
             "gyro_scale_sigma_ppm": arr(self.gyro_scale_sigma, 1e6),
+            "acc_misalignment_mrad": arr(self.acc_misalignment, 1e3),
+            "gyro_misalignment_mrad": arr(self.gyro_misalignment, 1e3),
+            "acc_misalignment_sigma_mrad": arr(self.acc_misalignment_sigma, 1e3),
+            "gyro_misalignment_sigma_mrad": arr(self.gyro_misalignment_sigma, 1e3),
         }
 
 
@@ -197,6 +223,7 @@ class GnssImuProblem:
     cfg: TrajectoryAdjustmentConfig
     estimate_scale: bool
     gnss_error_grid: BiasGrid | None = None
+    estimate_misalignment: bool = False
 
     def spline(self) -> SplineTrajectory:
         return spline_from_problem(self.problem, self.blocks, self.grid, self.data.t0_gps)
@@ -235,6 +262,16 @@ def _densities(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> dict[str,
         "gyro_scale": max(spec.gyro_scale_factor_ppm, cfg.min_scale_factor_ppm) * 1e-6,
         "acc_scale": max(spec.acc_scale_factor_ppm, cfg.min_scale_factor_ppm) * 1e-6,
     }
+
+
+def misalignment_prior(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> tuple[float, float] | None:
+    """Prior sigma (rad) of the gyro and the accelerometer misalignment elements, or None where they
+    are not estimated (``cfg.estimate_misalignment``: ``auto`` where ``spec`` states one)."""
+    stated = spec.gyro_misalignment_mrad > 0 or spec.acc_misalignment_mrad > 0
+    if cfg.estimate_misalignment is False or (cfg.estimate_misalignment == "auto" and not stated):
+        return None
+    return tuple((v if v > 0 else cfg.misalignment_prior_mrad) * 1e-3
+                 for v in (spec.gyro_misalignment_mrad, spec.acc_misalignment_mrad))
 
 
 def cleaning_redundancy(data: GnssImuData, inside: np.ndarray, window_s: float, densities: dict,
@@ -310,6 +347,10 @@ def build_gnss_imu_problem(
         problem.add_block(name, b)
     problem.add_block("acc_scale", np.zeros((1, 3)), constant=not cfg.estimate_scale_factors)
     problem.add_block("gyro_scale", np.zeros((1, 3)), constant=not cfg.estimate_scale_factors)
+    mis = misalignment_prior(spec, cfg)
+    if mis is not None:
+        problem.add_block("acc_misalignment", np.zeros((1, 6)))
+        problem.add_block("gyro_misalignment", np.zeros((1, 6)))
 
     g_in = (data.gnss_time >= span[0]) & (data.gnss_time <= span[1])
     if not np.any(g_in):
@@ -332,7 +373,8 @@ def build_gnss_imu_problem(
     imu = ImuObservation(
         grid, windows, data.frame, bias_grid, bias_grid, sigma_acc=sigma_a, sigma_gyro=sigma_g,
         nodes=cfg.quadrature_nodes if np.any(windows.n_samples > 1) else 1, blocks=blocks,
-        consumed_redundancy=consumed,
+        consumed_redundancy=consumed, acc_misalignment="acc_misalignment" if mis else None,
+        gyro_misalignment="gyro_misalignment" if mis else None,
     )
     imu, change = fewest_nodes(imu, {name: b.values for name, b in problem.blocks.items()})
     logger.debug("IMU windows: %d nodes each (one fewer moves a window mean by up to %.2g sigma)", imu.nodes, change)
@@ -344,7 +386,11 @@ def build_gnss_imu_problem(
     if cfg.estimate_scale_factors:
         problem.add_group(EuclideanPrior("acc_scale_prior", "acc_scale", [0], np.zeros(3), d["acc_scale"]))
         problem.add_group(EuclideanPrior("gyro_scale_prior", "gyro_scale", [0], np.zeros(3), d["gyro_scale"]))
-    return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors, egrid)
+    if mis is not None:
+        problem.add_group(EuclideanPrior("gyro_misalignment_prior", "gyro_misalignment", [0], np.zeros(6), mis[0]))
+        problem.add_group(EuclideanPrior("acc_misalignment_prior", "acc_misalignment", [0], np.zeros(6), mis[1]))
+    return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors, egrid,
+                          estimate_misalignment=mis is not None)
 
 
 def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
@@ -358,7 +404,21 @@ def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
     P.set_values("gyro_bias", errors.gyro_bias)
     P.set_values("acc_scale", np.asarray(errors.acc_scale, dtype=float).reshape(1, 3))
     P.set_values("gyro_scale", np.asarray(errors.gyro_scale, dtype=float).reshape(1, 3))
+    for name, value in (("acc_misalignment", errors.acc_misalignment), ("gyro_misalignment", errors.gyro_misalignment)):
+        if name in P.blocks and value is not None:
+            P.set_values(name, np.asarray(value, dtype=float).reshape(1, 6))
     return built
+
+
+def imu_errors_of(built: GnssImuProblem) -> ImuErrorEstimate:
+    """The IMU errors ``built`` holds now, without sigma."""
+    p = built.problem
+    mis = {}
+    if built.estimate_misalignment:
+        mis = dict(acc_misalignment=p.values("acc_misalignment")[0].copy(),
+                   gyro_misalignment=p.values("gyro_misalignment")[0].copy())
+    return ImuErrorEstimate(built.bias_grid, p.values("acc_bias"), p.values("gyro_bias"), p.values("acc_scale")[0],
+                            p.values("gyro_scale")[0], **mis)
 
 
 def gnss_error_of(built: GnssImuProblem, scale: float | None = None) -> GnssErrorEstimate | None:
@@ -426,10 +486,7 @@ def solve_gnss_imu(
     options = options or trajectory_solver_options(cfg, narrow=True)
     result = built.problem.solve(options, progress=progress)
     timings = {"solve": _time.perf_counter() - t}
-    p = built.problem
-    errors = ImuErrorEstimate(
-        built.bias_grid, p.values("acc_bias"), p.values("gyro_bias"), p.values("acc_scale")[0], p.values("gyro_scale")[0],
-    )
+    errors = imu_errors_of(built)
     out = GnssImuResult(built.spline(), errors, result, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), timings,
                         gnss_error=gnss_error_of(built))
     return with_posterior(built, out) if covariance else out
@@ -474,7 +531,7 @@ def posterior_columns(built: "GnssImuProblem") -> int:
     """About how many unit columns of ``N^-1`` :func:`with_posterior` asks for: attitude, position and
     velocity at :func:`sigma_knots`, the IMU errors, the correlated GNSS error."""
     P = built.problem
-    n = 9 * sigma_knots(built.grid, built.cfg).size + 6 * built.bias_grid.n_knots + 6
+    n = 9 * sigma_knots(built.grid, built.cfg).size + 6 * built.bias_grid.n_knots + 6 + 12 * built.estimate_misalignment
     if GNSS_ERROR_BLOCK in P.blocks:
         n += 3 * P.values(GNSS_ERROR_BLOCK).shape[0]
     return n
@@ -545,6 +602,9 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
         acc_bias_sigma=block_sigma(p, "acc_bias", vf), gyro_bias_sigma=block_sigma(p, "gyro_bias", vf),
         acc_scale_sigma=block_sigma(p, "acc_scale", vf)[0] if built.estimate_scale else None,
         gyro_scale_sigma=block_sigma(p, "gyro_scale", vf)[0] if built.estimate_scale else None,
+        acc_misalignment=e.acc_misalignment, gyro_misalignment=e.gyro_misalignment,
+        acc_misalignment_sigma=block_sigma(p, "acc_misalignment", vf)[0] if built.estimate_misalignment else None,
+        gyro_misalignment_sigma=block_sigma(p, "gyro_misalignment", vf)[0] if built.estimate_misalignment else None,
     )
     # The posterior's own J and N (where the solve did not leave them formed) count as assembly
     # and normal matrix, not as covariance: BENCHMARKS.md's phases.

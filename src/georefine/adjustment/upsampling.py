@@ -3,12 +3,12 @@
 The adjustment (:mod:`georefine.adjustment.gnss_imu`) sees the IMU only through window means
 and estimates a spline on knots ``knot_interval_s`` apart. This module closes the loop:
 
-1. :func:`corrected_imu`: the raw readings with the estimated biases and scale factors
-   removed, ``(x~ - b(t)) / (1 + s)``;
+1. :func:`corrected_imu`: the raw readings with the estimated biases, scale factors and
+   misalignments removed, ``M^-1 (x~ - b(t))`` with ``M = I + S + A``;
 2. :func:`rebuild_high_rate`: the motion faster than the knots, rebuilt from them relative to
    the spline (:func:`georefine.trajectory.highrate.reconstruct_high_rate`);
 3. :func:`without_high_rate`: the raw readings minus what that motion contributes where it
-   stands out of the sensor noise (spectral lines; scaled back by ``1 + s``), for the next
+   stands out of the sensor noise (spectral lines; sensed back through ``M``), for the next
    adjustment's windows. Without this a vibration that no knot can follow reaches the windows
    as aliased noise, tens of times the sensor noise; removing the noise too would leave
    windows that fit better than their weights say, and a meaningless variance factor. The
@@ -34,6 +34,7 @@ from dataclasses import replace
 import numpy as np
 
 from georefine.adjustment.gnss_imu import GnssImuData, GnssImuProblem, GnssImuResult, ImuErrorEstimate
+from georefine.adjustment.observations.imu import triad_matrix
 from georefine.trajectory.highrate import HighRateMotion, reconstruct_high_rate
 from georefine.trajectory.spline import KnotGrid
 
@@ -49,12 +50,26 @@ def _inside(data: GnssImuData, hf_or_span) -> np.ndarray:
 
 
 def corrected_imu(data: GnssImuData, errors: ImuErrorEstimate, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Angular rate and specific force of samples ``sel`` with biases and scale factors removed."""
+    """Angular rate and specific force of samples ``sel`` with biases, scale factors and misalignments removed."""
     t = data.imu_time[sel]
     grid = errors.bias_grid
-    gyro = (data.imu_gyro[sel] - grid.evaluate(errors.gyro_bias, t)) / (1.0 + np.asarray(errors.gyro_scale))
-    acc = (data.imu_acc[sel] - grid.evaluate(errors.acc_bias, t)) / (1.0 + np.asarray(errors.acc_scale))
+    gyro = _unsense(data.imu_gyro[sel] - grid.evaluate(errors.gyro_bias, t), errors.gyro_scale, errors.gyro_misalignment)
+    acc = _unsense(data.imu_acc[sel] - grid.evaluate(errors.acc_bias, t), errors.acc_scale, errors.acc_misalignment)
     return gyro, acc
+
+
+def _unsense(x: np.ndarray, scale: np.ndarray, misalignment: np.ndarray | None) -> np.ndarray:
+    """Rows ``x`` through the inverse of the triad's ``I + S + A`` (as divided by ``1 + s`` without ``A``)."""
+    if misalignment is None:
+        return x / (1.0 + np.asarray(scale))
+    return np.linalg.solve(triad_matrix(scale, misalignment), x.T).T
+
+
+def _sense(x: np.ndarray, scale: np.ndarray, misalignment: np.ndarray | None) -> np.ndarray:
+    """Rows ``x`` through the triad's ``I + S + A``."""
+    if misalignment is None:
+        return (1.0 + np.asarray(scale)) * x
+    return x @ triad_matrix(scale, misalignment).T
 
 
 def rebuild_high_rate(data: GnssImuData, result: GnssImuResult) -> HighRateMotion:
@@ -137,8 +152,8 @@ def _clean(data: GnssImuData, result: GnssImuResult) -> tuple[GnssImuData, float
     e = result.imu_errors
     gyro = data.imu_gyro.copy()
     acc = data.imu_acc.copy()
-    gyro[sel] -= (1.0 + np.asarray(e.gyro_scale)) * d_omega
-    acc[sel] -= (1.0 + np.asarray(e.acc_scale)) * d_f
+    gyro[sel] -= _sense(d_omega, e.gyro_scale, e.gyro_misalignment)
+    acc[sel] -= _sense(d_f, e.acc_scale, e.acc_misalignment)
     cleaning = np.zeros((data.imu_time.size, 6))
     cleaning[sel] = removed
     return replace(data, imu_gyro=gyro, imu_acc=acc, imu_cleaning=cleaning), share

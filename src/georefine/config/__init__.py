@@ -129,7 +129,9 @@ class ImuErrorSpec(StrictModel):
     White noise: angle random walk (ARW) and velocity random walk (VRW). Biases: turn-on
     (constant per run, 1 sigma) plus an in-run random walk of density
     ``q = B sqrt(2 / tau)`` from the bias instability ``B`` over the correlation time ``tau``
-    (``*_bias_correlation_time_s``). Scale factors: 1 sigma, constant.
+    (``*_bias_correlation_time_s``). Scale factors: 1 sigma, constant. Misalignment: 1 sigma of
+    each off-diagonal element of a triad's sensitivity matrix against the body frame, constant;
+    0 (the default) where the datasheet states none.
     """
 
     gyro_arw_deg_per_sqrt_h: float = Field(ge=0.0)
@@ -142,6 +144,10 @@ class ImuErrorSpec(StrictModel):
     acc_scale_factor_ppm: float = Field(ge=0.0)
     gyro_bias_correlation_time_s: float = Field(3600.0, gt=0.0)
     acc_bias_correlation_time_s: float = Field(3600.0, gt=0.0)
+    gyro_misalignment_mrad: float = Field(
+        0.0, ge=0.0, description="Gyro triad misalignment and non-orthogonality, 1 sigma per off-diagonal element "
+        "(mrad); > 0 lets processing.trajectory.estimate_misalignment 'auto' estimate it.")
+    acc_misalignment_mrad: float = Field(0.0, ge=0.0, description="The same for the accelerometer triad (mrad).")
 
 
 class ImuFileConfig(StrictModel):
@@ -476,6 +482,16 @@ class TrajectoryAdjustmentConfig(StrictModel):
     gnss_error_knot_interval_s: float = Field(
         5.0, gt=0.0, description="Knot spacing of the piecewise-linear correlated GNSS error (gnss.correlated_error).")
     estimate_scale_factors: bool = True
+    estimate_misalignment: Literal["auto"] | bool = Field(
+        "auto",
+        description="Estimate each IMU triad's misalignment and non-orthogonality (six off-diagonal elements per "
+        "triad, docs/ARCHITECTURE.md §4.3) with the datasheet's imu.errors.*_misalignment_mrad as prior. auto: "
+        "where the datasheet states one; true with none stated: misalignment_prior_mrad. The rotation common to "
+        "both triads is a turn of the whole IMU, which GNSS and IMU cannot tell from attitude: in the G/I its "
+        "prior widens the attitude sigma, in the G/I/L the planes observe it through the scanner.")
+    misalignment_prior_mrad: float = Field(
+        1.0, gt=0.0, description="Prior sigma of the misalignment where estimate_misalignment is true and the "
+        "datasheet states none (mrad; MEMS datasheets give up to 1).")
     gnss_loss: Literal["huber", "cauchy", "none"] = "huber"
     gnss_loss_scale: float = Field(3.0, gt=0.0, description="Huber delta / Cauchy c in units of sigma.")
     max_iterations: int = Field(30, ge=1)

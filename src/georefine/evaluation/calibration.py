@@ -5,15 +5,17 @@ The adjustments write their IMU error model into ``adjustment.json``
 factors with sigma, piecewise-linear biases at ``bias_knot_times_s`` after ``t0_gps`` with sigma)
 and, where estimated, the boresight (``boresight_deg``, ``boresight_sigma_mdeg``). The simulator
 keeps what it applied (``truth/imu_errors.npz``: per-sample biases in rad/s and m/s^2, scale
-factors; ``truth/scenario.yaml``: ``scenario.boresight_deg``). Both use the sensor model
-``raw = (1 + s) true + b``.
+factors, each triad's misalignment matrix; ``truth/scenario.yaml``: ``scenario.boresight_deg``). Both
+use the sensor model ``raw = (I + S + A) true + b``.
 
-Figures per solution: every scale factor estimated, true and its sigma; the biases' RMS error over
-the knots against their RMS sigma (about 1 when the sigmas are honest); the boresight's error.
+Figures per solution: every scale factor estimated, true and its sigma; where estimated, every
+misalignment element (xy, xz, yx, yz, zx, zy) the same way; the biases' RMS error over the knots
+against their RMS sigma (about 1 when the sigmas are honest); the boresight's error.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,8 +36,12 @@ def _triple(v) -> tuple[float, float, float]:
     return tuple(float("nan") if x is None else float(x) for x in v)  # type: ignore[return-value]
 
 
-def _list(v) -> list[float | None]:
-    return [None if not math.isfinite(x) else float(x) for x in v]
+def _list(v) -> list[float | None] | None:
+    return None if v is None else [None if not math.isfinite(x) else float(x) for x in v]
+
+
+MISALIGNMENT_ELEMENTS = ("xy", "xz", "yx", "yz", "zx", "zy")
+"""Row and column axes of the six misalignment elements, in the adjustment's order."""
 
 
 @dataclass(frozen=True)
@@ -52,13 +58,20 @@ class ImuErrorFigures:
     acc_bias_rms_sigma_ug: tuple[float, float, float]
     gyro_bias_rms_error_deg_per_h: tuple[float, float, float]
     gyro_bias_rms_sigma_deg_per_h: tuple[float, float, float]
+    acc_misalignment_mrad: tuple[float, ...] | None = None  # MISALIGNMENT_ELEMENTS; None: not estimated
+    acc_misalignment_true_mrad: tuple[float, ...] | None = None
+    acc_misalignment_sigma_mrad: tuple[float, ...] | None = None
+    gyro_misalignment_mrad: tuple[float, ...] | None = None
+    gyro_misalignment_true_mrad: tuple[float, ...] | None = None
+    gyro_misalignment_sigma_mrad: tuple[float, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         return {k: _list(v) for k, v in self.__dict__.items()}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ImuErrorFigures:
-        return cls(**{k: _triple(d[k]) for k in cls.__dataclass_fields__})
+        return cls(**{k: _triple(d[k]) if f.default is dataclasses.MISSING or d.get(k) is not None else None
+                      for k, f in cls.__dataclass_fields__.items()})
 
 
 @dataclass(frozen=True)
@@ -112,12 +125,21 @@ def imu_error_figures(adjustment: AdjustmentReport, truth_npz: Path) -> ImuError
         return np.asarray(e[name], dtype=float)[inside]
 
     nan3 = (math.nan,) * 3
+    off = ~np.eye(3, dtype=bool)
+    misalignment = {}
+    for triad in ("acc", "gyro"):
+        if e.get(f"{triad}_misalignment_mrad") is not None:
+            true = truth.get(f"misalignment_{triad}", np.zeros((3, 3)))[off] * 1e3
+            misalignment |= {f"{triad}_misalignment_mrad": _triple(e[f"{triad}_misalignment_mrad"]),
+                             f"{triad}_misalignment_true_mrad": _triple(true),
+                             f"{triad}_misalignment_sigma_mrad": _triple(e.get(f"{triad}_misalignment_sigma_mrad")
+                                                                         or (math.nan,) * 6)}
     return ImuErrorFigures(
         _triple(e.get("acc_scale_ppm", nan3)), _triple(1e6 * truth["scale_acc"]), _triple(e.get("acc_scale_sigma_ppm", nan3)),
         _triple(e.get("gyro_scale_ppm", nan3)), _triple(1e6 * truth["scale_gyro"]),
         _triple(e.get("gyro_scale_sigma_ppm", nan3)),
         rms(est("acc_bias_ug") - acc_true), rms(est("acc_bias_sigma_ug")),
-        rms(est("gyro_bias_deg_per_h") - gyro_true), rms(est("gyro_bias_sigma_deg_per_h")),
+        rms(est("gyro_bias_deg_per_h") - gyro_true), rms(est("gyro_bias_sigma_deg_per_h")), **misalignment,
     )
 
 

@@ -25,6 +25,7 @@ import tempfile
 from pathlib import Path
 
 from georefine import __version__
+from georefine.evaluation.calibration import MISALIGNMENT_ELEMENTS
 from georefine.evaluation.page import CSS, image, table
 from georefine.evaluation.plots import plot_residual_histograms
 from georefine.evaluation.summary import ANGLES, RunEvaluation, SurfaceFigures
@@ -138,6 +139,15 @@ def _calibration_section(summary: RunEvaluation, ev: Path) -> str:
                          *(f"{e:.{digits}f} : {s:.{digits}f}" for e, s in zip(err, sig))])
     if rows:
         parts.append(table(["solution", "quantity", "x", "y", "z"], rows))
+    rows = [[label, f"{triad} misalignment (mrad)", *(f"{e:.3f} / {t:.3f} ± {s:.3f}" for e, t, s in zip(
+                getattr(f, f"{key}_misalignment_mrad"), getattr(f, f"{key}_misalignment_true_mrad"),
+                getattr(f, f"{key}_misalignment_sigma_mrad")))]
+            for label, f in summary.imu_errors.items()
+            for key, triad in (("acc", "accelerometer"), ("gyro", "gyro")) if getattr(f, f"{key}_misalignment_mrad")]
+    if rows:
+        parts.append('<p class="note">Misalignment: estimated / true ± sigma per element (row axis, column axis) '
+                     "of the triad's sensitivity matrix.</p>")
+        parts.append(table(["solution", "quantity", *MISALIGNMENT_ELEMENTS], rows))
     if summary.imu_errors_plot:
         parts.append(image(ev / summary.imu_errors_plot, "IMU biases against the truth"))
     b = summary.boresight
@@ -370,6 +380,12 @@ def write_report(run_dir: Path, path: Path | None = None, *, title: str = "Geore
                     rows.append([name.rsplit("_", 1)[0] + " (first knot → last)", unit] + [
                         f"{first[i]:.2f} → {last[i]:.2f}" for i in range(3)])
             parts.append(table(["IMU error", "unit", "x", "y", "z"], rows))
+            rows = [[name.replace("_mrad", ""), "mrad"] + [
+                f"{v:.3f} ± {g:.3f}" if sg else f"{v:.3f}" for v, g in zip(e[name], sg or e[name])]
+                for name in ("acc_misalignment_mrad", "gyro_misalignment_mrad") if e.get(name)
+                for sg in [e.get(name.replace("_mrad", "_sigma_mrad"))]]
+            if rows:
+                parts.append(table(["IMU misalignment", "unit", *MISALIGNMENT_ELEMENTS], rows))
         if a.boresight_deg is not None:
             b, sg = a.boresight_deg, a.boresight_sigma_mdeg or (float("nan"),) * 3
             parts.append("<p>Boresight roll/pitch/yaw: " + ", ".join(

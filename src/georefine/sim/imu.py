@@ -2,11 +2,15 @@
 
 Measurement model (the one the adjustment inverts, docs/ARCHITECTURE.md §4.3), per sample time ``t_k``::
 
-    gyro_k = (I + S_g) omega_ib_b(t_k) + b_g(t_k) + n_g,k     n_g ~ N(0, (ARW sqrt(rate))^2)
-    acc_k  = (I + S_f) f_ib_b(t_k)     + b_f(t_k) + n_f,k     n_f ~ N(0, (VRW sqrt(rate))^2)
+    gyro_k = (I + S_g + A_g) omega_ib_b(t_k) + b_g(t_k) + n_g,k     n_g ~ N(0, (ARW sqrt(rate))^2)
+    acc_k  = (I + S_f + A_f) f_ib_b(t_k)     + b_f(t_k) + n_f,k     n_f ~ N(0, (VRW sqrt(rate))^2)
 
 Samples are *instantaneous* values at the sample times (not interval averages). ``S`` is
-diagonal and constant, drawn from the datasheet scale-factor figure (1 sigma).
+diagonal and constant, drawn from the datasheet scale-factor figure (1 sigma). ``A`` is the
+triad's misalignment and non-orthogonality against the body frame: its six off-diagonal
+elements, constant, each drawn from ``*_misalignment_mrad`` (1 sigma; 0, the default of every
+preset, leaves ``A = 0``). Its antisymmetric part turns the triad, its symmetric part shears it;
+the part common to both triads' rotations is a rotation of the whole IMU against the body frame.
 
 Bias process
     ``b(t) = b_on + w(t)``: a turn-on constant ``b_on ~ N(0, turn_on^2)`` plus an in-run
@@ -61,7 +65,7 @@ navigation-grade unit shows almost no heading drift, which would leave nothing t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -94,6 +98,9 @@ class ImuGrade(BaseModel):
     acc_bias_correlation_time_s: float = Field(3600.0, gt=0)
     acc_turn_on_bias_ug: float = Field(0.0, ge=0)
     acc_scale_factor_ppm: float = Field(0.0, ge=0)
+    gyro_misalignment_mrad: float = Field(0.0, ge=0, description="1 sigma of each off-diagonal element of the "
+                                          "gyro triad's sensitivity matrix against the body frame")
+    acc_misalignment_mrad: float = Field(0.0, ge=0, description="the same for the accelerometer triad")
 
     @property
     def gyro_noise_density(self) -> float:
@@ -201,6 +208,8 @@ class SimulatedImu:
     t0_gps : float
         Dataset epoch (GPS seconds).
     grade : ImuGrade
+    misalignment_gyro, misalignment_acc : ndarray (3, 3)
+        True misalignment ``A`` of each triad (dimensionless, zero diagonal).
     """
 
     time: np.ndarray
@@ -212,12 +221,18 @@ class SimulatedImu:
     scale_acc: np.ndarray
     t0_gps: float
     grade: ImuGrade
+    misalignment_gyro: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    misalignment_acc: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
 
     def __post_init__(self):
         n = len(self.time)
         for name in ("gyro", "acc", "bias_gyro", "bias_acc"):
             if getattr(self, name).shape != (n, 3):
                 raise ValueError(f"{name} must have shape ({n}, 3)")
+        for name in ("misalignment_gyro", "misalignment_acc"):
+            a = getattr(self, name)
+            if a.shape != (3, 3) or np.any(np.diag(a) != 0):
+                raise ValueError(f"{name} must be (3, 3) with a zero diagonal")
         if n > 1 and not np.all(np.diff(self.time) > 0):
             raise ValueError("IMU times must increase strictly")
 
@@ -243,7 +258,8 @@ def simulate_imu(traj, grade: ImuGrade, t_start: float, t_end: float,
     t_start, t_end : float
         Sample times are ``t_start + k / rate_hz <= t_end``.
     rng : numpy.random.Generator
-        Seeded generator; draws turn-on biases, scale factors, random walks and noise.
+        Seeded generator; draws turn-on biases, scale factors, random walks and noise, then the
+        misalignments where the grade states them (so a grade without them draws as before).
 
     Returns
     -------
@@ -260,6 +276,30 @@ def simulate_imu(traj, grade: ImuGrade, t_start: float, t_end: float,
     b_g = _bias(rng, n, dt, grade.gyro_turn_on_bias, grade.gyro_bias_rw_density)
     b_f = _bias(rng, n, dt, grade.acc_turn_on_bias, grade.acc_bias_rw_density)
     sq = np.sqrt(grade.rate_hz)
-    gyro = (1.0 + scale_g) * w_true + b_g + rng.normal(0.0, grade.gyro_noise_density * sq, (n, 3))
-    acc = (1.0 + scale_f) * f_true + b_f + rng.normal(0.0, grade.acc_noise_density * sq, (n, 3))
-    return SimulatedImu(time, gyro, acc, b_g, b_f, scale_g, scale_f, float(traj.t0_gps), grade)
+    n_g = rng.normal(0.0, grade.gyro_noise_density * sq, (n, 3))
+    n_f = rng.normal(0.0, grade.acc_noise_density * sq, (n, 3))
+    a_g = misalignment_matrix(rng, grade.gyro_misalignment_mrad)
+    a_f = misalignment_matrix(rng, grade.acc_misalignment_mrad)
+    gyro = sense(w_true, scale_g, a_g) + b_g + n_g
+    acc = sense(f_true, scale_f, a_f) + b_f + n_f
+    return SimulatedImu(time, gyro, acc, b_g, b_f, scale_g, scale_f, float(traj.t0_gps), grade,
+                        misalignment_gyro=a_g, misalignment_acc=a_f)
+
+
+def misalignment_matrix(rng: np.random.Generator, sigma_mrad: float) -> np.ndarray:
+    """A triad's misalignment ``A`` (3, 3): off-diagonal elements drawn with ``sigma_mrad`` (1 sigma),
+    zero diagonal; all zero, drawing nothing, where ``sigma_mrad`` is 0."""
+    a = np.zeros((3, 3))
+    if sigma_mrad > 0:
+        off = ~np.eye(3, dtype=bool)
+        a[off] = rng.normal(0.0, sigma_mrad * 1e-3, 6)
+    return a
+
+
+def sense(x: np.ndarray, scale: np.ndarray, misalignment: np.ndarray) -> np.ndarray:
+    """``(I + diag(scale) + misalignment) x`` for rows ``x`` (N, 3): what a triad reads of ``x``
+    before bias and noise."""
+    out = (1.0 + scale) * x
+    if np.any(misalignment):
+        out += x @ misalignment.T
+    return out

@@ -161,7 +161,8 @@ def _write_navigation(root: Path, sorties: list[Sortie], crs: OutputCRS, write_i
 
 def _imu_errors(imu: SimulatedImu) -> dict[str, np.ndarray]:
     return dict(time_gps=imu.t0_gps + imu.time, bias_gyro=imu.bias_gyro, bias_acc=imu.bias_acc,
-                scale_gyro=imu.scale_gyro, scale_acc=imu.scale_acc)
+                scale_gyro=imu.scale_gyro, scale_acc=imu.scale_acc,
+                misalignment_gyro=imu.misalignment_gyro, misalignment_acc=imu.misalignment_acc)
 
 
 def _gnss_errors(gnss: SimulatedGnss) -> dict[str, np.ndarray]:
@@ -291,6 +292,8 @@ def write_project(cfg: Any, root: Path, seed: int, write_imr: bool, progress: Pr
         "imu_scale_acc_ppm": (imu.scale_acc * 1e6).tolist(),
         "imu_bias_gyro_start_deg_per_h": np.degrees(imu.bias_gyro[0] * 3600).tolist(),
         "imu_bias_acc_start_ug": (imu.bias_acc[0] / 9.80665e-6).tolist(),
+        "imu_misalignment_gyro_mrad": (imu.misalignment_gyro * 1e3).tolist(),
+        "imu_misalignment_acc_mrad": (imu.misalignment_acc * 1e3).tolist(),
         "points_per_strip": points,
         "scenario": cfg.model_dump(mode="json"),
     }

@@ -7,7 +7,7 @@ rebuilds it as a correction relative to the spline::
 
     R_w_b(t) = R_s(t) Exp(dtheta(t)),     p_w_b(t) = p_s(t) + dp(t)
 
-from the error-corrected readings (biases and scale factors of the adjustment removed).
+from the error-corrected readings (biases, scale factors and misalignments of the adjustment removed).
 
 **Orientation.** The residual rate ``domega = omega_wb_b - omega_s`` (the corrected gyro minus
 the Earth rate, minus the spline's body rate) drives ``dtheta' = domega - omega_s x dtheta``
@@ -374,7 +374,7 @@ def reconstruct_high_rate(
         IMU sample times (relative to the epoch); samples outside the spline are dropped.
     gyro, acc : (N, 3)
         Angular rate ``omega_ib_b`` (rad/s) and specific force (m/s²), already corrected for
-        the estimated biases and scale factors.
+        the estimated biases, scale factors and misalignments.
     rate_hz
         Nominal IMU rate (for finding sampling gaps).
     """

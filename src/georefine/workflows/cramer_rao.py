@@ -56,6 +56,7 @@ import yaml
 
 from georefine.adjustment.gnss_imu import GnssErrorEstimate, GnssImuResult, ImuErrorEstimate, trajectory_sigma
 from georefine.adjustment.observations.bias import BiasGrid
+from georefine.adjustment.observations.imu import OFF_DIAGONAL
 from georefine.adjustment.observations.plane import PlaneObservation
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.solver import SolverOptions
@@ -203,7 +204,9 @@ def truth_start(nav: NavigationData, root: Path) -> GnssImuResult:
     tb = bias_grid.times + nav.t0_gps
     errors = ImuErrorEstimate(bias_grid, interp_columns(tb, imu["time_gps"], imu["bias_acc"]),
                               interp_columns(tb, imu["time_gps"], imu["bias_gyro"]),
-                              np.asarray(imu["scale_acc"], dtype=float), np.asarray(imu["scale_gyro"], dtype=float))
+                              np.asarray(imu["scale_acc"], dtype=float), np.asarray(imu["scale_gyro"], dtype=float),
+                              **{f"{triad}_misalignment": np.asarray(imu[f"misalignment_{triad}"], dtype=float)[OFF_DIAGONAL]
+                                 for triad in ("acc", "gyro") if f"misalignment_{triad}" in imu})
     gnss_error = None
     if nav.gnss.gnss_correlated is not None:
         g = np.load(root / "truth" / "gnss_errors.npz")

@@ -47,8 +47,8 @@ import numpy as np
 from georefine.adjustment.gnss_imu import (
     GnssImuProblem,
     GnssImuResult,
-    ImuErrorEstimate,
     gnss_error_of,
+    imu_errors_of,
     posterior_columns,
     posterior_scale,
     trajectory_solver_options,
@@ -284,9 +284,7 @@ def step_adjust_flights(
 def _read_out(built: GnssImuProblem, solve: SolveResult) -> GnssImuResult:
     """A flight's trajectory, IMU errors and correlated GNSS error from its part of the solved joint problem
     (as :func:`~georefine.adjustment.gnss_imu.solve_gnss_imu` reads them from one problem)."""
-    p = built.problem
-    errors = ImuErrorEstimate(built.bias_grid, p.values("acc_bias"), p.values("gyro_bias"), p.values("acc_scale")[0],
-                              p.values("gyro_scale")[0])
+    errors = imu_errors_of(built)
     return GnssImuResult(built.spline(), errors, solve, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), {},
                          gnss_error=gnss_error_of(built))
 

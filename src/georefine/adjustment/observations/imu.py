@@ -2,10 +2,12 @@
 
 At time ``t`` the model of the accelerometer and gyro readings is
 
-``f~ = (I + S_f) R_w_b^T (p''_w + 2 omega_ie_w x p'_w - g_w(p_w)) + b_f(t)``
-``w~ = (I + S_g) (omega_wb_b + R_w_b^T omega_ie_w) + b_g(t)``
+``f~ = (I + S_f + A_f) R_w_b^T (p''_w + 2 omega_ie_w x p'_w - g_w(p_w)) + b_f(t)``
+``w~ = (I + S_g + A_g) (omega_wb_b + R_w_b^T omega_ie_w) + b_g(t)``
 
-with piecewise-linear biases on their own knots and constant diagonal scale factors.
+with piecewise-linear biases on their own knots, constant diagonal scale factors ``S`` and,
+where estimated, each triad's constant misalignment ``A``: its six off-diagonal elements
+(:data:`OFF_DIAGONAL` order), the triad's turn and shear against the body frame.
 
 Down-sampling (Pöppl et al. 2025): consecutive samples are averaged over windows
 (``processing.trajectory.imu_window_s``, default 0.02 s; the G/I's ``gnss_imu_window_s``, 0.1 s)
@@ -32,7 +34,8 @@ samples at rate ``f`` the mean has ``sigma = N sqrt(f / n)``. Windows never span
 
 Jacobians (right perturbation ``R <- R Exp(delta)``): ``d(R^T x)/d delta = skew(R^T x)``;
 ``d(R^T x)/d p'' = R^T``, ``d/d p' = 2 R^T skew(omega_ie_w)``, ``d/d p = -R^T G`` with
-``G`` the normal-gravity gradient ``(gamma / r)(3 u u^T - I)`` (``u`` the up direction).
+``G`` the normal-gravity gradient ``(gamma / r)(3 u u^T - I)`` (``u`` the up direction); each
+is taken through the triad's ``M = I + S + A``. ``d f~_i / d A_ij = (R^T x)_j``.
 """
 
 from __future__ import annotations
@@ -53,6 +56,18 @@ from georefine.geometry.earth import WGS84_A
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import skew
 from georefine.trajectory.spline import KnotGrid, eval_orientation, knot_sum, position_basis
+
+OFF_DIAGONAL = (np.array([0, 0, 1, 1, 2, 2]), np.array([1, 2, 0, 2, 0, 1]))
+"""Row and column of the six misalignment elements of a triad, in their block's order."""
+
+
+def triad_matrix(scale: np.ndarray, misalignment: np.ndarray | None = None) -> np.ndarray:
+    """A triad's sensitivity ``M = I + diag(scale) + A`` (3, 3), ``A`` from its six off-diagonal
+    elements (:data:`OFF_DIAGONAL` order; None: zero)."""
+    m = np.diag(1.0 + np.asarray(scale, dtype=float).reshape(3))
+    if misalignment is not None:
+        m[OFF_DIAGONAL] = np.asarray(misalignment, dtype=float).reshape(6)
+    return m
 
 
 @dataclass(frozen=True)
@@ -155,6 +170,9 @@ class ImuObservation:
         Standard deviation of each window mean (m/s², rad/s).
     acc_scale, gyro_scale
         Names of the (1, 3) scale-factor blocks, or None to leave scale factors out.
+    acc_misalignment, gyro_misalignment
+        Names of the (1, 6) misalignment blocks (:data:`OFF_DIAGONAL`), or None (the default) to
+        leave them out.
     nodes
         Gauss-Legendre nodes per window of increments (1 for single samples). Windows of
         rates are averaged at their samples (module docstring).
@@ -176,6 +194,8 @@ class ImuObservation:
     gyro_bias: str = "gyro_bias"
     acc_scale: str | None = "acc_scale"
     gyro_scale: str | None = "gyro_scale"
+    acc_misalignment: str | None = None
+    gyro_misalignment: str | None = None
     nodes: int = 3
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
@@ -233,7 +253,14 @@ class ImuObservation:
         rate = ev.omega_wb_b + Rt_W
         f_node = (1.0 + s_a) * Rt_x + b_a
         w_node = (1.0 + s_g) * rate + b_g
-        return dict(p=p, g=g, ev=ev, Rt=Rt, Rt_x=Rt_x, Rt_W=Rt_W, rate=rate, s_a=s_a, s_g=s_g, f=f_node, w=w_node)
+        M_a, M_g = np.diag(1.0 + s_a), np.diag(1.0 + s_g)
+        if self.acc_misalignment:
+            M_a = triad_matrix(s_a, values[self.acc_misalignment])
+            f_node += Rt_x @ (M_a - np.diag(np.diag(M_a))).T
+        if self.gyro_misalignment:
+            M_g = triad_matrix(s_g, values[self.gyro_misalignment])
+            w_node += rate @ (M_g - np.diag(np.diag(M_g))).T
+        return dict(p=p, g=g, ev=ev, Rt=Rt, Rt_x=Rt_x, Rt_W=Rt_W, rate=rate, M_a=M_a, M_g=M_g, f=f_node, w=w_node)
 
     def _average(self, node_values: np.ndarray) -> np.ndarray:
         weighted = node_values * self._q[:, None]
@@ -262,7 +289,7 @@ class ImuObservation:
         gamma = np.linalg.norm(g, axis=1)
         up = -g / gamma[:, None]
         G = (gamma / WGS84_A)[:, None, None] * (3.0 * up[:, :, None] * up[:, None, :] - np.eye(3))
-        Da, Dg = np.diag(1.0 + t["s_a"]), np.diag(1.0 + t["s_g"])
+        Da, Dg = t["M_a"], t["M_g"]
         ev = t["ev"]
         eye = np.eye(3)
         win = self._win
@@ -294,6 +321,12 @@ class ImuObservation:
         if self.gyro_scale:
             d = t["rate"]
             out.append(JacobianBlock(self.gyro_scale, rows_g, zeros, cg * (d[:, :, None] * eye)))
+        for name, rows, d, c in ((self.acc_misalignment, rows_f, t["Rt_x"], ca),
+                                 (self.gyro_misalignment, rows_g, t["rate"], cg)):
+            if name:
+                val = np.zeros((win.size, 3, 6))
+                val[:, OFF_DIAGONAL[0], np.arange(6)] = d[:, OFF_DIAGONAL[1]]
+                out.append(JacobianBlock(name, rows, zeros, c * val))
         return out
 
 
