@@ -43,7 +43,7 @@ import numpy as np
 import yaml
 
 from georefine.evaluation.trajectory_files import compare_sbet_files, truth_pass_accuracy
-from georefine.io.trajectory import read_smrmsg, smrmsg_path
+from georefine.io.trajectory import read_sbet_companion, read_smrmsg, smrmsg_path
 from georefine.sim.scenarios import simulate_project
 
 KINDS = {
@@ -71,7 +71,7 @@ def _unstate(project: Path, out: Path, where) -> Path:
 def _position(sbet: Path, project: Path) -> tuple[float, float]:
     """3-D position RMSE (m) over the whole solution and the RMS of error / stated sigma per axis, pooled."""
     cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet")
-    sig = read_smrmsg(smrmsg_path(sbet))
+    sig = read_smrmsg(smrmsg_path(sbet), gps_week=read_sbet_companion(sbet).gps_week)
     t = cmp.t0_gps + cmp.time
     s = np.column_stack([np.interp(t, sig.time_gps, sig.sigma_ned_m[:, i]) for i in range(3)])
     return float(np.sqrt(np.mean(np.sum(cmp.d_ned_m**2, axis=1)))), float(np.sqrt(np.mean((cmp.d_ned_m / s) ** 2)))

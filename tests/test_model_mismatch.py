@@ -1,9 +1,12 @@
-"""Sensor errors beyond the basic IMU model: a misaligned, non-orthogonal IMU (docs/ARCHITECTURE.md §4.3).
+"""Sensor errors beyond the basic model (docs/ARCHITECTURE.md §4.3): a misaligned, non-orthogonal IMU, and GNSS
+epochs whose ambiguities stay float.
 
-The simulator turns each triad by about half a milliradian (``imu.*_misalignment_mrad``); the
+The simulator turns each IMU triad by about half a milliradian (``imu.*_misalignment_mrad``); the
 project states that figure, so the adjustments estimate the misalignment. The same project with the
-figure removed shows what an unmodelled misalignment does. Error windows and sigma consistency
-against the simulated truth; the long G/I/L run is marked slow (CI runs it).
+figure removed shows what an unmodelled misalignment does. A float segment (``gnss.float_segments``)
+is flagged Q=2 with centimetric sigmas and off by decimetres; the adjustment gives it an offset of
+its own (``gnss.float_offset``), or, switched off, takes its epochs as fixes. Error windows and sigma
+consistency against the simulated truth; the long G/I/L run is marked slow (CI runs it).
 """
 
 from __future__ import annotations
@@ -16,7 +19,8 @@ import numpy as np
 import pytest
 import yaml
 
-from cli_helpers import run_georefine
+from cli_helpers import run_georefine, run_georefine_here
+from georefine.evaluation.trajectory_files import compare_sbet_files
 from georefine.evaluation.trajectory_files import truth_pass_accuracy
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows import run_trajectory
@@ -100,3 +104,63 @@ def test_the_gil_observes_the_misalignment_through_the_scanner(tmp_path):
     z = _misalignment_z(tmp_path / "run" / "gil", project)
     # Measured: RMS 0.86, largest 1.92 (the accelerometer's xy, which level flight hardly excites: its prior).
     assert np.sqrt(np.mean(z**2)) < 1.5 and np.max(np.abs(z)) < 2.5, z
+
+
+FLOAT = (105.0, 135.0)  # inside the first pass of corridor-tiny (94 .. 150 s)
+
+
+@pytest.fixture(scope="module")
+def float_navigation(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("float") / "tiny"
+    simulate_project("corridor-tiny", out, seed=21, overrides=FAST_SCAN + [f"gnss.float_segments=[[{FLOAT[0]}, {FLOAT[1]}]]"])
+    return out
+
+
+def _position_errors(solution: Path, project: Path) -> tuple[np.ndarray, np.ndarray]:
+    """RMS position error (m, north/east/down) inside the float segment and in the rest of its pass."""
+    cmp = compare_sbet_files(solution / "trajectory.sbet", project / "truth" / "trajectory.sbet")
+    rel = cmp.t0_gps + cmp.time - yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["t0_gps"]
+    inside = (rel > FLOAT[0]) & (rel < FLOAT[1])
+    rest = ((rel > 94.0) & (rel < FLOAT[0])) | ((rel > FLOAT[1]) & (rel < 150.0))
+    return (np.sqrt(np.mean(cmp.d_ned_m[inside] ** 2, axis=0)), np.sqrt(np.mean(cmp.d_ned_m[rest] ** 2, axis=0)))
+
+
+def test_a_float_segment_gets_an_offset_and_a_warning(float_navigation, tmp_path, caplog):
+    """The segment's decimetre offset is estimated apart: the pass is as good inside it as around it,
+    where the epochs taken as fixes put it 13-22 cm off; the offset beyond the file's sigma is a warning."""
+    project = float_navigation
+    with caplog.at_level("WARNING", logger="georefine.adjustment.gnss_imu"):
+        run_trajectory(project, tmp_path / "offset")
+    warned = [r.getMessage() for r in caplog.records if "Q=2" in r.getMessage()]
+    assert len(warned) == 1 and "151 epochs" in warned[0] and "understates" in warned[0], warned
+    seg = json.loads((tmp_path / "offset" / "adjustment.json").read_text())["gnss_error"]["segments"]
+    assert len(seg) == 1 and seg[0]["quality"] == 2 and seg[0]["epochs"] == 151
+    assert seg[0]["t_start_s"] == FLOAT[0] and seg[0]["t_end_s"] == FLOAT[1]
+    truth = np.load(project / "truth" / "gnss_errors.npz")
+    t0 = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["t0_gps"]
+    inside = (truth["time_gps"] - t0 >= FLOAT[0]) & (truth["time_gps"] - t0 <= FLOAT[1])
+    ned = truth["error_ned"][inside].mean(axis=0)
+    true_enu = np.array([ned[1], ned[0], -ned[2]])
+    # The offset against the segment's mean error (which holds the white and correlated errors too):
+    # measured 0.259/0.095/-0.056 m against 0.258/0.145/-0.086.
+    assert np.all(np.abs(np.asarray(seg[0]["offset_enu_m"]) - true_enu) < 0.06), (seg, true_enu)
+    inside_err, rest_err = _position_errors(tmp_path / "offset", project)
+    assert np.all(inside_err < 1.5 * rest_err + 0.01), (inside_err, rest_err)  # measured 5.0/0.3/2.9 against 4.5/0.5/3.7 cm
+
+    taken = tmp_path / "taken-as-fixes"
+    shutil.copytree(project, taken, symlinks=True)
+    cfg = yaml.safe_load((taken / "project.yaml").read_text())
+    cfg["gnss"]["float_offset"] = None
+    (taken / "project.yaml").write_text(yaml.safe_dump(cfg))
+    run_trajectory(taken, tmp_path / "fixes")
+    bad_inside, _ = _position_errors(tmp_path / "fixes", taken)
+    assert np.linalg.norm(bad_inside) > 3.0 * np.linalg.norm(inside_err), (bad_inside, inside_err)  # 27 against 6 cm
+    assert json.loads((tmp_path / "fixes" / "adjustment.json").read_text())["gnss_error"].get("segments") is None
+
+
+def test_check_names_the_float_segment(float_navigation):
+    proc = run_georefine_here("check", str(float_navigation))
+    assert proc.returncode == 0, proc.stderr
+    assert ("151 GNSS epochs without a fixed solution (151 Q=2 (float)) in 1 segment, the longest 30.0 s"
+            in proc.stdout), proc.stdout
+    assert "gets an offset of its own (gnss.float_offset)" in proc.stdout

@@ -74,6 +74,59 @@ def test_gnss_jacobians_with_a_correlated_error(seed):
         GnssPositionObservation(grid, t, plain, cov, lever, error_grid=egrid)
 
 
+@pytest.mark.parametrize("seed", SEEDS)
+def test_gnss_jacobians_with_segment_offsets(seed):
+    """Epochs of a segment without a fix add its offset; the others do not."""
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    values["off"] = rng.normal(0, 0.2, (2, 3))
+    t = np.sort(rng.uniform(0, grid.t_end, 20))
+    segment = np.full(20, -1)
+    segment[4:9], segment[13:16] = 0, 1
+    cov = np.broadcast_to(np.diag([1e-4, 1e-4, 4e-4]), (20, 3, 3)).copy()
+    lever = np.array([-0.8, 0.1, -1.4])
+    plain = GnssPositionObservation(grid, t, np.zeros((20, 3)), cov, lever).predict(values)
+    group = GnssPositionObservation(grid, t, plain, cov, lever, segment=segment, segment_block="off")
+    expected = np.zeros((20, 3))
+    expected[4:9], expected[13:16] = values["off"][0], values["off"][1]
+    np.testing.assert_allclose(group.predict(values) - plain, expected, atol=1e-12)
+    chk = check_jacobians(group, values, {**TRAJ_BLOCKS, "off": "euclidean"}, eps=1e-4)
+    assert chk.max_rel_error < 1e-5, chk
+    with pytest.raises(ValueError, match="go together"):
+        GnssPositionObservation(grid, t, plain, cov, lever, segment=segment)
+
+
+def test_non_fix_segments_from_the_quality_flags():
+    from georefine.adjustment.gnss_segments import non_fix_segments
+    from georefine.config import GnssFloatOffset
+
+    t = np.arange(0.0, 100.0, 0.2)
+    q = np.ones(t.size, dtype=int)
+    q[50:100] = 2  # 10 s float
+    q[200:210] = 2
+    q[210:220] = 5  # Q 2 then 5 without a fix between: one segment, worst Q 5
+    q[300:305] = 2
+    q[340:345] = 2  # after 7 s of fixes: a segment of its own
+    cov = np.broadcast_to(np.diag([0.05, 0.05, 0.1]) ** 2, (t.size, 3, 3)).copy()
+    cov[200:220] *= 4.0
+    seg = non_fix_segments(t, q, cov, GnssFloatOffset())
+    assert len(seg) == 4
+    np.testing.assert_array_equal(seg.epochs, [50, 20, 5, 5])
+    np.testing.assert_array_equal(seg.quality, [2, 5, 2, 2])
+    np.testing.assert_allclose(seg.t_start, t[[50, 200, 300, 340]])
+    np.testing.assert_allclose(seg.t_end, t[[99, 219, 304, 344]])
+    np.testing.assert_allclose(seg.stated_sigma_w[1], [0.1, 0.1, 0.2])
+    assert np.all(seg.index[q == 1] == -1) and np.all(seg.index[200:220] == 1)
+    assert non_fix_segments(t, np.ones(t.size, dtype=int), cov, GnssFloatOffset()) is None
+    assert non_fix_segments(t, q, cov, None) is None
+    # Non-fix epochs further apart than max_gap_s (no fix between: epochs missing) are two segments.
+    q2 = np.full(6, 2)
+    two = non_fix_segments(np.array([0.0, 1, 2, 30, 31, 32]), q2, cov[:6], GnssFloatOffset(max_gap_s=10.0))
+    np.testing.assert_array_equal(two.index, [0, 0, 0, 1, 1, 1])
+
+
 def test_white_part_of_the_gnss_covariance():
     """The .pos sigma less the correlated part per axis, floored, plus what the chord misses."""
     from georefine.adjustment.gnss_imu import white_gnss_covariance

@@ -146,6 +146,29 @@ def test_gnss_epochs_rate_and_outages(flight):
         GnssConfig(outages=[(10.0, 5.0)])
 
 
+def test_a_float_segment_is_flagged_and_offset(flight):
+    """Q=2 with the float sigmas inside the segment, one offset added to the errors there; the draws of
+    a configuration without float segments are as before."""
+    plain = simulate_gnss(flight, P_B_A, GnssConfig(), 0.0, 300.0, np.random.default_rng(7))
+    cfg = GnssConfig(float_segments=[(100.0, 160.0), (200.0, 210.0)])
+    g = simulate_gnss(flight, P_B_A, cfg, 0.0, 300.0, np.random.default_rng(7))
+    inside = [(g.time >= a) & (g.time <= b) for a, b in cfg.float_segments]
+    either = inside[0] | inside[1]
+    assert np.all(g.quality[either] == 2) and np.all(g.quality[~either] == 1)
+    np.testing.assert_allclose(g.sd_neu[either], np.broadcast_to([0.05, 0.05, 0.10], (either.sum(), 3)))
+    np.testing.assert_array_equal(g.sd_neu[~either], plain.sd_neu[~either])
+    np.testing.assert_array_equal(g.error_ned[~either], plain.error_ned[~either])
+    offsets = []
+    for m in inside:
+        d = g.error_ned[m] - plain.error_ned[m]
+        np.testing.assert_allclose(d, np.broadcast_to(d[0], d.shape), atol=1e-12)  # one offset per segment
+        offsets.append(d[0])
+    assert not np.allclose(offsets[0], offsets[1])
+    assert np.all(np.abs(np.asarray(offsets)) < 5 * 0.3) and np.any(np.abs(np.asarray(offsets)) > 0.01)
+    with pytest.raises(ValidationError):
+        GnssConfig(float_segments=[(10.0, 5.0)])
+
+
 def test_gnss_errors_and_reported_sd(flight):
     cfg = GnssConfig(gm_sigma_horizontal_m=0.0, gm_sigma_up_m=0.0, rate_hz=10.0)
     g = simulate_gnss(flight, P_B_A, cfg, 0.0, flight.duration_s, np.random.default_rng(2))

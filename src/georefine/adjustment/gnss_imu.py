@@ -19,6 +19,7 @@ from typing import Literal
 
 import numpy as np
 
+from georefine.adjustment.gnss_segments import GNSS_SEGMENT_BLOCK, GnssSegments, non_fix_segments, segment_warnings
 from georefine.adjustment.linalg import available_backends
 from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
@@ -35,7 +36,7 @@ from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolveResult, SolverOptions
-from georefine.config import GnssCorrelatedError, ImuErrorSpec, TrajectoryAdjustmentConfig
+from georefine.config import GnssCorrelatedError, GnssFloatOffset, ImuErrorSpec, TrajectoryAdjustmentConfig
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import rph_from_R_n_b
@@ -77,6 +78,9 @@ class GnssImuData:
         the cleaning took out of unit white noise per sample (gyro, then accelerometer axes;
         :func:`georefine.adjustment.upsampling.without_high_rate`), for the redundancy it
         consumed (:func:`cleaning_redundancy`); None for readings as measured.
+    gnss_quality : (G,) int or None
+        RTKLIB Q of each epoch; with ``gnss_float`` (``gnss.float_offset``), each segment of epochs
+        worse than a fix gets an offset of its own (:mod:`georefine.adjustment.gnss_segments`).
     """
 
     frame: LocalFrame
@@ -94,6 +98,8 @@ class GnssImuData:
     gnss_correlated: GnssCorrelatedError | None = None
     imu_kind: Literal["rates", "increments"] = "rates"
     imu_cleaning: np.ndarray | None = None
+    gnss_quality: np.ndarray | None = None
+    gnss_float: GnssFloatOffset | None = None
 
 
 GNSS_ERROR_BLOCK = "gnss_error"
@@ -102,17 +108,24 @@ GNSS_ERROR_BLOCK = "gnss_error"
 
 @dataclass(frozen=True)
 class GnssErrorEstimate:
-    """The estimated correlated GNSS error ``d(t)`` (m, east/north/up of ``w``) on its knots, with 1-sigma."""
+    """The estimated correlated GNSS error ``d(t)`` (m, east/north/up of ``w``) on its knots, with 1-sigma
+    (``grid`` None where it is not modelled), and the offsets of the segments without a fix, or None."""
 
-    grid: BiasGrid
-    value_w: np.ndarray
+    grid: BiasGrid | None
+    value_w: np.ndarray | None
     sigma_w: np.ndarray | None = None
+    segments: GnssSegments | None = None
 
     def to_dict(self) -> dict:
-        """``adjustment.json``'s ``gnss_error``: knot times (s from ``t0_gps``), east/north/up values and sigma (m)."""
-        out = {"knot_times_s": self.grid.times.tolist(), "enu_m": np.round(self.value_w, 5).tolist()}
-        if self.sigma_w is not None:
-            out["enu_sigma_m"] = np.round(self.sigma_w, 5).tolist()
+        """``adjustment.json``'s ``gnss_error``: knot times (s from ``t0_gps``), east/north/up values and sigma (m);
+        ``segments``: one record per segment without a fix (:meth:`GnssSegments.to_dict`)."""
+        out = {}
+        if self.grid is not None:
+            out = {"knot_times_s": self.grid.times.tolist(), "enu_m": np.round(self.value_w, 5).tolist()}
+            if self.sigma_w is not None:
+                out["enu_sigma_m"] = np.round(self.sigma_w, 5).tolist()
+        if self.segments is not None:
+            out["segments"] = self.segments.to_dict()
         return out
 
 
@@ -224,6 +237,7 @@ class GnssImuProblem:
     estimate_scale: bool
     gnss_error_grid: BiasGrid | None = None
     estimate_misalignment: bool = False
+    gnss_segments: GnssSegments | None = None
 
     def spline(self) -> SplineTrajectory:
         return spline_from_problem(self.problem, self.blocks, self.grid, self.data.t0_gps)
@@ -356,6 +370,13 @@ def build_gnss_imu_problem(
     if not np.any(g_in):
         raise InputError("no GNSS epoch inside the trajectory span", field="time")
     cov, error, egrid = data.gnss_cov_w[g_in], {}, None
+    segments = non_fix_segments(data.gnss_time[g_in], None if data.gnss_quality is None else data.gnss_quality[g_in],
+                                cov, data.gnss_float)
+    if segments is not None:  # an offset per segment without a fix, with its prior
+        problem.add_block(GNSS_SEGMENT_BLOCK, np.zeros((len(segments), 3)))
+        problem.add_group(EuclideanPrior("gnss_segment_prior", GNSS_SEGMENT_BLOCK, np.arange(len(segments)),
+                                         np.zeros((len(segments), 3)), segments.prior_sigma_w))
+        error = {"segment": segments.index, "segment_block": GNSS_SEGMENT_BLOCK}
     model = data.gnss_correlated
     if model is not None:  # d(t) on its own knots with its Gauss-Markov prior; the epochs keep the white part
         egrid = BiasGrid.covering(span[0], span[1], cfg.gnss_error_knot_interval_s)
@@ -363,7 +384,7 @@ def build_gnss_imu_problem(
         problem.add_block(GNSS_ERROR_BLOCK, np.zeros((egrid.n_knots, 3)))
         sigma = np.array([model.sigma_horizontal_m, model.sigma_horizontal_m, model.sigma_up_m])
         problem.add_group(GaussMarkovPrior("gnss_error_prior", GNSS_ERROR_BLOCK, egrid, sigma, model.time_constant_s))
-        error = {"error_grid": egrid, "error_block": GNSS_ERROR_BLOCK}
+        error |= {"error_grid": egrid, "error_block": GNSS_ERROR_BLOCK}
     problem.add_group(
         GnssPositionObservation(
             grid, data.gnss_time[g_in], data.gnss_p_w[g_in], cov, data.p_b_a,
@@ -390,7 +411,7 @@ def build_gnss_imu_problem(
         problem.add_group(EuclideanPrior("gyro_misalignment_prior", "gyro_misalignment", [0], np.zeros(6), mis[0]))
         problem.add_group(EuclideanPrior("acc_misalignment_prior", "acc_misalignment", [0], np.zeros(6), mis[1]))
     return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors, egrid,
-                          estimate_misalignment=mis is not None)
+                          estimate_misalignment=mis is not None, gnss_segments=segments)
 
 
 def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
@@ -398,8 +419,12 @@ def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
     """Start ``built``'s biases and scale factors at ``errors`` (same bias knots), and its correlated
     GNSS error at ``gnss_error`` where both have one (same knots); returns ``built``."""
     P = built.problem
-    if gnss_error is not None and GNSS_ERROR_BLOCK in P.blocks:
+    if gnss_error is not None and gnss_error.grid is not None and GNSS_ERROR_BLOCK in P.blocks:
         P.set_values(GNSS_ERROR_BLOCK, gnss_error.value_w)
+    seg = None if gnss_error is None else gnss_error.segments
+    if (seg is not None and seg.value_w is not None and built.gnss_segments is not None
+            and np.array_equal(seg.t_start, built.gnss_segments.t_start)):  # the same segments: start at their offsets
+        P.set_values(GNSS_SEGMENT_BLOCK, seg.value_w)
     P.set_values("acc_bias", errors.acc_bias)
     P.set_values("gyro_bias", errors.gyro_bias)
     P.set_values("acc_scale", np.asarray(errors.acc_scale, dtype=float).reshape(1, 3))
@@ -424,10 +449,17 @@ def imu_errors_of(built: GnssImuProblem) -> ImuErrorEstimate:
 def gnss_error_of(built: GnssImuProblem, scale: float | None = None) -> GnssErrorEstimate | None:
     """The correlated GNSS error ``built`` holds now (with posterior sigma, covariance times ``scale``, if
     ``scale`` is given), or None."""
-    if built.gnss_error_grid is None:
+    if built.gnss_error_grid is None and built.gnss_segments is None:
         return None
-    s = block_sigma(built.problem, GNSS_ERROR_BLOCK, scale) if scale is not None else None
-    return GnssErrorEstimate(built.gnss_error_grid, built.problem.values(GNSS_ERROR_BLOCK).copy(), s)
+    P = built.problem
+    segments = built.gnss_segments
+    if segments is not None:
+        segments = replace(segments, value_w=P.values(GNSS_SEGMENT_BLOCK).copy(),
+                           sigma_w=block_sigma(P, GNSS_SEGMENT_BLOCK, scale) if scale is not None else None)
+    if built.gnss_error_grid is None:
+        return GnssErrorEstimate(None, None, segments=segments)
+    s = block_sigma(P, GNSS_ERROR_BLOCK, scale) if scale is not None else None
+    return GnssErrorEstimate(built.gnss_error_grid, P.values(GNSS_ERROR_BLOCK).copy(), s, segments)
 
 
 def euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
@@ -532,8 +564,9 @@ def posterior_columns(built: "GnssImuProblem") -> int:
     velocity at :func:`sigma_knots`, the IMU errors, the correlated GNSS error."""
     P = built.problem
     n = 9 * sigma_knots(built.grid, built.cfg).size + 6 * built.bias_grid.n_knots + 6 + 12 * built.estimate_misalignment
-    if GNSS_ERROR_BLOCK in P.blocks:
-        n += 3 * P.values(GNSS_ERROR_BLOCK).shape[0]
+    for name in (GNSS_ERROR_BLOCK, GNSS_SEGMENT_BLOCK):
+        if name in P.blocks:
+            n += 3 * P.values(name).shape[0]
     return n
 
 
@@ -611,6 +644,9 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
     formed = p.posterior_seconds()
     timings = dict(result.timings_s, covariance=_time.perf_counter() - t - formed["assembly"] - formed["normal"],
                    covariance_assembly=formed["assembly"], covariance_normal=formed["normal"])
+    gnss_error = gnss_error_of(built, vf)
+    if gnss_error is not None and gnss_error.segments is not None:
+        for message in segment_warnings(gnss_error.segments, built.data.t0_gps):
+            logger.warning(message)
     return replace(result, solve=solve, imu_errors=errors, sigma_time=tk, sigma_rph_rad=sigma_rph,
-                   sigma_position_m=sigma_p, sigma_velocity_m_s=sigma_v, timings_s=timings,
-                   gnss_error=gnss_error_of(built, vf))
+                   sigma_position_m=sigma_p, sigma_velocity_m_s=sigma_v, timings_s=timings, gnss_error=gnss_error)

@@ -96,6 +96,22 @@ class GnssCorrelatedError(StrictModel):
         0.3, gt=0.0, le=1.0, description="The white sigma per axis is at least this fraction of the .pos sigma.")
 
 
+class GnssFloatOffset(StrictModel):
+    """An offset per segment of GNSS epochs without a fixed solution (docs/ARCHITECTURE.md §4.3 GNSS).
+
+    Epochs of RTKLIB quality worse than a fix (Q=2 float, and Q=3-6 where ``gnss.min_quality`` lets
+    them in) are grouped into segments: consecutive such epochs, a fix or a gap longer than
+    ``max_gap_s`` ending one. Each segment gets one offset in ``w`` (east, north, up) with this
+    prior; its epochs keep their ``.pos`` sigma. A float solution's error is mostly one offset of
+    decimetres while the ambiguities stay float, which the file's sigmas (often 5/5/10 cm) do not
+    state and which, taken as white, the epochs of a minute averaged to millimetres.
+    """
+
+    sigma_horizontal_m: float = Field(0.3, gt=0.0, description="Prior sigma of a segment's offset per horizontal axis (m).")
+    sigma_up_m: float = Field(0.5, gt=0.0, description="Prior sigma of a segment's height offset (m).")
+    max_gap_s: float = Field(10.0, gt=0.0, description="A longer gap between non-fix epochs starts a new segment (s).")
+
+
 class GnssFileConfig(StrictModel):
     files: list[str] = Field(
         default_factory=list, description="RTKLIB .pos files, relative to the project folder (at least one; with "
@@ -115,6 +131,10 @@ class GnssFileConfig(StrictModel):
         default_factory=GnssCorrelatedError,
         description="The GNSS error that lasts minutes, estimated on its own knots "
         "(processing.trajectory.gnss_error_knot_interval_s); null: every epoch's error is white.")
+    float_offset: GnssFloatOffset | None = Field(
+        default_factory=GnssFloatOffset,
+        description="An offset per segment of epochs worse than a fix (RTKLIB Q > 1), estimated with this prior; "
+        "null: such epochs are taken as fixes with their .pos sigma.")
 
     @model_validator(mode="after")
     def _one_sbet(self) -> "GnssFileConfig":

@@ -20,6 +20,11 @@ deviations (``sdn sde sdu`` of a ``.pos`` file) are these totals. The default ra
 5 Hz, a common logging rate of airborne survey receivers and hence of the PPK output;
 because the errors are time-correlated, higher rates add little information.
 
+Float segments (``float_segments``, none by default): where the ambiguities stay float, RTKLIB
+flags the epochs ``Q=2`` and states larger but still centimetric sigmas (``float_sd_m``, 5/5/10 cm),
+while the solution is off by about one offset of decimetres: per segment an offset drawn with
+``float_offset_sigma_*`` (1 sigma per axis) is added to the errors above, constant over it.
+
 Epochs fall on whole multiples of ``1 / rate_hz`` in GPS time (as receivers output them).
 The antenna phase centre is ``p_w_a = p_w_b + R_w_b p_b_a``.
 """
@@ -55,12 +60,19 @@ class GnssConfig(BaseModel):
         default_factory=list, description="(t_start, t_end) s rel. epoch without solution"
     )
     num_sats: int = Field(16, ge=4)
+    float_segments: list[tuple[float, float]] = Field(
+        default_factory=list, description="(t_start, t_end) s rel. epoch of float solutions (Q=2, an offset each)")
+    float_offset_sigma_horizontal_m: float = Field(0.2, ge=0, description="a float segment's offset, per axis")
+    float_offset_sigma_up_m: float = Field(0.3, ge=0, description="a float segment's height offset")
+    float_sd_m: tuple[float, float, float] = Field(
+        (0.05, 0.05, 0.10), description="sd north, east, up the file states for a float epoch (m)")
 
     @model_validator(mode="after")
     def _check(self) -> "GnssConfig":
-        for a, b in self.outages:
-            if not b > a:
-                raise ValueError(f"outage ({a}, {b}) must have t_end > t_start")
+        for kind, spans in (("outage", self.outages), ("float segment", self.float_segments)):
+            for a, b in spans:
+                if not b > a:
+                    raise ValueError(f"{kind} ({a}, {b}) must have t_end > t_start")
         return self
 
     @property
@@ -92,10 +104,10 @@ class SimulatedGnss:
     sd_neu : ndarray (N, 3)
         Reported standard deviations north, east, up (m).
     quality : ndarray (N,) int
-        RTKLIB quality flag (1 = fix).
+        RTKLIB quality flag (1 = fix, 2 = float).
     num_sats : ndarray (N,) int
     error_ned : ndarray (N, 3)
-        True error (measured - true) in NED at the true antenna position (m).
+        True error (measured - true) in NED at the true antenna position (m), float offsets included.
     p_b_a : ndarray (3,)
         Antenna lever arm in the body frame (m).
     t0_gps : float
@@ -173,10 +185,21 @@ def simulate_gnss(traj, p_b_a, cfg: GnssConfig, t_start: float, t_end: float,
     if cfg.grade == "ppk":
         err_neu = rng.normal(0.0, 1.0, (n, 3)) * cfg.sigma_white_neu
         err_neu += _gauss_markov(rng, n, 1.0 / cfg.rate_hz, cfg.sigma_gm_neu, cfg.gm_time_constant_s)
+    quality = np.ones(n, dtype=np.int64)
+    sd = np.broadcast_to(cfg.sigma_total_neu, (n, 3)).copy()
+    offset_sigma = np.array([cfg.float_offset_sigma_horizontal_m, cfg.float_offset_sigma_horizontal_m,
+                             cfg.float_offset_sigma_up_m])
+    for a, b in cfg.float_segments:  # drawn after the rest: a project without them draws as before
+        inside = (t >= a) & (t <= b)
+        offset = rng.normal(0.0, 1.0, 3) * offset_sigma
+        if cfg.grade == "ppk":
+            err_neu[inside] += offset
+        quality[inside] = 2
+        sd[inside] = cfg.float_sd_m
     keep = np.ones(n, dtype=bool)
     for a, b in cfg.outages:
         keep &= ~((t >= a) & (t <= b))
-    t, err_neu = t[keep], err_neu[keep]
+    t, err_neu, quality, sd = t[keep], err_neu[keep], quality[keep], sd[keep]
     err_ned = err_neu * np.array([1.0, 1.0, -1.0])
 
     p_w_b, R_w_b = traj.pose(t)
@@ -187,8 +210,8 @@ def simulate_gnss(traj, p_b_a, cfg: GnssConfig, t_start: float, t_end: float,
     m = len(t)
     return SimulatedGnss(
         time=t, lat=lat_m, lon=lon_m, h=h_m,
-        sd_neu=np.broadcast_to(cfg.sigma_total_neu, (m, 3)).copy(),
-        quality=np.ones(m, dtype=np.int64),
+        sd_neu=sd,
+        quality=quality,
         num_sats=np.full(m, cfg.num_sats, dtype=np.int64),
         error_ned=err_ned, p_b_a=p_b_a, t0_gps=float(traj.t0_gps),
     )

@@ -18,7 +18,8 @@ from typing import Callable
 
 import numpy as np
 
-from georefine.config import FlightConfig, ProjectConfig
+from georefine.adjustment.gnss_segments import non_fix_segments
+from georefine.config import FlightConfig, GnssFloatOffset, ProjectConfig
 from georefine.errors import InputError
 from georefine.io.las import iter_las_chunks, read_las_info
 from georefine.io.reference import ReferenceSurfaces, read_reference_surfaces
@@ -182,8 +183,39 @@ def _check_navigation(root: Path, cfg: ProjectConfig, warnings: list[str], prefi
         warnings.append(f"{prefix}{len(g_gaps)} GNSS gaps (no epoch of quality Q <= {cfg.gnss.min_quality}), the "
                         f"longest {g_gaps[k, 1] - g_gaps[k, 0]:.1f} s from {g_gaps[k, 0]:.1f} GPS s: bridged on the "
                         "IMU alone")
+    warnings.extend(prefix + w for w in non_fix_warnings(gnss, usable, cfg))
     return _Navigation(g_span, i_span, int(gnss.time_gps.size), int(usable.sum()), int(imu.time_gps.size),
                        float(imu.rate_hz), gaps)
+
+
+_QUALITY_NAMES = {1: "fix", 2: "float", 3: "SBAS", 4: "DGPS", 5: "single", 6: "PPP"}
+
+
+def non_fix_warnings(gnss, usable: np.ndarray, cfg: ProjectConfig) -> list[str]:
+    """What ``check`` says of the GNSS epochs worse than a fix: those it uses, per quality, in segments
+    (the longest named), and how the adjustment takes them; those beyond ``gnss.min_quality``, per quality."""
+    q = np.asarray(gnss.quality)
+    out = []
+    used = usable & (q > 1)
+    if np.any(used):
+        model = cfg.gnss.float_offset
+        seg = non_fix_segments(gnss.time_gps[usable], q[usable], np.zeros((int(usable.sum()), 3, 3)) + np.eye(3),
+                               model or GnssFloatOffset())
+        length = seg.t_end - seg.t_start
+        k = int(np.argmax(length))
+        kinds = ", ".join(f"{int((q[used] == v).sum())} Q={v} ({_QUALITY_NAMES.get(int(v), '?')})"
+                          for v in np.unique(q[used]))
+        how = ("each segment gets an offset of its own (gnss.float_offset)" if model is not None else
+               "taken as fixes with their .pos sigma (gnss.float_offset: null)")
+        out.append(f"{int(used.sum())} GNSS epochs without a fixed solution ({kinds}) in {len(seg)} segment"
+                   f"{'s' if len(seg) != 1 else ''}, the longest {length[k]:.1f} s from {seg.t_start[k]:.1f} GPS s "
+                   f"({seg.epochs[k]} epochs): {how}")
+    left = ~usable
+    if np.any(left):
+        kinds = ", ".join(f"{int((q[left] == v).sum())} Q={v} ({_QUALITY_NAMES.get(int(v), '?')})"
+                          for v in np.unique(q[left]))
+        out.append(f"{int(left.sum())} GNSS epochs left out, worse than gnss.min_quality {cfg.gnss.min_quality}: {kinds}")
+    return out
 
 
 @dataclass(frozen=True)

@@ -318,6 +318,7 @@ def load_navigation(project: ProjectLike) -> NavigationData:
         imu_gyro_sigma=bridged.gyro_sigma if bridged.gaps else None,
         imu_acc_sigma=bridged.acc_sigma if bridged.gaps else None,
         gnss_correlated=cfg.gnss.correlated_error, imu_kind=imu.kind,
+        gnss_quality=gnss.quality[gnss.quality <= cfg.gnss.min_quality], gnss_float=cfg.gnss.float_offset,
     )
     return NavigationData(cfg, root, frame, t0, imu, data)
 

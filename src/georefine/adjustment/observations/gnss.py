@@ -5,7 +5,8 @@ rotated into ``w``: ``r = L (p_w(t) + R_w_b(t) p_b_a + d(t) - p~_w)``. ``d(t)``,
 error that lasts minutes, is optional: piecewise linear on its own knots (a
 :class:`~georefine.adjustment.observations.bias.BiasGrid`, block ``error_block``), with a
 Gauss-Markov prior (:class:`~georefine.adjustment.observations.trajectory_prior.GaussMarkovPrior`)
-added by the problem builder. Right perturbation of ``R(t)`` gives
+added by the problem builder. Epochs of a segment without a fixed solution add that segment's
+offset (block ``segment_block``, (S, 3); :mod:`georefine.adjustment.gnss_segments`). Right perturbation of ``R(t)`` gives
 ``d(R l)/d delta = -R skew(l)``. A robust loss (Huber by default) acts on the squared norm
 of each epoch's whitened 3-vector, against multipath jumps.
 """
@@ -49,6 +50,9 @@ class GnssPositionObservation:
     error_grid, error_block
         Knots and block name ((J, 3), m in ``w``) of the correlated GNSS error ``d(t)``; None:
         the error is white.
+    segment, segment_block
+        Segment of each epoch ((M,) int, -1 for none) and the block of the segments' offsets
+        ((S, 3), m in ``w``); None: no offsets.
     """
 
     grid: KnotGrid
@@ -62,6 +66,8 @@ class GnssPositionObservation:
     name: str = "gnss"
     error_grid: BiasGrid | None = None
     error_block: str | None = None
+    segment: np.ndarray | None = None
+    segment_block: str | None = None
 
     def __post_init__(self) -> None:
         self.time = np.asarray(self.time, dtype=float)
@@ -77,6 +83,11 @@ class GnssPositionObservation:
             raise ValueError(f"{self.name}: error_grid and error_block go together")
         if self.error_grid is not None:
             self._j, self._lam = self.error_grid.weights(self.time)
+        if (self.segment is None) != (self.segment_block is None):
+            raise ValueError(f"{self.name}: segment and segment_block go together")
+        if self.segment is not None:
+            self.segment = np.asarray(self.segment, dtype=np.int64).reshape(m)
+            self._in_segment = np.flatnonzero(self.segment >= 0)
 
     def predict(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
         """Modelled antenna positions (M, 3) in ``w``."""
@@ -84,10 +95,16 @@ class GnssPositionObservation:
         return self._model(P, V, A, R, W, jacobians=False)[0] + self._error(values)
 
     def _error(self, values: Mapping[str, np.ndarray]) -> np.ndarray | float:
-        """The correlated GNSS error ``d(t)`` at the epochs (M, 3), or 0."""
-        if self.error_block is None:
-            return 0.0
-        return self.error_grid.evaluate(np.asarray(values[self.error_block]), self.time)
+        """The correlated GNSS error ``d(t)`` and the segments' offsets at the epochs (M, 3), or 0."""
+        out = 0.0
+        if self.error_block is not None:
+            out = self.error_grid.evaluate(np.asarray(values[self.error_block]), self.time)
+        if self.segment_block is not None:
+            offset = np.zeros((self.time.size, 3))
+            k = self._in_segment
+            offset[k] = np.asarray(values[self.segment_block])[self.segment[k]]
+            out = out + offset
+        return out
 
     def _model(self, P, V, A, R, W, jacobians):
         k, w0 = self._k, self._w0
@@ -109,4 +126,7 @@ class GnssPositionObservation:
                 lam = self._lam[:, None, None]
                 jac.append(JacobianBlock(self.error_block, self._rows, self._j, L * (1.0 - lam)))
                 jac.append(JacobianBlock(self.error_block, self._rows, self._j + 1, L * lam))
+            if self.segment_block is not None and self._in_segment.size:
+                k = self._in_segment
+                jac.append(JacobianBlock(self.segment_block, self._rows[k], self.segment[k], L[k]))
         return Linearization(r.ravel(), jac, self._obs)
