@@ -20,8 +20,7 @@ import pytest
 import yaml
 
 from cli_helpers import run_georefine, run_georefine_here
-from georefine.evaluation.trajectory_files import compare_sbet_files
-from georefine.evaluation.trajectory_files import truth_pass_accuracy
+from georefine.evaluation.trajectory_files import compare_sbet_files, truth_pass_accuracy
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows import run_trajectory
 
@@ -101,6 +100,9 @@ def test_the_gil_observes_the_misalignment_through_the_scanner(tmp_path):
         # Measured: 0.64-0.66 / 0.96-1.03 / 1.33-1.59 mdeg, error/sigma 0.60-1.04; unstated, the roll is 1.33-1.43.
         assert np.all(a.rmse_mdeg < 1.3 * clean), (strip, a)
         assert np.all((a.z_rms > 0.5) & (a.z_rms < 2.0)) and np.all(a.beyond_3_sigma <= 0.01), (strip, a)
+    # Stated and estimated, the G/I's sigma carries the IMU's turn: no word of an attitude off the G/I/L
+    # (unstated, the run warns with roll/pitch 3.2/5.6 sigma: outer_checks.GI_TILT_SIGMAS).
+    assert "G/I attitude differs" not in (tmp_path / "run" / "georefine.log").read_text()
     z = _misalignment_z(tmp_path / "run" / "gil", project)
     # Measured: RMS 0.86, largest 1.92 (the accelerometer's xy, which level flight hardly excites: its prior).
     assert np.sqrt(np.mean(z**2)) < 1.5 and np.max(np.abs(z)) < 2.5, z
@@ -164,3 +166,43 @@ def test_check_names_the_float_segment(float_navigation):
     assert ("151 GNSS epochs without a fixed solution (151 Q=2 (float)) in 1 segment, the longest 30.0 s"
             in proc.stdout), proc.stdout
     assert "gets an offset of its own (gnss.float_offset)" in proc.stdout
+
+
+def _spline_with_roll(roll_rad: float):
+    """A 20 s straight eastward spline whose attitude carries ``roll_rad`` of roll."""
+    from georefine.geometry.rotation import exp_so3
+    from georefine.trajectory.spline import KnotGrid
+    from georefine.trajectory.spline_fit import fit_spline
+
+    t = np.arange(0.0, 20.0001, 0.05)
+    p = np.column_stack([20.0 * t, np.zeros_like(t), np.full_like(t, 150.0)])
+    # body forward-right-down flying east in the east-north-up frame w, then the roll about body x
+    level = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
+    R = np.broadcast_to(level @ exp_so3(np.array([roll_rad, 0.0, 0.0])), (t.size, 3, 3)).copy()
+    return fit_spline(KnotGrid(0.0, 0.5, 41), t, p, R)
+
+
+@pytest.mark.parametrize(("sigma_mdeg", "warned"), [(2.0, True), (5.0, False)])
+def test_a_gi_attitude_off_the_gil_beyond_its_sigma_is_a_warning(sigma_mdeg, warned, caplog):
+    """10 mdeg of roll between G/I and G/I/L: five stated sigmas warn, two do not."""
+    from types import SimpleNamespace
+
+    from georefine.adjustment.gnss_imu import GnssImuResult
+    from georefine.geometry.frames import LocalFrame
+    from georefine.workflows.outer_checks import gi_tilt, warn_gi_tilt
+
+    frame = LocalFrame.from_degrees(46.7, 11.65, 600.0)
+    tk = np.arange(0.0, 20.01, 5.0)
+    sigma = np.radians(np.full((tk.size, 3), sigma_mdeg * 1e-3))
+    gi = GnssImuResult(_spline_with_roll(np.radians(0.010)), object(), None, tk, sigma, np.zeros((tk.size, 3)))
+    gil = GnssImuResult(_spline_with_roll(0.0), object(), None, tk, sigma / 10, np.zeros((tk.size, 3)))
+    mean, stated = gi_tilt(gi, gil, frame)
+    np.testing.assert_allclose(np.degrees(mean) * 1e3, [10.0, 0.0, 0.0], atol=0.05)
+    np.testing.assert_allclose(np.degrees(stated) * 1e3, [sigma_mdeg] * 3, rtol=1e-9)
+    with caplog.at_level("WARNING", logger="georefine.workflows.outer_checks"):
+        warn_gi_tilt(gi, SimpleNamespace(result=gil), frame)
+    messages = [r.getMessage() for r in caplog.records]
+    assert bool(messages) is warned, messages
+    if warned:
+        assert "roll +10.00 mdeg" in messages[0] and "5.0/0.0/0.0 times its stated sigma" in messages[0]
+        assert "misalignment_mrad" in messages[0]

@@ -63,6 +63,7 @@ from georefine.workflows.opened import Project, ProjectLike, Workspace, as_proje
 from georefine.workflows.outer_checks import (
     outer_converged,
     trajectory_change,
+    warn_gi_tilt,
     warn_plane_misfit,
     warn_unconverged,
 )
@@ -404,6 +405,7 @@ def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, k
     warn_time_offset(inputs.nav.config, posterior.gil.time_offset_s, posterior.gil.time_offset_sigma_s,
                      posterior.gil.time_offset_gnss_sigma_s or 0.0)
     warn_plane_misfit(gi, posterior.gil, outer.records, inputs.nav)
+    warn_gi_tilt(gi, posterior.gil, inputs.nav.frame)
     stage_gil_products(inputs, posterior)
     return posterior.gil, posterior.key, outer.records
 
