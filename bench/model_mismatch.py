@@ -1,7 +1,7 @@
 """Sensor errors beyond the basic model, at several magnitudes: what the G/I and the G/I/L make of them.
 
     python bench/model_mismatch.py WORK [--scenario corridor] [--seed 42]
-                                   [--kinds imu-misalignment] [--magnitudes 0.25 0.5 1.0] [--report-only]
+                                   [--kinds imu-misalignment gnss-float] [--magnitudes M ...] [--report-only]
 
 Per kind and magnitude the scenario is simulated once with the error (the truth unchanged, its own
 files say what was applied), then ``georefine run --no-points`` runs on it twice:
@@ -13,9 +13,10 @@ files say what was applied), then ``georefine run --no-points`` runs on it twice
 
 A ``clean`` case (the scenario without the error, same seed) is the reference. Kinds:
 
-| kind | simulated (``--set``) | stated in ``project.yaml`` |
+| kind | simulated (``--set``) | stated in ``project.yaml`` / unstated |
 |---|---|---|
-| ``imu-misalignment`` | ``imu.gyro_misalignment_mrad``, ``imu.acc_misalignment_mrad`` = M mrad (each off-diagonal element, 1 sigma) | ``imu.errors.*_misalignment_mrad`` |
+| ``imu-misalignment`` | ``imu.gyro_misalignment_mrad``, ``imu.acc_misalignment_mrad`` = M mrad (each off-diagonal element, 1 sigma) | ``imu.errors.*_misalignment_mrad`` / removed |
+| ``gnss-float`` | a 60 s float segment from 20 s into the first pass (``gnss.float_segments``; Q=2, 5/5/10 cm stated), its offset drawn with M m horizontal and 1.5 M m up (1 sigma) | ``gnss.float_offset`` (an offset per segment) / ``null`` (taken as fixes) |
 
 Printed per case and solution (G/I, G/I/L), each pass compared with the truth (1 s inset;
 ``truth_pass_accuracy``): roll, pitch and yaw RMSE (the larger of the passes), the RMS of error /
@@ -46,24 +47,44 @@ from georefine.evaluation.trajectory_files import compare_sbet_files, truth_pass
 from georefine.io.trajectory import read_sbet_companion, read_smrmsg, smrmsg_path
 from georefine.sim.scenarios import simulate_project
 
-KINDS = {
-    "imu-misalignment": (
-        lambda m: [f"imu.gyro_misalignment_mrad={m}", f"imu.acc_misalignment_mrad={m}"],
-        ("imu", "errors", ("gyro_misalignment_mrad", "acc_misalignment_mrad")),
-    ),
+
+def _first_pass(clean: Path) -> tuple[float, float]:
+    """Start and end (s from the epoch) of the first pass of the clean project (the same flight)."""
+    p = yaml.safe_load((clean / "truth" / "scenario.yaml").read_text())["passes"][0]
+    return p["t_start_s"], p["t_end_s"]
+
+
+def _float_overrides(m: float, clean: Path) -> list[str]:
+    a = _first_pass(clean)[0] + 20.0
+    return [f"gnss.float_segments=[[{a}, {a + 60.0}]]", f"gnss.float_offset_sigma_horizontal_m={m}",
+            f"gnss.float_offset_sigma_up_m={1.5 * m}"]
+
+
+def _without_misalignment(cfg: dict) -> None:
+    for key in ("gyro_misalignment_mrad", "acc_misalignment_mrad"):
+        cfg["imu"]["errors"].pop(key, None)
+
+
+def _float_as_fix(cfg: dict) -> None:
+    cfg["gnss"]["float_offset"] = None
+
+
+KINDS = {  # kind: (simulation overrides for magnitude M given the clean project, project.yaml unstated)
+    "imu-misalignment": (lambda m, clean: [f"imu.gyro_misalignment_mrad={m}", f"imu.acc_misalignment_mrad={m}"],
+                         _without_misalignment),
+    "gnss-float": (_float_overrides, _float_as_fix),
 }
+DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4]}
 
 
-def _unstate(project: Path, out: Path, where) -> Path:
-    """A copy of ``project`` (data linked) whose ``project.yaml`` lacks the error's figures."""
-    section, sub, keys = where
+def _unstate(project: Path, out: Path, unstate) -> Path:
+    """A copy of ``project`` (data linked) whose ``project.yaml`` no longer states the error."""
     out.mkdir(parents=True)
     for item in project.iterdir():
         if item.name != "project.yaml":
             (out / item.name).symlink_to(item.resolve(), target_is_directory=item.is_dir())
     cfg = yaml.safe_load((project / "project.yaml").read_text())
-    for key in keys:
-        cfg[section][sub].pop(key, None)
+    unstate(cfg)
     (out / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     return out
 
@@ -107,7 +128,7 @@ def evaluate(run: Path, project: Path, truth: Path) -> dict:
     return out
 
 
-def run_case(work: Path, name: str, overrides: list[str], where, scenario: str, seed: int, unstated: bool) -> dict:
+def run_case(work: Path, name: str, overrides, unstate, scenario: str, seed: int, unstated: bool) -> dict:
     results = work / "results" / f"{name}.json"
     if results.is_file():
         return json.loads(results.read_text())
@@ -115,9 +136,9 @@ def run_case(work: Path, name: str, overrides: list[str], where, scenario: str, 
     project = work / sim_name
     if not project.is_dir():
         t = time.perf_counter()
-        simulate_project(scenario, project, seed=seed, overrides=overrides)
+        simulate_project(scenario, project, seed=seed, overrides=overrides(work / "clean") if overrides else [])
         print(f"  simulated {sim_name} in {time.perf_counter() - t:.0f} s", flush=True)
-    target = _unstate(project, work / f"{name}-project", where) if unstated else project
+    target = _unstate(project, work / f"{name}-project", unstate) if unstated else project
     run = work / f"{name}-run"
     shutil.rmtree(run, ignore_errors=True)
     t = time.perf_counter()
@@ -137,7 +158,7 @@ def _fmt(v, digits=2) -> str:
 
 def report(rows: list[dict]) -> None:
     clean = next((r for r in rows if r["case"] == "clean"), None)
-    print("| case | solution | roll/pitch/yaw RMSE (mdeg) | error/sigma min-max | > 3 sigma | position (cm), error/sigma "
+    print("| case | solution | roll/pitch/yaw RMSE (mdeg) | error/sigma roll / pitch / yaw (passes) | > 3 sigma | position (cm), error/sigma "
           "| misalignment z RMS, max | checks | warnings |")
     print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
@@ -153,7 +174,7 @@ def report(rows: list[dict]) -> None:
                 checks.append("ok vs G/I" if np.all(rm <= 1.1 * gi + 0.3) else "FAIL vs G/I")
             z_ok = np.all((np.asarray(s["z_min"]) >= 0.5) & (np.asarray(s["z_max"]) <= 2.0))
             checks.append("sigma ok" if z_ok and max(s["beyond_3_sigma"]) <= 0.01 else "sigma FAIL")
-            z = "-".join(_fmt(s[k]) for k in ("z_min", "z_max"))
+            z = " / ".join(f"{lo:.2f}-{hi:.2f}" for lo, hi in zip(s["z_min"], s["z_max"]))
             mz = "–" if s["misalignment_z"] is None else _fmt(s["misalignment_z"])
             warn = r["warnings"]
             w = f"{len(warn)}: {warn[0][:90]}" if warn and sol == "G/I/L" else ("" if sol == "G/I/L" else "")
@@ -167,26 +188,28 @@ def main() -> None:
     ap.add_argument("--scenario", default="corridor")
     ap.add_argument("--seed", type=int, default=42)
     ap.add_argument("--kinds", nargs="+", default=list(KINDS), choices=list(KINDS))
-    ap.add_argument("--magnitudes", nargs="+", type=float, default=[0.25, 0.5, 1.0])
+    ap.add_argument("--magnitudes", nargs="+", type=float, default=None,
+                    help="of every kind asked for (default: imu-misalignment 0.25 0.5 1.0 mrad, gnss-float 0.1 0.2 0.4 m)")
     ap.add_argument("--report-only", action="store_true")
     args = ap.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
-    cases = [("clean", [], None, False)]
+    cases = [("clean", None, None, False)]
     for kind in args.kinds:
-        make, where = KINDS[kind]
-        for m in args.magnitudes:
+        make, unstate = KINDS[kind]
+        for m in args.magnitudes or DEFAULT_MAGNITUDES[kind]:
             for unstated in (False, True):
-                cases.append((f"{kind}-{m:g}-{'unstated' if unstated else 'stated'}", make(m), where, unstated))
+                cases.append((f"{kind}-{m:g}-{'unstated' if unstated else 'stated'}",
+                               lambda clean, make=make, m=m: make(m, clean), unstate, unstated))
     rows = []
-    for name, overrides, where, unstated in cases:
+    for name, overrides, unstate, unstated in cases:
         kept = work / "results" / f"{name}.json"
         if args.report_only:
             if kept.is_file():
                 rows.append(json.loads(kept.read_text()))
             continue
         print(f"{name} ...", flush=True)
-        rows.append(run_case(work, name, overrides, where, args.scenario, args.seed, unstated))
+        rows.append(run_case(work, name, overrides, unstate, args.scenario, args.seed, unstated))
         print(f"  {rows[-1]['seconds']:.0f} s", flush=True)
     report(rows)
 
