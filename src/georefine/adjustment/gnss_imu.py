@@ -23,13 +23,7 @@ from georefine.adjustment.gnss_segments import GNSS_SEGMENT_BLOCK, GnssSegments,
 from georefine.adjustment.linalg import available_backends
 from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
-from georefine.adjustment.observations.imu import (
-    ImuObservation,
-    fewest_nodes,
-    make_imu_windows,
-    sample_support,
-    triad_matrix,
-)
+from georefine.adjustment.observations.imu import ImuObservation, fewest_nodes, make_imu_windows, sample_support
 from georefine.adjustment.observations.prior import EuclideanPrior
 from georefine.adjustment.observations.trajectory_blocks import TrajectoryBlocks
 from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior
@@ -166,14 +160,6 @@ class ImuErrorEstimate:
     gyro_misalignment: np.ndarray | None = None
     acc_misalignment_sigma: np.ndarray | None = None
     gyro_misalignment_sigma: np.ndarray | None = None
-
-    def acc_matrix(self) -> np.ndarray:
-        """The accelerometer triad's sensitivity ``I + S_f + A_f`` (3, 3)."""
-        return triad_matrix(self.acc_scale, self.acc_misalignment)
-
-    def gyro_matrix(self) -> np.ndarray:
-        """The gyro triad's sensitivity ``I + S_g + A_g`` (3, 3)."""
-        return triad_matrix(self.gyro_scale, self.gyro_misalignment)
 
     def to_dict(self) -> dict:
         def arr(x, f=1.0):
@@ -416,8 +402,9 @@ def build_gnss_imu_problem(
 
 def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
                      gnss_error: GnssErrorEstimate | None = None) -> GnssImuProblem:
-    """Start ``built``'s biases and scale factors at ``errors`` (same bias knots), and its correlated
-    GNSS error at ``gnss_error`` where both have one (same knots); returns ``built``."""
+    """Start ``built``'s biases, scale factors and misalignments at ``errors`` (same bias knots), its
+    correlated GNSS error at ``gnss_error`` where both have one (same knots) and its segments' offsets
+    where both have the same segments; returns ``built``."""
     P = built.problem
     if gnss_error is not None and gnss_error.grid is not None and GNSS_ERROR_BLOCK in P.blocks:
         P.set_values(GNSS_ERROR_BLOCK, gnss_error.value_w)
@@ -447,8 +434,8 @@ def imu_errors_of(built: GnssImuProblem) -> ImuErrorEstimate:
 
 
 def gnss_error_of(built: GnssImuProblem, scale: float | None = None) -> GnssErrorEstimate | None:
-    """The correlated GNSS error ``built`` holds now (with posterior sigma, covariance times ``scale``, if
-    ``scale`` is given), or None."""
+    """The correlated GNSS error and the segments' offsets ``built`` holds now (with posterior sigma,
+    covariance times ``scale``, if ``scale`` is given), or None where it has neither."""
     if built.gnss_error_grid is None and built.gnss_segments is None:
         return None
     P = built.problem
@@ -561,7 +548,7 @@ def sigma_knots(grid: KnotGrid, cfg: TrajectoryAdjustmentConfig) -> np.ndarray:
 
 def posterior_columns(built: "GnssImuProblem") -> int:
     """About how many unit columns of ``N^-1`` :func:`with_posterior` asks for: attitude, position and
-    velocity at :func:`sigma_knots`, the IMU errors, the correlated GNSS error."""
+    velocity at :func:`sigma_knots`, the IMU errors, the correlated GNSS error, the segments' offsets."""
     P = built.problem
     n = 9 * sigma_knots(built.grid, built.cfg).size + 6 * built.bias_grid.n_knots + 6 + 12 * built.estimate_misalignment
     for name in (GNSS_ERROR_BLOCK, GNSS_SEGMENT_BLOCK):
