@@ -16,6 +16,7 @@ A ``clean`` case (the scenario without the error, same seed) is the reference. K
 | kind | simulated (``--set``) | stated in ``project.yaml`` / unstated |
 |---|---|---|
 | ``imu-misalignment`` | ``imu.gyro_misalignment_mrad``, ``imu.acc_misalignment_mrad`` = M mrad (each off-diagonal element, 1 sigma) | ``imu.errors.*_misalignment_mrad`` / removed |
+| ``lidar-range`` | ``scanner.range_offset_m`` = M m and ``scanner.range_scale_ppm`` = 100 | not modelled yet: one run, as simulated |
 | ``gnss-float`` | a 60 s float segment from 20 s into the first pass (``gnss.float_segments``; Q=2, 5/5/10 cm stated), its offset drawn with M m horizontal and 1.5 M m up (1 sigma) | ``gnss.float_offset`` (an offset per segment) / ``null`` (taken as fixes) |
 
 Printed per case and solution (G/I, G/I/L), each pass compared with the truth (1 s inset;
@@ -73,8 +74,9 @@ KINDS = {  # kind: (simulation overrides for magnitude M given the clean project
     "imu-misalignment": (lambda m, clean: [f"imu.gyro_misalignment_mrad={m}", f"imu.acc_misalignment_mrad={m}"],
                          _without_misalignment),
     "gnss-float": (_float_overrides, _float_as_fix),
+    "lidar-range": (lambda m, clean: [f"scanner.range_offset_m={m}", "scanner.range_scale_ppm=100"], None),
 }
-DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4]}
+DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4], "lidar-range": [0.01, 0.03]}
 
 
 def _unstate(project: Path, out: Path, unstate) -> Path:
@@ -209,9 +211,9 @@ def main() -> None:
     for kind in args.kinds:
         make, unstate = KINDS[kind]
         for m in args.magnitudes or DEFAULT_MAGNITUDES[kind]:
-            for unstated in (False, True):
-                cases.append((f"{kind}-{m:g}-{'unstated' if unstated else 'stated'}",
-                               lambda clean, make=make, m=m: make(m, clean), unstate, unstated))
+            for unstated in ((False,) if unstate is None else (False, True)):
+                suffix = "" if unstate is None else "-unstated" if unstated else "-stated"
+                cases.append((f"{kind}-{m:g}{suffix}", lambda clean, make=make, m=m: make(m, clean), unstate, unstated))
     rows = []
     for name, overrides, unstate, unstated in cases:
         kept = work / "results" / f"{name}.json"

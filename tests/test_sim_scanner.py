@@ -95,6 +95,20 @@ def test_noise_and_intensity(realistic):
     assert 500 < np.median(inten) < 20000
 
 
+def test_range_offset_and_scale_of_the_unit(scene):
+    """``(1 + k) r + r0 + e``: the same pulses and noise as an ideal unit, every range longer by ``k r + r0``."""
+    p_b_s, R_b_s = np.array([0.35, -0.12, 0.48]), np.eye(3)
+    pose_fn = level_flight(400.0, np.mean(scene.axis_w[:, 2]) + H_AGL)
+    ideal = concat(scan(pose_fn, T0, T0 + 0.5, scene, ScannerConfig(), p_b_s, R_b_s, np.random.default_rng(3)))
+    unit = concat(scan(pose_fn, T0, T0 + 0.5, scene, ScannerConfig(range_offset_m=0.03, range_scale_ppm=100.0),
+                       p_b_s, R_b_s, np.random.default_rng(3)))
+    np.testing.assert_array_equal(unit["time"], ideal["time"])
+    r_ideal = np.linalg.norm(ideal["xyz_s"], axis=1)
+    true_range = r_ideal - ideal["range_error_m"]
+    np.testing.assert_allclose(np.linalg.norm(unit["xyz_s"], axis=1) - r_ideal, 0.03 + 100e-6 * true_range, atol=1e-9)
+    np.testing.assert_allclose(unit["range_error_m"] - ideal["range_error_m"], 0.03 + 100e-6 * true_range, atol=1e-9)
+
+
 def test_channels_cycle_per_line(realistic):
     pts, *_, cfg = realistic
     t = pts["time"]

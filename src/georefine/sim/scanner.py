@@ -25,7 +25,9 @@ Measurement model
 -----------------
 First return only. The true range ``r`` is the distance from ``p_w_s`` along
 ``R_w_s d_s`` to the first surface of the scene; the recorded point is
-``xyz_s = (r + e) d_s`` with ``e ~ N(0, range_sigma_m^2)``. The time of flight
+``xyz_s = ((1 + k) r + r0 + e) d_s`` with ``e ~ N(0, range_sigma_m^2)`` and the unit's range
+scale error ``k`` (``range_scale_ppm``) and offset ``r0`` (``range_offset_m``), both 0 by default
+(an ideal calibration; real units keep centimetres and tens of ppm). The time of flight
 (~1 µs at 160 m, i.e. ~20 µm of platform motion) and the beam divergence are neglected:
 each point carries its pulse emission time and the pose at that time. Returns beyond
 ``max_range_m`` and misses are dropped. Intensity follows the scene albedo
@@ -79,6 +81,8 @@ class ScannerConfig(BaseModel):
     range_sigma_m: float = Field(
         0.005, ge=0, description="1-sigma range noise; VUX-160 datasheet precision 5 mm")
     max_range_m: float = Field(1000.0, gt=0, description="returns beyond are dropped")
+    range_offset_m: float = Field(0.0, ge=-1.0, le=1.0, description="the unit's range offset r0 (m)")
+    range_scale_ppm: float = Field(0.0, ge=-10000.0, le=10000.0, description="the unit's range scale error k (ppm)")
     intensity_at_reference: float = Field(
         60000.0, gt=0, description="albedo 1, normal incidence, at the reference range")
     intensity_reference_range_m: float = Field(100.0, gt=0)
@@ -107,7 +111,7 @@ class ScanChunk:
         Scan angle ``alpha`` [rad] within the line.
     intensity : ndarray (N,) uint16
     range_error_m : ndarray (N,)
-        The simulated range noise ``e`` [m].
+        The simulated range error ``k r + r0 + e`` [m] (noise, and scale and offset where set).
     face_id : ndarray (N,) int64
         Scene face hit.
     xyz_w_true : ndarray (N, 3)
@@ -303,6 +307,8 @@ def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> Sc
     d_w = d_w / np.linalg.norm(d_w, axis=1, keepdims=True)  # as used by the ray cast
     xyz_w_true = p_w_s[hit] + r[:, None] * d_w
     err = rng.normal(0.0, cfg.range_sigma_m, len(hit))
+    if cfg.range_offset_m or cfg.range_scale_ppm:
+        err = err + cfg.range_offset_m + cfg.range_scale_ppm * 1e-6 * r
     xyz_s = (r + err)[:, None] * d_s
     cos_inc = np.abs(np.einsum("ij,ij->i", scene.surface_normal(face), d_w))
     rho = scene.albedo(xyz_w_true, face)

@@ -30,8 +30,8 @@ from georefine.sim.scanner import ScanChunk
 LAS_SCALE_M = 1e-4
 """Coordinate resolution of scan and truth strips (0.1 mm, far below the ranging noise)."""
 
-RANGE_ERROR_DIM = ExtraDim("range_error_m", "f4", "simulated range noise (m)", no_data=-9999.0)
-"""Extra dimension of the truth strips: the range noise of each return (every return has one)."""
+RANGE_ERROR_DIM = ExtraDim("range_error_m", "f4", "simulated range error (m)", no_data=-9999.0)
+"""Extra dimension of the truth strips: the range error of each return, noise and (where set) the unit's offset and scale."""
 
 
 def write_gnss(path: Path, gnss: SimulatedGnss) -> None:
