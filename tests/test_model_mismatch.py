@@ -206,3 +206,28 @@ def test_a_gi_attitude_off_the_gil_beyond_its_sigma_is_a_warning(sigma_mdeg, war
     if warned:
         assert "roll +10.00 mdeg" in messages[0] and "5.0/0.0/0.0 times its stated sigma" in messages[0]
         assert "misalignment_mrad" in messages[0]
+
+
+@pytest.mark.slow
+def test_the_gil_estimates_the_scanner_range_calibration(tmp_path):
+    """A unit that reads every range 3 cm + 100 ppm long: estimated from the planes (within two sigma), the
+    G/I/L attitude as on the clean project, and the final points corrected (``tests/test_tiles.py``)."""
+    project = tmp_path / "ranges"
+    simulate_project("corridor-tiny", project, seed=21, overrides=["scanner.range_offset_m=0.03",
+                                                                   "scanner.range_scale_ppm=100"])
+    cfg = yaml.safe_load((project / "project.yaml").read_text())
+    cfg.setdefault("processing", {}).setdefault("lidar", {})["estimate_range_calibration"] = True
+    (project / "project.yaml").write_text(yaml.safe_dump(cfg))
+    proc = run_georefine("run", str(project), "--out", str(tmp_path / "run"), "--no-points", timeout=1800)
+    assert proc.returncode == 0, proc.stderr
+    assert "scanner range offset" in proc.stdout
+    rc = json.loads((tmp_path / "run" / "gil" / "adjustment.json").read_text())["range_calibration"]
+    # Measured: +29.4 +- 2.5 mm and +101.8 +- 17.3 ppm.
+    assert abs(rc["offset_m"] - 0.03) < 2.0 * rc["offset_sigma_m"] and rc["offset_sigma_m"] < 0.006, rc
+    assert abs(rc["scale_ppm"] - 100.0) < 2.0 * rc["scale_sigma_ppm"] and rc["scale_sigma_ppm"] < 40.0, rc
+    clean = np.array([0.85, 1.03, 1.55])  # the same seed without the range error, G/I/L roll, pitch, yaw (mdeg)
+    for strip in _passes(project):
+        a = truth_pass_accuracy(tmp_path / "run" / "gil" / "trajectory.sbet", project, strip)
+        # Measured: 0.85-0.88 / 0.98-1.08 / 1.38-1.51 mdeg, error/sigma 0.83-0.95.
+        assert np.all(a.rmse_mdeg < 1.3 * clean), (strip, a)
+        assert np.all((a.z_rms > 0.5) & (a.z_rms < 2.0)) and np.all(a.beyond_3_sigma <= 0.02), (strip, a)

@@ -116,6 +116,37 @@ def test_time_offset_and_drift_jacobians(seed):
                                rtol=0, atol=1e-9)
 
 
+@pytest.mark.parametrize("seed", SEEDS)
+def test_range_calibration_jacobians(seed):
+    """The range offset and scale: their column, and the others through the corrected centres; zero
+    offset and scale are the group without them, and a centre read 3 cm + 100 ppm long is put back."""
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    group = random_group(rng, grid, boresight="R_b_s", lever_arm="p_b_s", range_calibration="range")
+    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
+    values |= {"R_b_s": group.R_b_s[None], "p_b_s": group.p_b_s[None],
+               "range": np.array([[rng.normal(0, 0.03), rng.normal(0, 2e-4)]])}
+    blocks = dict(TRAJ_BLOCKS, plane_params="euclidean", R_b_s="so3", p_b_s="euclidean")
+    chk = check_jacobians(group, values, {"range": "euclidean"}, eps=1e-6)
+    assert chk.residual_mismatch == 0.0
+    assert chk.max_rel_error < 1e-6, chk
+    chk = check_jacobians(group, values, {k: v for k, v in blocks.items() if k in {"R_b_s", B.attitude}}, eps=1e-5)
+    assert chk.max_rel_error < 1e-6, chk
+    plain = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s")
+    ranged = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s",
+                          range_calibration="range")
+    zero = values | {"range": np.zeros((1, 2))}
+    np.testing.assert_allclose(ranged.linearize(zero, False).residuals, plain.linearize(zero, False).residuals,
+                               rtol=0, atol=1e-9)
+    long = group.centre_s * (1.0 + 1e-4) + 0.03 * group.centre_s / np.linalg.norm(group.centre_s, axis=1)[:, None]
+    read_long = random_group(np.random.default_rng(seed), grid, range_calibration="range")
+    read_long.centre_s = long
+    read_long.__post_init__()
+    np.testing.assert_allclose(read_long.centres_s({"range": np.array([[0.03, 1e-4]])}), group.centre_s, atol=1e-9)
+
+
 def test_calibration_blocks_default_to_fixed_values():
     rng = np.random.default_rng(4)
     grid = KnotGrid(0.0, 0.1, 12)

@@ -312,3 +312,22 @@ def test_map_keeps_the_order_and_reports_progress():
                               progress=lambda *a: calls.append(a)))
     assert out == [k * k for k in range(20)]
     assert calls[0] == ("squares", 0, 20.0) and calls[-1] == ("squares", 20, 20.0) and len(calls) == 21
+
+
+def test_a_range_calibration_moves_every_point_along_its_beam(strip, poses):
+    """``range_calibration=(r0, k)``: a point read at ``(1 + k) r + r0`` is written at range ``r``, on its beam."""
+    from georefine.lidar.georeference import calibrated_ranges
+    from georefine.lidar.tiles import tile_georeference
+
+    frame, crs = LocalFrame(math.radians(48.0), math.radians(11.0), 500.0), OutputCRS(25832)
+    tile = plan_strip(strip, 5, T0, 120_000, 0.0, index=time_index(strip)).tiles[1]
+    plain, _ = tile_georeference(tile, poses, T0, np.zeros(3), np.eye(3), frame, crs)
+    cal, _ = tile_georeference(tile, poses, T0, np.zeros(3), np.eye(3), frame, crs, range_calibration=(0.03, 1e-4))
+    x_s = read_las_range(tile.path, tile.start, tile.stop, ()).xyz
+    expected = crs.from_geodetic(*frame.to_geodetic(calibrated_ranges(x_s, (0.03, 1e-4))))
+    np.testing.assert_allclose(cal.xyz, expected, atol=1e-6)
+    r = np.linalg.norm(x_s, axis=1)
+    moved = np.linalg.norm(cal.xyz - plain.xyz, axis=1)
+    # 3 cm + 100 ppm of r, in the projection (its scale within 1e-3 of 1 here)
+    np.testing.assert_allclose(moved, r - (r - 0.03) / (1.0 + 1e-4), rtol=1e-3)
+    np.testing.assert_array_equal(calibrated_ranges(x_s, None), x_s)

@@ -421,6 +421,12 @@ class LidarAdjustmentConfig(StrictModel):
         True, description="Also run the classical strip adjustment (a rotation and translation per strip) from the "
         "first outer iteration's planes, as a baseline: RUN/baseline/ (docs/ARCHITECTURE.md §4.5).")
     boresight_prior_deg: float = Field(0.1, gt=0.0, description="Prior sigma of the boresight angles when estimated.")
+    estimate_range_calibration: bool = Field(
+        False, description="Estimate the scanner's range offset and scale error (the unit reads (1 + k) r + r0 of a "
+        "range r; docs/ARCHITECTURE.md §4.3) from the planes, as RiPROCESS and TerraMatch calibrate them; the "
+        "final points are corrected with them. One flight, outside the hybrid adjustment.")
+    range_offset_prior_m: float = Field(0.05, gt=0.0, description="Prior sigma of the range offset r0 (m).")
+    range_scale_prior_ppm: float = Field(200.0, gt=0.0, description="Prior sigma of the range scale error k (ppm).")
     time_offset: TimeOffsetConfig = Field(default_factory=TimeOffsetConfig)
     max_features: int = Field(
         200_000, ge=100, description="Ceiling on matched features in the adjustment, which today's solver needs to "
@@ -703,6 +709,10 @@ class ProjectConfig(StrictModel):
         if self.scanner.files:
             raise _rule_error(("scanner", "files"), "strips " + both.format("strips", "scanner.files"),
                               self.scanner.files)
+        if self.processing.lidar.estimate_range_calibration:
+            raise _rule_error(("processing", "lidar", "estimate_range_calibration"), "the scanner's range calibration "
+                              "is estimated for one flight; the adjustment of several flights does not take it yet",
+                              True)
         if self.gnss.format == "sbet":
             raise _rule_error(("gnss", "format"), "gnss.format sbet takes the one delivered SBET of a single-flight "
                               "project: with flights, each flight's gnss_files are RTKLIB .pos files (format pos)",

@@ -316,7 +316,8 @@ class AdjustmentReport:
         On a delivered trajectory, its estimated error per knot with sigma
         (:meth:`~georefine.adjustment.trajectory_prior.SbetErrorEstimate.to_dict`); else None.
     gnss_error
-        The estimated correlated GNSS error (``gnss.correlated_error``),
+        The estimated correlated GNSS error (``gnss.correlated_error``) and the offsets of the segments
+        without a fixed solution (``gnss.float_offset``),
         :meth:`~georefine.adjustment.gnss_imu.GnssErrorEstimate.to_dict`; else None.
     boresight_deg, boresight_sigma_mdeg
         The estimated boresight roll/pitch/yaw (deg) and its posterior 1-sigma (mdeg; NaN, null
@@ -324,6 +325,9 @@ class AdjustmentReport:
         adjustment takes the sigma from the posterior it computes for the trajectory.
     lidar_time_offset
         :class:`LidarTimeOffset` of an adjustment with LiDAR (G/I/L, hybrid); None otherwise.
+    range_calibration
+        The scanner's estimated range offset and scale error (``offset_m``, ``offset_sigma_m``,
+        ``scale_ppm``, ``scale_sigma_ppm``; ``processing.lidar.estimate_range_calibration``); else None.
     project
         The project folder (absolute).
     frame
@@ -346,6 +350,7 @@ class AdjustmentReport:
     project: str | None = None
     frame: FrameOrigin | None = None
     filter: FilterSummary | None = None
+    range_calibration: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.solution not in SOLUTIONS:
@@ -365,6 +370,7 @@ class AdjustmentReport:
             "gnss_error": self.gnss_error, "boresight_deg": triple(self.boresight_deg),
             "boresight_sigma_mdeg": triple(self.boresight_sigma_mdeg),
             "lidar_time_offset": None if self.lidar_time_offset is None else self.lidar_time_offset.to_dict(),
+            "range_calibration": self.range_calibration,
         }
 
     @classmethod
@@ -395,6 +401,7 @@ class AdjustmentReport:
                                                           frame.number("h_m")),
             filter=None if filt is None else FilterSummary(filt.integer("gnss_updates"), filt.integer("gnss_rejected"),
                                                             filt.number("alignment_time_s", True)),
+            range_calibration=top.mapping("range_calibration"),
         )
 
 

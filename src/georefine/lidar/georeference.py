@@ -192,6 +192,17 @@ def scan_angles_deg(
     return np.degrees(out)
 
 
+def calibrated_ranges(xyz_s: np.ndarray, range_calibration: tuple[float, float] | None) -> np.ndarray:
+    """Scanner-frame points with the unit's range offset ``r0`` and scale error ``k`` taken out: a point read
+    at range ``(1 + k) r + r0`` moves along its beam to ``r`` (docs/ARCHITECTURE.md §4.3); ``None``: as read."""
+    if range_calibration is None:
+        return xyz_s
+    r0, k = range_calibration
+    xyz_s = np.asarray(xyz_s, dtype=float)
+    r = np.linalg.norm(xyz_s, axis=1)
+    return xyz_s * (((r - r0) / (1.0 + k)) / np.maximum(r, 1e-9))[:, None]
+
+
 def georeference(
     time: np.ndarray,
     xyz_s: np.ndarray,

@@ -24,7 +24,7 @@ from georefine.adjustment.gnss_imu import (
     with_posterior,
 )
 from georefine.adjustment.observations.plane import PlaneObservation
-from georefine.adjustment.observations.prior import RotationPrior
+from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_trajectory_prior, with_prior_posterior
 from georefine.adjustment.upsampling import on_knots, rebuild_high_rate, without_high_rate
@@ -72,6 +72,8 @@ class LidarAdjustment:
     time_offset_sigma_s: float | None = None
     time_offset_gnss_sigma_s: float | None = None  # what GNSS errors lasting a pass add (gnss_offset_sigma)
     time_offset_held: str | None = None
+    range_calibration: tuple[float, float] | None = None  # range offset r0 (m) and scale error k, where estimated
+    range_calibration_sigma: tuple[float, float] | None = None
 
 
 def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
@@ -92,7 +94,14 @@ def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
     if OFFSET_BLOCK in problem.blocks:
         cov = problem.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0] * vf
         extra["time_offset_sigma_s"] = float(np.sqrt(cov))
+    if RANGE_BLOCK in problem.blocks:
+        cov = problem.covariance(RANGE_BLOCK, scale_by_variance_factor=False)[0] * vf
+        extra["range_calibration_sigma"] = tuple(float(v) for v in np.sqrt(np.diag(cov)))
     return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
+
+
+RANGE_BLOCK = "range_calibration"
+"""The scanner's range offset (m) and scale error ((1, 2); ``processing.lidar.estimate_range_calibration``)."""
 
 
 @dataclass
@@ -214,11 +223,17 @@ def build_gil_problem(
         P.add_block("boresight", R_b_s[None].copy(), manifold="so3")
         P.add_group(RotationPrior("boresight_prior", "boresight", [0], R_b_s[None], np.radians(lcfg.boresight_prior_deg)))
         boresight = "boresight"
+    ranges = None
+    if lcfg.estimate_range_calibration:
+        P.add_block(RANGE_BLOCK, np.zeros((1, 2)))
+        P.add_group(EuclideanPrior("range_calibration_prior", RANGE_BLOCK, [0], np.zeros((1, 2)),
+                                   np.array([lcfg.range_offset_prior_m, lcfg.range_scale_prior_ppm * 1e-6])))
+        ranges = RANGE_BLOCK
     P.add_group(
         PlaneObservation(
             grid, f.time, f.centre_s, f.axis1_s, f.axis2_s, f.sigma_d_m, f.sigma_slope_rad, obj_index,
             objects.c0[used_objects], objects.k1[used_objects], objects.k2[used_objects], objects.n0[used_objects],
-            np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight,
+            np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight, range_calibration=ranges,
             blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale), **timing,
         )
     )
@@ -291,6 +306,8 @@ def step_adjust_gil(
     offset = gil.time_offset.features_s
     if gil.estimates_offset:
         offset += float(P.values(OFFSET_BLOCK)[0, 0])
+    ranges = tuple(float(v) for v in P.values(RANGE_BLOCK)[0]) if RANGE_BLOCK in P.blocks else None
     adj = LidarAdjustment(result, gil.features_used, gil.objects_used, bs_deg, None, built,
-                          time_offset_s=offset, time_offset_start=gil.time_offset, time_offset_held=gil.offset_held)
+                          time_offset_s=offset, time_offset_start=gil.time_offset, time_offset_held=gil.offset_held,
+                          range_calibration=ranges)
     return add_posterior(adj) if covariance else adj

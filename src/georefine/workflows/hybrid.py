@@ -70,7 +70,7 @@ from georefine.adjustment.solver import SolverOptions
 from georefine.adjustment.statistics import SolveResult
 from georefine.adjustment.upsampling import on_knots, without_high_rate
 from georefine.config import boresight_matrix, write_yaml
-from georefine.errors import InputError
+from georefine.errors import ConfigError, InputError
 from georefine.geometry.rotation import rph_from_R_n_b, wrap_angle
 from georefine.io import photos as pio
 from georefine.io.files import write_json
@@ -505,6 +505,10 @@ def run_hybrid(project: ProjectLike, out: str | Path, *, case: int = 1, planes: 
                          "the photos with the LiDAR as control and no cloud: `georefine coadjust --case 3`)",
                          found=str(case))
     project = as_project(project)
+    if project.config.processing.lidar.estimate_range_calibration:
+        raise ConfigError("the hybrid adjustment does not take the scanner's range calibration yet: its LiDAR points "
+                          "and final cloud would be read uncorrected", path=project.root / "project.yaml",
+                          field="processing.lidar.estimate_range_calibration", expected="false", found="true")
     with open_workspace(project, out, resume=resume, scheduler=scheduler) as ws:
         return _run(ws, project, case, planes, overrides, matcher, progress)
 

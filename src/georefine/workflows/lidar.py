@@ -119,6 +119,10 @@ class WorkflowResult:
             gnss = self.gil.time_offset_gnss_sigma_s
             lines.append(f"  LiDAR time offset: {self.gil.time_offset_s:+.5f} s ± {self.gil.time_offset_sigma_s * 1e3:.3f} ms"
                          + (f" (± {gnss * 1e3:.2f} ms from GNSS errors that last a pass)" if gnss else ""))
+        if self.gil is not None and self.gil.range_calibration is not None:
+            (r0, k), sig = self.gil.range_calibration, self.gil.range_calibration_sigma or (np.nan, np.nan)
+            lines.append(f"  scanner range offset {r0 * 1e3:+.1f} ± {sig[0] * 1e3:.1f} mm, scale {k * 1e6:+.1f} ± "
+                         f"{sig[1] * 1e6:.1f} ppm (points corrected)")
         if self.gil is not None and self.gil.time_offset_held is not None:
             lines.append(f"  LiDAR time offset: held at {self.gil.time_offset_s:+.5f} s, not estimated: "
                          f"{self.gil.time_offset_held}")
@@ -453,7 +457,8 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
         paths = [folder / (s.path.stem + ".laz") for s in strips]
         results = georeference_strips([s.plan for s in strips], paths, poses, nav.t0_gps, p_b_s, R_b_s,
                                       nav.frame, inputs.crs, runner=runner, progress=progress, protect=(nav.root,),
-                                      time_offset_s=offset, heights=inputs.heights)
+                                      time_offset_s=offset, heights=inputs.heights,
+                                      range_calibration=None if gil is None else gil.range_calibration)
         return [{"strip": s.strip_id, "file": path.name, "points": r.points_written,
                  "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]}
                 for s, path, r in zip(inputs.strips, paths, results)]

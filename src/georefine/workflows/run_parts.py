@@ -137,4 +137,15 @@ def adjustment_report(nav: NavigationData, adj: GnssImuResult, solution: str,
         sbet_errors=None if adj.sbet_errors is None else adj.sbet_errors.to_dict(),
         gnss_error=None if adj.gnss_error is None else adj.gnss_error.to_dict(),
         boresight_deg=bs, boresight_sigma_mdeg=bs_sigma, lidar_time_offset=offset,
-        project=str(Path(nav.root).resolve()), frame=FrameOrigin.of(nav.frame))
+        project=str(Path(nav.root).resolve()), frame=FrameOrigin.of(nav.frame),
+        range_calibration=None if lidar is None else range_calibration_record(lidar))
+
+
+def range_calibration_record(lidar) -> dict | None:
+    """``adjustment.json``'s ``range_calibration`` of a G/I/L that estimated it, else None."""
+    if getattr(lidar, "range_calibration", None) is None:
+        return None
+    (r0, k), sig = lidar.range_calibration, lidar.range_calibration_sigma
+    return {"offset_m": round(r0, 6), "scale_ppm": round(k * 1e6, 3),
+            "offset_sigma_m": None if sig is None else round(sig[0], 6),
+            "scale_sigma_ppm": None if sig is None else round(sig[1] * 1e6, 3)}

@@ -39,6 +39,13 @@ derivative ``-(R^T a)^T skew(x) = (x x R^T a)^T`` w.r.t. ``delta``):
 * object: ``dn/dm = (I - n n^T) / |m|``, ``dm/dalpha = k1_0``, ``dm/dbeta = k2_0``,
   ``dc/dd = n0``: ``r1: [-(n . n0), (c~ - c) . n_alpha, (c~ - c) . n_beta] / sigma_d``,
   ``r_i+1: [0, k~_i . n_alpha, k~_i . n_beta] / sigma_s``;
+* range calibration ``(r0, k)`` (optional block): every range of the feature's points read
+  ``(1 + k) r + r0`` of the true ``r``, so the measured centre is corrected to
+  ``c_s' = (c_s - r0 u_s) / (1 + k)`` with ``u_s = c_s / |c_s|`` (the beam to the centre; the mean
+  of the points' beams differs by the square of the feature's angular size, 1e-4 for a 1 m
+  feature at 100 m). The axes are kept: a scale leaves a plane's angles, and an offset tilts a
+  plane seen under an incidence ``phi`` by about ``r0 sin(phi) / r``, 0.3 mrad for 3 cm at
+  100 m, a fraction of a slope's sigma. ``d r1 / d (r0, k) = n_s . (-u_s, -c_s') / (1 + k) / sigma_d``.
 * LiDAR time offset ``tau`` and drift ``kappa`` (optional blocks): the feature is georeferenced
   at ``t_f + tau + kappa (t_f - t_ref)`` (its time stamp is that far behind the navigation's
   time). ``d c~ / dt = v_w_b + R_w_b (omega x x_b)``, ``d k~_i / dt = R_w_b (omega x R_b_s k_i_s)``
@@ -261,6 +268,9 @@ class PlaneObservation:
         adding ``kappa (t_f - time_reference)``.
     time_reference
         ``t_ref`` of the drift (s); default the middle of the feature times.
+    range_calibration
+        Optional Euclidean block ``(1, 2)``: the scanner's range offset ``r0`` (m) and scale error
+        ``k`` (module docstring).
     blocks
         Trajectory block names.
     loss
@@ -289,6 +299,7 @@ class PlaneObservation:
     time_offset: str | None = None
     time_drift: str | None = None
     time_reference: float | None = None
+    range_calibration: str | None = None
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
     consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
@@ -332,6 +343,7 @@ class PlaneObservation:
         self._w_s = 1.0 / self.sigma_slope
         self._rows = np.arange(3 * f).reshape(f, 3)
         self._obs = np.repeat(np.arange(f), 3)
+        self._beam_s = self.centre_s / np.maximum(np.linalg.norm(self.centre_s, axis=1), 1e-9)[:, None]
 
     @property
     def n_features(self) -> int:
@@ -359,7 +371,7 @@ class PlaneObservation:
 
     def feature_frames(self, values: Mapping[str, np.ndarray]) -> FeatureFrames:
         """Features georeferenced with the current trajectory, calibration and time offset (``w``)."""
-        _, R_w_b, R_b_s, _, centre_w = self._pose(values, jacobians=False)
+        _, R_w_b, R_b_s, _, centre_w, _ = self._pose(values, jacobians=False)
         R_w_s = R_w_b @ R_b_s
         k1_w = np.einsum("nij,nj->ni", R_w_s, self.axis1_s)
         k2_w = np.einsum("nij,nj->ni", R_w_s, self.axis2_s)
@@ -405,8 +417,16 @@ class PlaneObservation:
     def _timed(self) -> bool:
         return self.time_offset is not None or self.time_drift is not None
 
+    def centres_s(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
+        """Feature centres in ``s`` (F, 3) with the current range calibration applied (module docstring)."""
+        if self.range_calibration is None:
+            return self.centre_s
+        r0, k = single_element(values, self.range_calibration, (2,))
+        return (self.centre_s - r0 * self._beam_s) / (1.0 + k)
+
     def _pose(self, values: Mapping[str, np.ndarray], jacobians: bool, located=None):
-        """``(ev, R_w_b, R_b_s, x_b, c~)``: spline attitude, calibration, centre in b, centre in w.
+        """``(ev, R_w_b, R_b_s, x_b, c~, c_s)``: spline attitude, calibration, centre in b, centre in w,
+        centre in s (range-calibrated).
 
         With time parameters and ``jacobians`` the body rate is evaluated too (``ev.omega_wb_b``).
         """
@@ -416,8 +436,9 @@ class PlaneObservation:
         ev = eval_orientation(self.grid, R, W, t, rate=jacobians and self._timed(), jacobians=jacobians,
                               located=None if u is None else (k, u))
         R_b_s, p_b_s = self.calibration(values)
-        x_b = p_b_s + self.centre_s @ R_b_s.T  # feature centre relative to the IMU, body frame
-        return ev, ev.R_w_b, R_b_s, x_b, p + np.einsum("nij,nj->ni", ev.R_w_b, x_b)
+        c_s = self.centres_s(values)
+        x_b = p_b_s + c_s @ R_b_s.T  # feature centre relative to the IMU, body frame
+        return ev, ev.R_w_b, R_b_s, x_b, p + np.einsum("nij,nj->ni", ev.R_w_b, x_b), c_s
 
     def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
         """Whitened residuals (3 rows per feature) and Jacobian blocks; see the module docstring."""
@@ -425,7 +446,7 @@ class PlaneObservation:
         if self.n_features == 0:
             return Linearization(np.zeros(0), [], np.zeros(0, dtype=np.int64))
         located = self._located(values)
-        ev, R_w_b, R_b_s, x_b, c_t = self._pose(values, jacobians, located)
+        ev, R_w_b, R_b_s, x_b, c_t, c_s = self._pose(values, jacobians, located)
         R_w_s = R_w_b @ R_b_s
         k1_t = np.einsum("nij,nj->ni", R_w_s, self.axis1_s)
         k2_t = np.einsum("nij,nj->ni", R_w_s, self.axis2_s)
@@ -458,10 +479,15 @@ class PlaneObservation:
         J_obj[:, :, 2] = np.einsum("nri,ni->nr", vecs, dn_db)
         jac.append(JacobianBlock(self.objects, rows, j, J_obj * scale))
         zeros = np.zeros(f, dtype=np.int64)
-        if self.boresight is not None:
+        if self.boresight is not None or self.range_calibration is not None:
             n_s = np.einsum("nji,nj->ni", R_w_s, n)
-            feat_s = np.stack([self.centre_s, self.axis1_s, self.axis2_s], axis=1)
+        if self.boresight is not None:
+            feat_s = np.stack([c_s, self.axis1_s, self.axis2_s], axis=1)
             jac.append(JacobianBlock(self.boresight, rows, zeros, np.cross(feat_s, n_s[:, None, :]) * scale))
+        if self.range_calibration is not None:
+            k = single_element(values, self.range_calibration, (2,))[1]
+            J_rc = -np.column_stack([_dot(n_s, self._beam_s), _dot(n_s, c_s)]) * (w_d / (1.0 + k))[:, None]
+            jac.append(JacobianBlock(self.range_calibration, rows[:, :1], zeros, J_rc[:, None, :]))
         if self.lever_arm is not None:
             jac.append(JacobianBlock(self.lever_arm, rows[:, :1], zeros, (n_b * w_d[:, None])[:, None, :]))
         if self._timed():
