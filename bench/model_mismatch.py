@@ -16,7 +16,7 @@ A ``clean`` case (the scenario without the error, same seed) is the reference. K
 | kind | simulated (``--set``) | stated in ``project.yaml`` / unstated |
 |---|---|---|
 | ``imu-misalignment`` | ``imu.gyro_misalignment_mrad``, ``imu.acc_misalignment_mrad`` = M mrad (each off-diagonal element, 1 sigma) | ``imu.errors.*_misalignment_mrad`` / removed |
-| ``lidar-range`` | ``scanner.range_offset_m`` = M m and ``scanner.range_scale_ppm`` = 100 | not modelled yet: one run, as simulated |
+| ``lidar-range`` | ``scanner.range_offset_m`` = M m and ``scanner.range_scale_ppm`` = 100 | ``processing.lidar.estimate_range_calibration: true`` / as simulated (not estimated) |
 | ``gnss-float`` | a 60 s float segment from 20 s into the first pass (``gnss.float_segments``; Q=2, 5/5/10 cm stated), its offset drawn with M m horizontal and 1.5 M m up (1 sigma) | ``gnss.float_offset`` (an offset per segment) / ``null`` (taken as fixes) |
 
 Printed per case and solution (G/I, G/I/L), each pass compared with the truth (1 s inset;
@@ -74,13 +74,17 @@ KINDS = {  # kind: (simulation overrides for magnitude M given the clean project
     "imu-misalignment": (lambda m, clean: [f"imu.gyro_misalignment_mrad={m}", f"imu.acc_misalignment_mrad={m}"],
                          _without_misalignment),
     "gnss-float": (_float_overrides, _float_as_fix),
-    "lidar-range": (lambda m, clean: [f"scanner.range_offset_m={m}", "scanner.range_scale_ppm=100"], None),
+    "lidar-range": (lambda m, clean: [f"scanner.range_offset_m={m}", "scanner.range_scale_ppm=100"], lambda cfg: None),
+}
+STATE = {  # how the stated run's project.yaml differs from the simulated one, where it does
+    "lidar-range": lambda cfg: cfg.setdefault("processing", {}).setdefault("lidar", {}).update(
+        estimate_range_calibration=True),
 }
 DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4], "lidar-range": [0.01, 0.03]}
 
 
 def _unstate(project: Path, out: Path, unstate) -> Path:
-    """A copy of ``project`` (data linked) whose ``project.yaml`` no longer states the error."""
+    """A copy of ``project`` (data linked) whose ``project.yaml`` ``unstate`` edited."""
     out.mkdir(parents=True)
     for item in project.iterdir():
         if item.name != "project.yaml":
@@ -138,7 +142,9 @@ def evaluate(run: Path, project: Path, truth: Path) -> dict:
     return out
 
 
-def run_case(work: Path, name: str, overrides, unstate, scenario: str, seed: int, unstated: bool) -> dict:
+def run_case(work: Path, name: str, overrides, unstate, scenario: str, seed: int) -> dict:
+    """One case: simulated (once per kind and magnitude), ``project.yaml`` edited by ``unstate`` where given,
+    run, evaluated; kept in ``WORK/results``."""
     results = work / "results" / f"{name}.json"
     if results.is_file():
         return json.loads(results.read_text())
@@ -148,7 +154,7 @@ def run_case(work: Path, name: str, overrides, unstate, scenario: str, seed: int
         t = time.perf_counter()
         simulate_project(scenario, project, seed=seed, overrides=overrides(work / "clean") if overrides else [])
         print(f"  simulated {sim_name} in {time.perf_counter() - t:.0f} s", flush=True)
-    target = _unstate(project, work / f"{name}-project", unstate) if unstated else project
+    target = project if unstate is None else _unstate(project, work / f"{name}-project", unstate)
     run = work / f"{name}-run"
     shutil.rmtree(run, ignore_errors=True)
     t = time.perf_counter()
@@ -207,22 +213,23 @@ def main() -> None:
     args = ap.parse_args()
     work = args.work
     work.mkdir(parents=True, exist_ok=True)
-    cases = [("clean", None, None, False)]
+    cases = [("clean", None, None)]
     for kind in args.kinds:
         make, unstate = KINDS[kind]
         for m in args.magnitudes or DEFAULT_MAGNITUDES[kind]:
-            for unstated in ((False,) if unstate is None else (False, True)):
-                suffix = "" if unstate is None else "-unstated" if unstated else "-stated"
-                cases.append((f"{kind}-{m:g}{suffix}", lambda clean, make=make, m=m: make(m, clean), unstate, unstated))
+            for unstated in (False, True):
+                edit = (unstate if unstated else STATE.get(kind))
+                cases.append((f"{kind}-{m:g}-{'unstated' if unstated else 'stated'}",
+                              lambda clean, make=make, m=m: make(m, clean), edit))
     rows = []
-    for name, overrides, unstate, unstated in cases:
+    for name, overrides, unstate in cases:
         kept = work / "results" / f"{name}.json"
         if args.report_only:
             if kept.is_file():
                 rows.append(json.loads(kept.read_text()))
             continue
         print(f"{name} ...", flush=True)
-        rows.append(run_case(work, name, overrides, unstate, args.scenario, args.seed, unstated))
+        rows.append(run_case(work, name, overrides, unstate, args.scenario, args.seed))
         print(f"  {rows[-1]['seconds']:.0f} s", flush=True)
     report(rows)
 

@@ -228,6 +228,7 @@ def test_the_gil_estimates_the_scanner_range_calibration(tmp_path):
     clean = np.array([0.85, 1.03, 1.55])  # the same seed without the range error, G/I/L roll, pitch, yaw (mdeg)
     for strip in _passes(project):
         a = truth_pass_accuracy(tmp_path / "run" / "gil" / "trajectory.sbet", project, strip)
-        # Measured: 0.85-0.88 / 0.98-1.08 / 1.38-1.51 mdeg, error/sigma 0.83-0.95.
+        # Measured: 0.85-0.88 / 0.98-1.08 / 1.38-1.51 mdeg, error/sigma 0.83-0.95, 1.4 % of the yaw beyond 3 sigma
+        # on pass 1 (0.3 % clean).
         assert np.all(a.rmse_mdeg < 1.3 * clean), (strip, a)
         assert np.all((a.z_rms > 0.5) & (a.z_rms < 2.0)) and np.all(a.beyond_3_sigma <= 0.02), (strip, a)
