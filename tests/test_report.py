@@ -141,7 +141,9 @@ def _adjustment_reports() -> dict[str, AdjustmentReport]:
                                 filter=FilterSummary(1200, 3, None)),
         "G/I/L": AdjustmentReport("G/I/L", 1.4e9, {"solve": 3.0}, adjustment=_solve_dict(), imu_errors=imu,
                                   boresight_deg=(0.062, -0.021, 0.03), boresight_sigma_mdeg=(2.0, 2.1, 9.0),
-                                  lidar_time_offset=offset, project="/data/p", frame=frame),
+                                  lidar_time_offset=offset, project="/data/p", frame=frame,
+                                  range_calibration={"offset_m": 0.0308, "scale_ppm": 97.4, "offset_sigma_m": 0.0011,
+                                                     "scale_sigma_ppm": 11.8}),
         "delivered": AdjustmentReport("G/I/L", 1.4e9, {"solve": 1.0}, adjustment=_solve_dict(),
                                       sbet_errors={"knot_times_s": [0.0, 1.0], "position_m": [[0.0] * 3] * 2},
                                       lidar_time_offset=LidarTimeOffset(0.0, 0.0, held="one strip only")),
@@ -161,7 +163,8 @@ def test_an_adjustment_report_reads_back_to_what_was_written(tmp_path, kind):
     assert back.to_dict() == d and AdjustmentReport.from_dict(d) == report
     # One schema: every key in every file, null where the writer has no such section.
     assert list(d) == ["solution", "project", "frame", "t0_gps", "timings_s", "filter", "adjustment", "imu_errors",
-                       "sbet_errors", "gnss_error", "boresight_deg", "boresight_sigma_mdeg", "lidar_time_offset"]
+                       "sbet_errors", "gnss_error", "boresight_deg", "boresight_sigma_mdeg", "lidar_time_offset",
+                       "range_calibration"]
     assert (d["adjustment"] is None) == (kind == "filter")
     assert (d["lidar_time_offset"] is None) == (kind in ("filter", "G/I"))
     if d["lidar_time_offset"] is not None:
