@@ -25,6 +25,28 @@ flags the epochs ``Q=2`` and states larger but still centimetric sigmas (``float
 while the solution is off by about one offset of decimetres: per segment an offset drawn with
 ``float_offset_sigma_*`` (1 sigma per axis) is added to the errors above, constant over it.
 
+Multipath (``multipath_sigma_*``, off by default): signals reflected off the airframe and, at low
+elevation, the ground reach the antenna late; the carrier-phase error they cause changes as the
+geometry of aircraft, reflector and satellites does, over seconds to tens of seconds, and
+reaches a centimetre or two in a fixed airborne solution (Braasch 2017, "Multipath", in
+Teunissen & Montenbruck (eds.), Springer Handbook of Global Navigation Satellite Systems,
+ch. 15). It is a second first-order Gauss-Markov process per axis, ``m_k``, like ``d_k`` but
+with ``multipath_time_constant_s`` (20 s by default): too short for the adjustment's correlated
+error on 5 s knots and 300 s prior to follow, too long to be white. The ``.pos`` sigmas stay as
+they are (RTKLIB's formal sigmas do not hold it either).
+
+Ambiguity jumps (``ambiguity_jumps``, none by default): a wrong integer fix. RTKLIB validates a
+fix by the ratio test, which a wrong set of integers passes now and then; the solution then
+steps by a constant offset of centimetres to decimetres (combinations of the 19 cm L1 and 24 cm
+L2 wavelengths) for as long as the wrong fix is held, usually until the next re-fix, while the
+file keeps ``Q=1`` and its fixed-solution sigmas (Teunissen & Verhagen 2009, "The GNSS
+ambiguity ratio-test revisited", Survey Review 41(312)). Per span ``(t_start, t_end)`` an offset
+drawn with ``jump_sigma_*`` (1 sigma per axis) is added to the errors, constant over it.
+
+The multipath and the jump offsets are drawn after everything else, so a configuration without
+them draws exactly as before; their truths are kept apart (``multipath_ned``, ``jump_ned``) and
+are part of ``error_ned``.
+
 Epochs fall on whole multiples of ``1 / rate_hz`` in GPS time (as receivers output them).
 The antenna phase centre is ``p_w_a = p_w_b + R_w_b p_b_a``.
 """
@@ -66,13 +88,27 @@ class GnssConfig(BaseModel):
     float_offset_sigma_up_m: float = Field(0.3, ge=0, description="a float segment's height offset")
     float_sd_m: tuple[float, float, float] = Field(
         (0.05, 0.05, 0.10), description="sd north, east, up the file states for a float epoch (m)")
+    multipath_sigma_horizontal_m: float = Field(
+        0.0, ge=0, description="multipath: Gauss-Markov sigma per horizontal axis, short-correlated (m; 0: none)")
+    multipath_sigma_up_m: float = Field(0.0, ge=0, description="multipath: Gauss-Markov sigma of the height (m; 0: none)")
+    multipath_time_constant_s: float = Field(20.0, gt=0, description="multipath: correlation time (s)")
+    ambiguity_jumps: list[tuple[float, float]] = Field(
+        default_factory=list, description="(t_start, t_end) s rel. epoch of wrong fixes: an offset each, "
+        "the file keeps Q=1 and its sigmas")
+    jump_sigma_horizontal_m: float = Field(0.08, ge=0, description="a wrong fix's offset, per horizontal axis (m)")
+    jump_sigma_up_m: float = Field(0.12, ge=0, description="a wrong fix's height offset (m)")
 
     @model_validator(mode="after")
     def _check(self) -> "GnssConfig":
-        for kind, spans in (("outage", self.outages), ("float segment", self.float_segments)):
+        for kind, spans in (("outage", self.outages), ("float segment", self.float_segments),
+                            ("ambiguity jump", self.ambiguity_jumps)):
             for a, b in spans:
                 if not b > a:
                     raise ValueError(f"{kind} ({a}, {b}) must have t_end > t_start")
+        for a, b in self.ambiguity_jumps:
+            for c, d in self.float_segments:
+                if a <= d and c <= b:
+                    raise ValueError(f"ambiguity jump ({a}, {b}) overlaps float segment ({c}, {d}): a wrong fix is a fix")
         return self
 
     @property
@@ -82,6 +118,11 @@ class GnssConfig(BaseModel):
     @property
     def sigma_gm_neu(self) -> np.ndarray:
         return np.array([self.gm_sigma_horizontal_m, self.gm_sigma_horizontal_m, self.gm_sigma_up_m])
+
+    @property
+    def sigma_multipath_neu(self) -> np.ndarray:
+        return np.array([self.multipath_sigma_horizontal_m, self.multipath_sigma_horizontal_m,
+                         self.multipath_sigma_up_m])
 
     @property
     def sigma_total_neu(self) -> np.ndarray:
@@ -107,11 +148,14 @@ class SimulatedGnss:
         RTKLIB quality flag (1 = fix, 2 = float).
     num_sats : ndarray (N,) int
     error_ned : ndarray (N, 3)
-        True error (measured - true) in NED at the true antenna position (m), float offsets included.
+        True error (measured - true) in NED at the true antenna position (m), float offsets,
+        multipath and ambiguity jumps included.
     p_b_a : ndarray (3,)
         Antenna lever arm in the body frame (m).
     t0_gps : float
         Dataset epoch (GPS seconds).
+    multipath_ned, jump_ned : ndarray (N, 3) or None
+        The multipath and the wrong fixes' offsets in ``error_ned`` (NED, m); None: zero.
     """
 
     time: np.ndarray
@@ -124,14 +168,16 @@ class SimulatedGnss:
     error_ned: np.ndarray
     p_b_a: np.ndarray
     t0_gps: float
+    multipath_ned: np.ndarray | None = None
+    jump_ned: np.ndarray | None = None
 
     def __post_init__(self):
         n = len(self.time)
         for name in ("lat", "lon", "h", "quality", "num_sats"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"{name} must have shape ({n},)")
-        for name in ("sd_neu", "error_ned"):
-            if getattr(self, name).shape != (n, 3):
+        for name in ("sd_neu", "error_ned", "multipath_ned", "jump_ned"):
+            if getattr(self, name) is not None and getattr(self, name).shape != (n, 3):
                 raise ValueError(f"{name} must have shape ({n}, 3)")
 
 
@@ -196,11 +242,23 @@ def simulate_gnss(traj, p_b_a, cfg: GnssConfig, t_start: float, t_end: float,
             err_neu[inside] += offset
         quality[inside] = 2
         sd[inside] = cfg.float_sd_m
+    # Multipath and wrong fixes, drawn after everything above; the file's Q and sigmas stay.
+    multipath = np.zeros((n, 3))
+    if np.any(cfg.sigma_multipath_neu > 0):
+        multipath = _gauss_markov(rng, n, 1.0 / cfg.rate_hz, cfg.sigma_multipath_neu, cfg.multipath_time_constant_s)
+    jump = np.zeros((n, 3))
+    jump_sigma = np.array([cfg.jump_sigma_horizontal_m, cfg.jump_sigma_horizontal_m, cfg.jump_sigma_up_m])
+    for a, b in cfg.ambiguity_jumps:
+        jump[(t >= a) & (t <= b)] += rng.normal(0.0, 1.0, 3) * jump_sigma
+    if cfg.grade != "ppk":
+        multipath[:], jump[:] = 0.0, 0.0
+    err_neu = err_neu + multipath + jump
     keep = np.ones(n, dtype=bool)
     for a, b in cfg.outages:
         keep &= ~((t >= a) & (t <= b))
     t, err_neu, quality, sd = t[keep], err_neu[keep], quality[keep], sd[keep]
-    err_ned = err_neu * np.array([1.0, 1.0, -1.0])
+    ned = np.array([1.0, 1.0, -1.0])
+    err_ned = err_neu * ned
 
     p_w_b, R_w_b = traj.pose(t)
     p_e = traj.frame.to_ecef(p_w_b + np.einsum("nij,j->ni", R_w_b, p_b_a))
@@ -214,4 +272,5 @@ def simulate_gnss(traj, p_b_a, cfg: GnssConfig, t_start: float, t_end: float,
         quality=quality,
         num_sats=np.full(m, cfg.num_sats, dtype=np.int64),
         error_ned=err_ned, p_b_a=p_b_a, t0_gps=float(traj.t0_gps),
+        multipath_ned=multipath[keep] * ned, jump_ned=jump[keep] * ned,
     )

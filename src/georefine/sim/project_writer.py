@@ -166,7 +166,11 @@ def _imu_errors(imu: SimulatedImu) -> dict[str, np.ndarray]:
 
 
 def _gnss_errors(gnss: SimulatedGnss) -> dict[str, np.ndarray]:
-    return dict(time_gps=gnss.t0_gps + gnss.time, error_ned=gnss.error_ned)
+    """The GNSS truth: the total error, and the multipath and wrong fixes' offsets it holds (NED, m)."""
+    zero = np.zeros_like(gnss.error_ned)
+    return dict(time_gps=gnss.t0_gps + gnss.time, error_ned=gnss.error_ned,
+                multipath_ned=zero if gnss.multipath_ned is None else gnss.multipath_ned,
+                jump_ned=zero if gnss.jump_ned is None else gnss.jump_ned)
 
 
 def _project_config(cfg: Any, sorties: list[Sortie], ext: str) -> ProjectConfig:
