@@ -17,6 +17,7 @@ A ``clean`` case (the scenario without the error, same seed) is the reference. K
 |---|---|---|
 | ``imu-misalignment`` | ``imu.gyro_misalignment_mrad``, ``imu.acc_misalignment_mrad`` = M mrad (each off-diagonal element, 1 sigma) | ``imu.errors.*_misalignment_mrad`` / removed |
 | ``lidar-range`` | ``scanner.range_offset_m`` = M m and ``scanner.range_scale_ppm`` = 100 | ``processing.lidar.estimate_range_calibration: true`` / as simulated (not estimated) |
+| ``imu-thermal`` | ``imu.temperature_change_c`` = M deg C over 900 s with bias coefficients of 0.1 deg/h and 10 ug per deg C and a gyro g-sensitivity of 2 deg/h/g (1 sigma) | ``imu.errors``' figures (the bias random walk widened) / removed |
 | ``gnss-float`` | a 60 s float segment from 20 s into the first pass (``gnss.float_segments``; Q=2, 5/5/10 cm stated), its offset drawn with M m horizontal and 1.5 M m up (1 sigma) | ``gnss.float_offset`` (an offset per segment) / ``null`` (taken as fixes) |
 
 Printed per case and solution (G/I, G/I/L), each pass compared with the truth (1 s inset;
@@ -66,6 +67,17 @@ def _without_misalignment(cfg: dict) -> None:
         cfg["imu"]["errors"].pop(key, None)
 
 
+THERMAL = {"gyro_g_sensitivity_deg_per_h_per_g": 2.0, "temperature_time_constant_s": 900.0,
+           "gyro_temperature_deg_per_h_per_c": 0.1, "acc_temperature_ug_per_c": 10.0}
+"""The ``imu-thermal`` kind's figures besides the temperature change M (deg C): a MEMS gyro's g-sensitivity and
+residual temperature coefficients of the biases."""
+
+
+def _without_thermal(cfg: dict) -> None:
+    for key in (*THERMAL, "temperature_change_c"):
+        cfg["imu"]["errors"].pop(key, None)
+
+
 def _float_as_fix(cfg: dict) -> None:
     cfg["gnss"]["float_offset"] = None
 
@@ -75,12 +87,15 @@ KINDS = {  # kind: (simulation overrides for magnitude M given the clean project
                          _without_misalignment),
     "gnss-float": (_float_overrides, _float_as_fix),
     "lidar-range": (lambda m, clean: [f"scanner.range_offset_m={m}", "scanner.range_scale_ppm=100"], lambda cfg: None),
+    "imu-thermal": (lambda m, clean: [f"imu.temperature_change_c={m}"] + [f"imu.{k}={v}" for k, v in THERMAL.items()],
+                    _without_thermal),
 }
 STATE = {  # how the stated run's project.yaml differs from the simulated one, where it does
     "lidar-range": lambda cfg: cfg.setdefault("processing", {}).setdefault("lidar", {}).update(
         estimate_range_calibration=True),
 }
-DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4], "lidar-range": [0.01, 0.03]}
+DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4], "lidar-range": [0.01, 0.03],
+                      "imu-thermal": [10.0, 20.0]}
 
 
 def _unstate(project: Path, out: Path, unstate) -> Path:

@@ -250,8 +250,7 @@ def _densities(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> dict[str,
     """White-noise and bias random-walk densities in SI units, with the configured floors."""
     arw = max(spec.gyro_arw_deg_per_sqrt_h, cfg.min_gyro_noise_deg_per_sqrt_h)
     vrw = max(spec.acc_vrw_m_per_s_per_sqrt_h, cfg.min_acc_noise_m_per_s_per_sqrt_h)
-    q_g = spec.gyro_bias_instability_deg_per_h * DEG_PER_H * np.sqrt(2.0 / spec.gyro_bias_correlation_time_s)
-    q_a = spec.acc_bias_instability_ug * MICRO_G * np.sqrt(2.0 / spec.acc_bias_correlation_time_s)
+    q_g, q_a = spec.bias_random_walk_si()  # widened where a temperature change is stated
     return {
         "gyro_noise": np.radians(arw) / 60.0,  # rad/s/sqrt(Hz)
         "acc_noise": vrw / 60.0,  # m/s²/sqrt(Hz)

@@ -168,6 +168,40 @@ class ImuErrorSpec(StrictModel):
         0.0, ge=0.0, description="Gyro triad misalignment and non-orthogonality, 1 sigma per off-diagonal element "
         "(mrad); > 0 lets processing.trajectory.estimate_misalignment 'auto' estimate it.")
     acc_misalignment_mrad: float = Field(0.0, ge=0.0, description="The same for the accelerometer triad (mrad).")
+    gyro_g_sensitivity_deg_per_h_per_g: float = Field(
+        0.0, ge=0.0, description="Gyro g-sensitivity ('linear acceleration effect'), 1 sigma per element of its 3 x 3 "
+        "matrix (deg/h per g). Not estimated: in flight its effect is a near-constant bias that the turn-on bias "
+        "takes (docs/ARCHITECTURE.md §4.3).")
+    temperature_change_c: float = Field(
+        0.0, description="The IMU's temperature change over the flight (deg C, e.g. its warm-up), with "
+        "temperature_time_constant_s; with the temperature coefficients it widens the bias random walk "
+        "(docs/ARCHITECTURE.md §4.3).")
+    temperature_time_constant_s: float = Field(900.0, gt=0.0, description="Time constant of that change (s).")
+    gyro_temperature_deg_per_h_per_c: float = Field(
+        0.0, ge=0.0, description="Residual temperature coefficient of the gyro biases after the factory's "
+        "compensation, 1 sigma per axis (deg/h per deg C).")
+    acc_temperature_ug_per_c: float = Field(
+        0.0, ge=0.0, description="The same for the accelerometer biases (micro-g per deg C).")
+
+    def bias_random_walk_si(self, gyro_floor_deg_per_h: float = 0.0, acc_floor_ug: float = 0.0) -> tuple[float, float]:
+        """The gyro (rad/s/sqrt(s)) and accelerometer (m/s^2/sqrt(s)) bias random-walk densities.
+
+        ``q = B sqrt(2 / tau)`` from the bias instability ``B`` (at least the floor) over its
+        correlation time, widened where a temperature change is stated: a bias that drifts by
+        ``D = k dT`` (the coefficient times the change) over the time constant ``tau_T`` is, as a
+        ramp, one standard deviation of a random walk of density ``D / sqrt(tau_T)`` (the ramp's
+        increments ``D dt / tau_T`` sum to ``D^2 / (tau_T q^2)`` in the walk's chi-square); the two
+        add in variance. A drift that is smooth, not random, is so covered without a temperature
+        record (docs/ARCHITECTURE.md §4.3).
+        """
+        deg_per_h, ug = np.pi / 180.0 / 3600.0, 9.80665e-6
+        q_g = max(self.gyro_bias_instability_deg_per_h, gyro_floor_deg_per_h) * deg_per_h * np.sqrt(
+            2.0 / self.gyro_bias_correlation_time_s)
+        q_a = max(self.acc_bias_instability_ug, acc_floor_ug) * ug * np.sqrt(2.0 / self.acc_bias_correlation_time_s)
+        root_tau = np.sqrt(self.temperature_time_constant_s)
+        d_g = self.gyro_temperature_deg_per_h_per_c * abs(self.temperature_change_c) * deg_per_h / root_tau
+        d_a = self.acc_temperature_ug_per_c * abs(self.temperature_change_c) * ug / root_tau
+        return float(np.hypot(q_g, d_g)), float(np.hypot(q_a, d_a))
 
 
 class ImuFileConfig(StrictModel):

@@ -2,8 +2,8 @@
 
 Measurement model (the one the adjustment inverts, docs/ARCHITECTURE.md §4.3), per sample time ``t_k``::
 
-    gyro_k = (I + S_g + A_g) omega_ib_b(t_k) + b_g(t_k) + n_g,k     n_g ~ N(0, (ARW sqrt(rate))^2)
-    acc_k  = (I + S_f + A_f) f_ib_b(t_k)     + b_f(t_k) + n_f,k     n_f ~ N(0, (VRW sqrt(rate))^2)
+    gyro_k = (I + S_g + A_g) omega_ib_b(t_k) + G f_ib_b(t_k) + b_g(t_k) + n_g,k     n_g ~ N(0, (ARW sqrt(rate))^2)
+    acc_k  = (I + S_f + A_f) f_ib_b(t_k)                    + b_f(t_k) + n_f,k     n_f ~ N(0, (VRW sqrt(rate))^2)
 
 Samples are *instantaneous* values at the sample times (not interval averages). ``S`` is
 diagonal and constant, drawn from the datasheet scale-factor figure (1 sigma). ``A`` is the
@@ -11,6 +11,18 @@ triad's misalignment and non-orthogonality against the body frame: its six off-d
 elements, constant, each drawn from ``*_misalignment_mrad`` (1 sigma; 0, the default of every
 preset, leaves ``A = 0``). Its antisymmetric part turns the triad, its symmetric part shears it;
 the part common to both triads' rotations is a rotation of the whole IMU against the body frame.
+``G`` is the gyros' g-sensitivity (a MEMS gyro's "linear acceleration effect"): nine elements,
+constant, each drawn from ``gyro_g_sensitivity_deg_per_h_per_g`` (0 by default). In level
+flight ``G f`` is a constant bias (its third column times -g) and only changes of the specific
+force (turns, climbs, vibration) reveal the rest.
+
+Temperature: the factory compensates each sensor's bias over temperature, but not exactly; what is
+left is a bias ``k (T(t) - T(t_0))`` with a coefficient ``k`` per axis (1 sigma
+``*_temperature_*_per_c``) and the unit's temperature ``T`` rising by ``temperature_change_c``
+towards its final value with ``temperature_time_constant_s`` (:func:`temperature_profile`, a
+warm-up after power-on). This drift is smooth and deterministic, not the random walk the estimator
+models; it is part of the true biases written with the project. All four are off by default and
+their draws come after every other, so a grade without them draws as before.
 
 Bias process
     ``b(t) = b_on + w(t)``: a turn-on constant ``b_on ~ N(0, turn_on^2)`` plus an in-run
@@ -101,6 +113,18 @@ class ImuGrade(BaseModel):
     gyro_misalignment_mrad: float = Field(0.0, ge=0, description="1 sigma of each off-diagonal element of the "
                                           "gyro triad's sensitivity matrix against the body frame")
     acc_misalignment_mrad: float = Field(0.0, ge=0, description="the same for the accelerometer triad")
+    gyro_g_sensitivity_deg_per_h_per_g: float = Field(
+        0.0, ge=0, description="1 sigma of each element of the gyros' g-sensitivity matrix (bias per g of specific "
+        "force along each axis; MEMS datasheets' 'linear acceleration effect')")
+    temperature_change_c: float = Field(
+        0.0, description="the IMU's temperature change over the flight (deg C; the warm-up after power-on): "
+        "T(t) = T_0 + dT (1 - exp(-t / temperature_time_constant_s))")
+    temperature_time_constant_s: float = Field(900.0, gt=0, description="time constant of the temperature change")
+    gyro_temperature_deg_per_h_per_c: float = Field(
+        0.0, ge=0, description="1 sigma per axis of the gyro bias's residual temperature coefficient (after the "
+        "factory compensation)")
+    acc_temperature_ug_per_c: float = Field(
+        0.0, ge=0, description="1 sigma per axis of the accelerometer bias's residual temperature coefficient")
 
     @property
     def gyro_noise_density(self) -> float:
@@ -210,6 +234,13 @@ class SimulatedImu:
     grade : ImuGrade
     misalignment_gyro, misalignment_acc : ndarray (3, 3)
         True misalignment ``A`` of each triad (dimensionless, zero diagonal).
+    g_sensitivity : ndarray (3, 3)
+        True gyro g-sensitivity ``G`` (rad/s per m/s^2): the gyros read ``G f_ib_b`` more.
+    temperature_c : ndarray (N,)
+        The IMU's temperature change since the first sample (deg C).
+    temperature_gyro, temperature_acc : ndarray (3,)
+        True temperature coefficients of the biases (rad/s and m/s^2 per deg C); their part
+        ``k (T(t) - T(t_0))`` is in ``bias_gyro`` and ``bias_acc``.
     """
 
     time: np.ndarray
@@ -223,6 +254,10 @@ class SimulatedImu:
     grade: ImuGrade
     misalignment_gyro: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     misalignment_acc: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    g_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    temperature_c: np.ndarray | None = None
+    temperature_gyro: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    temperature_acc: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self):
         n = len(self.time)
@@ -280,10 +315,28 @@ def simulate_imu(traj, grade: ImuGrade, t_start: float, t_end: float,
     n_f = rng.normal(0.0, grade.acc_noise_density * sq, (n, 3))
     a_g = misalignment_matrix(rng, grade.gyro_misalignment_mrad)
     a_f = misalignment_matrix(rng, grade.acc_misalignment_mrad)
-    gyro = sense(w_true, scale_g, a_g) + b_g + n_g
+    g_sens = np.zeros((3, 3))
+    if grade.gyro_g_sensitivity_deg_per_h_per_g > 0:
+        g_sens = rng.normal(0.0, grade.gyro_g_sensitivity_deg_per_h_per_g * _DEG_PER_H / G0, (3, 3))
+    temp = temperature_profile(time - time[0], grade.temperature_change_c, grade.temperature_time_constant_s)
+    k_g = k_f = np.zeros(3)
+    if grade.gyro_temperature_deg_per_h_per_c > 0:
+        k_g = rng.normal(0.0, grade.gyro_temperature_deg_per_h_per_c * _DEG_PER_H, 3)
+    if grade.acc_temperature_ug_per_c > 0:
+        k_f = rng.normal(0.0, grade.acc_temperature_ug_per_c * _UG, 3)
+    b_g = b_g + temp[:, None] * k_g
+    b_f = b_f + temp[:, None] * k_f
+    gyro = sense(w_true, scale_g, a_g) + f_true @ g_sens.T + b_g + n_g
     acc = sense(f_true, scale_f, a_f) + b_f + n_f
     return SimulatedImu(time, gyro, acc, b_g, b_f, scale_g, scale_f, float(traj.t0_gps), grade,
-                        misalignment_gyro=a_g, misalignment_acc=a_f)
+                        misalignment_gyro=a_g, misalignment_acc=a_f, g_sensitivity=g_sens,
+                        temperature_c=temp, temperature_gyro=k_g, temperature_acc=k_f)
+
+
+def temperature_profile(t: np.ndarray, change_c: float, time_constant_s: float) -> np.ndarray:
+    """The IMU's temperature change since ``t = 0`` (deg C): a first-order approach to its final value,
+    ``dT (1 - exp(-t / tau))``, as a unit warms up after power-on (or follows the cabin's temperature)."""
+    return change_c * -np.expm1(-np.asarray(t, dtype=float) / time_constant_s)
 
 
 def misalignment_matrix(rng: np.random.Generator, sigma_mrad: float) -> np.ndarray:

@@ -154,7 +154,7 @@ def _write_navigation(root: Path, sorties: list[Sortie], crs: OutputCRS, write_i
             (root / "truth" / "trajectory_flight_1.sbet.json").read_bytes())
     imu = [_imu_errors(s.imu) for s in sorties]
     np.savez_compressed(root / "truth" / "imu_errors.npz", **{k: np.concatenate([e[k] for e in imu]) if k in (
-        "time_gps", "bias_gyro", "bias_acc") else imu[0][k] for k in imu[0]})
+        "time_gps", "bias_gyro", "bias_acc", "temperature_c") else imu[0][k] for k in imu[0]})
     gnss = [_gnss_errors(s.gnss) for s in sorties]
     np.savez_compressed(root / "truth" / "gnss_errors.npz", **{k: np.concatenate([e[k] for e in gnss]) for k in gnss[0]})
 
@@ -162,7 +162,10 @@ def _write_navigation(root: Path, sorties: list[Sortie], crs: OutputCRS, write_i
 def _imu_errors(imu: SimulatedImu) -> dict[str, np.ndarray]:
     return dict(time_gps=imu.t0_gps + imu.time, bias_gyro=imu.bias_gyro, bias_acc=imu.bias_acc,
                 scale_gyro=imu.scale_gyro, scale_acc=imu.scale_acc,
-                misalignment_gyro=imu.misalignment_gyro, misalignment_acc=imu.misalignment_acc)
+                misalignment_gyro=imu.misalignment_gyro, misalignment_acc=imu.misalignment_acc,
+                g_sensitivity=imu.g_sensitivity, temperature_gyro=imu.temperature_gyro,
+                temperature_acc=imu.temperature_acc,
+                temperature_c=imu.temperature_c if imu.temperature_c is not None else np.zeros(imu.time.size))
 
 
 def _gnss_errors(gnss: SimulatedGnss) -> dict[str, np.ndarray]:
@@ -298,6 +301,9 @@ def write_project(cfg: Any, root: Path, seed: int, write_imr: bool, progress: Pr
         "imu_bias_acc_start_ug": (imu.bias_acc[0] / 9.80665e-6).tolist(),
         "imu_misalignment_gyro_mrad": (imu.misalignment_gyro * 1e3).tolist(),
         "imu_misalignment_acc_mrad": (imu.misalignment_acc * 1e3).tolist(),
+        "imu_g_sensitivity_deg_per_h_per_g": np.degrees(imu.g_sensitivity * 3600 * 9.80665).tolist(),
+        "imu_temperature_gyro_deg_per_h_per_c": np.degrees(imu.temperature_gyro * 3600).tolist(),
+        "imu_temperature_acc_ug_per_c": (imu.temperature_acc / 9.80665e-6).tolist(),
         "points_per_strip": points,
         "scenario": cfg.model_dump(mode="json"),
     }

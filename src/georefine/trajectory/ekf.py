@@ -297,10 +297,7 @@ def _noise_si(spec: ImuErrorSpec, cfg: FilterConfig):
     """Continuous process-noise densities (21,) and initial sensor-error sigmas (12,), SI."""
     arw = np.radians(max(spec.gyro_arw_deg_per_sqrt_h, cfg.gyro_arw_floor_deg_per_sqrt_h)) / 60.0
     vrw = max(spec.acc_vrw_m_per_s_per_sqrt_h, cfg.acc_vrw_floor_m_per_s_per_sqrt_h) / 60.0
-    q_bg = max(spec.gyro_bias_instability_deg_per_h, cfg.gyro_bias_floor_deg_per_h) * _DEG_PER_H * np.sqrt(
-        2.0 / spec.gyro_bias_correlation_time_s)
-    q_ba = max(spec.acc_bias_instability_ug, cfg.acc_bias_floor_ug) * _UG * np.sqrt(
-        2.0 / spec.acc_bias_correlation_time_s)
+    q_bg, q_ba = spec.bias_random_walk_si(cfg.gyro_bias_floor_deg_per_h, cfg.acc_bias_floor_ug)
     qc = np.repeat([0.0, vrw**2, arw**2, q_ba**2, q_bg**2, 0.0, 0.0], 3)
     s_ba = max(spec.acc_turn_on_bias_ug, cfg.acc_bias_floor_ug) * _UG
     s_bg = max(spec.gyro_turn_on_bias_deg_per_h, cfg.gyro_bias_floor_deg_per_h) * _DEG_PER_H
