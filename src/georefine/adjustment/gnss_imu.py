@@ -14,12 +14,19 @@ from __future__ import annotations
 
 import logging
 import time as _time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
 
-from georefine.adjustment.gnss_segments import GNSS_SEGMENT_BLOCK, GnssSegments, non_fix_segments, segment_warnings
+from georefine.adjustment.gnss_jumps import GnssJump, find_jumps, jump_warning
+from georefine.adjustment.gnss_segments import (
+    GNSS_SEGMENT_BLOCK,
+    GnssSegments,
+    jump_spans,
+    non_fix_segments,
+    segment_warnings,
+)
 from georefine.adjustment.linalg import available_backends
 from georefine.adjustment.observations.bias import BiasGrid, BiasRandomWalk
 from georefine.adjustment.observations.gnss import GnssPositionObservation
@@ -75,6 +82,10 @@ class GnssImuData:
     gnss_quality : (G,) int or None
         RTKLIB Q of each epoch; with ``gnss_float`` (``gnss.float_offset``), each segment of epochs
         worse than a fix gets an offset of its own (:mod:`georefine.adjustment.gnss_segments`).
+    gnss_jumps : (J, 2) or None
+        First and last epoch (s) of runs of fixed epochs found off their neighbours (wrong fixes,
+        :mod:`georefine.adjustment.gnss_jumps`), each a segment with an offset of its own too; None:
+        not searched (the first G/I searches where ``gnss_float.detect_jumps``).
     """
 
     frame: LocalFrame
@@ -94,6 +105,7 @@ class GnssImuData:
     imu_cleaning: np.ndarray | None = None
     gnss_quality: np.ndarray | None = None
     gnss_float: GnssFloatOffset | None = None
+    gnss_jumps: np.ndarray | None = None
 
 
 GNSS_ERROR_BLOCK = "gnss_error"
@@ -224,6 +236,9 @@ class GnssImuProblem:
     gnss_error_grid: BiasGrid | None = None
     estimate_misalignment: bool = False
     gnss_segments: GnssSegments | None = None
+    spec: ImuErrorSpec | None = None
+    detect_jumps: bool = False
+    """Search the residuals of the first solve for wrong GNSS fixes (:func:`solve_gnss_imu`)."""
 
     def spline(self) -> SplineTrajectory:
         return spline_from_problem(self.problem, self.blocks, self.grid, self.data.t0_gps)
@@ -356,7 +371,7 @@ def build_gnss_imu_problem(
         raise InputError("no GNSS epoch inside the trajectory span", field="time")
     cov, error, egrid = data.gnss_cov_w[g_in], {}, None
     segments = non_fix_segments(data.gnss_time[g_in], None if data.gnss_quality is None else data.gnss_quality[g_in],
-                                cov, data.gnss_float)
+                                cov, data.gnss_float, data.gnss_jumps)
     if segments is not None:  # an offset per segment without a fix, with its prior
         problem.add_block(GNSS_SEGMENT_BLOCK, np.zeros((len(segments), 3)))
         problem.add_group(EuclideanPrior("gnss_segment_prior", GNSS_SEGMENT_BLOCK, np.arange(len(segments)),
@@ -396,21 +411,57 @@ def build_gnss_imu_problem(
         problem.add_group(EuclideanPrior("gyro_misalignment_prior", "gyro_misalignment", [0], np.zeros(6), mis[0]))
         problem.add_group(EuclideanPrior("acc_misalignment_prior", "acc_misalignment", [0], np.zeros(6), mis[1]))
     return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors, egrid,
-                          estimate_misalignment=mis is not None, gnss_segments=segments)
+                          estimate_misalignment=mis is not None, gnss_segments=segments, spec=spec,
+                          detect_jumps=bool(data.gnss_float is not None and data.gnss_float.detect_jumps
+                                            and data.gnss_jumps is None))
+
+
+def detect_gnss_jumps(built: GnssImuProblem) -> list[GnssJump]:
+    """The wrong GNSS fixes the residuals of ``built``'s current solution show among its fixed epochs outside
+    every segment (:func:`~georefine.adjustment.gnss_jumps.find_jumps`, on the white part of their sigma)."""
+    model = built.data.gnss_float
+    g = next(group for group in built.problem.groups if isinstance(group, GnssPositionObservation))
+    residual = g.p_w - g.predict({name: b.values for name, b in built.problem.blocks.items()})
+    free = np.ones(g.time.size, dtype=bool) if g.segment is None else g.segment < 0
+    sigma = np.sqrt(np.diagonal(np.asarray(g.cov_w), axis1=1, axis2=2))
+    return find_jumps(g.time[free], residual[free], sigma[free], model.jump_window_s, model.jump_threshold_sigma)
+
+
+def with_jump_segments(built: GnssImuProblem, spans: np.ndarray) -> GnssImuProblem:
+    """``built`` rebuilt in place with a segment per span of fixed epochs (wrong fixes, ``(J, 2)`` s), started
+    at its current values; returns ``built``."""
+    new = build_gnss_imu_problem(replace(built.data, gnss_jumps=np.asarray(spans, dtype=float).reshape(-1, 2)),
+                                 built.spec, built.cfg, built.spline())
+    start_imu_errors(new, imu_errors_of(built), gnss_error_of(built))
+    for f in fields(built):
+        setattr(built, f.name, getattr(new, f.name))
+    return built
 
 
 def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
                      gnss_error: GnssErrorEstimate | None = None) -> GnssImuProblem:
     """Start ``built``'s biases, scale factors and misalignments at ``errors`` (same bias knots), its
     correlated GNSS error at ``gnss_error`` where both have one (same knots) and its segments' offsets
-    where both have the same segments; returns ``built``."""
+    where both have the segment; returns ``built``.
+
+    A problem so started goes on from an earlier solution: it does not search for wrong GNSS fixes
+    itself, and takes those ``gnss_error`` holds (segments of quality 1) as segments of its own."""
+    seg = None if gnss_error is None else gnss_error.segments
+    built.detect_jumps = False
+    spans = jump_spans(seg)
+    if spans is not None and jump_spans(built.gnss_segments) is None and built.data.gnss_float is not None:
+        with_jump_segments(built, spans)
     P = built.problem
     if gnss_error is not None and gnss_error.grid is not None and GNSS_ERROR_BLOCK in P.blocks:
         P.set_values(GNSS_ERROR_BLOCK, gnss_error.value_w)
-    seg = None if gnss_error is None else gnss_error.segments
-    if (seg is not None and seg.value_w is not None and built.gnss_segments is not None
-            and np.array_equal(seg.t_start, built.gnss_segments.t_start)):  # the same segments: start at their offsets
-        P.set_values(GNSS_SEGMENT_BLOCK, seg.value_w)
+    own = built.gnss_segments
+    if seg is not None and seg.value_w is not None and own is not None:  # the same segments: start at their offsets
+        value = P.values(GNSS_SEGMENT_BLOCK)
+        for k in range(len(own)):
+            same = np.flatnonzero((np.abs(seg.t_start - own.t_start[k]) < 1e-6) & (np.abs(seg.t_end - own.t_end[k]) < 1e-6))
+            if same.size:
+                value[k] = seg.value_w[same[0]]
+        P.set_values(GNSS_SEGMENT_BLOCK, value)
     P.set_values("acc_bias", errors.acc_bias)
     P.set_values("gyro_bias", errors.gyro_bias)
     P.set_values("acc_scale", np.asarray(errors.acc_scale, dtype=float).reshape(1, 3))
@@ -503,6 +554,14 @@ def solve_gnss_imu(
     t = _time.perf_counter()
     options = options or trajectory_solver_options(cfg, narrow=True)
     result = built.problem.solve(options, progress=progress)
+    if built.detect_jumps:  # once: wrong GNSS fixes the residuals show get an offset each, and the G/I runs again
+        built.detect_jumps = False
+        jumps = detect_gnss_jumps(built)
+        for jump in jumps:
+            logger.warning(jump_warning(jump, built.data.t0_gps))
+        if jumps:
+            with_jump_segments(built, np.array([[j.t_start, j.t_end] for j in jumps]))
+            result = built.problem.solve(options, progress=progress)
     timings = {"solve": _time.perf_counter() - t}
     errors = imu_errors_of(built)
     out = GnssImuResult(built.spline(), errors, result, np.zeros(0), np.zeros((0, 3)), np.zeros((0, 3)), timings,

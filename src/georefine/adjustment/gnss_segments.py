@@ -9,6 +9,10 @@ and stated 1.6 cm. Here each run of consecutive epochs worse than a fix gets one
 their white error. The segment's positions then give the trajectory's shape, the fixes around it
 and the IMU its place, and the position sigma inside it grows as the fixes are further away.
 
+Fixed epochs found off their neighbours in the G/I's residuals (a wrong ambiguity fix,
+:mod:`georefine.adjustment.gnss_jumps`) are segments of the same kind, after those of the flags,
+with ``quality`` 1.
+
 The estimated offsets are reported (``adjustment.json``, ``gnss_error.segments``), and an offset
 beyond three times what the file states for its epochs is a warning: the file understates them.
 """
@@ -24,7 +28,7 @@ from georefine.config import GnssFloatOffset
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GNSS_SEGMENT_BLOCK", "GnssSegments", "non_fix_segments", "segment_warnings"]
+__all__ = ["GNSS_SEGMENT_BLOCK", "GnssSegments", "jump_spans", "non_fix_segments", "segment_warnings"]
 
 GNSS_SEGMENT_BLOCK = "gnss_segment_offset"
 """Block of the segments' offsets ((S, 3), m in ``w``)."""
@@ -41,7 +45,7 @@ class GnssSegments:
     t_start, t_end : (S,)
         First and last epoch of each segment (s from the dataset epoch).
     quality : (S,) int
-        Worst RTKLIB Q in the segment.
+        Worst RTKLIB Q in the segment; 1 for fixed epochs found off their neighbours (a wrong fix).
     epochs : (S,) int
     stated_sigma_w : (S, 3)
         RMS of the file's sigma of the segment's epochs per axis of ``w`` (m).
@@ -81,13 +85,52 @@ class GnssSegments:
 
 
 def non_fix_segments(time: np.ndarray, quality: np.ndarray | None, cov_w: np.ndarray,
-                     model: GnssFloatOffset | None) -> GnssSegments | None:
-    """The segments of epochs (``time`` increasing, s) whose ``quality`` is worse than a fix (Q > 1); None
-    where there is none, no quality or no ``model``."""
-    if model is None or quality is None:
+                     model: GnssFloatOffset | None, jumps: np.ndarray | None = None) -> GnssSegments | None:
+    """The segments of epochs (``time`` increasing, s) whose ``quality`` is worse than a fix (Q > 1), then
+    one per span of ``jumps`` ((J, 2) first and last epoch, s; wrong fixes) over the fixed epochs in it;
+    None where there is none or no ``model``."""
+    if model is None:
         return None
     time = np.asarray(time, dtype=float)
-    bad = np.asarray(quality) > 1
+    flagged = None if quality is None else _flagged_segments(time, np.asarray(quality), cov_w, model)
+    if jumps is None or len(jumps) == 0:
+        return flagged
+    fixed = np.ones(time.size, dtype=bool) if quality is None else np.asarray(quality) <= 1
+    s0 = 0 if flagged is None else len(flagged)
+    index = np.full(time.size, -1, dtype=np.int64) if flagged is None else flagged.index.copy()
+    spans = []
+    for a, b in np.asarray(jumps, dtype=float).reshape(-1, 2):
+        k = np.flatnonzero(fixed & (time >= a - 1e-6) & (time <= b + 1e-6) & (index < 0))
+        if k.size:
+            index[k] = s0 + len(spans)
+            spans.append(k)
+    if not spans:
+        return flagged
+    var = np.diagonal(np.asarray(cov_w, dtype=float), axis1=1, axis2=2)
+    stated = np.array([np.sqrt(var[k].mean(axis=0)) for k in spans])
+    t_start = np.array([time[k[0]] for k in spans])
+    t_end = np.array([time[k[-1]] for k in spans])
+    epochs = np.array([k.size for k in spans], dtype=np.int64)
+    prior = np.array([model.sigma_horizontal_m, model.sigma_horizontal_m, model.sigma_up_m])
+    if flagged is None:
+        return GnssSegments(index, t_start, t_end, np.ones(len(spans), dtype=np.int64), epochs, stated, prior)
+    return GnssSegments(index, np.concatenate([flagged.t_start, t_start]), np.concatenate([flagged.t_end, t_end]),
+                        np.concatenate([flagged.quality, np.ones(len(spans), dtype=np.int64)]),
+                        np.concatenate([flagged.epochs, epochs]), np.vstack([flagged.stated_sigma_w, stated]), prior)
+
+
+def jump_spans(segments: GnssSegments | None) -> np.ndarray | None:
+    """(J, 2) first and last epoch (s) of the segments found off their neighbours (quality 1), or None."""
+    if segments is None or not np.any(segments.quality == 1):
+        return None
+    k = segments.quality == 1
+    return np.column_stack([segments.t_start[k], segments.t_end[k]])
+
+
+def _flagged_segments(time: np.ndarray, quality: np.ndarray, cov_w: np.ndarray,
+                      model: GnssFloatOffset) -> GnssSegments | None:
+    """The segments of epochs worse than a fix (:func:`non_fix_segments` without jumps)."""
+    bad = quality > 1
     if not np.any(bad):
         return None
     k = np.flatnonzero(bad)
@@ -122,8 +165,10 @@ def segment_warnings(segments: GnssSegments, t0_gps: float, limit: float = 3.0) 
         v, s = segments.value_w[k], segments.stated_sigma_w[k]
         ratio = np.abs(v) / s
         if np.any((ratio > limit) & (np.abs(v) > 2.0 * sigma[k])):
+            what = ("fixed GNSS epochs (Q=1) found off their neighbours" if segments.quality[k] == 1
+                    else f"GNSS epochs of quality Q={segments.quality[k]}")
             out.append(
-                f"GNSS epochs of quality Q={segments.quality[k]} from {t0_gps + segments.t_start[k]:.1f} to "
+                f"{what[0].upper() + what[1:]} from {t0_gps + segments.t_start[k]:.1f} to "
                 f"{t0_gps + segments.t_end[k]:.1f} GPS s ({segments.epochs[k]} epochs): estimated offset east/north/up "
                 f"{v[0]:+.3f}/{v[1]:+.3f}/{v[2]:+.3f} m (sigma {sigma[k][0]:.3f}/{sigma[k][1]:.3f}/{sigma[k][2]:.3f}), "
                 f"up to {ratio.max():.1f} times the file's sigma ({s[0]:.3f}/{s[1]:.3f}/{s[2]:.3f} m): the file "

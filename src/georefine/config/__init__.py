@@ -105,11 +105,25 @@ class GnssFloatOffset(StrictModel):
     prior; its epochs keep their ``.pos`` sigma. A float solution's error is mostly one offset of
     decimetres while the ambiguities stay float, which the file's sigmas (often 5/5/10 cm) do not
     state and which, taken as white, the epochs of a minute averaged to millimetres.
+
+    A wrong fix (``detect_jumps``) is the same error under ``Q=1``: the G/I's GNSS residuals step at
+    its start and end (:mod:`georefine.adjustment.gnss_jumps`); fixed epochs found off their
+    neighbours so get an offset of their own with this prior, and the G/I runs again once.
     """
 
     sigma_horizontal_m: float = Field(0.3, gt=0.0, description="Prior sigma of a segment's offset per horizontal axis (m).")
     sigma_up_m: float = Field(0.5, gt=0.0, description="Prior sigma of a segment's height offset (m).")
     max_gap_s: float = Field(10.0, gt=0.0, description="A longer gap between non-fix epochs starts a new segment (s).")
+    detect_jumps: bool = Field(
+        True, description="Search the G/I's GNSS residuals for fixed epochs that stand off their neighbours (a wrong "
+        "ambiguity fix, which the file flags Q=1): each such run is warned of and gets an offset of its own, "
+        "the G/I runs again once; false: fixed epochs are taken as they are.")
+    jump_threshold_sigma: float = Field(
+        6.0, gt=0.0, description="A step of the residuals counts where it exceeds this many of its own spread, "
+        "as the norm over the three axes (the windowed mean difference's spread, which holds the residuals' "
+        "correlation; 0 false alarms in 50 h of simulated residuals).")
+    jump_window_s: float = Field(
+        2.0, gt=0.0, description="Length of each of the two windows of residuals compared at an epoch (s).")
 
 
 class GnssFileConfig(StrictModel):
