@@ -147,6 +147,48 @@ def test_range_calibration_jacobians(seed):
     np.testing.assert_allclose(read_long.centres_s({"range": np.array([[0.03, 1e-4]])}), group.centre_s, atol=1e-9)
 
 
+@pytest.mark.parametrize("seed", SEEDS)
+def test_channel_angle_jacobians(seed):
+    """Each channel's tilt and scan-angle error: their columns (with the range calibration too; -1 a reference
+    channel without them), and the others through the corrected centres; zero angles are the group without
+    them, and a centre recorded along a beam tens of mdeg off is turned back onto its true beam."""
+    from georefine.lidar.georeference import calibrated_channels
+
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    channel = np.random.default_rng(seed + 100).integers(-1, 3, 25)  # -1: the reference channel
+    group = random_group(rng, grid, boresight="R_b_s", lever_arm="p_b_s", range_calibration="range",
+                         channel=channel, channel_angles="ch")
+    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
+    values |= {"R_b_s": group.R_b_s[None], "p_b_s": group.p_b_s[None],
+               "range": np.array([[rng.normal(0, 0.03), rng.normal(0, 2e-4)]]), "ch": rng.normal(0, 1e-3, (3, 2))}
+    blocks = dict(TRAJ_BLOCKS, plane_params="euclidean", R_b_s="so3", p_b_s="euclidean")
+    chk = check_jacobians(group, values, {"ch": "euclidean", "range": "euclidean"}, eps=1e-7)
+    assert chk.residual_mismatch == 0.0
+    assert chk.max_rel_error < 1e-6, chk
+    chk = check_jacobians(group, values, {k: v for k, v in blocks.items() if k in {"R_b_s", B.attitude}}, eps=1e-5)
+    assert chk.max_rel_error < 1e-6, chk
+    plain = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s")
+    angled = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s",
+                          range_calibration="range", channel=channel, channel_angles="ch")
+    zero = values | {"range": np.zeros((1, 2)), "ch": np.zeros((3, 2))}
+    np.testing.assert_allclose(angled.linearize(zero, False).residuals, plain.linearize(zero, False).residuals,
+                               rtol=0, atol=1e-9)
+    errors = np.radians(np.array([[40.0, -25.0], [-10.0, 15.0], [5.0, 30.0]]) * 1e-3)
+    true = group.centre_s
+    errors[0] = 0.0
+    recorded = calibrated_channels(true, np.maximum(channel, 0), -errors)  # turned the other way: as recorded
+    channel_as_block = np.where(channel > 0, channel - 1, -1)
+    read = random_group(np.random.default_rng(seed), grid, channel=channel_as_block, channel_angles="ch")
+    read.centre_s = recorded
+    read.__post_init__()
+    np.testing.assert_allclose(read.centres_s({"ch": errors[1:]}), true, atol=1e-9)
+    with pytest.raises(ValueError, match="channel of each"):
+        random_group(np.random.default_rng(seed), grid, channel_angles="ch")
+
+
 def test_calibration_blocks_default_to_fixed_values():
     rng = np.random.default_rng(4)
     grid = KnotGrid(0.0, 0.1, 12)

@@ -143,7 +143,9 @@ def _adjustment_reports() -> dict[str, AdjustmentReport]:
                                   boresight_deg=(0.062, -0.021, 0.03), boresight_sigma_mdeg=(2.0, 2.1, 9.0),
                                   lidar_time_offset=offset, project="/data/p", frame=frame,
                                   range_calibration={"offset_m": 0.0308, "scale_ppm": 97.4, "offset_sigma_m": 0.0011,
-                                                     "scale_sigma_ppm": 11.8}),
+                                                     "scale_sigma_ppm": 11.8},
+                                  channel_angles={"tilt_mdeg": [1.0, -2.0, 3.0], "scan_angle_mdeg": [0.5, 0.0, -1.0],
+                                                  "tilt_sigma_mdeg": [0.4] * 3, "scan_angle_sigma_mdeg": [0.6] * 3}),
         "delivered": AdjustmentReport("G/I/L", 1.4e9, {"solve": 1.0}, adjustment=_solve_dict(),
                                       sbet_errors={"knot_times_s": [0.0, 1.0], "position_m": [[0.0] * 3] * 2},
                                       lidar_time_offset=LidarTimeOffset(0.0, 0.0, held="one strip only")),
@@ -164,7 +166,7 @@ def test_an_adjustment_report_reads_back_to_what_was_written(tmp_path, kind):
     # One schema: every key in every file, null where the writer has no such section.
     assert list(d) == ["solution", "project", "frame", "t0_gps", "timings_s", "filter", "adjustment", "imu_errors",
                        "sbet_errors", "gnss_error", "boresight_deg", "boresight_sigma_mdeg", "lidar_time_offset",
-                       "range_calibration"]
+                       "range_calibration", "channel_angles"]
     assert (d["adjustment"] is None) == (kind == "filter")
     assert (d["lidar_time_offset"] is None) == (kind in ("filter", "G/I"))
     if d["lidar_time_offset"] is not None:

@@ -209,3 +209,46 @@ def test_max_range_and_arguments(flat_scene):
              np.random.default_rng(0))
     with pytest.raises(pydantic.ValidationError):
         ScannerConfig(pulse_rate=1.0)
+
+
+def test_channel_angle_errors_are_taken_out_by_the_calibration(scene):
+    """A facet tilted and a scan angle offset per channel: the beam leaves at the true angles, the point is
+    recorded along the calibrated ones; turning each point by its channel's errors
+    (:func:`calibrated_channels`) puts it, with the true pose, on the true point plus its range noise."""
+    from georefine.lidar.georeference import ScannerCalibration, calibrated_channels
+
+    p_b_s, R_b_s = np.array([0.35, -0.12, 0.48]), np.eye(3)
+    pose_fn = level_flight(400.0, np.mean(scene.axis_w[:, 2]) + H_AGL)
+    tilt, alpha = (40.0, -25.0, 10.0), (-15.0, 30.0, 5.0)  # mdeg
+    cfg = ScannerConfig(channel_tilt_error_mdeg=tilt, channel_scan_angle_error_mdeg=alpha)
+    ideal = concat(scan(pose_fn, T0, T0 + 0.5, scene, ScannerConfig(), p_b_s, R_b_s, np.random.default_rng(3)))
+    unit = concat(scan(pose_fn, T0, T0 + 0.5, scene, cfg, p_b_s, R_b_s, np.random.default_rng(3)))
+    assert abs(unit["time"].size - ideal["time"].size) < 0.01 * ideal["time"].size
+    # recorded along the calibrated beam: the channel's nominal tilt and the recorded scan angle
+    d_s = unit["xyz_s"] / np.linalg.norm(unit["xyz_s"], axis=1, keepdims=True)
+    np.testing.assert_allclose(d_s[:, 0], np.sin(np.radians(np.array(cfg.facet_tilt_deg))[unit["channel"]]),
+                               atol=1e-12)
+    np.testing.assert_allclose(np.arctan2(d_s[:, 1], d_s[:, 2]), unit["scan_angle_rad"], atol=1e-12)
+    p_w_b, R_w_b = pose_fn(unit["time"])
+    p_w_s = p_w_b + R_w_b @ p_b_s
+    d_w = unit["xyz_w_true"] - p_w_s
+    d_w /= np.linalg.norm(d_w, axis=1, keepdims=True)
+    expected = unit["xyz_w_true"] + unit["range_error_m"][:, None] * d_w
+
+    def to_w(x_s):
+        return p_w_b + np.einsum("nij,nj->ni", R_w_b, x_s @ R_b_s.T + p_b_s)
+
+    angles = np.radians(np.column_stack([tilt, alpha]) * 1e-3)
+    fixed = calibrated_channels(unit["xyz_s"], unit["channel"], angles)
+    np.testing.assert_allclose(to_w(fixed), expected, atol=1e-6)
+    np.testing.assert_allclose(ScannerCalibration(channel_angles=angles).apply(unit["xyz_s"], unit["channel"]),
+                               fixed, atol=1e-12)
+    miss = np.linalg.norm(to_w(unit["xyz_s"]) - expected, axis=1)
+    r = np.linalg.norm(unit["xyz_s"], axis=1)
+    for c in range(3):  # as recorded, each channel's points are off by its angle errors times the range
+        on = unit["channel"] == c
+        assert on.sum() > 1000
+        np.testing.assert_allclose(miss[on] / r[on], np.hypot(angles[c, 0], np.cos(np.radians(
+            cfg.facet_tilt_deg[c])) * angles[c, 1]), rtol=0.02)
+    with pytest.raises(ValueError, match="angles for 2"):
+        calibrated_channels(unit["xyz_s"], unit["channel"], angles[:2])

@@ -315,14 +315,16 @@ def test_map_keeps_the_order_and_reports_progress():
 
 
 def test_a_range_calibration_moves_every_point_along_its_beam(strip, poses):
-    """``range_calibration=(r0, k)``: a point read at ``(1 + k) r + r0`` is written at range ``r``, on its beam."""
-    from georefine.lidar.georeference import calibrated_ranges
+    """``ScannerCalibration(range=(r0, k))``: a point read at ``(1 + k) r + r0`` is written at range ``r``, on its
+    beam."""
+    from georefine.lidar.georeference import ScannerCalibration, calibrated_ranges
     from georefine.lidar.tiles import tile_georeference
 
     frame, crs = LocalFrame(math.radians(48.0), math.radians(11.0), 500.0), OutputCRS(25832)
     tile = plan_strip(strip, 5, T0, 120_000, 0.0, index=time_index(strip)).tiles[1]
     plain, _ = tile_georeference(tile, poses, T0, np.zeros(3), np.eye(3), frame, crs)
-    cal, _ = tile_georeference(tile, poses, T0, np.zeros(3), np.eye(3), frame, crs, range_calibration=(0.03, 1e-4))
+    cal, _ = tile_georeference(tile, poses, T0, np.zeros(3), np.eye(3), frame, crs,
+                               calibration=ScannerCalibration(range=(0.03, 1e-4)))
     x_s = read_las_range(tile.path, tile.start, tile.stop, ()).xyz
     expected = crs.from_geodetic(*frame.to_geodetic(calibrated_ranges(x_s, (0.03, 1e-4))))
     np.testing.assert_allclose(cal.xyz, expected, atol=1e-6)
@@ -331,3 +333,28 @@ def test_a_range_calibration_moves_every_point_along_its_beam(strip, poses):
     # 3 cm + 100 ppm of r, in the projection (its scale within 1e-3 of 1 here)
     np.testing.assert_allclose(moved, r - (r - 0.03) / (1.0 + 1e-4), rtol=1e-3)
     np.testing.assert_array_equal(calibrated_ranges(x_s, None), x_s)
+
+
+def test_channel_angles_turn_each_point_onto_its_channels_beam(strip, poses):
+    """``ScannerCalibration(channel_angles=...)``: each point turned by its channel's tilt and scan-angle error,
+    at its range: it moves by the range times the angle (as the sum of both, the scan angle's foreshortened by
+    the tilt), the range kept."""
+    from georefine.lidar.georeference import ScannerCalibration, beam_angles, calibrated_channels
+    from georefine.lidar.tiles import tile_georeference
+
+    frame, crs = LocalFrame(math.radians(48.0), math.radians(11.0), 500.0), OutputCRS(25832)
+    tile = plan_strip(strip, 5, T0, 120_000, 0.0, index=time_index(strip)).tiles[1]
+    angles = np.radians(np.array([[30.0, -20.0], [-15.0, 10.0], [5.0, 40.0]]) * 1e-3)
+    plain, _ = tile_georeference(tile, poses, T0, np.zeros(3), np.eye(3), frame, crs)
+    cal, _ = tile_georeference(tile, poses, T0, np.zeros(3), np.eye(3), frame, crs,
+                               calibration=ScannerCalibration(channel_angles=angles))
+    pc = read_las_range(tile.path, tile.start, tile.stop, ())
+    fixed = calibrated_channels(pc.xyz, pc.scanner_channel, angles)
+    np.testing.assert_allclose(np.linalg.norm(fixed, axis=1), np.linalg.norm(pc.xyz, axis=1), rtol=1e-12)
+    np.testing.assert_allclose(cal.xyz, crs.from_geodetic(*frame.to_geodetic(fixed)), atol=1e-6)
+    r, tau, _ = beam_angles(pc.xyz)
+    a = angles[pc.scanner_channel]
+    moved = np.linalg.norm(cal.xyz - plain.xyz, axis=1)
+    np.testing.assert_allclose(moved, r * np.hypot(a[:, 0], np.cos(tau) * a[:, 1]), rtol=2e-3)
+    assert len(np.unique(pc.scanner_channel)) > 1
+    np.testing.assert_array_equal(calibrated_channels(pc.xyz, pc.scanner_channel, None), pc.xyz)

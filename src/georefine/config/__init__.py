@@ -475,6 +475,13 @@ class LidarAdjustmentConfig(StrictModel):
         "final points are corrected with them. One flight, outside the hybrid adjustment.")
     range_offset_prior_m: float = Field(0.05, gt=0.0, description="Prior sigma of the range offset r0 (m).")
     range_scale_prior_ppm: float = Field(200.0, gt=0.0, description="Prior sigma of the range scale error k (ppm).")
+    estimate_channel_angles: bool = Field(
+        False, description="Estimate each scanner channel's facet-tilt and scan-angle error against channel 0's (its "
+        "beams leave at angles the unit does not record; docs/ARCHITECTURE.md §4.3) from the planes, as RiPROCESS and "
+        "TerraMatch calibrate a mirror's facets; the final points are corrected with them. Channel 0's own errors are "
+        "the boresight's (estimate_boresight). One flight, outside the hybrid adjustment.")
+    channel_angle_prior_mdeg: float = Field(
+        20.0, gt=0.0, description="Prior sigma of each channel's tilt and scan-angle error (mdeg).")
     time_offset: TimeOffsetConfig = Field(default_factory=TimeOffsetConfig)
     max_features: int = Field(
         200_000, ge=100, description="Ceiling on matched features in the adjustment, which today's solver needs to "
@@ -760,6 +767,10 @@ class ProjectConfig(StrictModel):
         if self.processing.lidar.estimate_range_calibration:
             raise _rule_error(("processing", "lidar", "estimate_range_calibration"), "the scanner's range calibration "
                               "is estimated for one flight; the adjustment of several flights does not take it yet",
+                              True)
+        if self.processing.lidar.estimate_channel_angles:
+            raise _rule_error(("processing", "lidar", "estimate_channel_angles"), "the scanner's channel angles are "
+                              "estimated for one flight; the adjustment of several flights does not take them yet",
                               True)
         if self.gnss.format == "sbet":
             raise _rule_error(("gnss", "format"), "gnss.format sbet takes the one delivered SBET of a single-flight "

@@ -328,6 +328,10 @@ class AdjustmentReport:
     range_calibration
         The scanner's estimated range offset and scale error (``offset_m``, ``offset_sigma_m``,
         ``scale_ppm``, ``scale_sigma_ppm``; ``processing.lidar.estimate_range_calibration``); else None.
+    channel_angles
+        Each scanner channel's estimated facet-tilt and scan-angle error (lists by channel:
+        ``tilt_mdeg``, ``tilt_sigma_mdeg``, ``scan_angle_mdeg``, ``scan_angle_sigma_mdeg``;
+        ``processing.lidar.estimate_channel_angles``); else None.
     project
         The project folder (absolute).
     frame
@@ -351,6 +355,7 @@ class AdjustmentReport:
     frame: FrameOrigin | None = None
     filter: FilterSummary | None = None
     range_calibration: dict[str, Any] | None = None
+    channel_angles: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.solution not in SOLUTIONS:
@@ -370,7 +375,7 @@ class AdjustmentReport:
             "gnss_error": self.gnss_error, "boresight_deg": triple(self.boresight_deg),
             "boresight_sigma_mdeg": triple(self.boresight_sigma_mdeg),
             "lidar_time_offset": None if self.lidar_time_offset is None else self.lidar_time_offset.to_dict(),
-            "range_calibration": self.range_calibration,
+            "range_calibration": self.range_calibration, "channel_angles": self.channel_angles,
         }
 
     @classmethod
@@ -402,6 +407,7 @@ class AdjustmentReport:
             filter=None if filt is None else FilterSummary(filt.integer("gnss_updates"), filt.integer("gnss_rejected"),
                                                             filt.number("alignment_time_s", True)),
             range_calibration=top.mapping("range_calibration"),
+            channel_angles=top.mapping("channel_angles"),
         )
 
 

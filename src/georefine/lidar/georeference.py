@@ -26,6 +26,7 @@ component along ``f x r`` is dropped), nor does the pitch.
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -190,6 +191,52 @@ def scan_angles_deg(
     out = np.empty(t.shape[0])
     _scan_angles(t, k, trajectory.time, trajectory.q, x_s, R_b_s, up, out)
     return np.degrees(out)
+
+
+def beam_angles(xyz_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Range ``r``, facet tilt ``tau`` and scan angle ``alpha`` of scanner-frame points (rad), so that
+    ``xyz_s = r [sin tau, cos tau sin alpha, cos tau cos alpha]`` (the beam model of docs/ARCHITECTURE.md §4.3)."""
+    xyz_s = np.asarray(xyz_s, dtype=float)
+    r = np.linalg.norm(xyz_s, axis=-1)
+    tau = np.arcsin(np.clip(xyz_s[..., 0] / np.maximum(r, 1e-12), -1.0, 1.0))
+    return r, tau, np.arctan2(xyz_s[..., 1], xyz_s[..., 2])
+
+
+def beam_direction(tau: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Unit beam ``[sin tau, cos tau sin alpha, cos tau cos alpha]`` (..., 3) of tilt and scan angle (rad)."""
+    ct = np.cos(tau)
+    return np.stack([np.sin(tau), ct * np.sin(alpha), ct * np.cos(alpha)], axis=-1)
+
+
+def calibrated_channels(xyz_s: np.ndarray, channel: np.ndarray, channel_angles: np.ndarray | None) -> np.ndarray:
+    """Scanner-frame points turned to their channel's true beam: a point recorded along tilt ``tau`` and scan
+    angle ``alpha`` at range ``r`` lies at ``r d(tau + d_tau_c, alpha + d_alpha_c)``, ``channel_angles[c] =
+    (d_tau_c, d_alpha_c)`` (rad; docs/ARCHITECTURE.md §4.3); ``None``: as read."""
+    if channel_angles is None:
+        return xyz_s
+    angles = np.asarray(channel_angles, dtype=float)
+    channel = np.asarray(channel, dtype=np.int64)
+    if channel.size and (channel.min() < 0 or channel.max() >= angles.shape[0]):
+        raise ValueError(f"scanner channels {channel.min()}..{channel.max()} but angles for {angles.shape[0]}")
+    r, tau, alpha = beam_angles(xyz_s)
+    d = angles[channel]
+    return r[:, None] * beam_direction(tau + d[:, 0], alpha + d[:, 1])
+
+
+@dataclass(frozen=True)
+class ScannerCalibration:
+    """The scanner's own calibration estimated by the G/I/L, taken out of every point before its georeferencing.
+
+    ``range``: offset ``r0`` (m) and scale error ``k`` (:func:`calibrated_ranges`), or None;
+    ``channel_angles``: (C, 2) tilt and scan-angle errors per channel (rad; :func:`calibrated_channels`), or None.
+    """
+
+    range: tuple[float, float] | None = None
+    channel_angles: np.ndarray | None = None
+
+    def apply(self, xyz_s: np.ndarray, channel: np.ndarray) -> np.ndarray:
+        """``xyz_s`` (N, 3) of points of ``channel`` (N,) with the ranges, then the beam angles, corrected."""
+        return calibrated_channels(calibrated_ranges(xyz_s, self.range), channel, self.channel_angles)
 
 
 def calibrated_ranges(xyz_s: np.ndarray, range_calibration: tuple[float, float] | None) -> np.ndarray:

@@ -43,7 +43,7 @@ from georefine.io.las import PointCloud, TimeIndex, read_las_range, time_index
 from georefine.io.las_encode import LAZ_CHUNK_POINTS, EncodedPoints, LasLayout, encode_points
 from georefine.io.las_writer import LasWriter, offset_near
 from georefine.io.point_manifest import record_point_files
-from georefine.lidar.georeference import PoseInterpolator, calibrated_ranges, georeference, scan_angles_deg
+from georefine.lidar.georeference import PoseInterpolator, ScannerCalibration, georeference, scan_angles_deg
 from georefine.lidar.planes import PlanarFeatures, extract_features
 from georefine.progress import Progress, no_progress
 from georefine.tasks import TaskRunner
@@ -223,7 +223,7 @@ def tile_features(
 def tile_georeference(
     tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
     frame: LocalFrame, crs: OutputCRS, time_offset_s: float = 0.0, heights: GeoidHeights | None = None,
-    range_calibration: tuple[float, float] | None = None,
+    calibration: ScannerCalibration | None = None,
 ) -> tuple[PointCloud | None, int]:
     """Step 6 on one tile's own records: the points in the output CRS with their LAS scan angles
     (:func:`~georefine.lidar.georeference.scan_angles_deg`; ``None`` if all are outside the
@@ -232,9 +232,9 @@ def tile_georeference(
     ``t0_gps``: the navigation's epoch; the points are georeferenced, and written, at their
     ``gps_time + time_offset_s``. Heights are ellipsoidal, or with ``heights`` gravity-related
     (``H = h - N``, converted here, sub-chunk by sub-chunk; a point the geoid grid does not
-    cover is an :class:`~georefine.errors.InputError` naming the grid). ``range_calibration``: the
-    scanner's range offset and scale error taken out of every point first
-    (:func:`~georefine.lidar.georeference.calibrated_ranges`)."""
+    cover is an :class:`~georefine.errors.InputError` naming the grid). ``calibration``: the
+    scanner's range offset and scale error and its channels' angle errors, taken out of every point first
+    (:class:`~georefine.lidar.georeference.ScannerCalibration`)."""
     parts, outside = [], 0
     for a in range(tile.start, tile.stop, GEOREFERENCE_CHUNK):
         pc = read_las_range(tile.path, a, min(a + GEOREFERENCE_CHUNK, tile.stop), ())
@@ -244,7 +244,7 @@ def tile_georeference(
         outside += int(np.count_nonzero(~keep))
         if not np.any(keep):
             continue
-        x_s = calibrated_ranges(pc.xyz[keep], range_calibration)
+        x_s = pc.xyz[keep] if calibration is None else calibration.apply(pc.xyz[keep], pc.scanner_channel[keep])
         x_w = georeference(t[keep], x_s, poses, p_b_s, R_b_s)
         lat, lon, h = frame.to_geodetic(x_w)
         angle = scan_angles_deg(t[keep], x_s, poses, R_b_s, frame.up_w(lat, lon))
@@ -262,12 +262,12 @@ def tile_georeference(
 def tile_georeference_encoded(
     tile: Tile, poses: PoseInterpolator, t0_gps: float, p_b_s: np.ndarray, R_b_s: np.ndarray,
     frame: LocalFrame, crs: OutputCRS, layout: LasLayout, time_offset_s: float = 0.0,
-    heights: GeoidHeights | None = None, range_calibration: tuple[float, float] | None = None,
+    heights: GeoidHeights | None = None, calibration: ScannerCalibration | None = None,
 ) -> tuple[EncodedPoints, int]:
     """:func:`tile_georeference`, the points encoded for the output file of ``layout`` (LAZ
     chunks compressed here, :mod:`georefine.io.las_encode`)."""
     cloud, outside = tile_georeference(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, time_offset_s, heights,
-                                       range_calibration)
+                                       calibration)
     return encode_points(PointCloud.empty() if cloud is None else cloud, layout), outside
 
 
@@ -322,7 +322,7 @@ def georeference_strips(
     plans: list[StripPlan], out_paths: list[str | Path], poses: PoseInterpolator, t0_gps: float,
     p_b_s: np.ndarray, R_b_s: np.ndarray, frame: LocalFrame, crs: OutputCRS, *, runner: TaskRunner | None = None,
     scale_m: float = 0.001, progress: Progress = no_progress, protect: tuple = (), time_offset_s: float = 0.0,
-    heights: GeoidHeights | None = None, range_calibration: tuple[float, float] | None = None,
+    heights: GeoidHeights | None = None, calibration: ScannerCalibration | None = None,
 ) -> list[StripGeoreferenceResult]:
     """Georeference scanner-frame strips into output-CRS LAZ files (LAS 1.4, PF 6), tile by tile.
 
@@ -343,8 +343,8 @@ def georeference_strips(
     its own points, and the files state the compound CRS (:meth:`GeoidHeights.compound_crs`); a
     point outside the geoid grid stops the run with an error naming the grid, and no file is
     left half-written. Points outside the trajectory's time span are left out and counted (a warning
-    is logged). ``poses`` may be a value that ``runner.share`` returned. ``range_calibration``: the
-    scanner's estimated range offset and scale error, taken out of every point.
+    is logged). ``poses`` may be a value that ``runner.share`` returned. ``calibration``: the
+    scanner's estimated range offset and scale error and channel angles, taken out of every point.
     """
     if len(plans) != len(out_paths):
         raise ValueError(f"{len(plans)} strips but {len(out_paths)} output paths")
@@ -352,7 +352,7 @@ def georeference_strips(
     offset = tuple(offset_near(crs.from_w(frame, np.zeros((1, 3)))[0]))
     file_crs = crs.crs if heights is None else heights.compound_crs(crs)
     writers = [LasWriter(Path(o), scale=scale_m, offset=offset, crs=file_crs, protect=protect) for o in out_paths]
-    tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, w.layout_for(), time_offset_s, heights, range_calibration)
+    tasks = [(tile, poses, t0_gps, p_b_s, R_b_s, frame, crs, w.layout_for(), time_offset_s, heights, calibration)
              for plan, w in zip(plans, writers) for tile in plan.tiles]
     owner = [k for k, plan in enumerate(plans) for _ in plan.tiles]
     last = {k: i for i, k in enumerate(owner)}  # a file is complete after its strip's last tile

@@ -27,7 +27,11 @@ First return only. The true range ``r`` is the distance from ``p_w_s`` along
 ``R_w_s d_s`` to the first surface of the scene; the recorded point is
 ``xyz_s = ((1 + k) r + r0 + e) d_s`` with ``e ~ N(0, range_sigma_m^2)`` and the unit's range
 scale error ``k`` (``range_scale_ppm``) and offset ``r0`` (``range_offset_m``), both 0 by default
-(an ideal calibration; real units keep centimetres and tens of ppm). The time of flight
+(an ideal calibration; real units keep centimetres and tens of ppm). The beam leaves at the
+channel's true angles, ``d_s(alpha + d_alpha_c, tau_c + d_tau_c)``, while the point is recorded
+along ``d_s(alpha, tau_c)``: each facet's tilt and its scan angle (its angle on the mirror wheel
+and the encoder's offset) as far off as ``channel_tilt_error_mdeg`` and
+``channel_scan_angle_error_mdeg`` say (0 by default; a few mdeg remain after a calibration). The time of flight
 (~1 µs at 160 m, i.e. ~20 µm of platform motion) and the beam divergence are neglected:
 each point carries its pulse emission time and the pose at that time. Returns beyond
 ``max_range_m`` and misses are dropped. Intensity follows the scene albedo
@@ -83,6 +87,11 @@ class ScannerConfig(BaseModel):
     max_range_m: float = Field(1000.0, gt=0, description="returns beyond are dropped")
     range_offset_m: float = Field(0.0, ge=-1.0, le=1.0, description="the unit's range offset r0 (m)")
     range_scale_ppm: float = Field(0.0, ge=-10000.0, le=10000.0, description="the unit's range scale error k (ppm)")
+    channel_tilt_error_mdeg: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="per channel, the true facet tilt minus the unit's calibrated one (mdeg)")
+    channel_scan_angle_error_mdeg: tuple[float, float, float] = Field(
+        (0.0, 0.0, 0.0), description="per channel, the true scan angle minus the one the unit records (mdeg): "
+        "the facet's angle on the mirror wheel and its encoder offset")
     intensity_at_reference: float = Field(
         60000.0, gt=0, description="albedo 1, normal incidence, at the reference range")
     intensity_reference_range_m: float = Field(100.0, gt=0)
@@ -152,10 +161,15 @@ class ScanChunk:
 
 
 def beam_directions_s(
-    channel: np.ndarray, scan_angle_rad: np.ndarray, cfg: ScannerConfig
+    channel: np.ndarray, scan_angle_rad: np.ndarray, cfg: ScannerConfig, true: bool = False
 ) -> np.ndarray:
-    """Unit beam directions (N, 3) in ``s`` for channels (N,) and scan angles (N,) [rad]."""
-    tau = np.radians(np.asarray(cfg.facet_tilt_deg))[np.asarray(channel, np.int64)]
+    """Unit beam directions (N, 3) in ``s`` for channels (N,) and scan angles (N,) [rad]: as the unit's
+    calibration has them, or with ``true`` as the beams leave (the channel angle errors added)."""
+    channel = np.asarray(channel, np.int64)
+    tau = np.radians(np.asarray(cfg.facet_tilt_deg))[channel]
+    if true:
+        tau = tau + np.radians(np.asarray(cfg.channel_tilt_error_mdeg) * 1e-3)[channel]
+        scan_angle_rad = scan_angle_rad + np.radians(np.asarray(cfg.channel_scan_angle_error_mdeg) * 1e-3)[channel]
     ct = np.cos(tau)
     return np.column_stack([np.sin(tau), ct * np.sin(scan_angle_rad), ct * np.cos(scan_angle_rad)])
 
@@ -292,9 +306,11 @@ def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> Sc
         p_w_b, R_w_b = np.asarray(p_w_b, np.float64), np.asarray(R_w_b, np.float64)
         if p_w_b.shape != (len(t), 3) or R_w_b.shape != (len(t), 3, 3):
             raise ValueError(f"pose_fn returned {p_w_b.shape}, {R_w_b.shape} for {len(t)} times")
-        d_s = beam_directions_s(channel, alpha, cfg)
+        d_s = beam_directions_s(channel, alpha, cfg)  # as recorded
         p_w_s = p_w_b + _rotate(R_w_b, p_b_s)
-        d_w = _rotate(R_w_b, d_s @ R_b_s.T)  # R_w_s d_s = R_w_b (R_b_s d_s)
+        d_true = d_s if not any(cfg.channel_tilt_error_mdeg + cfg.channel_scan_angle_error_mdeg) else (
+            beam_directions_s(channel, alpha, cfg, true=True))
+        d_w = _rotate(R_w_b, d_true @ R_b_s.T)  # R_w_s d_s = R_w_b (R_b_s d_s)
         range_m, face_id = scene.intersect(p_w_s, d_w, max_range_m=cfg.max_range_m)
         hit = np.flatnonzero(face_id >= 0)
     else:

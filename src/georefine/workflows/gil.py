@@ -33,6 +33,7 @@ from georefine.errors import InputError
 from georefine.geometry.rotation import rph_from_R_n_b, wrap_angle
 from georefine.lidar.correspondences import PlanarObjects
 from georefine.lidar.feature_sample import feature_keys, time_windows, windowed_object_subset
+from georefine.lidar.georeference import ScannerCalibration
 from georefine.lidar.planes import PlanarFeatures
 from georefine.lidar.time_offset import offset_unobservable
 from georefine.progress import Progress, no_progress
@@ -74,6 +75,14 @@ class LidarAdjustment:
     time_offset_held: str | None = None
     range_calibration: tuple[float, float] | None = None  # range offset r0 (m) and scale error k, where estimated
     range_calibration_sigma: tuple[float, float] | None = None
+    channel_angles: np.ndarray | None = None  # (C, 2) tilt and scan-angle error per channel (rad), where estimated
+    channel_angles_sigma: np.ndarray | None = None
+
+    def scanner_calibration(self) -> ScannerCalibration | None:
+        """What the final georeferencing takes out of every point (range and channel angles), or None."""
+        if self.range_calibration is None and self.channel_angles is None:
+            return None
+        return ScannerCalibration(range=self.range_calibration, channel_angles=self.channel_angles)
 
 
 def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
@@ -97,11 +106,18 @@ def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
     if RANGE_BLOCK in problem.blocks:
         cov = problem.covariance(RANGE_BLOCK, scale_by_variance_factor=False)[0] * vf
         extra["range_calibration_sigma"] = tuple(float(v) for v in np.sqrt(np.diag(cov)))
+    if CHANNEL_BLOCK in problem.blocks:
+        cov = problem.covariance(CHANNEL_BLOCK, scale_by_variance_factor=False) * vf
+        extra["channel_angles_sigma"] = np.vstack([np.zeros((1, 2)), np.sqrt(np.diagonal(cov, axis1=1, axis2=2))])
     return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
 
 
 RANGE_BLOCK = "range_calibration"
 """The scanner's range offset (m) and scale error ((1, 2); ``processing.lidar.estimate_range_calibration``)."""
+CHANNEL_BLOCK = "channel_angles"
+"""Each scanner channel's facet-tilt and scan-angle error against channel 0's ((C - 1, 2) for channels 1..C-1, rad;
+``processing.lidar.estimate_channel_angles``). Channel 0's are the boresight's: a scan-angle error common to all
+channels is a scanner roll, which the planes cannot tell from a roll of the trajectory where both passes share it."""
 
 
 @dataclass
@@ -229,11 +245,20 @@ def build_gil_problem(
         P.add_group(EuclideanPrior("range_calibration_prior", RANGE_BLOCK, [0], np.zeros((1, 2)),
                                    np.array([lcfg.range_offset_prior_m, lcfg.range_scale_prior_ppm * 1e-6])))
         ranges = RANGE_BLOCK
+    channels = None
+    if lcfg.estimate_channel_angles:  # channel 0 is the reference, whose angles are the boresight's
+        n_ch = max(int(f.channel.max()), 1)
+        sigma = np.radians(lcfg.channel_angle_prior_mdeg * 1e-3)
+        P.add_block(CHANNEL_BLOCK, np.zeros((n_ch, 2)))
+        P.add_group(EuclideanPrior("channel_angles_prior", CHANNEL_BLOCK, np.arange(n_ch), np.zeros((n_ch, 2)),
+                                   np.full(2, sigma)))
+        channels = CHANNEL_BLOCK
     P.add_group(
         PlaneObservation(
             grid, f.time, f.centre_s, f.axis1_s, f.axis2_s, f.sigma_d_m, f.sigma_slope_rad, obj_index,
             objects.c0[used_objects], objects.k1[used_objects], objects.k2[used_objects], objects.n0[used_objects],
             np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight, range_calibration=ranges,
+            channel=f.channel.astype(np.int64) - 1 if channels else None, channel_angles=channels,
             blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale), **timing,
         )
     )
@@ -307,7 +332,8 @@ def step_adjust_gil(
     if gil.estimates_offset:
         offset += float(P.values(OFFSET_BLOCK)[0, 0])
     ranges = tuple(float(v) for v in P.values(RANGE_BLOCK)[0]) if RANGE_BLOCK in P.blocks else None
+    channels = np.vstack([np.zeros((1, 2)), P.values(CHANNEL_BLOCK)]) if CHANNEL_BLOCK in P.blocks else None
     adj = LidarAdjustment(result, gil.features_used, gil.objects_used, bs_deg, None, built,
                           time_offset_s=offset, time_offset_start=gil.time_offset, time_offset_held=gil.offset_held,
-                          range_calibration=ranges)
+                          range_calibration=ranges, channel_angles=channels)
     return add_posterior(adj) if covariance else adj

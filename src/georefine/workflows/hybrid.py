@@ -505,10 +505,11 @@ def run_hybrid(project: ProjectLike, out: str | Path, *, case: int = 1, planes: 
                          "the photos with the LiDAR as control and no cloud: `georefine coadjust --case 3`)",
                          found=str(case))
     project = as_project(project)
-    if project.config.processing.lidar.estimate_range_calibration:
-        raise ConfigError("the hybrid adjustment does not take the scanner's range calibration yet: its LiDAR points "
-                          "and final cloud would be read uncorrected", path=project.root / "project.yaml",
-                          field="processing.lidar.estimate_range_calibration", expected="false", found="true")
+    for key, what in (("estimate_range_calibration", "range calibration"), ("estimate_channel_angles", "channel angles")):
+        if getattr(project.config.processing.lidar, key):
+            raise ConfigError(f"the hybrid adjustment does not take the scanner's {what} yet: its LiDAR points and "
+                              "final cloud would be read uncorrected", path=project.root / "project.yaml",
+                              field=f"processing.lidar.{key}", expected="false", found="true")
     with open_workspace(project, out, resume=resume, scheduler=scheduler) as ws:
         return _run(ws, project, case, planes, overrides, matcher, progress)
 

@@ -123,6 +123,12 @@ class WorkflowResult:
             (r0, k), sig = self.gil.range_calibration, self.gil.range_calibration_sigma or (np.nan, np.nan)
             lines.append(f"  scanner range offset {r0 * 1e3:+.1f} ± {sig[0] * 1e3:.1f} mm, scale {k * 1e6:+.1f} ± "
                          f"{sig[1] * 1e6:.1f} ppm (points corrected)")
+        if self.gil is not None and self.gil.channel_angles is not None:
+            a = np.degrees(self.gil.channel_angles) * 1e3
+            sig = (np.full_like(a, np.nan) if self.gil.channel_angles_sigma is None
+                   else np.degrees(self.gil.channel_angles_sigma) * 1e3)
+            lines.append("  scanner channel angles (tilt, scan angle; points corrected): " + "; ".join(
+                f"{c}: {a[c, 0]:+.1f} ± {sig[c, 0]:.1f}, {a[c, 1]:+.1f} ± {sig[c, 1]:.1f} mdeg" for c in range(len(a))))
         if self.gil is not None and self.gil.time_offset_held is not None:
             lines.append(f"  LiDAR time offset: held at {self.gil.time_offset_s:+.5f} s, not estimated: "
                          f"{self.gil.time_offset_held}")
@@ -458,7 +464,7 @@ def stage_points(steps: StepRunner, inputs: WorkflowInputs, final: GnssImuResult
         results = georeference_strips([s.plan for s in strips], paths, poses, nav.t0_gps, p_b_s, R_b_s,
                                       nav.frame, inputs.crs, runner=runner, progress=progress, protect=(nav.root,),
                                       time_offset_s=offset, heights=inputs.heights,
-                                      range_calibration=None if gil is None else gil.range_calibration)
+                                      calibration=None if gil is None else gil.scanner_calibration())
         return [{"strip": s.strip_id, "file": path.name, "points": r.points_written,
                  "outside_trajectory": r.points_outside, "stamp": file_stamp(path)[1:]}
                 for s, path, r in zip(inputs.strips, paths, results)]

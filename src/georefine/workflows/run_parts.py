@@ -138,7 +138,8 @@ def adjustment_report(nav: NavigationData, adj: GnssImuResult, solution: str,
         gnss_error=None if adj.gnss_error is None else adj.gnss_error.to_dict(),
         boresight_deg=bs, boresight_sigma_mdeg=bs_sigma, lidar_time_offset=offset,
         project=str(Path(nav.root).resolve()), frame=FrameOrigin.of(nav.frame),
-        range_calibration=None if lidar is None else range_calibration_record(lidar))
+        range_calibration=None if lidar is None else range_calibration_record(lidar),
+        channel_angles=None if lidar is None else channel_angles_record(lidar))
 
 
 def range_calibration_record(lidar) -> dict | None:
@@ -149,3 +150,15 @@ def range_calibration_record(lidar) -> dict | None:
     return {"offset_m": round(r0, 6), "scale_ppm": round(k * 1e6, 3),
             "offset_sigma_m": None if sig is None else round(sig[0], 6),
             "scale_sigma_ppm": None if sig is None else round(sig[1] * 1e6, 3)}
+
+
+def channel_angles_record(lidar) -> dict | None:
+    """``adjustment.json``'s ``channel_angles`` of a G/I/L that estimated them, else None: per channel (index =
+    the LAS scanner channel) the tilt and scan-angle error and their sigma (mdeg)."""
+    if getattr(lidar, "channel_angles", None) is None:
+        return None
+    a = np.degrees(lidar.channel_angles) * 1e3
+    sig = None if lidar.channel_angles_sigma is None else np.degrees(lidar.channel_angles_sigma) * 1e3
+    return {"tilt_mdeg": np.round(a[:, 0], 4).tolist(), "scan_angle_mdeg": np.round(a[:, 1], 4).tolist(),
+            "tilt_sigma_mdeg": None if sig is None else np.round(sig[:, 0], 4).tolist(),
+            "scan_angle_sigma_mdeg": None if sig is None else np.round(sig[:, 1], 4).tolist()}

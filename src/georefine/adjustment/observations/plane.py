@@ -46,6 +46,18 @@ derivative ``-(R^T a)^T skew(x) = (x x R^T a)^T`` w.r.t. ``delta``):
   feature at 100 m). The axes are kept: a scale leaves a plane's angles, and an offset tilts a
   plane seen under an incidence ``phi`` by about ``r0 sin(phi) / r``, 0.3 mrad for 3 cm at
   100 m, a fraction of a slope's sigma. ``d r1 / d (r0, k) = n_s . (-u_s, -c_s') / (1 + k) / sigma_d``.
+* channel angles (optional block ``(C, 2)``): channel ``c``'s beams leave ``d_tau_c`` steeper in facet
+  tilt and ``d_alpha_c`` further in scan angle than the unit records (a facet's tilt, its angle on the
+  mirror wheel, the encoder's offset), so a point recorded at range ``r`` along ``d(tau, alpha) =
+  [sin tau, cos tau sin alpha, cos tau cos alpha]`` lies at ``r d(tau + d_tau_c, alpha + d_alpha_c)``.
+  The feature's centre is corrected so, with ``(tau, alpha)`` of its own beam and ``rho`` its range
+  after the range calibration: ``c_s' = rho d'``, ``d' = d(tau + d_tau_c, alpha + d_alpha_c)`` (the
+  points' mean moves as its centre does to the square of the feature's angular size). The axes are
+  kept: the correction turns a feature by about the angle errors themselves (mdeg), a fraction of a
+  slope's sigma. ``d r1 / d (d_tau_c, d_alpha_c) = rho n_s . (d d/d tau, d d/d alpha) / sigma_d``; with
+  both, the range rows take ``d'`` for ``u_s``. A scan-angle error common to all channels is a roll of the
+  boresight (and, where the planes cannot see a common tilt, of the trajectory): the caller holds one
+  channel as the reference (``channel`` -1) and estimates the others' errors against it.
 * LiDAR time offset ``tau`` and drift ``kappa`` (optional blocks): the feature is georeferenced
   at ``t_f + tau + kappa (t_f - t_ref)`` (its time stamp is that far behind the navigation's
   time). ``d c~ / dt = v_w_b + R_w_b (omega x x_b)``, ``d k~_i / dt = R_w_b (omega x R_b_s k_i_s)``
@@ -205,6 +217,12 @@ def plane_parameters(
     return np.column_stack([_dot(n, point - c0) / along, _dot(n, k1_0) / along, _dot(n, k2_0) / along])
 
 
+def _beam(tau: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """Unit beams ``[sin tau, cos tau sin alpha, cos tau cos alpha]`` (F, 3)."""
+    ct = np.cos(tau)
+    return np.column_stack([np.sin(tau), ct * np.sin(alpha), ct * np.cos(alpha)])
+
+
 def _as_rows(name: str, value, n: int, width: int | None = 3) -> np.ndarray:
     return checked_rows("PlaneObservation", name, value, n, width)
 
@@ -271,6 +289,11 @@ class PlaneObservation:
     range_calibration
         Optional Euclidean block ``(1, 2)``: the scanner's range offset ``r0`` (m) and scale error
         ``k`` (module docstring).
+    channel : (F,) int, optional
+        Element of ``channel_angles`` for each feature (needed with it); -1: a channel without
+        correction (the reference channel).
+    channel_angles
+        Optional Euclidean block ``(C, 2)``: each channel's tilt and scan-angle error (rad; module docstring).
     blocks
         Trajectory block names.
     loss
@@ -300,6 +323,8 @@ class PlaneObservation:
     time_drift: str | None = None
     time_reference: float | None = None
     range_calibration: str | None = None
+    channel: np.ndarray | None = None
+    channel_angles: str | None = None
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
     consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
@@ -344,6 +369,13 @@ class PlaneObservation:
         self._rows = np.arange(3 * f).reshape(f, 3)
         self._obs = np.repeat(np.arange(f), 3)
         self._beam_s = self.centre_s / np.maximum(np.linalg.norm(self.centre_s, axis=1), 1e-9)[:, None]
+        if self.channel_angles is not None:
+            if self.channel is None or np.shape(self.channel) != (f,):
+                raise ValueError(f"PlaneObservation: channel_angles needs the channel of each of the {f} features")
+            self.channel = np.asarray(self.channel, dtype=np.int64)
+            r = np.linalg.norm(self.centre_s, axis=1)
+            self._tau = np.arcsin(np.clip(self.centre_s[:, 0] / np.maximum(r, 1e-9), -1.0, 1.0))
+            self._alpha = np.arctan2(self.centre_s[:, 1], self.centre_s[:, 2])
 
     @property
     def n_features(self) -> int:
@@ -418,11 +450,29 @@ class PlaneObservation:
         return self.time_offset is not None or self.time_drift is not None
 
     def centres_s(self, values: Mapping[str, np.ndarray]) -> np.ndarray:
-        """Feature centres in ``s`` (F, 3) with the current range calibration applied (module docstring)."""
-        if self.range_calibration is None:
-            return self.centre_s
-        r0, k = single_element(values, self.range_calibration, (2,))
-        return (self.centre_s - r0 * self._beam_s) / (1.0 + k)
+        """Feature centres in ``s`` (F, 3) with the current range calibration and channel angles applied
+        (module docstring)."""
+        return self._calibrated(values)[0]
+
+    def _calibrated(self, values: Mapping[str, np.ndarray]):
+        """``(c_s', d', rho, angles)``: the corrected centres, their beams and ranges, and each feature's
+        ``(d_tau, d_alpha)`` (None without ``channel_angles``)."""
+        c_s, beam = self.centre_s, self._beam_s
+        if self.range_calibration is not None:
+            r0, k = single_element(values, self.range_calibration, (2,))
+            c_s = (c_s - r0 * beam) / (1.0 + k)
+        if self.channel_angles is None:
+            return c_s, beam, None, None
+        angles = np.asarray(values[self.channel_angles], dtype=float)
+        if angles.ndim != 2 or angles.shape[1] != 2 or (self.channel.size and self.channel.max() >= angles.shape[0]):
+            raise ValueError(f"block {self.channel_angles!r} must have shape (C, 2) with C > "
+                             f"{int(self.channel.max()) if self.channel.size else -1}, found {angles.shape}")
+        a = np.zeros((self.channel.size, 2))
+        on = self.channel >= 0
+        a[on] = angles[self.channel[on]]
+        rho = np.linalg.norm(c_s, axis=1)
+        d = _beam(self._tau + a[:, 0], self._alpha + a[:, 1])
+        return rho[:, None] * d, d, rho, a
 
     def _pose(self, values: Mapping[str, np.ndarray], jacobians: bool, located=None):
         """``(ev, R_w_b, R_b_s, x_b, c~, c_s)``: spline attitude, calibration, centre in b, centre in w,
@@ -479,15 +529,24 @@ class PlaneObservation:
         J_obj[:, :, 2] = np.einsum("nri,ni->nr", vecs, dn_db)
         jac.append(JacobianBlock(self.objects, rows, j, J_obj * scale))
         zeros = np.zeros(f, dtype=np.int64)
-        if self.boresight is not None or self.range_calibration is not None:
+        if self.boresight is not None or self.range_calibration is not None or self.channel_angles is not None:
             n_s = np.einsum("nji,nj->ni", R_w_s, n)
+            _, beam, rho, a = self._calibrated(values)
         if self.boresight is not None:
             feat_s = np.stack([c_s, self.axis1_s, self.axis2_s], axis=1)
             jac.append(JacobianBlock(self.boresight, rows, zeros, np.cross(feat_s, n_s[:, None, :]) * scale))
         if self.range_calibration is not None:
             k = single_element(values, self.range_calibration, (2,))[1]
-            J_rc = -np.column_stack([_dot(n_s, self._beam_s), _dot(n_s, c_s)]) * (w_d / (1.0 + k))[:, None]
+            J_rc = -np.column_stack([_dot(n_s, beam), _dot(n_s, c_s)]) * (w_d / (1.0 + k))[:, None]
             jac.append(JacobianBlock(self.range_calibration, rows[:, :1], zeros, J_rc[:, None, :]))
+        if self.channel_angles is not None:
+            tau, alpha = self._tau + a[:, 0], self._alpha + a[:, 1]
+            st, ct, sa, ca = np.sin(tau), np.cos(tau), np.sin(alpha), np.cos(alpha)
+            d_tau = np.column_stack([ct, -st * sa, -st * ca])
+            d_alpha = np.column_stack([np.zeros_like(ct), ct * ca, -ct * sa])
+            J_ch = np.column_stack([_dot(n_s, d_tau), _dot(n_s, d_alpha)]) * (rho * w_d)[:, None]
+            on = self.channel >= 0
+            jac.append(JacobianBlock(self.channel_angles, rows[on, :1], self.channel[on], J_ch[on, None, :]))
         if self.lever_arm is not None:
             jac.append(JacobianBlock(self.lever_arm, rows[:, :1], zeros, (n_b * w_d[:, None])[:, None, :]))
         if self._timed():
