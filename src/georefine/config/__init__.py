@@ -202,9 +202,9 @@ class ImuErrorSpec(StrictModel):
 
         ``q = B sqrt(2 / tau)`` from the bias instability ``B`` (at least the floor) over its
         correlation time, widened where a temperature change is stated: a bias that drifts by
-        ``D = k dT`` (the coefficient times the change) over the time constant ``tau_T`` is, as a
-        ramp, one standard deviation of a random walk of density ``D / sqrt(tau_T)`` (the ramp's
-        increments ``D dt / tau_T`` sum to ``D^2 / (tau_T q^2)`` in the walk's chi-square); the two
+        ``D = k dT`` (the coefficient times the change) as ``D (1 - exp(-t / tau_T))`` is one standard
+        deviation of a random walk of density ``D / sqrt(2 tau_T)`` (its rate ``D / tau_T exp(-t / tau_T)``
+        squared and integrated is ``D^2 / (2 tau_T)``, the walk's chi-square ``q^2`` per second); the two
         add in variance. A drift that is smooth, not random, is so covered without a temperature
         record (docs/ARCHITECTURE.md §4.3).
         """
@@ -212,7 +212,7 @@ class ImuErrorSpec(StrictModel):
         q_g = max(self.gyro_bias_instability_deg_per_h, gyro_floor_deg_per_h) * deg_per_h * np.sqrt(
             2.0 / self.gyro_bias_correlation_time_s)
         q_a = max(self.acc_bias_instability_ug, acc_floor_ug) * ug * np.sqrt(2.0 / self.acc_bias_correlation_time_s)
-        root_tau = np.sqrt(self.temperature_time_constant_s)
+        root_tau = np.sqrt(2.0 * self.temperature_time_constant_s)
         d_g = self.gyro_temperature_deg_per_h_per_c * abs(self.temperature_change_c) * deg_per_h / root_tau
         d_a = self.acc_temperature_ug_per_c * abs(self.temperature_change_c) * ug / root_tau
         return float(np.hypot(q_g, d_g)), float(np.hypot(q_a, d_a))
