@@ -266,3 +266,22 @@ def test_the_gil_estimates_the_scanner_channel_angles(tmp_path):
         # pass 1. With channel 0 free as well, the roll was 1.49 mdeg: a common scan-angle error is a roll.
         assert np.all(a.rmse_mdeg < 1.3 * clean), (strip, a)
         assert np.all((a.z_rms > 0.5) & (a.z_rms < 2.0)) and np.all(a.beyond_3_sigma <= 0.02), (strip, a)
+
+
+@pytest.mark.slow
+def test_run_warns_of_a_scanner_calibration_it_did_not_estimate(tmp_path):
+    """A unit reading 3 cm + 100 ppm long, its forward and backward facets tens of mdeg off, and a project that
+    estimates neither: the calibration check solves the last G/I/L once more with them and names both, with
+    figures and the setting to change; nothing of it is applied to the products."""
+    project = tmp_path / "uncalibrated"
+    simulate_project("corridor-tiny", project, seed=21, overrides=[
+        "scanner.range_offset_m=0.03", "scanner.range_scale_ppm=100",
+        f"scanner.channel_tilt_error_mdeg={CHANNEL_TILT_MDEG.tolist()}",
+        f"scanner.channel_scan_angle_error_mdeg={CHANNEL_SCAN_MDEG.tolist()}"])
+    proc = run_georefine("run", str(project), "--out", str(tmp_path / "run"), "--no-points", timeout=1800)
+    assert proc.returncode == 0, proc.stderr
+    log = (tmp_path / "run" / "georefine.log").read_text()
+    assert "the planes show a scanner range offset of +" in log and "estimate_range_calibration: true" in log, log
+    assert "channel 1: tilt +" in log and "estimate_channel_angles: true" in log, log
+    report = json.loads((tmp_path / "run" / "gil" / "adjustment.json").read_text())
+    assert report["range_calibration"] is None and report["channel_angles"] is None

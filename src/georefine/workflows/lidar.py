@@ -52,6 +52,7 @@ from georefine.lidar.tiles import georeference_strips, refuse_strips_outside
 from georefine.progress import Progress, no_progress
 from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
+from georefine.workflows.calibration_check import CalibrationCheck, check_scanner_calibration, warn_calibration
 from georefine.workflows.flights import FlightsResult, run_flights
 from georefine.workflows.gil import LidarAdjustment, add_posterior, step_adjust_gil
 from georefine.workflows.navigation import (
@@ -400,6 +401,27 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
     return Posterior(gil, features, objects, key)
 
 
+def stage_calibration_check(steps: StepRunner, inputs: WorkflowInputs, outer: OuterIterations, posterior: Posterior,
+                            progress: Progress = no_progress) -> CalibrationCheck | None:
+    """The scanner calibration the configuration leaves out, estimated once more from the last outer iteration's
+    problem, started at its solution (cached; :mod:`georefine.workflows.calibration_check`), or None where it
+    leaves out none."""
+    last = outer.records[-1]
+
+    def compute() -> CalibrationCheck | None:
+        progress("scanner calibration check", 0, 1)
+        out = check_scanner_calibration(inputs.nav, posterior.gil.result, posterior.features, posterior.objects,
+                                        TimeOffsetStart(last.time_offset_start_s, last.time_offset_prior_s), progress)
+        progress("scanner calibration check", 1, 1)
+        return out
+
+    lcfg = inputs.nav.config.processing.lidar
+    if not lcfg.check_scanner_calibration or (lcfg.estimate_range_calibration and lcfg.estimate_channel_angles):
+        return None
+    return steps.cached("calibration_check", StepCache.key("calibration_check", outer.key), compute,
+                        timing="calibration_check")
+
+
 def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, key: str,
                  progress: Progress) -> tuple[LidarAdjustment, str, tuple[OuterIteration, ...]]:
     """Steps 3-5 and the G/I/L products: the adjustment with its posterior, its key, the outer iterations.
@@ -416,6 +438,7 @@ def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, k
                      posterior.gil.time_offset_gnss_sigma_s or 0.0)
     warn_plane_misfit(gi, posterior.gil, outer.records, inputs.nav)
     warn_gi_tilt(gi, posterior.gil, inputs.nav.frame)
+    warn_calibration(stage_calibration_check(steps, inputs, outer, posterior, progress))
     stage_gil_products(inputs, posterior)
     return posterior.gil, posterior.key, outer.records
 
