@@ -270,12 +270,12 @@ def test_the_gil_estimates_the_scanner_channel_angles(tmp_path):
 
 @pytest.mark.slow
 def test_run_warns_of_a_scanner_calibration_it_did_not_estimate(tmp_path):
-    """A unit reading 3 cm + 100 ppm long, its forward and backward facets tens of mdeg off, and a project that
+    """A unit reading 5 cm + 100 ppm long, its forward and backward facets tens of mdeg off, and a project that
     estimates neither: the calibration check solves the last G/I/L once more with them and names both, with
     figures and the setting to change; nothing of it is applied to the products."""
     project = tmp_path / "uncalibrated"
     simulate_project("corridor-tiny", project, seed=21, overrides=[
-        "scanner.range_offset_m=0.03", "scanner.range_scale_ppm=100",
+        "scanner.range_offset_m=0.05", "scanner.range_scale_ppm=100",
         f"scanner.channel_tilt_error_mdeg={CHANNEL_TILT_MDEG.tolist()}",
         f"scanner.channel_scan_angle_error_mdeg={CHANNEL_SCAN_MDEG.tolist()}"])
     proc = run_georefine("run", str(project), "--out", str(tmp_path / "run"), "--no-points", timeout=1800)
