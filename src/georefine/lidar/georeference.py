@@ -211,13 +211,16 @@ def beam_direction(tau: np.ndarray, alpha: np.ndarray) -> np.ndarray:
 def calibrated_channels(xyz_s: np.ndarray, channel: np.ndarray, channel_angles: np.ndarray | None) -> np.ndarray:
     """Scanner-frame points turned to their channel's true beam: a point recorded along tilt ``tau`` and scan
     angle ``alpha`` at range ``r`` lies at ``r d(tau + d_tau_c, alpha + d_alpha_c)``, ``channel_angles[c] =
-    (d_tau_c, d_alpha_c)`` (rad; docs/ARCHITECTURE.md §4.3); ``None``: as read."""
+    (d_tau_c, d_alpha_c)`` (rad; docs/ARCHITECTURE.md §4.3); ``None``: as read. A channel beyond the rows of
+    ``channel_angles`` (one that gave the adjustment no feature) is left as read."""
     if channel_angles is None:
         return xyz_s
     angles = np.asarray(channel_angles, dtype=float)
     channel = np.asarray(channel, dtype=np.int64)
-    if channel.size and (channel.min() < 0 or channel.max() >= angles.shape[0]):
-        raise ValueError(f"scanner channels {channel.min()}..{channel.max()} but angles for {angles.shape[0]}")
+    if channel.size and channel.min() < 0:
+        raise ValueError(f"scanner channel {channel.min()} is negative")
+    if channel.size and channel.max() >= angles.shape[0]:
+        angles = np.vstack([angles, np.zeros((int(channel.max()) + 1 - angles.shape[0], 2))])
     r, tau, alpha = beam_angles(xyz_s)
     d = angles[channel]
     return r[:, None] * beam_direction(tau + d[:, 0], alpha + d[:, 1])
