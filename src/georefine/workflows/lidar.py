@@ -128,8 +128,8 @@ class WorkflowResult:
             a = np.degrees(self.gil.channel_angles) * 1e3
             sig = (np.full_like(a, np.nan) if self.gil.channel_angles_sigma is None
                    else np.degrees(self.gil.channel_angles_sigma) * 1e3)
-            lines.append("  scanner channel angles (tilt, scan angle; points corrected): " + "; ".join(
-                f"{c}: {a[c, 0]:+.1f} ± {sig[c, 0]:.1f}, {a[c, 1]:+.1f} ± {sig[c, 1]:.1f} mdeg" for c in range(len(a))))
+            lines.append("  scanner channel angles against channel 0 (tilt, scan angle; points corrected): " + "; ".join(
+                f"{c}: {a[c, 0]:+.1f} ± {sig[c, 0]:.1f}, {a[c, 1]:+.1f} ± {sig[c, 1]:.1f} mdeg" for c in range(1, len(a))))
         if self.gil is not None and self.gil.time_offset_held is not None:
             lines.append(f"  LiDAR time offset: held at {self.gil.time_offset_s:+.5f} s, not estimated: "
                          f"{self.gil.time_offset_held}")
