@@ -208,6 +208,27 @@ def test_a_gi_attitude_off_the_gil_beyond_its_sigma_is_a_warning(sigma_mdeg, war
         assert "misalignment_mrad" in messages[0]
 
 
+@pytest.mark.parametrize(("factor", "warned"), [(2.38, True), (0.46, False)])
+def test_a_correlated_gnss_error_beyond_its_prior_is_a_warning(factor, warned, caplog):
+    """The G/I/L's correlated GNSS error fitting its prior at 2.38 per row (2/4 cm of multipath on ``corridor``)
+    warns with the figure; 0.46 (a range error, whose misfit the planes carry) does not; no such group, nothing."""
+    from types import SimpleNamespace
+
+    from georefine.workflows.outer_checks import warn_gnss_error_misfit
+
+    def adjustment(groups):
+        return SimpleNamespace(result=SimpleNamespace(solve=SimpleNamespace(groups=groups)))
+
+    group = SimpleNamespace(name="gnss_error_prior", variance_factor=factor)
+    with caplog.at_level("WARNING", logger="georefine.workflows.outer_checks"):
+        warn_gnss_error_misfit(adjustment((SimpleNamespace(name="gnss", variance_factor=1.2), group)))
+        warn_gnss_error_misfit(adjustment((SimpleNamespace(name="gnss", variance_factor=9.0),)))
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == int(warned), messages
+    if warned:
+        assert "fits its prior at 2.38 per row" in messages[0] and "multipath" in messages[0]
+
+
 CHANNEL_TILT_MDEG, CHANNEL_SCAN_MDEG = np.array([0.0, 30.0, -20.0]), np.array([0.0, -15.0, 25.0])
 RANGE_OFFSET_M, RANGE_SCALE_PPM = 0.05, 100.0
 

@@ -65,6 +65,7 @@ from georefine.workflows.outer_checks import (
     outer_converged,
     trajectory_change,
     warn_gi_tilt,
+    warn_gnss_error_misfit,
     warn_plane_misfit,
     warn_unconverged,
 )
@@ -438,6 +439,7 @@ def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, k
                      posterior.gil.time_offset_gnss_sigma_s or 0.0)
     warn_plane_misfit(gi, posterior.gil, outer.records, inputs.nav)
     warn_gi_tilt(gi, posterior.gil, inputs.nav.frame)
+    warn_gnss_error_misfit(posterior.gil)
     warn_calibration(stage_calibration_check(steps, inputs, outer, posterior, progress))
     stage_gil_products(inputs, posterior)
     return posterior.gil, posterior.key, outer.records
