@@ -190,7 +190,7 @@ def evaluate(run: Path, project: Path, truth: Path) -> dict:
         acc = [truth_pass_accuracy(sbet, truth, s) for s in passes]
         pos, pos_z = _position(sbet, truth)
         gnss = yaml.safe_load((truth / "truth" / "scenario.yaml").read_text())["scenario"]["gnss"]
-        segments = gnss["float_segments"] or gnss.get("ambiguity_jumps") or gnss["outages"] or []
+        segments = gnss.get("float_segments") or gnss.get("ambiguity_jumps") or gnss.get("outages") or []
         window = _position(sbet, truth, tuple(segments[0])) if segments else None
         out[sol] = {"rmse_mdeg": np.max([a.rmse_mdeg for a in acc], axis=0).tolist(),
                     "z_min": np.min([a.z_rms for a in acc], axis=0).tolist(),
