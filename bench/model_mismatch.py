@@ -215,6 +215,8 @@ def run_case(work: Path, name: str, overrides, unstate, scenario: str, seed: int
         t = time.perf_counter()
         simulate_project(scenario, project, seed=seed, overrides=overrides(work / "clean") if overrides else [])
         print(f"  simulated {sim_name} in {time.perf_counter() - t:.0f} s", flush=True)
+    if unstate is not None:
+        shutil.rmtree(work / f"{name}-project", ignore_errors=True)  # a case run again edits a fresh copy
     target = project if unstate is None else _unstate(project, work / f"{name}-project", unstate)
     run = work / f"{name}-run"
     shutil.rmtree(run, ignore_errors=True)
