@@ -166,7 +166,7 @@ def test_run_both_passes_fixes_heading_and_the_point_cloud(project, full_run, tm
     n_outer = len(metrics["outer_iterations"])
     # The strip-adjustment baseline comes from the first outer iteration's planes, right after it.
     assert again["resumed"] == ["gi", "gil_1", "strip_baseline", *[f"gil_{i}" for i in range(2, n_outer + 1)],
-                                "gil_features", "gil_posterior", "points"]
+                                "gil_features", "gil_posterior", "calibration_check", "points"]
     assert len(list((out / ".cache").glob("gil_features-*.pkl"))) == 1  # the last one only
     assert again["outer_iterations"] == metrics["outer_iterations"]
     assert (out / "gil" / "trajectory.sbet").read_bytes() == before
