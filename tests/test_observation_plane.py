@@ -148,6 +148,48 @@ def test_range_calibration_jacobians(seed):
 
 
 @pytest.mark.parametrize("seed", SEEDS)
+def test_range_incidence_jacobians(seed):
+    """The incidence-dependent range bias: its column (alone, with the range calibration, and with the channel
+    angles), the others through the corrected centres; zero is the group without it, and a centre read
+    b (1 / cos(phi) - 1) long is put back."""
+    from georefine.adjustment.observations.plane import incidence_term
+
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    channel = np.random.default_rng(seed + 100).integers(-1, 3, 25)
+    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
+    values |= {"range": np.array([[rng.normal(0, 0.03), rng.normal(0, 2e-4)]]), "ch": rng.normal(0, 1e-3, (3, 2)),
+               "inc": np.array([[rng.normal(0, 0.05)]])}
+    for extra in ({}, {"range_calibration": "range"},
+                  {"range_calibration": "range", "channel": channel, "channel_angles": "ch"}):
+        group = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s",
+                             range_incidence="inc", **extra)
+        values |= {"R_b_s": group.R_b_s[None], "p_b_s": group.p_b_s[None]}
+        assert np.ptp(group._incidence_g) > 0.01  # features seen under several incidences
+        chk = check_jacobians(group, values, {"inc": "euclidean"} | {extra[k]: "euclidean" for k in extra
+                                                                      if k != "channel"}, eps=1e-7)
+        assert chk.residual_mismatch == 0.0
+        assert chk.max_rel_error < 1e-6, chk
+        chk = check_jacobians(group, values, {"R_b_s": "so3", B.attitude: "so3"}, eps=1e-5)
+        assert chk.max_rel_error < 1e-6, chk
+    plain = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s")
+    biased = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s",
+                          range_incidence="inc")
+    zero = values | {"inc": np.zeros((1, 1))}
+    np.testing.assert_allclose(biased.linearize(zero, False).residuals, plain.linearize(zero, False).residuals,
+                               rtol=0, atol=1e-9)
+    true = plain.centre_s
+    beam = true / np.linalg.norm(true, axis=1)[:, None]
+    g = incidence_term(beam, np.cross(plain.axis1_s, plain.axis2_s))
+    read = random_group(np.random.default_rng(seed), grid, range_incidence="inc")
+    read.centre_s = true + (0.04 * g)[:, None] * beam
+    read.__post_init__()
+    np.testing.assert_allclose(read.centres_s({"inc": np.array([[0.04]])}), true, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
 def test_channel_angle_jacobians(seed):
     """Each channel's tilt and scan-angle error: their columns (with the range calibration too; -1 a reference
     channel without them), and the others through the corrected centres; zero angles are the group without

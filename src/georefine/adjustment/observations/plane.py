@@ -46,6 +46,11 @@ derivative ``-(R^T a)^T skew(x) = (x x R^T a)^T`` w.r.t. ``delta``):
   feature at 100 m). The axes are kept: a scale leaves a plane's angles, and an offset tilts a
   plane seen under an incidence ``phi`` by about ``r0 sin(phi) / r``, 0.3 mrad for 3 cm at
   100 m, a fraction of a slope's sigma. ``d r1 / d (r0, k) = n_s . (-u_s, -c_s') / (1 + k) / sigma_d``.
+* range incidence bias ``b`` (optional block ``(1, 1)``): a return's range grows with the incidence
+  ``phi`` of the beam on the surface (the footprint's far part pulls the pulse's centroid), modelled as
+  ``b g`` with ``g = 1 / cos(phi) - 1`` (``cos(phi)`` floored at :data:`INCIDENCE_COS_FLOOR`): each feature's
+  ``phi`` is fixed, between its own beam ``u_s`` and its normal ``a1 x a2``, and the bias adds to
+  ``r0``: ``c_s' = (c_s - (r0 + b g) u_s) / (1 + k)``, ``d r1 / d b = -g n_s . u_s / (1 + k) / sigma_d``.
 * channel angles (optional block ``(C, 2)``): channel ``c``'s beams leave ``d_tau_c`` steeper in facet
   tilt and ``d_alpha_c`` further in scan angle than the unit records (a facet's tilt, its angle on the
   mirror wheel, the encoder's offset), so a point recorded at range ``r`` along ``d(tau, alpha) =
@@ -115,6 +120,17 @@ class FeatureFrames(NamedTuple):
 
 def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+INCIDENCE_COS_FLOOR = float(np.cos(np.radians(80.0)))
+"""``cos(phi)`` floor of :func:`incidence_term`: beyond 80 degrees a plane's footprint is a streak."""
+
+
+def incidence_term(beam: np.ndarray, normal: np.ndarray) -> np.ndarray:
+    """``g = 1 / cos(phi) - 1`` (F,) of unit beams and surface normals (F, 3), either side; ``cos(phi)`` floored
+    at :data:`INCIDENCE_COS_FLOOR`."""
+    n = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-12)[:, None]
+    return 1.0 / np.maximum(np.abs(_dot(beam, n)), INCIDENCE_COS_FLOOR) - 1.0
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -289,6 +305,9 @@ class PlaneObservation:
     range_calibration
         Optional Euclidean block ``(1, 2)``: the scanner's range offset ``r0`` (m) and scale error
         ``k`` (module docstring).
+    range_incidence
+        Optional Euclidean block ``(1, 1)``: a range bias ``b`` (m) growing with the incidence angle as
+        ``b (1 / cos(phi) - 1)`` (module docstring).
     channel : (F,) int, optional
         Element of ``channel_angles`` for each feature (needed with it); -1: a channel without
         correction (the reference channel).
@@ -323,6 +342,7 @@ class PlaneObservation:
     time_drift: str | None = None
     time_reference: float | None = None
     range_calibration: str | None = None
+    range_incidence: str | None = None
     channel: np.ndarray | None = None
     channel_angles: str | None = None
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
@@ -369,6 +389,7 @@ class PlaneObservation:
         self._rows = np.arange(3 * f).reshape(f, 3)
         self._obs = np.repeat(np.arange(f), 3)
         self._beam_s = self.centre_s / np.maximum(np.linalg.norm(self.centre_s, axis=1), 1e-9)[:, None]
+        self._incidence_g = incidence_term(self._beam_s, np.cross(self.axis1_s, self.axis2_s))
         if self.channel_angles is not None:
             if self.channel is None or np.shape(self.channel) != (f,):
                 raise ValueError(f"PlaneObservation: channel_angles needs the channel of each of the {f} features")
@@ -458,6 +479,9 @@ class PlaneObservation:
         """``(c_s', d', rho, angles)``: the corrected centres, their beams and ranges, and each feature's
         ``(d_tau, d_alpha)`` (None without ``channel_angles``)."""
         c_s, beam = self.centre_s, self._beam_s
+        if self.range_incidence is not None:
+            b = single_element(values, self.range_incidence, (1,))[0]
+            c_s = c_s - (b * self._incidence_g)[:, None] * beam
         if self.range_calibration is not None:
             r0, k = single_element(values, self.range_calibration, (2,))
             c_s = (c_s - r0 * beam) / (1.0 + k)
@@ -529,7 +553,8 @@ class PlaneObservation:
         J_obj[:, :, 2] = np.einsum("nri,ni->nr", vecs, dn_db)
         jac.append(JacobianBlock(self.objects, rows, j, J_obj * scale))
         zeros = np.zeros(f, dtype=np.int64)
-        if self.boresight is not None or self.range_calibration is not None or self.channel_angles is not None:
+        if (self.boresight is not None or self.range_calibration is not None or self.channel_angles is not None
+                or self.range_incidence is not None):
             n_s = np.einsum("nji,nj->ni", R_w_s, n)
             _, beam, rho, a = self._calibrated(values)
         if self.boresight is not None:
@@ -539,6 +564,10 @@ class PlaneObservation:
             k = single_element(values, self.range_calibration, (2,))[1]
             J_rc = -np.column_stack([_dot(n_s, beam), _dot(n_s, c_s)]) * (w_d / (1.0 + k))[:, None]
             jac.append(JacobianBlock(self.range_calibration, rows[:, :1], zeros, J_rc[:, None, :]))
+        if self.range_incidence is not None:
+            k = single_element(values, self.range_calibration, (2,))[1] if self.range_calibration is not None else 0.0
+            J_ri = -_dot(n_s, beam) * self._incidence_g * w_d / (1.0 + k)
+            jac.append(JacobianBlock(self.range_incidence, rows[:, :1], zeros, J_ri[:, None, None]))
         if self.channel_angles is not None:
             tau, alpha = self._tau + a[:, 0], self._alpha + a[:, 1]
             st, ct, sa, ca = np.sin(tau), np.cos(tau), np.sin(alpha), np.cos(alpha)
