@@ -229,6 +229,21 @@ def test_a_correlated_gnss_error_beyond_its_prior_is_a_warning(factor, warned, c
         assert "fits its prior at 2.38 per row" in messages[0] and "multipath" in messages[0]
 
 
+
+@pytest.mark.parametrize(("b_mm", "sigma_mm", "warned"), [(30.0, 2.0, True), (30.0, 8.0, False), (1.0, 0.1, False)])
+def test_an_incidence_dependent_range_bias_is_named_by_the_check(b_mm, sigma_mm, warned):
+    """The calibration check's incidence bias: named with its figures where it is beyond 5 sigma and moves the
+    points by more than 2 mm at the features' 95th-percentile incidence (g 0.155: 30 degrees); not where it is
+    within 5 sigma, nor where it moves them by a fraction of a millimetre."""
+    from georefine.workflows.calibration_check import CalibrationCheck
+
+    check = CalibrationCheck(120.0, incidence=b_mm * 1e-3, incidence_sigma=sigma_mm * 1e-3, incidence_p95=0.155)
+    found = check.findings()
+    assert len(found) == int(warned), found
+    if warned:
+        assert f"b = +{b_mm:.1f} ± {sigma_mm:.1f} mm (15 sigma; 5 mm at 30 degrees" in found[0], found
+        assert "cannot take out of the points" in found[0]
+
 CHANNEL_TILT_MDEG, CHANNEL_SCAN_MDEG = np.array([0.0, 30.0, -20.0]), np.array([0.0, -15.0, 25.0])
 RANGE_OFFSET_M, RANGE_SCALE_PPM = 0.05, 100.0
 

@@ -484,8 +484,9 @@ class LidarAdjustmentConfig(StrictModel):
         20.0, gt=0.0, description="Prior sigma of each channel's tilt and scan-angle error (mdeg).")
     check_scanner_calibration: bool = Field(
         True, description="After the last outer iteration, solve its G/I/L once more with the range calibration and "
-        "channel angles it leaves out, and warn where one is significant (5 sigma) and moves the points by more than "
-        "2 mm (docs/ARCHITECTURE.md §4.5 step 5): one more G/I/L solve. Not applied; one flight.")
+        "channel angles it leaves out and a range bias growing with the incidence angle, and warn where one is "
+        "significant (5 sigma) and moves the points by more than 2 mm (docs/ARCHITECTURE.md §4.5 step 5): one more "
+        "G/I/L solve. Not applied; one flight.")
     time_offset: TimeOffsetConfig = Field(default_factory=TimeOffsetConfig)
     max_features: int = Field(
         200_000, ge=100, description="Ceiling on matched features in the adjustment, which today's solver needs to "

@@ -5,12 +5,17 @@ records, leaves no trace in the plane residuals that a reviewer would see: the t
 most of it. On ``corridor`` a range error of 3 cm + 100 ppm put the G/I/L pitch at 1.48 times
 the clean run's, with variance factors, plane residuals and outer iterations as on a clean run.
 
-So after the last outer iteration, where the configuration leaves the range calibration or the
-channel angles out (``processing.lidar.estimate_range_calibration``, ``estimate_channel_angles``),
-the same problem (the last iteration's features and objects) is solved once more with them, started
-at its solution, and each is tested against its posterior sigma (a Wald test of the nested model): a
-parameter beyond :data:`CHECK_SIGMAS` sigma that moves the points by more than :data:`CHECK_MM` at
-the features' median range is a warning that names it, its estimate and sigma, and the setting.
+So after the last outer iteration the same problem (the last iteration's features and objects) is
+solved once more with what the configuration leaves out, started at its solution: the range calibration
+and the channel angles where it does not estimate them (``processing.lidar.estimate_range_calibration``,
+``estimate_channel_angles``), and always a range bias that grows with the incidence angle,
+``b (1 / cos(phi) - 1)`` (:data:`~georefine.workflows.gil.INCIDENCE_BLOCK`: the centroid of a return from
+a surface seen obliquely lies in its footprint's far part, and a detector's range walk with a weaker
+return does the same). Each is tested against its posterior sigma (a Wald test of the nested model): a
+parameter beyond :data:`CHECK_SIGMAS` sigma that moves the points by more than :data:`CHECK_MM` (at the
+features' median range; the incidence bias at their 95th-percentile incidence) is a warning that names
+it, its estimate and sigma, and the setting, or, for the incidence bias, which Georefine cannot take
+out of the points (their incidence is unknown where they are georeferenced), what it does to them.
 The check's estimates are not applied: what the products hold is what the configuration asked
 for. It costs one more G/I/L solve and a factorisation (``processing.lidar.check_scanner_calibration``
 switches it off). One flight: the adjustment of several flights does not take these parameters.
@@ -24,10 +29,11 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from georefine.adjustment.gnss_imu import posterior_scale
+from georefine.adjustment.observations.plane import incidence_term
 from georefine.lidar.correspondences import PlanarObjects
 from georefine.lidar.planes import PlanarFeatures
 from georefine.progress import Progress, no_progress
-from georefine.workflows.gil import CHANNEL_BLOCK, RANGE_BLOCK, step_adjust_gil
+from georefine.workflows.gil import CHANNEL_BLOCK, INCIDENCE_BLOCK, RANGE_BLOCK, step_adjust_gil
 from georefine.workflows.opened import NavigationData
 from georefine.workflows.time_offset import TimeOffsetStart
 
@@ -48,7 +54,8 @@ class CalibrationCheck:
 
     ``range`` and ``range_sigma``: ``(r0 m, k)`` and their sigma, or None where the G/I/L estimates them (or
     has no features); ``channels`` and ``channels_sigma``: (C, 2) rad, channel 0 the reference at 0, or None;
-    ``median_range_m``: of the features' centres.
+    ``median_range_m``: of the features' centres; ``incidence`` and ``incidence_sigma``: the bias ``b`` (m) and
+    its sigma, or None (no check); ``incidence_p95``: the features' 95th percentile of ``1 / cos(phi) - 1``.
     """
 
     median_range_m: float
@@ -56,6 +63,9 @@ class CalibrationCheck:
     range_sigma: tuple[float, float] | None = None
     channels: np.ndarray | None = None
     channels_sigma: np.ndarray | None = None
+    incidence: float | None = None
+    incidence_sigma: float | None = None
+    incidence_p95: float = float("nan")
 
     def findings(self) -> list[str]:
         """One sentence per significant and relevant finding (module docstring), empty where none."""
@@ -80,26 +90,43 @@ class CalibrationCheck:
                 out.append(f"the planes show scanner channels whose beams leave off the recorded angles against "
                            f"channel 0 ({each}; {z.max():.0f} sigma, {np.abs(a).max() * r * 1e3:.0f} mm at {r:.0f} m), "
                            "which the G/I/L did not estimate: set processing.lidar.estimate_channel_angles: true")
+        if self.incidence is not None:
+            b, sb, g = self.incidence, self.incidence_sigma, self.incidence_p95
+            z = abs(b) / sb
+            if z > CHECK_SIGMAS and abs(b) * g * 1e3 > CHECK_MM:
+                phi = np.degrees(np.arccos(1.0 / (1.0 + g)))
+                out.append(f"the planes show a scanner range bias that grows with the incidence angle phi, b (1/cos(phi) "
+                           f"- 1) with b = {b * 1e3:+.1f} ± {sb * 1e3:.1f} mm ({z:.0f} sigma; {abs(b) * g * 1e3:.0f} mm at "
+                           f"{phi:.0f} degrees, the features' 95th percentile, {abs(b) * 1e3:.0f} mm at 60 degrees), which "
+                           "the G/I/L does not model and Georefine cannot take out of the points: oblique surfaces "
+                           "(roofs, slopes, walls) lie along the beams by that much and have pulled the trajectory; the "
+                           "scanner's range correction for incidence or return strength (its manufacturer's calibration) "
+                           "is due")
         return out
 
 
 def check_scanner_calibration(nav: NavigationData, start, features: PlanarFeatures, objects: PlanarObjects,
                               time_offset: TimeOffsetStart, progress: Progress = no_progress) -> CalibrationCheck | None:
     """Solve the last outer iteration's G/I/L once more with the calibration the configuration leaves out
-    (module docstring); None where it leaves out none or the check is switched off."""
+    (module docstring); None where the check is switched off."""
     lcfg = nav.config.processing.lidar
-    wanted = {k: True for k in ("estimate_range_calibration", "estimate_channel_angles") if not getattr(lcfg, k)}
-    if not wanted or not lcfg.check_scanner_calibration:
+    if not lcfg.check_scanner_calibration:
         return None
+    wanted = {k: True for k in ("estimate_range_calibration", "estimate_channel_angles") if not getattr(lcfg, k)}
     config = nav.config.model_copy(update={"processing": nav.config.processing.model_copy(
         update={"lidar": lcfg.model_copy(update=wanted)})})
     adj = step_adjust_gil(replace(nav, config=config), start, features, objects, progress, covariance=False,
-                          time_offset=time_offset)
+                          time_offset=time_offset, range_incidence=True)
     problem = adj.built.problem
     vf = posterior_scale(adj.result.solve)
     used = objects.feature_object >= 0
     median = float(np.median(np.linalg.norm(features.centre_s[used], axis=1))) if np.any(used) else float("nan")
-    out = CalibrationCheck(median)
+    beam = features.centre_s[used] / np.linalg.norm(features.centre_s[used], axis=1)[:, None]
+    g = incidence_term(beam, np.cross(features.axis1_s[used], features.axis2_s[used]))
+    cov = problem.covariance(INCIDENCE_BLOCK, scale_by_variance_factor=False)[0] * vf
+    out = CalibrationCheck(median, incidence=float(problem.values(INCIDENCE_BLOCK)[0, 0]),
+                           incidence_sigma=float(np.sqrt(cov[0, 0])),
+                           incidence_p95=float(np.percentile(g, 95)) if g.size else float("nan"))
     if "estimate_range_calibration" in wanted:
         cov = problem.covariance(RANGE_BLOCK, scale_by_variance_factor=False)[0] * vf
         out = replace(out, range=tuple(float(v) for v in problem.values(RANGE_BLOCK)[0]),
@@ -113,6 +140,20 @@ def check_scanner_calibration(nav: NavigationData, start, features: PlanarFeatur
 
 
 def warn_calibration(check: CalibrationCheck | None) -> None:
-    """Log each finding of ``check`` as a warning."""
-    for text in [] if check is None else check.findings():
+    """Log the check's estimates, and each finding of ``check`` as a warning."""
+    if check is None:
+        return
+    parts = []
+    if check.range is not None:
+        (r0, k), (s0, sk) = check.range, check.range_sigma
+        parts.append(f"range offset {r0 * 1e3:+.1f} ± {s0 * 1e3:.1f} mm, scale {k * 1e6:+.1f} ± {sk * 1e6:.1f} ppm")
+    if check.channels is not None and len(check.channels) > 1:
+        z = np.abs(check.channels[1:]) / check.channels_sigma[1:]
+        parts.append(f"channel angles up to {np.degrees(np.abs(check.channels[1:]).max()) * 1e3:.1f} mdeg "
+                     f"({z.max():.1f} sigma)")
+    if check.incidence is not None:
+        parts.append(f"incidence bias {check.incidence * 1e3:+.1f} ± {check.incidence_sigma * 1e3:.1f} mm "
+                     f"(1/cos(phi) - 1 up to {check.incidence_p95:.2f} at the features' 95th percentile)")
+    log.info("scanner calibration check: %s", "; ".join(parts))
+    for text in check.findings():
         log.warning(text)

@@ -114,6 +114,12 @@ def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
 
 RANGE_BLOCK = "range_calibration"
 """The scanner's range offset (m) and scale error ((1, 2); ``processing.lidar.estimate_range_calibration``)."""
+INCIDENCE_BLOCK = "range_incidence"
+"""A range bias ``b`` (m) growing with the incidence as ``b (1 / cos(phi) - 1)`` ((1, 1)): only the scanner
+calibration check estimates it (:mod:`georefine.workflows.calibration_check`); the products cannot take it, a
+point's incidence being unknown where it is georeferenced."""
+INCIDENCE_PRIOR_M = 0.1
+"""Prior sigma of ``b`` (m): weak, a tenth of it is a large bias (5 cm at 60 degrees' incidence)."""
 CHANNEL_BLOCK = "channel_angles"
 """Each scanner channel's facet-tilt and scan-angle error against channel 0's ((C - 1, 2) for channels 1..C-1, rad;
 ``processing.lidar.estimate_channel_angles``). Channel 0's are the boresight's: a scan-angle error common to all
@@ -171,6 +177,7 @@ def build_gil_problem(
     knot_interval_s: float | None = None,
     time_offset: TimeOffsetStart | None = None,
     selection: PlaneSelection | None = None,
+    range_incidence: bool = False,
 ) -> GilProblem:
     """Step 5's problem: the G/I problem started at ``previous`` plus the plane observations.
 
@@ -179,6 +186,7 @@ def build_gil_problem(
     ``plane_params``) and the time offset's observability where several problems share the
     objects; without it they are chosen here (matched, inside the trajectory, at most
     ``max_features_per_minute`` in each ``selection_window_s`` and ``max_features`` in all).
+    ``range_incidence``: estimate the incidence-dependent range bias too (:data:`INCIDENCE_BLOCK`).
 
     Raises
     ------
@@ -245,6 +253,12 @@ def build_gil_problem(
         P.add_group(EuclideanPrior("range_calibration_prior", RANGE_BLOCK, [0], np.zeros((1, 2)),
                                    np.array([lcfg.range_offset_prior_m, lcfg.range_scale_prior_ppm * 1e-6])))
         ranges = RANGE_BLOCK
+    incidence = None
+    if range_incidence:
+        P.add_block(INCIDENCE_BLOCK, np.zeros((1, 1)))
+        P.add_group(EuclideanPrior("range_incidence_prior", INCIDENCE_BLOCK, [0], np.zeros((1, 1)),
+                                   np.array([INCIDENCE_PRIOR_M])))
+        incidence = INCIDENCE_BLOCK
     channels = None
     if lcfg.estimate_channel_angles:  # channel 0 is the reference, whose angles are the boresight's
         n_ch = max(int(f.channel.max()), 1)
@@ -258,7 +272,7 @@ def build_gil_problem(
             grid, f.time, f.centre_s, f.axis1_s, f.axis2_s, f.sigma_d_m, f.sigma_slope_rad, obj_index,
             objects.c0[used_objects], objects.k1[used_objects], objects.k2[used_objects], objects.n0[used_objects],
             np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight, range_calibration=ranges,
-            channel=f.channel.astype(np.int64) - 1 if channels else None, channel_angles=channels,
+            range_incidence=incidence, channel=f.channel.astype(np.int64) - 1 if channels else None, channel_angles=channels,
             blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale), **timing,
         )
     )
@@ -295,6 +309,7 @@ def step_adjust_gil(
     covariance: bool = True,
     knot_interval_s: float | None = None,
     time_offset: TimeOffsetStart | None = None,
+    range_incidence: bool = False,
 ) -> LidarAdjustment:
     """Step 5: the G/I problem started at ``previous`` plus the plane observations, solved.
 
@@ -302,7 +317,8 @@ def step_adjust_gil(
     ``time_offset``: the LiDAR time offset the features' times include and the centre of its
     prior (default ``scanner.time_offset_s`` for both); with
     ``processing.lidar.time_offset.estimate`` the adjustment estimates it
-    (:mod:`georefine.workflows.time_offset`).
+    (:mod:`georefine.workflows.time_offset`). ``range_incidence``: estimate :data:`INCIDENCE_BLOCK` too
+    (the scanner calibration check).
     The trajectory has knots about ``knot_interval_s`` apart (default
     ``processing.trajectory.knot_interval_s``) over ``previous``'s span, IMU windows in the
     configured proportion to them; ``previous`` on another grid is resampled onto it.
@@ -310,7 +326,8 @@ def step_adjust_gil(
     cfg = nav.config
     lcfg = cfg.processing.lidar
     tcfg = cfg.processing.trajectory
-    gil = build_gil_problem(nav, previous, features, objects, knot_interval_s, time_offset)
+    gil = build_gil_problem(nav, previous, features, objects, knot_interval_s, time_offset,
+                            range_incidence=range_incidence)
     built, P = gil.built, gil.built.problem
 
     def report(it) -> None:

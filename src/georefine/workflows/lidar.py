@@ -405,8 +405,8 @@ def stage_posterior(steps: StepRunner, inputs: WorkflowInputs, outer: OuterItera
 def stage_calibration_check(steps: StepRunner, inputs: WorkflowInputs, outer: OuterIterations, posterior: Posterior,
                             progress: Progress = no_progress) -> CalibrationCheck | None:
     """The scanner calibration the configuration leaves out, estimated once more from the last outer iteration's
-    problem, started at its solution (cached; :mod:`georefine.workflows.calibration_check`), or None where it
-    leaves out none."""
+    problem, started at its solution (cached; :mod:`georefine.workflows.calibration_check`), or None where the
+    check is switched off."""
     last = outer.records[-1]
 
     def compute() -> CalibrationCheck | None:
@@ -416,10 +416,9 @@ def stage_calibration_check(steps: StepRunner, inputs: WorkflowInputs, outer: Ou
         progress("scanner calibration check", 1, 1)
         return out
 
-    lcfg = inputs.nav.config.processing.lidar
-    if not lcfg.check_scanner_calibration or (lcfg.estimate_range_calibration and lcfg.estimate_channel_angles):
+    if not inputs.nav.config.processing.lidar.check_scanner_calibration:
         return None
-    return steps.cached("calibration_check", StepCache.key("calibration_check", outer.key), compute,
+    return steps.cached("calibration_check", StepCache.key("calibration_check", "incidence", outer.key), compute,
                         timing="calibration_check")
 
 
