@@ -257,3 +257,197 @@ def test_channel_angle_errors_are_taken_out_by_the_calibration(scene):
     np.testing.assert_allclose(two[~last], fixed[~last], atol=1e-12)
     with pytest.raises(ValueError, match="negative"):
         calibrated_channels(unit["xyz_s"], unit["channel"].astype(np.int64) - 1, angles)
+
+
+# ------------------------------------------------------------------------------ encoder and range biases
+P_B_S = np.array([0.35, -0.12, 0.48])
+R_B_S = Rotation.from_rotvec([0.004, -0.006, 0.01]).as_matrix()
+SLOPE = 0.2  # m/m along y: the tilted plane's normal is (0, -SLOPE, 1)
+
+
+@pytest.fixture(scope="module")
+def tilted_scene():
+    """A plane rising SLOPE along +y (11.3 deg), nothing on it (roads flattened across cross roads aside)."""
+    cfg = SceneConfig(length_m=600.0, width_m=500.0, end_margin_m=100.0, side_rise_m=0.0, undulation_m=0.0,
+                      floor_slope_m_per_m=SLOPE, settlement_count=0, scattered_building_count=0, power_line=False,
+                      vegetation_per_ha=0.0)
+    return build_scene(cfg, np.random.default_rng(5))
+
+
+def scan_points(scene, cfg, pose_fn, seed=3, duration=0.4):
+    """One chunk of ``duration`` s scanned with the lever arm and boresight above (seeded)."""
+    chunks = list(scan(pose_fn, T0, T0 + duration, scene, cfg, P_B_S, R_B_S, np.random.SeedSequence(seed),
+                       chunk_duration_s=1.0))
+    assert len(chunks) == 1
+    return concat(chunks)
+
+
+def true_beams(pts, pose_fn):
+    """Scanner position in ``w``, unit beam to the true hit in ``w`` and in ``s`` (from the pose alone)."""
+    p_w_b, R_w_b = pose_fn(pts["time"])
+    p_w_s = p_w_b + R_w_b @ P_B_S
+    d_w = pts["xyz_w_true"] - p_w_s
+    d_w /= np.linalg.norm(d_w, axis=1, keepdims=True)
+    d_s = np.einsum("nji,nj->ni", R_w_b, d_w) @ R_B_S  # R_b_s^T R_w_b^T d_w
+    return p_w_s, d_w, d_s
+
+
+def georeferenced(pts, pose_fn):
+    p_w_b, R_w_b = pose_fn(pts["time"])
+    return p_w_b + np.einsum("nij,nj->ni", R_w_b, pts["xyz_s"] @ R_B_S.T + P_B_S)
+
+
+NEW_FIELDS_OFF = dict(encoder_error_mdeg=(0.0, 0.0), encoder_error_phase_deg=(0.0, 0.0), encoder_resolution_mdeg=0.0,
+                      range_incidence_bias_m=0.0, range_walk_m=0.0)
+
+
+def test_encoder_and_range_biases_off_change_nothing_and_draw_nothing(flat_scene):
+    """The new fields at 0 give the scan of before: explicitly zero is the default, the range error is the chunk
+    generator's first draws (N(0, sigma)) and the intensity its next (nothing drawn in between)."""
+    from georefine.sim.scanner import chunk_seed
+
+    pose_fn = level_flight(400.0, H_AGL, wobble=0.02)
+    default = scan_points(flat_scene, ScannerConfig(), pose_fn, seed=11)
+    zero = scan_points(flat_scene, ScannerConfig(**NEW_FIELDS_OFF), pose_fn, seed=11)
+    for name in default:
+        np.testing.assert_array_equal(zero[name], default[name], err_msg=name)
+    cfg, n = ScannerConfig(), default["time"].size
+    g = np.random.default_rng(chunk_seed(np.random.SeedSequence(11), 0))
+    np.testing.assert_array_equal(default["range_error_m"], g.normal(0.0, cfg.range_sigma_m, n))
+    p_w_s, d_w, d_s = true_beams(default, pose_fn)
+    cos_inc = np.abs(np.einsum("ij,ij->i", flat_scene.surface_normal(default["face_id"]), d_w))
+    r = np.linalg.norm(default["xyz_w_true"] - p_w_s, axis=1)
+    amplitude = (cfg.intensity_at_reference * flat_scene.albedo(default["xyz_w_true"], default["face_id"]) * cos_inc
+                 * (cfg.intensity_reference_range_m / r) ** 2)
+    expected = np.clip(np.rint(amplitude * (1.0 + cfg.intensity_noise_rel * g.standard_normal(n))), 1, 65535)
+    assert np.max(np.abs(default["intensity"] - expected)) <= 1  # rounding of a recomputed amplitude
+    # the beam left along the recorded angle: the true hit's direction in s is d_s(alpha, tau_c)
+    np.testing.assert_allclose(np.arctan2(d_s[:, 1], d_s[:, 2]), default["scan_angle_rad"], atol=1e-9)
+
+
+def test_encoder_error_sends_the_beam_off_the_recorded_angle(flat_scene):
+    """The beam leaves at ``alpha + sum_k a_k sin(k alpha + phi_k)``, the point is recorded along ``alpha``; with a
+    resolution the recorded angle is a multiple of it and the beam is where it was without one."""
+    from georefine.sim.scanner import encoder_error_rad
+
+    pose_fn = level_flight(400.0, H_AGL, wobble=0.02)
+    cfg = ScannerConfig(encoder_error_mdeg=(20.0, 8.0), encoder_error_phase_deg=(30.0, -75.0))
+    pts = scan_points(flat_scene, cfg, pose_fn)
+    alpha = pts["scan_angle_rad"]
+    e = np.radians(1e-3 * (20.0 * np.sin(alpha + np.radians(30.0)) + 8.0 * np.sin(2 * alpha - np.radians(75.0))))
+    assert np.ptp(e) > np.radians(25e-3)  # the window below is 1e-9 rad
+    np.testing.assert_allclose(encoder_error_rad(alpha, cfg), e, rtol=0, atol=1e-15)
+    _, d_w, d_s = true_beams(pts, pose_fn)
+    np.testing.assert_allclose(np.arctan2(d_s[:, 1], d_s[:, 2]) - alpha, e, rtol=0, atol=1e-9)
+    tau = np.radians(np.array(cfg.facet_tilt_deg))[pts["channel"]]
+    np.testing.assert_allclose(d_s[:, 0], np.sin(tau), atol=1e-9)  # the tilt is the channel's
+    rec = pts["xyz_s"] / np.linalg.norm(pts["xyz_s"], axis=1, keepdims=True)  # recorded along the nominal beam
+    np.testing.assert_allclose(np.arctan2(rec[:, 1], rec[:, 2]), alpha, atol=1e-12)
+    np.testing.assert_allclose(rec[:, 0], np.sin(tau), atol=1e-12)
+    # as recorded, the point misses the true one by the encoder error times the range, across the beam
+    miss = np.linalg.norm(georeferenced(pts, pose_fn) - pts["xyz_w_true"] - pts["range_error_m"][:, None] * d_w, axis=1)
+    r = np.linalg.norm(pts["xyz_s"], axis=1)
+    np.testing.assert_allclose(miss / r, np.cos(tau) * np.abs(e), rtol=1e-3, atol=1e-9)
+
+    q_mdeg = 5.0
+    coarse = scan_points(flat_scene, cfg.model_copy(update={"encoder_resolution_mdeg": q_mdeg}), pose_fn)
+    np.testing.assert_array_equal(coarse["xyz_w_true"], pts["xyz_w_true"])  # the beam does not depend on the record
+    q = np.radians(q_mdeg * 1e-3)
+    steps = coarse["scan_angle_rad"] / q
+    np.testing.assert_allclose(steps, np.rint(steps), rtol=0, atol=1e-6)
+    resid = pts["scan_angle_rad"] - coarse["scan_angle_rad"]  # true polygon angle minus the recorded one
+    assert np.max(np.abs(resid)) <= q / 2 * (1 + 1e-9) and abs(np.std(resid) / (q / np.sqrt(12)) - 1) < 0.05
+    _, _, d_s = true_beams(coarse, pose_fn)
+    np.testing.assert_allclose(np.arctan2(d_s[:, 1], d_s[:, 2]) - coarse["scan_angle_rad"],
+                               encoder_error_rad(pts["scan_angle_rad"], cfg) + resid, rtol=0, atol=1e-9)
+    rec = coarse["xyz_s"] / np.linalg.norm(coarse["xyz_s"], axis=1, keepdims=True)
+    np.testing.assert_allclose(np.arctan2(rec[:, 1], rec[:, 2]), coarse["scan_angle_rad"], atol=1e-12)
+
+
+def test_incidence_range_bias_on_a_tilted_plane(tilted_scene):
+    """``b = B (1/cos(theta) - 1)`` with the incidence from the plane's normal and the true beam: in
+    ``range_error_m``, and the true point minus the one georeferenced from the record lies along the beam by -b."""
+    bias = 0.05
+    cfg = ScannerConfig(range_sigma_m=0.0, range_incidence_bias_m=bias)
+    pose_fn = level_flight(400.0, SLOPE * 400.0 + H_AGL, wobble=0.02)
+    pts = scan_points(tilted_scene, cfg, pose_fn)
+    normal = np.array([0.0, -SLOPE, 1.0]) / np.hypot(1.0, SLOPE)
+    on = np.linalg.norm(tilted_scene.surface_normal(pts["face_id"]) - normal, axis=1) < 1e-9
+    assert on.mean() > 0.9
+    _, d_w, _ = true_beams(pts, pose_fn)
+    cos_theta = np.abs(d_w @ normal)
+    expected = bias * (1.0 / cos_theta - 1.0)
+    assert expected[on].min() < 0.002 and expected[on].max() > 0.02  # near-normal to ~45 deg incidence
+    np.testing.assert_allclose(pts["range_error_m"][on], expected[on], rtol=0, atol=1e-9)
+    diff = pts["xyz_w_true"] - georeferenced(pts, pose_fn)
+    along = np.einsum("ij,ij->i", diff, d_w)
+    np.testing.assert_allclose(along[on], -expected[on], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(diff - along[:, None] * d_w, 0.0, atol=1e-6)
+    # on top of the noise and the offset, from the same draws
+    noisy = scan_points(tilted_scene, ScannerConfig(range_incidence_bias_m=bias, range_offset_m=0.01), pose_fn)
+    plain = scan_points(tilted_scene, ScannerConfig(), pose_fn)
+    np.testing.assert_allclose(noisy["range_error_m"][on] - plain["range_error_m"][on], expected[on] + 0.01, atol=1e-9)
+
+
+class _Painted:
+    """``scene`` with one albedo everywhere (what the scanner asks of a scene)."""
+
+    def __init__(self, scene, rho):
+        self.scene, self.rho = scene, rho
+
+    def intersect(self, *args, **kwargs):
+        return self.scene.intersect(*args, **kwargs)
+
+    def surface_normal(self, face_id):
+        return self.scene.surface_normal(face_id)
+
+    def albedo(self, points_w, face_ids):
+        return np.full(len(face_ids), self.rho)
+
+
+def test_range_walk_dark_targets_read_long_by_walk_times_log_ratio(flat_scene):
+    """``b = W ln(I_ref / I_0)``: the same pulses on a target of albedo 0.1 and one of 0.8 differ by ``W ln 8`` in
+    range error (and read 8 times weaker), and on the scene's texture each point has the bias of its noise-free
+    amplitude."""
+    walk = 0.02
+    pose_fn = level_flight(400.0, H_AGL, wobble=0.02)
+    cfg = ScannerConfig(range_walk_m=walk)
+    dark = scan_points(_Painted(flat_scene, 0.1), cfg, pose_fn)
+    bright = scan_points(_Painted(flat_scene, 0.8), cfg, pose_fn)
+    np.testing.assert_array_equal(dark["xyz_w_true"], bright["xyz_w_true"])
+    np.testing.assert_allclose(dark["range_error_m"] - bright["range_error_m"], walk * np.log(8.0), rtol=0, atol=1e-12)
+    assert abs(np.median(bright["intensity"] / dark["intensity"].astype(float)) - 8.0) < 0.2
+    # against the formula with the geometry and the scene's own albedo
+    pts = scan_points(flat_scene, cfg, pose_fn)
+    ideal = scan_points(flat_scene, ScannerConfig(), pose_fn)
+    p_w_s, d_w, _ = true_beams(pts, pose_fn)
+    r = np.linalg.norm(pts["xyz_w_true"] - p_w_s, axis=1)
+    cos_inc = np.abs(np.einsum("ij,ij->i", flat_scene.surface_normal(pts["face_id"]), d_w))
+    amplitude = (cfg.intensity_at_reference * flat_scene.albedo(pts["xyz_w_true"], pts["face_id"]) * cos_inc
+                 * (cfg.intensity_reference_range_m / r) ** 2)
+    expected = walk * np.log(cfg.intensity_at_reference / amplitude)
+    assert np.ptp(expected) > 0.02 and np.all(expected > 0)
+    np.testing.assert_allclose(pts["range_error_m"] - ideal["range_error_m"], expected, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(pts["intensity"], ideal["intensity"])  # the intensity's own noise is unchanged
+
+
+def test_new_scanner_errors_flow_from_the_scenario_into_its_truth(tmp_path):
+    """A scenario's YAML and ``--set`` reach the scanner; the truth (``truth/scenario.yaml``'s ``scenario``, the
+    scenario's dump) holds them and reads back to the same scanner."""
+    import yaml
+
+    from georefine.sim.scenarios import ScenarioConfig, resolve_scenario
+
+    path = tmp_path / "scenario.yaml"
+    path.write_text(yaml.safe_dump({"scanner": {"encoder_error_mdeg": [20.0, 8.0], "encoder_error_phase_deg": [30, -75],
+                                                "range_incidence_bias_m": 0.01}}))
+    cfg = resolve_scenario("corridor-tiny", config_file=path,
+                           seed_overrides=["scanner.encoder_resolution_mdeg=1", "scanner.range_walk_m=0.004"])
+    sc = cfg.scanner
+    assert (sc.encoder_error_mdeg, sc.encoder_error_phase_deg) == ((20.0, 8.0), (30.0, -75.0))
+    assert (sc.encoder_resolution_mdeg, sc.range_incidence_bias_m, sc.range_walk_m) == (1.0, 0.01, 0.004)
+    dumped = yaml.safe_load(yaml.safe_dump(cfg.model_dump(mode="json")))
+    assert dumped["scanner"]["encoder_error_mdeg"] == [20.0, 8.0] and dumped["scanner"]["range_walk_m"] == 0.004
+    assert ScenarioConfig.model_validate(dumped).scanner == sc
+    with pytest.raises(pydantic.ValidationError):
+        ScannerConfig(encoder_resolution_mdeg=-1.0)

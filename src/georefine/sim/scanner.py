@@ -25,18 +25,40 @@ Measurement model
 -----------------
 First return only. The true range ``r`` is the distance from ``p_w_s`` along
 ``R_w_s d_s`` to the first surface of the scene; the recorded point is
-``xyz_s = ((1 + k) r + r0 + e) d_s`` with ``e ~ N(0, range_sigma_m^2)`` and the unit's range
-scale error ``k`` (``range_scale_ppm``) and offset ``r0`` (``range_offset_m``), both 0 by default
-(an ideal calibration; real units keep centimetres and tens of ppm). The beam leaves at the
-channel's true angles, ``d_s(alpha + d_alpha_c, tau_c + d_tau_c)``, while the point is recorded
-along ``d_s(alpha, tau_c)``: each facet's tilt and its scan angle (its angle on the mirror wheel
-and the encoder's offset) as far off as ``channel_tilt_error_mdeg`` and
-``channel_scan_angle_error_mdeg`` say (0 by default; a few mdeg remain after a calibration). The time of flight
-(~1 µs at 160 m, i.e. ~20 µm of platform motion) and the beam divergence are neglected:
-each point carries its pulse emission time and the pose at that time. Returns beyond
-``max_range_m`` and misses are dropped. Intensity follows the scene albedo
-``rho``, the incidence angle ``theta`` and the range:
-``I = I_ref rho cos(theta) (r_ref / r)^2 (1 + sigma_rel n)``, clipped to 1..65535.
+``xyz_s = ((1 + k) r + r0 + b_inc + b_int + e) d_s(alpha_rec, tau_c)`` with
+``e ~ N(0, range_sigma_m^2)``. Intensity follows the scene albedo ``rho``, the incidence angle
+``theta`` and the range: ``I = I_0 (1 + sigma_rel n)``, clipped to 1..65535, with the noise-free
+amplitude ``I_0 = I_ref rho cos(theta) (r_ref / r)^2``.
+
+Errors of the unit (every one 0 by default, i.e. an ideal, calibrated scanner; the beam really goes
+where they send it and the range really is read as they say, while the recorded scan angle and channel
+are the nominal ones, so a georeferencing with the nominal model is off by exactly these errors):
+
+* range scale error ``k`` (``range_scale_ppm``) and offset ``r0`` (``range_offset_m``); real units keep
+  centimetres and tens of ppm.
+* incidence-angle range bias: at grazing incidence the return's centroid moves to the far part of the
+  footprint, ``b_inc = range_incidence_bias_m (1 / cos(theta) - 1)`` (``theta`` clipped at
+  ``MAX_INCIDENCE_DEG`` = 80 deg): 0 at normal incidence, ``0.41 range_incidence_bias_m`` at 45 deg.
+* intensity-dependent range bias ("range walk"): weak and strong returns are timed differently,
+  ``b_int = range_walk_m ln(I_ref / I_0)`` with the noise-free amplitude ``I_0`` clipped to 1..65535 like
+  the recorded intensity: 0 at the reference amplitude, positive for weaker returns; a deterministic
+  function of the geometry and the reflectance.
+* per-channel angles: the beam leaves at the channel's true angles ``d_s(alpha + d_alpha_c, tau_c + d_tau_c)``
+  while the point is recorded along ``d_s(alpha, tau_c)``: each facet's tilt and its scan angle (its angle
+  on the mirror wheel and the encoder's offset) as far off as ``channel_tilt_error_mdeg`` and
+  ``channel_scan_angle_error_mdeg`` say (a few mdeg remain after a calibration).
+* the scan-angle encoder's periodic error, a function of the polygon's angle ``alpha`` (from the facet's
+  centre; the scan angle turns at the polygon's rate, so ``alpha`` is the recorded scan angle and the
+  error is the same on every facet): ``e_enc(alpha) = sum_k a_k sin(k alpha + phi_k)``, ``k = 1, 2``
+  (``encoder_error_mdeg``, ``encoder_error_phase_deg``); the beam leaves at ``alpha + e_enc(alpha)``
+  (plus ``d_alpha_c``). With ``encoder_resolution_mdeg`` the recorded angle is ``alpha`` rounded to that
+  step, ``alpha_rec = q round(alpha / q)``, otherwise ``alpha_rec = alpha``.
+
+``range_error_m`` of each point is its whole range error ``k r + r0 + b_inc + b_int + e``, the truth of the
+range errors; the angle errors are in the :class:`ScannerConfig` (written with the scenario's truth).
+The time of flight (~1 µs at 160 m, i.e. ~20 µm of platform motion) and the beam divergence are
+neglected: each point carries its pulse emission time and the pose at that time. Returns beyond
+``max_range_m`` and misses are dropped.
 """
 
 from __future__ import annotations
@@ -58,11 +80,13 @@ if TYPE_CHECKING:
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "ScannerConfig", "ScanChunk", "scan", "scan_span", "chunk_seed", "beam_directions_s", "N_FACETS", "FACET_SWEEP_RAD",
+    "ScannerConfig", "ScanChunk", "scan", "scan_span", "chunk_seed", "beam_directions_s", "encoder_error_rad",
+    "N_FACETS", "FACET_SWEEP_RAD", "MAX_INCIDENCE_DEG",
 ]
 
 N_FACETS = 3
 FACET_SWEEP_RAD = 2 * np.pi / N_FACETS  #: scan angle swept by one facet (120 deg)
+MAX_INCIDENCE_DEG = 80.0  #: incidence angle at which the incidence range bias stops growing
 
 
 class ScannerConfig(BaseModel):
@@ -92,6 +116,19 @@ class ScannerConfig(BaseModel):
     channel_scan_angle_error_mdeg: tuple[float, float, float] = Field(
         (0.0, 0.0, 0.0), description="per channel, the true scan angle minus the one the unit records (mdeg): "
         "the facet's angle on the mirror wheel and its encoder offset")
+    encoder_error_mdeg: tuple[float, float] = Field(
+        (0.0, 0.0), description="the scan-angle encoder's periodic error, amplitudes a_1, a_2 of its first and second "
+        "harmonic in the polygon angle (mdeg): the beam leaves at alpha + sum_k a_k sin(k alpha + phi_k)")
+    encoder_error_phase_deg: tuple[float, float] = Field(
+        (0.0, 0.0), description="phases phi_1, phi_2 of the encoder error's harmonics (deg)")
+    encoder_resolution_mdeg: float = Field(
+        0.0, ge=0.0, le=1000.0, description="the encoder's step: the recorded scan angle is rounded to it (mdeg; 0: off)")
+    range_incidence_bias_m: float = Field(
+        0.0, ge=-1.0, le=1.0, description="range bias at grazing incidence, b = this (1/cos(theta) - 1), theta the "
+        f"incidence angle clipped at {MAX_INCIDENCE_DEG:g} deg (m)")
+    range_walk_m: float = Field(
+        0.0, ge=-1.0, le=1.0, description="intensity-dependent range bias, b = this ln(I_ref / I) with I the "
+        "noise-free return amplitude (1..65535) and I_ref intensity_at_reference (m)")
     intensity_at_reference: float = Field(
         60000.0, gt=0, description="albedo 1, normal incidence, at the reference range")
     intensity_reference_range_m: float = Field(100.0, gt=0)
@@ -117,10 +154,12 @@ class ScanChunk:
     channel : ndarray (N,) uint8
         View: 0 nadir, 1 forward, 2 backward.
     scan_angle_rad : ndarray (N,)
-        Scan angle ``alpha`` [rad] within the line.
+        Scan angle [rad] within the line as recorded: the polygon angle ``alpha``, rounded to
+        ``encoder_resolution_mdeg`` where set (the beam left at ``alpha + e_enc(alpha)`` plus the channel's error).
     intensity : ndarray (N,) uint16
     range_error_m : ndarray (N,)
-        The simulated range error ``k r + r0 + e`` [m] (noise, and scale and offset where set).
+        The simulated range error ``k r + r0 + b_inc + b_int + e`` [m] (noise, and scale, offset, incidence
+        and intensity biases where set).
     face_id : ndarray (N,) int64
         Scene face hit.
     xyz_w_true : ndarray (N, 3)
@@ -160,16 +199,37 @@ class ScanChunk:
         return len(self.time)
 
 
+def encoder_error_rad(scan_angle_rad: np.ndarray, cfg: ScannerConfig) -> np.ndarray:
+    """The encoder's periodic error ``e_enc(alpha) = sum_k a_k sin(k alpha + phi_k)`` [rad] at polygon (scan)
+    angles ``alpha`` [rad]: the beam leaves at ``alpha + e_enc(alpha)`` (``encoder_error_mdeg``, ``..._phase_deg``)."""
+    alpha = np.asarray(scan_angle_rad, np.float64)
+    e = np.zeros_like(alpha)
+    for k, (a, phi) in enumerate(zip(cfg.encoder_error_mdeg, cfg.encoder_error_phase_deg), start=1):
+        if a:
+            e = e + np.radians(a * 1e-3) * np.sin(k * alpha + np.radians(phi))
+    return e
+
+
+def _recorded_angle(alpha: np.ndarray, cfg: ScannerConfig) -> np.ndarray:
+    """The scan angle the unit records for the polygon angle ``alpha``: rounded to the encoder's step."""
+    if not cfg.encoder_resolution_mdeg:
+        return alpha
+    q = np.radians(cfg.encoder_resolution_mdeg * 1e-3)
+    return q * np.rint(alpha / q)
+
+
 def beam_directions_s(
     channel: np.ndarray, scan_angle_rad: np.ndarray, cfg: ScannerConfig, true: bool = False
 ) -> np.ndarray:
     """Unit beam directions (N, 3) in ``s`` for channels (N,) and scan angles (N,) [rad]: as the unit's
-    calibration has them, or with ``true`` as the beams leave (the channel angle errors added)."""
+    calibration has them, or with ``true`` as the beams leave at polygon angles ``scan_angle_rad`` (the
+    channel angle errors and the encoder error added)."""
     channel = np.asarray(channel, np.int64)
     tau = np.radians(np.asarray(cfg.facet_tilt_deg))[channel]
     if true:
         tau = tau + np.radians(np.asarray(cfg.channel_tilt_error_mdeg) * 1e-3)[channel]
-        scan_angle_rad = scan_angle_rad + np.radians(np.asarray(cfg.channel_scan_angle_error_mdeg) * 1e-3)[channel]
+        scan_angle_rad = (scan_angle_rad + np.radians(np.asarray(cfg.channel_scan_angle_error_mdeg) * 1e-3)[channel]
+                          + encoder_error_rad(scan_angle_rad, cfg))
     ct = np.cos(tau)
     return np.column_stack([np.sin(tau), ct * np.sin(scan_angle_rad), ct * np.cos(scan_angle_rad)])
 
@@ -306,10 +366,12 @@ def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> Sc
         p_w_b, R_w_b = np.asarray(p_w_b, np.float64), np.asarray(R_w_b, np.float64)
         if p_w_b.shape != (len(t), 3) or R_w_b.shape != (len(t), 3, 3):
             raise ValueError(f"pose_fn returned {p_w_b.shape}, {R_w_b.shape} for {len(t)} times")
-        d_s = beam_directions_s(channel, alpha, cfg)  # as recorded
+        alpha_rec = _recorded_angle(alpha, cfg)
+        d_s = beam_directions_s(channel, alpha_rec, cfg)  # as recorded
         p_w_s = p_w_b + _rotate(R_w_b, p_b_s)
-        d_true = d_s if not any(cfg.channel_tilt_error_mdeg + cfg.channel_scan_angle_error_mdeg) else (
-            beam_directions_s(channel, alpha, cfg, true=True))
+        ideal = alpha_rec is alpha and not any(
+            cfg.channel_tilt_error_mdeg + cfg.channel_scan_angle_error_mdeg + cfg.encoder_error_mdeg)
+        d_true = d_s if ideal else beam_directions_s(channel, alpha, cfg, true=True)
         d_w = _rotate(R_w_b, d_true @ R_b_s.T)  # R_w_s d_s = R_w_b (R_b_s d_s)
         range_m, face_id = scene.intersect(p_w_s, d_w, max_range_m=cfg.max_range_m)
         hit = np.flatnonzero(face_id >= 0)
@@ -322,14 +384,20 @@ def _scan_chunk(pose_fn, t, channel, alpha, scene, cfg, p_b_s, R_b_s, rng) -> Sc
     r, face, d_w, d_s = range_m[hit], face_id[hit], d_w[hit], d_s[hit]
     d_w = d_w / np.linalg.norm(d_w, axis=1, keepdims=True)  # as used by the ray cast
     xyz_w_true = p_w_s[hit] + r[:, None] * d_w
+    cos_inc = np.abs(np.einsum("ij,ij->i", scene.surface_normal(face), d_w))
+    rho = scene.albedo(xyz_w_true, face)
+    amplitude = cfg.intensity_at_reference * rho * cos_inc * (cfg.intensity_reference_range_m / r) ** 2  # noise-free
+    # The draws: the range noise, then the intensity noise; the biases below draw nothing.
     err = rng.normal(0.0, cfg.range_sigma_m, len(hit))
     if cfg.range_offset_m or cfg.range_scale_ppm:
         err = err + cfg.range_offset_m + cfg.range_scale_ppm * 1e-6 * r
+    if cfg.range_incidence_bias_m:
+        cos_clipped = np.maximum(cos_inc, np.cos(np.radians(MAX_INCIDENCE_DEG)))
+        err = err + cfg.range_incidence_bias_m * (1.0 / cos_clipped - 1.0)
+    if cfg.range_walk_m:
+        err = err + cfg.range_walk_m * np.log(cfg.intensity_at_reference / np.clip(amplitude, 1.0, 65535.0))
     xyz_s = (r + err)[:, None] * d_s
-    cos_inc = np.abs(np.einsum("ij,ij->i", scene.surface_normal(face), d_w))
-    rho = scene.albedo(xyz_w_true, face)
-    inten = (cfg.intensity_at_reference * rho * cos_inc * (cfg.intensity_reference_range_m / r) ** 2
-             * (1.0 + cfg.intensity_noise_rel * rng.standard_normal(len(hit))))
+    inten = amplitude * (1.0 + cfg.intensity_noise_rel * rng.standard_normal(len(hit)))
     inten = np.clip(np.rint(inten), 1, 65535).astype(np.uint16)
-    return ScanChunk(t[hit], xyz_s, channel[hit], alpha[hit], inten, err, face, xyz_w_true, d_w,
+    return ScanChunk(t[hit], xyz_s, channel[hit], alpha_rec[hit], inten, err, face, xyz_w_true, d_w,
                      np.ascontiguousarray(R_w_b[hit, :, 0]))
