@@ -2,8 +2,10 @@
 
 Measurement model (the one the adjustment inverts, docs/ARCHITECTURE.md §4.3), per sample time ``t_k``::
 
-    gyro_k = (I + S_g + A_g) omega_ib_b(t_k) + G f_ib_b(t_k) + b_g(t_k) + n_g,k     n_g ~ N(0, (ARW sqrt(rate))^2)
-    acc_k  = (I + S_f + A_f) f_ib_b(t_k)                    + b_f(t_k) + n_f,k     n_f ~ N(0, (VRW sqrt(rate))^2)
+    gyro_k = Q_g[(I + S_g + A_g) omega_ib_b(t_k) + G f_s(t_k) + b_g(t_k) + n_g,k]     n_g ~ N(0, (ARW sqrt(rate))^2)
+    acc_k  = Q_f[(I + S_f + A_f) f_s(t_k)               + b_f(t_k) + n_f,k]     n_f ~ N(0, (VRW sqrt(rate))^2)
+    f_s(t_k) = f_ib_b(t_k) + v(t_k)     (v: the IMU's vibration; v = 0 and Q = identity by default, and
+                                          the adjustment's model has neither)
 
 Samples are *instantaneous* values at the sample times (not interval averages). ``S`` is
 diagonal and constant, drawn from the datasheet scale-factor figure (1 sigma). ``A`` is the
@@ -23,6 +25,41 @@ towards its final value with ``temperature_time_constant_s`` (:func:`temperature
 warm-up after power-on). This drift is smooth and deterministic, not the random walk the estimator
 models; it is part of the true biases written with the project. All four are off by default and
 their draws come after every other, so a grade without them draws as before.
+
+Vibration: engine, gearbox and rotor vibration shakes the IMU at frequencies above the motion the
+trajectory holds (the airframe vibration of :class:`~georefine.sim.flight.VibrationConfig` is true
+motion, in ``f_ib_b``; this is not). ``v`` is a sinusoid per axis at ``vibration_frequency_hz``
+with a random phase and the rms ``vibration_g_rms`` (amplitude ``sqrt(2)`` times it); it is
+specific force the sensors read like any other, so it passes through ``S``, ``A`` and the gyros'
+``G``, and it is zero-mean: a high-frequency error in the output that the true trajectory does
+not hold. Sampled instantaneously it aliases at the sample rate (a 3-blade propeller at 2400 rpm,
+120 Hz, reads at 200 Hz as 80 Hz; a multiple of the rate would read as a constant), as an
+unfiltered sampler would. The accelerometers' *vibration rectification* (VRE, datasheets: micro-g per g^2 rms) turns
+it into a bias: ``b_f += c v_rms^2`` with ``c`` per axis drawn with
+``acc_vibration_rectification_ug_per_g2`` (1 sigma); this constant is part of the true biases
+written with the project. Typical figures (no datasheet transcribed here): a hard-mounted IMU on a
+helicopter or a piston aircraft sees a few tenths of a g rms, an isolated one less; navigation
+accelerometers' VRE is of order 10-100 micro-g/g^2, some MEMS ones more, so 0.5 g rms and
+50 micro-g/g^2 give a 12.5 micro-g bias. No gyro rectification is simulated: the presets' datasheets
+as transcribed state no gyro figure per g^2 (only the linear ``G``, which reads ``v`` as a
+zero-mean signal).
+
+Quantisation ``Q``: a unit outputs increments (delta-theta, delta-v) in integer counts of a least
+significant bit and carries the remainder to the next sample, so the error does not accumulate.
+Here the increment ``x_k dt`` of each unquantised sample ``x_k`` is summed, ``S_k = sum_j<=k x_j dt``,
+and the output is ``q_k / dt`` with ``q_k = LSB (floor(S_k / LSB) - floor(S_k-1 / LSB))``
+(``S_-1 = 0``): every sample is an integer number of ``LSB / dt``, the sum of the quantised
+increments stays within one LSB below ``S_k``, and the error on each sample is white-ish, of
+``LSB / (dt sqrt(6))`` rms (two independent uniform residues). ``gyro_quantisation_urad`` is the
+delta-theta LSB in micro-radians, ``acc_quantisation_mm_per_s`` the delta-v LSB in mm/s (0, the
+default, leaves the output unquantised); it draws no random numbers. NovAtel's RAWIMU scale
+factors (as in GearBox's ``gbxnovatelacfr`` decoder) give the units' native LSBs: LN-200
+``2^-19`` rad = 1.9 micro-rad and ``2^-14`` m/s = 0.061 mm/s; iMAR FSAS 0.1 arcsec = 0.48 micro-rad
+and 0.0015 mm/s; HG1700 AG58 ``2^-33`` rad and ``2^-27`` ft/s, far below its noise. The STIM300
+outputs rates with a 0.22 deg/h resolution (datasheet, as in the AOGNCS Handbook's STIM300 model),
+0.005 micro-rad over 5 ms. At 200 Hz the LN-200's LSBs are 0.38 mrad/s (79 deg/h) and 0.012 m/s^2
+per sample, their error 0.16 mrad/s and 0.005 m/s^2 rms: a quarter and a third of the STIM300's
+white noise per sample, but not accumulating into an angle or velocity random walk.
 
 Bias process
     ``b(t) = b_on + w(t)``: a turn-on constant ``b_on ~ N(0, turn_on^2)`` plus an in-run
@@ -125,6 +162,21 @@ class ImuGrade(BaseModel):
         "factory compensation)")
     acc_temperature_ug_per_c: float = Field(
         0.0, ge=0, description="1 sigma per axis of the accelerometer bias's residual temperature coefficient")
+    gyro_quantisation_urad: float = Field(
+        0.0, ge=0, description="least significant bit of the gyros' angle increments (micro-rad; 0: not quantised); "
+        "the remainder is carried to the next sample")
+    acc_quantisation_mm_per_s: float = Field(
+        0.0, ge=0, description="least significant bit of the accelerometers' velocity increments (mm/s; 0: not "
+        "quantised)")
+    vibration_g_rms: float = Field(
+        0.0, ge=0, description="rms per axis of the IMU's vibration (g): a sinusoid per axis with a random phase, "
+        "specific force that is not in the trajectory (0: none)")
+    vibration_frequency_hz: float = Field(
+        70.0, gt=0, description="frequency of that vibration (e.g. a rotor's or propeller's blade-pass frequency); "
+        "it aliases at the sample rate")
+    acc_vibration_rectification_ug_per_g2: float = Field(
+        0.0, ge=0, description="1 sigma per axis of the accelerometers' vibration rectification coefficient "
+        "(micro-g per g^2 rms): a bias c vibration_g_rms^2")
 
     @property
     def gyro_noise_density(self) -> float:
@@ -241,6 +293,18 @@ class SimulatedImu:
     temperature_gyro, temperature_acc : ndarray (3,)
         True temperature coefficients of the biases (rad/s and m/s^2 per deg C); their part
         ``k (T(t) - T(t_0))`` is in ``bias_gyro`` and ``bias_acc``.
+    quantisation_gyro, quantisation_acc : ndarray (N, 3) or None
+        Quantisation error of each sample (rad/s, m/s^2): ``gyro`` and ``acc`` minus what they would
+        read unquantised; None where the grade does not quantise.
+    vibration_acc : ndarray (N, 3) or None
+        The vibration ``v`` at the sample times (m/s^2, specific force before the sensor model):
+        ``sqrt(2) vibration_g_rms g0 sin(2 pi f (t - t_first) + vibration_phase)``; None without.
+    vibration_phase : ndarray (3,)
+        Its phase per axis (rad) at the first sample.
+    vibration_rectification : ndarray (3,)
+        True rectification coefficients ``c`` (m/s^2 per (m/s^2)^2, i.e. s^2/m).
+    vibration_bias_acc : ndarray (3,)
+        The accelerometer bias they give, ``c v_rms^2`` (m/s^2); it is in ``bias_acc``.
     """
 
     time: np.ndarray
@@ -258,11 +322,18 @@ class SimulatedImu:
     temperature_c: np.ndarray | None = None
     temperature_gyro: np.ndarray = field(default_factory=lambda: np.zeros(3))
     temperature_acc: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    quantisation_gyro: np.ndarray | None = None
+    quantisation_acc: np.ndarray | None = None
+    vibration_acc: np.ndarray | None = None
+    vibration_phase: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    vibration_rectification: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    vibration_bias_acc: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self):
         n = len(self.time)
-        for name in ("gyro", "acc", "bias_gyro", "bias_acc"):
-            if getattr(self, name).shape != (n, 3):
+        for name in ("gyro", "acc", "bias_gyro", "bias_acc", "quantisation_gyro", "quantisation_acc", "vibration_acc"):
+            a = getattr(self, name)
+            if a is not None and a.shape != (n, 3):
                 raise ValueError(f"{name} must have shape ({n}, 3)")
         for name in ("misalignment_gyro", "misalignment_acc"):
             a = getattr(self, name)
@@ -293,8 +364,10 @@ def simulate_imu(traj, grade: ImuGrade, t_start: float, t_end: float,
     t_start, t_end : float
         Sample times are ``t_start + k / rate_hz <= t_end``.
     rng : numpy.random.Generator
-        Seeded generator; draws turn-on biases, scale factors, random walks and noise, then the
-        misalignments where the grade states them (so a grade without them draws as before).
+        Seeded generator; draws turn-on biases, scale factors, random walks and noise, then, each only
+        where the grade states it (so a grade without them draws as before), the misalignments, the
+        g-sensitivity, the temperature coefficients, the vibration's phases and the rectification
+        coefficients. Quantisation draws nothing.
 
     Returns
     -------
@@ -326,11 +399,49 @@ def simulate_imu(traj, grade: ImuGrade, t_start: float, t_end: float,
         k_f = rng.normal(0.0, grade.acc_temperature_ug_per_c * _UG, 3)
     b_g = b_g + temp[:, None] * k_g
     b_f = b_f + temp[:, None] * k_f
-    gyro = sense(w_true, scale_g, a_g) + f_true @ g_sens.T + b_g + n_g
-    acc = sense(f_true, scale_f, a_f) + b_f + n_f
+    phase, vre = np.zeros(3), np.zeros(3)
+    if grade.vibration_g_rms > 0:
+        phase = rng.uniform(0.0, 2.0 * np.pi, 3)
+    if grade.acc_vibration_rectification_ug_per_g2 > 0:
+        vre = rng.normal(0.0, grade.acc_vibration_rectification_ug_per_g2 * _UG / G0**2, 3)
+    vib = None
+    f_sensed = f_true
+    if grade.vibration_g_rms > 0:
+        vib = vibration(time - time[0], grade.vibration_g_rms * G0, grade.vibration_frequency_hz, phase)
+        f_sensed = f_true + vib
+    vib_bias = vre * (grade.vibration_g_rms * G0) ** 2
+    if np.any(vib_bias):
+        b_f = b_f + vib_bias
+    gyro = sense(w_true, scale_g, a_g) + f_sensed @ g_sens.T + b_g + n_g
+    acc = sense(f_sensed, scale_f, a_f) + b_f + n_f
+    q_g = q_f = None
+    if grade.gyro_quantisation_urad > 0:
+        raw, gyro = gyro, quantise(gyro, dt, grade.gyro_quantisation_urad * 1e-6)
+        q_g = gyro - raw
+    if grade.acc_quantisation_mm_per_s > 0:
+        raw, acc = acc, quantise(acc, dt, grade.acc_quantisation_mm_per_s * 1e-3)
+        q_f = acc - raw
     return SimulatedImu(time, gyro, acc, b_g, b_f, scale_g, scale_f, float(traj.t0_gps), grade,
                         misalignment_gyro=a_g, misalignment_acc=a_f, g_sensitivity=g_sens,
-                        temperature_c=temp, temperature_gyro=k_g, temperature_acc=k_f)
+                        temperature_c=temp, temperature_gyro=k_g, temperature_acc=k_f,
+                        quantisation_gyro=q_g, quantisation_acc=q_f, vibration_acc=vib, vibration_phase=phase,
+                        vibration_rectification=vre, vibration_bias_acc=vib_bias)
+
+
+def vibration(t: np.ndarray, rms: float, frequency_hz: float, phase: np.ndarray) -> np.ndarray:
+    """A vibration of ``rms`` per axis (N, 3): ``sqrt(2) rms sin(2 pi f t + phase)``, one phase per axis."""
+    return np.sqrt(2.0) * rms * np.sin(2.0 * np.pi * frequency_hz * np.asarray(t, dtype=float)[:, None] + phase)
+
+
+def quantise(x: np.ndarray, dt: float, lsb: float) -> np.ndarray:
+    """Samples ``x`` (N, 3) output as increments in whole ``lsb`` with the remainder carried on, as rates.
+
+    ``q_k = lsb (floor(S_k / lsb) - floor(S_k-1 / lsb))`` with ``S_k`` the running sum of ``x dt``
+    (``S_-1 = 0``), returned as ``q_k / dt``: the sum of the increments stays within one ``lsb`` below
+    ``S_k``, so the error does not accumulate (module docstring).
+    """
+    counts = np.floor(np.cumsum(np.asarray(x, dtype=float) * dt, axis=0) / lsb)
+    return np.diff(counts, axis=0, prepend=0.0) * (lsb / dt)
 
 
 def temperature_profile(t: np.ndarray, change_c: float, time_constant_s: float) -> np.ndarray:

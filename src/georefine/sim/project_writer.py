@@ -154,18 +154,33 @@ def _write_navigation(root: Path, sorties: list[Sortie], crs: OutputCRS, write_i
             (root / "truth" / "trajectory_flight_1.sbet.json").read_bytes())
     imu = [_imu_errors(s.imu) for s in sorties]
     np.savez_compressed(root / "truth" / "imu_errors.npz", **{k: np.concatenate([e[k] for e in imu]) if k in (
-        "time_gps", "bias_gyro", "bias_acc", "temperature_c") else imu[0][k] for k in imu[0]})
+        "time_gps", "bias_gyro", "bias_acc", "temperature_c", "quantisation_gyro", "quantisation_acc") else imu[0][k]
+        for k in imu[0]})
     gnss = [_gnss_errors(s.gnss) for s in sorties]
     np.savez_compressed(root / "truth" / "gnss_errors.npz", **{k: np.concatenate([e[k] for e in gnss]) for k in gnss[0]})
 
 
 def _imu_errors(imu: SimulatedImu) -> dict[str, np.ndarray]:
+    """The IMU truth (SI units). The vibration's rectification bias is in ``bias_acc``; the vibration itself is
+    ``sqrt(2) vibration_g_rms g0 sin(2 pi f (t - t_first) + vibration_phase)`` of the scenario's ``imu`` settings
+    (``t_first``: the sortie's first ``time_gps``; the file of all sorties has the first sortie's phases and
+    coefficients, as for the other constants); the quantisation error is per sample (0: off)."""
+    zero = np.zeros((imu.time.size, 3))
     return dict(time_gps=imu.t0_gps + imu.time, bias_gyro=imu.bias_gyro, bias_acc=imu.bias_acc,
                 scale_gyro=imu.scale_gyro, scale_acc=imu.scale_acc,
                 misalignment_gyro=imu.misalignment_gyro, misalignment_acc=imu.misalignment_acc,
                 g_sensitivity=imu.g_sensitivity, temperature_gyro=imu.temperature_gyro,
                 temperature_acc=imu.temperature_acc,
-                temperature_c=imu.temperature_c if imu.temperature_c is not None else np.zeros(imu.time.size))
+                temperature_c=imu.temperature_c if imu.temperature_c is not None else np.zeros(imu.time.size),
+                quantisation_gyro=zero if imu.quantisation_gyro is None else imu.quantisation_gyro,
+                quantisation_acc=zero if imu.quantisation_acc is None else imu.quantisation_acc,
+                vibration_phase=imu.vibration_phase, vibration_rectification=imu.vibration_rectification,
+                vibration_bias_acc=imu.vibration_bias_acc)
+
+
+def _rms_or_zero(x: np.ndarray | None, unit: float) -> list[float]:
+    """Per-axis rms of ``x`` (N, 3) times ``unit``; zeros where there is none."""
+    return [0.0] * 3 if x is None else (np.sqrt(np.mean(x**2, axis=0)) * unit).tolist()
 
 
 def _gnss_errors(gnss: SimulatedGnss) -> dict[str, np.ndarray]:
@@ -304,6 +319,11 @@ def write_project(cfg: Any, root: Path, seed: int, write_imr: bool, progress: Pr
         "imu_g_sensitivity_deg_per_h_per_g": np.degrees(imu.g_sensitivity * 3600 * 9.80665).tolist(),
         "imu_temperature_gyro_deg_per_h_per_c": np.degrees(imu.temperature_gyro * 3600).tolist(),
         "imu_temperature_acc_ug_per_c": (imu.temperature_acc / 9.80665e-6).tolist(),
+        "imu_vibration_rectification_ug_per_g2": (imu.vibration_rectification * 9.80665 / 1e-6).tolist(),
+        "imu_vibration_bias_acc_ug": (imu.vibration_bias_acc / 9.80665e-6).tolist(),
+        "imu_vibration_phase_rad": imu.vibration_phase.tolist(),
+        "imu_quantisation_rms_gyro_deg_per_h": _rms_or_zero(imu.quantisation_gyro, 3600 * 180 / np.pi),
+        "imu_quantisation_rms_acc_ug": _rms_or_zero(imu.quantisation_acc, 1 / 9.80665e-6),
         "points_per_strip": points,
         "scenario": cfg.model_dump(mode="json"),
     }
