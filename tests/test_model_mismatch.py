@@ -242,7 +242,22 @@ def test_an_incidence_dependent_range_bias_is_named_by_the_check(b_mm, sigma_mm,
     assert len(found) == int(warned), found
     if warned:
         assert f"b = +{b_mm:.1f} ± {sigma_mm:.1f} mm (15 sigma; 5 mm at 30 degrees" in found[0], found
-        assert "cannot take out of the points" in found[0]
+        assert "estimate_range_calibration: true takes it out of the" in found[0]
+
+
+@pytest.mark.parametrize(("range_cost", "incidence_cost", "named"), [(1000.0, 900.0, "incidence"),
+                                                                     (900.0, 1000.0, "range offset")])
+def test_the_check_names_the_better_of_a_range_and_an_incidence_bias(range_cost, incidence_cost, named):
+    """Both significant (one explains what the other does): only the solve with the lower cost is named, and the
+    other's cost is given."""
+    from georefine.workflows.calibration_check import CalibrationCheck
+
+    check = CalibrationCheck(120.0, range=(0.03, 1e-4), range_sigma=(0.003, 1e-5), incidence=0.05,
+                             incidence_sigma=0.002, incidence_p95=0.3, range_cost=range_cost,
+                             incidence_cost=incidence_cost)
+    found = check.findings()
+    assert len(found) == 1 and named in found[0] and "the planes less well" in found[0], found
+    assert f"cost {max(range_cost, incidence_cost):.1f} against {min(range_cost, incidence_cost):.1f}" in found[0]
 
 CHANNEL_TILT_MDEG, CHANNEL_SCAN_MDEG = np.array([0.0, 30.0, -20.0]), np.array([0.0, -15.0, 25.0])
 RANGE_OFFSET_M, RANGE_SCALE_PPM = 0.05, 100.0
@@ -309,3 +324,27 @@ def test_run_warns_of_a_scanner_calibration_it_did_not_estimate(uncalibrated_sca
     # Measured: range +40.5 +- 5.5 mm and +114.3 +- 20.8 ppm (7 sigma); channels within 0.5 mdeg of the truth.
     report = json.loads((tmp_path / "run" / "gil" / "adjustment.json").read_text())
     assert report["range_calibration"] is None and report["channel_angles"] is None
+
+
+INCIDENCE_BIAS_M = 0.1
+
+
+@pytest.mark.slow
+def test_run_names_a_range_bias_growing_with_the_incidence(tmp_path):
+    """``corridor-tiny`` (seed 21) scanned by a unit whose ranges read 10 cm (1/cos(theta) - 1) long: the check's
+    solve with the incidence bias in place of the range calibration recovers it and, fitting the planes better than
+    a range offset and scale, names it with its figures; nothing of it is applied."""
+    project = tmp_path / "tiny"
+    simulate_project("corridor-tiny", project, seed=21, overrides=[f"scanner.range_incidence_bias_m={INCIDENCE_BIAS_M}"])
+    proc = run_georefine("run", str(project), "--out", str(tmp_path / "run"), "--no-points", timeout=1800)
+    assert proc.returncode == 0, proc.stderr
+    log = (tmp_path / "run" / "georefine.log").read_text()
+    found = [line for line in log.splitlines() if "grows with the incidence angle phi" in line]
+    # Measured: b = +93.5 +- 3.5 mm (27 sigma); a range offset of -100.8 +- 5.4 mm fits nearly as well (cost
+    # 58144.1 against 58136.1): on level ground the two differ by a shift of height.
+    assert len(found) == 1 and "fit the planes less well" in found[0], log
+    b, sigma = (float(v) for v in found[0].split("with b = ")[1].split(" mm")[0].split(" ± "))
+    assert abs(b * 1e-3 - INCIDENCE_BIAS_M) < 3.0 * sigma * 1e-3 and sigma < 8.0, (b, sigma)
+    assert "the planes show a scanner range offset" not in log
+    report = json.loads((tmp_path / "run" / "gil" / "adjustment.json").read_text())
+    assert report["range_calibration"] is None
