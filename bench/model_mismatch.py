@@ -22,6 +22,11 @@ A ``clean`` case (the scenario without the error, same seed) is the reference. K
 | ``gnss-multipath`` | ``gnss.multipath_sigma_horizontal_m`` = M m, ``_up_m`` = 2 M m (20 s correlation) | one case: not modelled |
 | ``lidar-channel`` | ``scanner.channel_tilt_error_mdeg`` = (0, M, -M), ``channel_scan_angle_error_mdeg`` = (0, -M/2, M) | ``processing.lidar.estimate_channel_angles: true`` / as simulated (not estimated) |
 | ``gnss-outage`` | no GNSS for M s from 20 s into the first pass (``gnss.outages``): not an error of the model, a direction less observed | one case |
+| ``lidar-incidence`` | ``scanner.range_incidence_bias_m`` = M m: every range B (1/cos(theta) - 1) long at incidence theta | one case: not modelled (the calibration check estimates it) |
+| ``lidar-walk`` | ``scanner.range_walk_m`` = M m: every range W ln(I_ref / I) long (a detector's range walk with the return's strength) | one case: not modelled |
+| ``lidar-encoder`` | ``scanner.encoder_error_mdeg`` = (M, M/2) at phases (30, 60) deg: the scan-angle encoder's periodic error | one case: not modelled |
+| ``imu-vibration`` | 0.5 g rms of 70 Hz vibration (``imu.vibration_g_rms``), rectified with M ug/g^2 (``imu.acc_vibration_rectification_ug_per_g2``) | one case: not modelled |
+| ``imu-quantisation`` | M times an LN-200's output steps (1.9 urad, 0.061 mm/s: ``imu.*_quantisation_*``) | one case: not modelled |
 | ``gnss-float`` | a 60 s float segment from 20 s into the first pass (``gnss.float_segments``; Q=2, 5/5/10 cm stated), its offset drawn with M m horizontal and 1.5 M m up (1 sigma) | ``gnss.float_offset`` (an offset per segment) / ``null`` (taken as fixes) |
 
 Printed per case and solution (G/I, G/I/L), each pass compared with the truth (1 s inset;
@@ -115,6 +120,14 @@ KINDS = {  # kind: (simulation overrides for magnitude M given the clean project
     "lidar-channel": (_channel_overrides, lambda cfg: None),
     "gnss-outage": (lambda m, clean: [f"gnss.outages=[[{_first_pass(clean)[0] + 20.0}, {_first_pass(clean)[0] + 20.0 + m}]]"],
                     None),
+    "lidar-incidence": (lambda m, clean: [f"scanner.range_incidence_bias_m={m}"], None),
+    "lidar-walk": (lambda m, clean: [f"scanner.range_walk_m={m}"], None),
+    "lidar-encoder": (lambda m, clean: [f"scanner.encoder_error_mdeg=[{m}, {m / 2}]",
+                                        "scanner.encoder_error_phase_deg=[30.0, 60.0]"], None),
+    "imu-vibration": (lambda m, clean: ["imu.vibration_g_rms=0.5", f"imu.acc_vibration_rectification_ug_per_g2={m}"],
+                      None),
+    "imu-quantisation": (lambda m, clean: [f"imu.gyro_quantisation_urad={1.9 * m}",
+                                           f"imu.acc_quantisation_mm_per_s={0.061 * m}"], None),
 }
 STATE = {  # how the stated run's project.yaml differs from the simulated one, where it does
     "lidar-range": lambda cfg: cfg.setdefault("processing", {}).setdefault("lidar", {}).update(
@@ -124,7 +137,8 @@ STATE = {  # how the stated run's project.yaml differs from the simulated one, w
 }
 DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4], "lidar-range": [0.01, 0.03],
                       "imu-thermal": [10.0, 20.0], "gnss-jump": [0.1, 0.2], "gnss-multipath": [0.01, 0.02],
-                      "lidar-channel": [20.0, 50.0], "gnss-outage": [60.0]}
+                      "lidar-channel": [20.0, 50.0], "gnss-outage": [60.0], "lidar-incidence": [0.05],
+                      "lidar-walk": [0.01], "lidar-encoder": [20.0], "imu-vibration": [100.0], "imu-quantisation": [1.0]}
 
 
 def _unstate(project: Path, out: Path, unstate) -> Path:
