@@ -21,8 +21,8 @@ features' median range; the incidence bias at their 95th-percentile incidence) i
 it, its estimate and sigma, and the setting, or, for the incidence bias, which Georefine cannot take
 out of the points (their incidence is unknown where they are georeferenced), what it does to them.
 The check's estimates are not applied: what the products hold is what the configuration asked
-for. It costs one more G/I/L solve and a factorisation (``processing.lidar.check_scanner_calibration``
-switches it off). One flight: the adjustment of several flights does not take these parameters.
+for. It costs one or two more G/I/L solves, each with a factorisation for its covariance (28 and 30 s on
+``corridor``; ``processing.lidar.check_scanner_calibration`` switches it off). One flight: the adjustment of several flights does not take these parameters.
 """
 
 from __future__ import annotations
