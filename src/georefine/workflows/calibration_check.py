@@ -32,7 +32,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from georefine.adjustment.gnss_imu import posterior_scale
+from georefine.adjustment.gnss_imu import block_sigma, posterior_scale
 from georefine.adjustment.observations.plane import incidence_term
 from georefine.lidar.correspondences import PlanarObjects
 from georefine.lidar.planes import PlanarFeatures
@@ -142,9 +142,9 @@ def check_scanner_calibration(nav: NavigationData, start, features: PlanarFeatur
     if not lcfg.check_scanner_calibration:
         return None
     wanted = {k: True for k in ("estimate_range_calibration", "estimate_channel_angles") if not getattr(lcfg, k)}
-    incidence = not lcfg.estimate_range_calibration
-    if not wanted and not incidence:
+    if not wanted:  # nothing left out, nothing to check
         return None
+    incidence = "estimate_range_calibration" in wanted
 
     def solve(update: dict, with_incidence: bool):
         config = nav.config.model_copy(update={"processing": nav.config.processing.model_copy(
@@ -160,21 +160,18 @@ def check_scanner_calibration(nav: NavigationData, start, features: PlanarFeatur
         problem, vf, cost = solve(wanted, False)
         out = replace(out, range_cost=cost)
         if "estimate_range_calibration" in wanted:
-            cov = problem.covariance(RANGE_BLOCK, scale_by_variance_factor=False)[0] * vf
             out = replace(out, range=tuple(float(v) for v in problem.values(RANGE_BLOCK)[0]),
-                          range_sigma=tuple(float(v) for v in np.sqrt(np.diag(cov))))
+                          range_sigma=tuple(float(v) for v in block_sigma(problem, RANGE_BLOCK, vf)[0]))
         if "estimate_channel_angles" in wanted:
-            cov = problem.covariance(CHANNEL_BLOCK, scale_by_variance_factor=False) * vf
             zero = np.zeros((1, 2))
             out = replace(out, channels=np.vstack([zero, problem.values(CHANNEL_BLOCK)]),
-                          channels_sigma=np.vstack([zero, np.sqrt(np.diagonal(cov, axis1=1, axis2=2))]))
+                          channels_sigma=np.vstack([zero, block_sigma(problem, CHANNEL_BLOCK, vf)]))
     if incidence:  # the range calibration held out: with it, the two trade along the GNSS error's height
         problem, vf, cost = solve({k: v for k, v in wanted.items() if k != "estimate_range_calibration"}, True)
         beam = features.centre_s[used] / np.linalg.norm(features.centre_s[used], axis=1)[:, None]
         g = incidence_term(beam, np.cross(features.axis1_s[used], features.axis2_s[used]))
-        cov = problem.covariance(INCIDENCE_BLOCK, scale_by_variance_factor=False)[0] * vf
         out = replace(out, incidence=float(problem.values(INCIDENCE_BLOCK)[0, 0]),
-                      incidence_sigma=float(np.sqrt(cov[0, 0])), incidence_cost=cost,
+                      incidence_sigma=float(block_sigma(problem, INCIDENCE_BLOCK, vf)[0, 0]), incidence_cost=cost,
                       incidence_p95=float(np.percentile(g, 95)) if g.size else float("nan"))
     return out
 
