@@ -490,3 +490,53 @@ def test_locate_near_continues_the_interval_within_half_of_it():
     np.testing.assert_allclose(u, (t + 0.04 - (1.0 + 0.1 * k0)) / 0.1)
     k, u = locate_near(grid, t + 0.09, k0)  # 1.28 is 0.8 of an interval past 1.2: relocated
     assert k[1] == k0[1] + 1 and 0.0 <= u[1] <= 1.0
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_encoder_error_jacobians(seed):
+    """The encoder error's four columns (alone, and with the range calibration and the channel angles), the
+    others through the corrected centres; zero is the group without it, and a centre whose beam left at
+    ``alpha + e(alpha)`` is put back on it."""
+    from georefine.adjustment.observations.plane import ENCODER_TERMS, encoder_basis
+    from georefine.lidar.georeference import beam_angles, beam_direction
+
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    channel = np.random.default_rng(seed + 100).integers(-1, 3, 25)
+    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
+    values |= {"range": np.array([[rng.normal(0, 0.03), rng.normal(0, 2e-4)]]), "ch": rng.normal(0, 1e-3, (3, 2)),
+               "enc": rng.normal(0, 5e-4, (1, ENCODER_TERMS))}
+    for extra in ({}, {"range_calibration": "range", "channel": channel, "channel_angles": "ch"}):
+        group = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s",
+                             encoder="enc", **extra)
+        values |= {"R_b_s": group.R_b_s[None], "p_b_s": group.p_b_s[None]}
+        chk = check_jacobians(group, values, {"enc": "euclidean"} | {extra[k]: "euclidean" for k in extra
+                                                                      if k != "channel"}, eps=1e-7)
+        assert chk.residual_mismatch == 0.0
+        assert chk.max_rel_error < 1e-6, chk
+        chk = check_jacobians(group, values, {"R_b_s": "so3", B.attitude: "so3"}, eps=1e-5)
+        assert chk.max_rel_error < 1e-6, chk
+    plain = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s")
+    with_encoder = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s", encoder="enc")
+    zero = values | {"enc": np.zeros((1, ENCODER_TERMS))}
+    np.testing.assert_allclose(with_encoder.linearize(zero, False).residuals, plain.linearize(zero, False).residuals,
+                               rtol=0, atol=1e-9)
+    e = values["enc"][0]
+    r, tau, alpha = beam_angles(plain.centre_s)
+    read = random_group(np.random.default_rng(seed), grid, encoder="enc")
+    true = r[:, None] * beam_direction(tau, alpha + encoder_basis(alpha) @ e)
+    np.testing.assert_allclose(read.centres_s(values), true, atol=1e-9)
+
+
+def test_encoder_basis_is_orthogonal_over_the_field_of_view():
+    """The four terms have zero mean and are orthogonal over +-A (the mean is the boresight's roll)."""
+    from georefine.adjustment.observations.plane import ENCODER_HALF_WIDTH_DEG, encoder_basis
+
+    alpha = np.radians(np.linspace(-ENCODER_HALF_WIDTH_DEG, ENCODER_HALF_WIDTH_DEG, 20001))
+    basis = encoder_basis(alpha)
+    np.testing.assert_allclose(basis.mean(axis=0), 0.0, atol=1e-4)
+    gram = basis.T @ basis / alpha.size
+    np.testing.assert_allclose(gram - np.diag(np.diag(gram)), 0.0, atol=1e-4)
+    np.testing.assert_allclose(np.diag(gram), 1.0 / (2 * np.arange(1, 5) + 1), rtol=1e-3)

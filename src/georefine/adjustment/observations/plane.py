@@ -63,6 +63,14 @@ derivative ``-(R^T a)^T skew(x) = (x x R^T a)^T`` w.r.t. ``delta``):
   both, the range rows take ``d'`` for ``u_s``. A scan-angle error common to all channels is a roll of the
   boresight (and, where the planes cannot see a common tilt, of the trajectory): the caller holds one
   channel as the reference (``channel`` -1) and estimates the others' errors against it.
+* encoder error (optional block ``(1, 4)``): the scan-angle encoder's periodic error, the same on every
+  channel, a smooth function of the recorded scan angle ``alpha`` across the field of view, written as
+  ``e(alpha) = sum_j e_j P_j(alpha / A)`` with the Legendre polynomials ``P_1 .. P_4`` and ``A`` =
+  :data:`ENCODER_HALF_WIDTH_DEG` (:func:`encoder_basis`). Not harmonics ``sin(k alpha + phi_k)``: over a
+  field of view of 100 degrees ``sin alpha`` and ``sin 2 alpha`` correlate at 0.993 and ``cos alpha`` and
+  ``cos 2 alpha`` at 0.999, while the Legendre terms are orthogonal over it. Their mean over the field of
+  view is zero: the mean is a roll of the boresight. The beam leaves at ``alpha + d_alpha_c + e(alpha)``, so
+  ``d r1 / d e_j = rho P_j n_s . d d/d alpha / sigma_d``.
 * LiDAR time offset ``tau`` and drift ``kappa`` (optional blocks): the feature is georeferenced
   at ``t_f + tau + kappa (t_f - t_ref)`` (its time stamp is that far behind the navigation's
   time). ``d c~ / dt = v_w_b + R_w_b (omega x x_b)``, ``d k~_i / dt = R_w_b (omega x R_b_s k_i_s)``
@@ -97,8 +105,12 @@ from georefine.adjustment.robust import RobustLoss
 from georefine.trajectory.spline import KnotGrid, eval_orientation, knot_sum, locate_near, position_basis
 
 __all__ = [
+    "ENCODER_HALF_WIDTH_DEG",
+    "ENCODER_TERMS",
     "FeatureFrames",
     "PlaneObservation",
+    "encoder_basis",
+    "incidence_term",
     "object_planes",
     "plane_parameters",
     "plane_reference_frames",
@@ -131,6 +143,22 @@ def incidence_term(beam: np.ndarray, normal: np.ndarray) -> np.ndarray:
     at :data:`INCIDENCE_COS_FLOOR`."""
     n = normal / np.maximum(np.linalg.norm(normal, axis=1), 1e-12)[:, None]
     return 1.0 / np.maximum(np.abs(_dot(beam, n)), INCIDENCE_COS_FLOOR) - 1.0
+
+
+ENCODER_HALF_WIDTH_DEG = 50.0
+"""``A`` of :func:`encoder_basis`: half the field of view of a wide polygon scanner (the polynomials stay
+bounded by 1 inside it, and grow as ``|alpha / A|^4`` outside)."""
+ENCODER_TERMS = 4
+"""Number of encoder-error terms ``P_1 .. P_4``."""
+
+
+def encoder_basis(alpha: np.ndarray) -> np.ndarray:
+    """Legendre polynomials ``P_1 .. P_4`` (N, 4) of ``x = alpha / A`` for scan angles ``alpha`` (rad), ``A`` =
+    :data:`ENCODER_HALF_WIDTH_DEG`: the encoder error is ``encoder_basis(alpha) @ e`` (module docstring)."""
+    x = np.asarray(alpha, dtype=float) / np.radians(ENCODER_HALF_WIDTH_DEG)
+    x2 = x * x
+    return np.stack([x, 0.5 * (3.0 * x2 - 1.0), 0.5 * x * (5.0 * x2 - 3.0),
+                     0.125 * ((35.0 * x2 - 30.0) * x2 + 3.0)], axis=-1)
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -313,6 +341,8 @@ class PlaneObservation:
         correction (the reference channel).
     channel_angles
         Optional Euclidean block ``(C, 2)``: each channel's tilt and scan-angle error (rad; module docstring).
+    encoder
+        Optional Euclidean block ``(1, 4)``: the encoder error's Legendre coefficients (rad; module docstring).
     blocks
         Trajectory block names.
     loss
@@ -345,6 +375,7 @@ class PlaneObservation:
     range_incidence: str | None = None
     channel: np.ndarray | None = None
     channel_angles: str | None = None
+    encoder: str | None = None
     blocks: TrajectoryBlocks = field(default_factory=TrajectoryBlocks)
     loss: RobustLoss | None = None
     consumed_redundancy = 0.0  # degrees of freedom spent before the adjustment (ObservationGroup): none
@@ -394,9 +425,11 @@ class PlaneObservation:
             if self.channel is None or np.shape(self.channel) != (f,):
                 raise ValueError(f"PlaneObservation: channel_angles needs the channel of each of the {f} features")
             self.channel = np.asarray(self.channel, dtype=np.int64)
+        if self.channel_angles is not None or self.encoder is not None:
             r = np.linalg.norm(self.centre_s, axis=1)
             self._tau = np.arcsin(np.clip(self.centre_s[:, 0] / np.maximum(r, 1e-9), -1.0, 1.0))
             self._alpha = np.arctan2(self.centre_s[:, 1], self.centre_s[:, 2])
+            self._encoder_basis = encoder_basis(self._alpha)
 
     @property
     def n_features(self) -> int:
@@ -477,7 +510,7 @@ class PlaneObservation:
 
     def _calibrated(self, values: Mapping[str, np.ndarray]):
         """``(c_s', d', rho, angles)``: the corrected centres, their beams and ranges, and each feature's
-        ``(d_tau, d_alpha)`` (None without ``channel_angles``)."""
+        ``(d_tau, d_alpha)`` (None without ``channel_angles`` and ``encoder``)."""
         c_s, beam = self.centre_s, self._beam_s
         if self.range_incidence is not None:
             b = single_element(values, self.range_incidence, (1,))[0]
@@ -485,15 +518,19 @@ class PlaneObservation:
         if self.range_calibration is not None:
             r0, k = single_element(values, self.range_calibration, (2,))
             c_s = (c_s - r0 * beam) / (1.0 + k)
-        if self.channel_angles is None:
+        if self.channel_angles is None and self.encoder is None:
             return c_s, beam, None, None
-        angles = np.asarray(values[self.channel_angles], dtype=float)
-        if angles.ndim != 2 or angles.shape[1] != 2 or (self.channel.size and self.channel.max() >= angles.shape[0]):
-            raise ValueError(f"block {self.channel_angles!r} must have shape (C, 2) with C > "
-                             f"{int(self.channel.max()) if self.channel.size else -1}, found {angles.shape}")
-        a = np.zeros((self.channel.size, 2))
-        on = self.channel >= 0
-        a[on] = angles[self.channel[on]]
+        a = np.zeros((self.n_features, 2))
+        if self.channel_angles is not None:
+            angles = np.asarray(values[self.channel_angles], dtype=float)
+            if (angles.ndim != 2 or angles.shape[1] != 2
+                    or (self.channel.size and self.channel.max() >= angles.shape[0])):
+                raise ValueError(f"block {self.channel_angles!r} must have shape (C, 2) with C > "
+                                 f"{int(self.channel.max()) if self.channel.size else -1}, found {angles.shape}")
+            on = self.channel >= 0
+            a[on] = angles[self.channel[on]]
+        if self.encoder is not None:
+            a[:, 1] += self._encoder_basis @ single_element(values, self.encoder, (ENCODER_TERMS,))
         rho = np.linalg.norm(c_s, axis=1)
         d = _beam(self._tau + a[:, 0], self._alpha + a[:, 1])
         return rho[:, None] * d, d, rho, a
@@ -554,7 +591,7 @@ class PlaneObservation:
         jac.append(JacobianBlock(self.objects, rows, j, J_obj * scale))
         zeros = np.zeros(f, dtype=np.int64)
         if (self.boresight is not None or self.range_calibration is not None or self.channel_angles is not None
-                or self.range_incidence is not None):
+                or self.range_incidence is not None or self.encoder is not None):
             n_s = np.einsum("nji,nj->ni", R_w_s, n)
             _, beam, rho, a = self._calibrated(values)
         if self.boresight is not None:
@@ -568,14 +605,18 @@ class PlaneObservation:
             k = single_element(values, self.range_calibration, (2,))[1] if self.range_calibration is not None else 0.0
             J_ri = -_dot(n_s, beam) * self._incidence_g * w_d / (1.0 + k)
             jac.append(JacobianBlock(self.range_incidence, rows[:, :1], zeros, J_ri[:, None, None]))
-        if self.channel_angles is not None:
+        if self.channel_angles is not None or self.encoder is not None:
             tau, alpha = self._tau + a[:, 0], self._alpha + a[:, 1]
             st, ct, sa, ca = np.sin(tau), np.cos(tau), np.sin(alpha), np.cos(alpha)
             d_tau = np.column_stack([ct, -st * sa, -st * ca])
             d_alpha = np.column_stack([np.zeros_like(ct), ct * ca, -ct * sa])
             J_ch = np.column_stack([_dot(n_s, d_tau), _dot(n_s, d_alpha)]) * (rho * w_d)[:, None]
+        if self.channel_angles is not None:
             on = self.channel >= 0
             jac.append(JacobianBlock(self.channel_angles, rows[on, :1], self.channel[on], J_ch[on, None, :]))
+        if self.encoder is not None:
+            jac.append(JacobianBlock(self.encoder, rows[:, :1], zeros,
+                                     (J_ch[:, 1:2] * self._encoder_basis)[:, None, :]))
         if self.lever_arm is not None:
             jac.append(JacobianBlock(self.lever_arm, rows[:, :1], zeros, (n_b * w_d[:, None])[:, None, :]))
         if self._timed():
