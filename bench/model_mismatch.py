@@ -24,7 +24,7 @@ A ``clean`` case (the scenario without the error, same seed) is the reference. K
 | ``gnss-outage`` | no GNSS for M s from 20 s into the first pass (``gnss.outages``): not an error of the model, a direction less observed | one case |
 | ``lidar-incidence`` | ``scanner.range_incidence_bias_m`` = M m: every range B (1/cos(theta) - 1) long at incidence theta | one case: not modelled (the calibration check estimates it) |
 | ``lidar-walk`` | ``scanner.range_walk_m`` = M m: every range W ln(I_ref / I) long (a detector's range walk with the return's strength) | one case: not modelled |
-| ``lidar-encoder`` | ``scanner.encoder_error_mdeg`` = (M, M/2) at phases (30, 60) deg: the scan-angle encoder's periodic error | one case: not modelled |
+| ``lidar-encoder`` | ``scanner.encoder_error_mdeg`` = (M, M/2) at phases (30, 60) deg: the scan-angle encoder's periodic error | ``processing.lidar.estimate_encoder_error`` and ``estimate_boresight: true`` / as simulated (not estimated) |
 | ``imu-vibration`` | 0.5 g rms of 70 Hz vibration (``imu.vibration_g_rms``), rectified with M ug/g^2 (``imu.acc_vibration_rectification_ug_per_g2``) | one case: not modelled |
 | ``imu-quantisation`` | M times an LN-200's output steps (1.9 urad, 0.061 mm/s: ``imu.*_quantisation_*``) | one case: not modelled |
 | ``gnss-float`` | a 60 s float segment from 20 s into the first pass (``gnss.float_segments``; Q=2, 5/5/10 cm stated), its offset drawn with M m horizontal and 1.5 M m up (1 sigma) | ``gnss.float_offset`` (an offset per segment) / ``null`` (taken as fixes) |
@@ -56,8 +56,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from georefine.config import boresight_matrix
 from georefine.evaluation.trajectory_files import compare_sbet_files, truth_pass_accuracy
+from georefine.geometry.rotation import log_so3
 from georefine.io.trajectory import read_sbet_companion, read_smrmsg, smrmsg_path
+from georefine.sim.scanner import ScannerConfig, encoder_legendre_terms
 from georefine.sim.scenarios import simulate_project
 
 
@@ -123,7 +126,7 @@ KINDS = {  # kind: (simulation overrides for magnitude M given the clean project
     "lidar-incidence": (lambda m, clean: [f"scanner.range_incidence_bias_m={m}"], None),
     "lidar-walk": (lambda m, clean: [f"scanner.range_walk_m={m}"], None),
     "lidar-encoder": (lambda m, clean: [f"scanner.encoder_error_mdeg=[{m}, {m / 2}]",
-                                        "scanner.encoder_error_phase_deg=[30.0, 60.0]"], None),
+                                        "scanner.encoder_error_phase_deg=[30.0, 60.0]"], lambda cfg: None),
     "imu-vibration": (lambda m, clean: ["imu.vibration_g_rms=0.5", f"imu.acc_vibration_rectification_ug_per_g2={m}"],
                       None),
     "imu-quantisation": (lambda m, clean: [f"imu.gyro_quantisation_urad={1.9 * m}",
@@ -134,6 +137,8 @@ STATE = {  # how the stated run's project.yaml differs from the simulated one, w
         estimate_range_calibration=True),
     "lidar-channel": lambda cfg: cfg.setdefault("processing", {}).setdefault("lidar", {}).update(
         estimate_channel_angles=True),
+    "lidar-encoder": lambda cfg: cfg.setdefault("processing", {}).setdefault("lidar", {}).update(
+        estimate_encoder_error=True, estimate_boresight=True),
 }
 DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4], "lidar-range": [0.01, 0.03],
                       "imu-thermal": [10.0, 20.0], "gnss-jump": [0.1, 0.2], "gnss-multipath": [0.01, 0.02],
@@ -170,7 +175,9 @@ def _position(sbet: Path, project: Path, window: tuple[float, float] | None = No
 
 def _calibration_z(solution: Path, project: Path) -> list[float] | None:
     """RMS and largest |estimate - truth| / sigma of what the solution calibrated: the IMU misalignment's twelve
-    elements, the scanner's range offset and scale, the channels' angles (against channel 0's); None: none."""
+    elements, the scanner's range offset and scale, the channels' angles (against channel 0's), the encoder error's
+    Legendre terms (the truth's least-squares terms, :func:`~georefine.sim.scanner.encoder_legendre_terms`) and the
+    boresight's roll (the stated plus the encoder error's mean); None: none."""
     report = json.loads((solution / "adjustment.json").read_text())
     scenario = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["scenario"]["scanner"]
     z = []
@@ -189,6 +196,15 @@ def _calibration_z(solution: Path, project: Path) -> list[float] | None:
         for key, true in (("tilt", "channel_tilt_error_mdeg"), ("scan_angle", "channel_scan_angle_error_mdeg")):
             t = np.asarray(scenario[true], dtype=float)
             z.append((np.asarray(ch[f"{key}_mdeg"])[1:] - (t[1:] - t[0])) / np.asarray(ch[f"{key}_sigma_mdeg"])[1:])
+    enc = report.get("encoder_error")
+    if enc:
+        mean, terms, _ = encoder_legendre_terms(ScannerConfig(**{k: scenario[k] for k in (
+            "encoder_error_mdeg", "encoder_error_phase_deg")}))
+        z.append((np.asarray(enc["terms_mdeg"]) - np.degrees(terms) * 1e3) / np.asarray(enc["terms_sigma_mdeg"]))
+        if report.get("boresight_deg") is not None:  # the scan angle turns about -x_s: a roll of -mean
+            true = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["scenario"]["boresight_deg"]
+            d = log_so3(boresight_matrix(tuple(true)).T @ boresight_matrix(tuple(report["boresight_deg"])))
+            z.append(np.array([(np.degrees(d[0]) * 1e3 + np.degrees(mean) * 1e3) / report["boresight_sigma_mdeg"][0]]))
     if not z:
         return None
     z = np.concatenate(z)

@@ -245,6 +245,43 @@ def test_an_incidence_dependent_range_bias_is_named_by_the_check(b_mm, sigma_mm,
         assert "estimate_range_calibration: true takes it out of the" in found[0]
 
 
+@pytest.mark.parametrize(("terms_mdeg", "sigma_mdeg", "warned"), [((20.0, -9.0, -2.0, 0.7), 0.5, True),
+                                                                   ((20.0, -9.0, -2.0, 0.7), 5.0, False),
+                                                                   ((0.3, 0.1, 0.0, 0.0), 0.01, False)])
+def test_an_encoder_error_is_named_by_the_check(terms_mdeg, sigma_mdeg, warned):
+    """The check's encoder error: named with its terms, its largest value over the features' scan angles and
+    where, when a term is beyond 5 sigma and the error moves points by more than 2 mm at the median range; not
+    within 5 sigma, nor for a few hundredths of a millimetre."""
+    from georefine.workflows.calibration_check import CalibrationCheck
+
+    terms, sigma = np.radians(np.array(terms_mdeg) * 1e-3), np.radians(np.full(4, sigma_mdeg) * 1e-3)
+    check = CalibrationCheck(190.0, encoder=terms, encoder_sigma=sigma, encoder_alpha=(-0.8, 0.8))
+    found = check.findings()
+    assert len(found) == int(warned), found
+    if warned:
+        top, where = check.encoder_extent()
+        alpha = np.linspace(-0.8, 0.8, 1001)
+        from georefine.adjustment.observations.plane import encoder_basis
+        assert abs(top - np.abs(encoder_basis(alpha) @ terms).max()) < 1e-7  # at alpha = -0.8: -31.7 mdeg
+        assert "P1 +20.0 ± 0.5, P2 -9.0 ± 0.5, P3 -2.0 ± 0.5, P4 +0.7 ± 0.5 mdeg; 40 sigma" in found[0], found
+        assert f"up to {np.degrees(top) * 1e3:.1f} mdeg at a scan angle of -46 degrees" in found[0], found
+        assert "estimate_encoder_error: true" in found[0]
+
+
+@pytest.mark.parametrize(("roll_mdeg", "sigma_mdeg", "warned"), [(13.7, 0.4, True), (13.7, 3.0, False),
+                                                                 (0.5, 0.01, False)])
+def test_a_boresight_off_the_stated_is_named_by_the_check(roll_mdeg, sigma_mdeg, warned):
+    """The check's boresight: named, with each angle and the settings, beyond 5 sigma and 2 mm at the median range."""
+    from georefine.workflows.calibration_check import CalibrationCheck
+
+    rot, sigma = np.radians(np.array([roll_mdeg, 0.3, -0.2]) * 1e-3), np.radians(np.full(3, sigma_mdeg) * 1e-3)
+    found = CalibrationCheck(190.0, boresight=rot, boresight_sigma=sigma).findings()
+    assert len(found) == int(warned), found
+    if warned:
+        assert f"roll +13.7 ± {sigma_mdeg:.1f}, pitch +0.3" in found[0] and "34 sigma, 45 mm at 190 m" in found[0], found
+        assert "estimate_boresight: true, or correct scanner.boresight_deg" in found[0]
+
+
 @pytest.mark.parametrize(("range_cost", "incidence_cost", "named"), [(1000.0, 900.0, "incidence"),
                                                                      (900.0, 1000.0, "range offset")])
 def test_the_check_names_the_better_of_a_range_and_an_incidence_bias(range_cost, incidence_cost, named):

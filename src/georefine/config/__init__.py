@@ -482,10 +482,17 @@ class LidarAdjustmentConfig(StrictModel):
         "the boresight's (estimate_boresight). One flight, outside the hybrid adjustment.")
     channel_angle_prior_mdeg: float = Field(
         20.0, gt=0.0, description="Prior sigma of each channel's tilt and scan-angle error (mdeg).")
+    estimate_encoder_error: bool = Field(
+        False, description="Estimate the scan-angle encoder's error across the field of view, the same on every "
+        "channel (four Legendre terms of the scan angle; docs/ARCHITECTURE.md §4.3), from the planes; the final "
+        "points are corrected with it. Its mean over the field of view is the boresight's roll "
+        "(estimate_boresight). One flight, outside the hybrid adjustment.")
+    encoder_error_prior_mdeg: float = Field(
+        20.0, gt=0.0, description="Prior sigma of each of the encoder error's four terms (mdeg).")
     check_scanner_calibration: bool = Field(
-        True, description="After the last outer iteration, solve its G/I/L once more with the range calibration and "
-        "channel angles it leaves out and a range bias growing with the incidence angle, and warn where one is "
-        "significant (5 sigma) and moves the points by more than 2 mm (docs/ARCHITECTURE.md §4.5 step 5): one more "
+        True, description="After the last outer iteration, solve its G/I/L once more with the range calibration, "
+        "channel angles, encoder error and boresight it leaves out, and once more with a range bias growing with the "
+        "incidence angle, and warn where one is significant (5 sigma) and moves the points by more than 2 mm (docs/ARCHITECTURE.md §4.5 step 5): one more "
         "G/I/L solve. Not applied; one flight.")
     time_offset: TimeOffsetConfig = Field(default_factory=TimeOffsetConfig)
     max_features: int = Field(
@@ -776,6 +783,10 @@ class ProjectConfig(StrictModel):
         if self.processing.lidar.estimate_channel_angles:
             raise _rule_error(("processing", "lidar", "estimate_channel_angles"), "the scanner's channel angles are "
                               "estimated for one flight; the adjustment of several flights does not take them yet",
+                              True)
+        if self.processing.lidar.estimate_encoder_error:
+            raise _rule_error(("processing", "lidar", "estimate_encoder_error"), "the scanner's encoder error is "
+                              "estimated for one flight; the adjustment of several flights does not take it yet",
                               True)
         if self.gnss.format == "sbet":
             raise _rule_error(("gnss", "format"), "gnss.format sbet takes the one delivered SBET of a single-flight "

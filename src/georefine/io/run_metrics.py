@@ -332,6 +332,10 @@ class AdjustmentReport:
         Each scanner channel's estimated facet-tilt and scan-angle error (lists by channel:
         ``tilt_mdeg``, ``tilt_sigma_mdeg``, ``scan_angle_mdeg``, ``scan_angle_sigma_mdeg``;
         ``processing.lidar.estimate_channel_angles``); else None.
+    encoder_error
+        The scan-angle encoder's estimated error (``terms_mdeg``, ``terms_sigma_mdeg``: the coefficients of the
+        Legendre terms ``P_1 .. P_4`` of ``alpha / half_width_deg``; ``half_width_deg``;
+        ``processing.lidar.estimate_encoder_error``); else None.
     project
         The project folder (absolute).
     frame
@@ -356,6 +360,7 @@ class AdjustmentReport:
     filter: FilterSummary | None = None
     range_calibration: dict[str, Any] | None = None
     channel_angles: dict[str, Any] | None = None
+    encoder_error: dict[str, Any] | None = None
 
     def __post_init__(self) -> None:
         if self.solution not in SOLUTIONS:
@@ -376,6 +381,7 @@ class AdjustmentReport:
             "boresight_sigma_mdeg": triple(self.boresight_sigma_mdeg),
             "lidar_time_offset": None if self.lidar_time_offset is None else self.lidar_time_offset.to_dict(),
             "range_calibration": self.range_calibration, "channel_angles": self.channel_angles,
+            "encoder_error": self.encoder_error,
         }
 
     @classmethod
@@ -408,6 +414,7 @@ class AdjustmentReport:
                                                             filt.number("alignment_time_s", True)),
             range_calibration=top.mapping("range_calibration"),
             channel_angles=top.mapping("channel_angles"),
+            encoder_error=top.mapping("encoder_error"),
         )
 
 

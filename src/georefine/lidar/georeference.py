@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from georefine.adjustment.observations.plane import ENCODER_TERMS, encoder_basis
 from georefine.geometry.rotation import matrix_from_quat, quat_from_matrix
 from georefine.trajectory.sampled import Trajectory
 
@@ -208,22 +209,29 @@ def beam_direction(tau: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     return np.stack([np.sin(tau), ct * np.sin(alpha), ct * np.cos(alpha)], axis=-1)
 
 
-def calibrated_channels(xyz_s: np.ndarray, channel: np.ndarray, channel_angles: np.ndarray | None) -> np.ndarray:
+def calibrated_channels(xyz_s: np.ndarray, channel: np.ndarray, channel_angles: np.ndarray | None,
+                        encoder: np.ndarray | None = None) -> np.ndarray:
     """Scanner-frame points turned to their channel's true beam: a point recorded along tilt ``tau`` and scan
-    angle ``alpha`` at range ``r`` lies at ``r d(tau + d_tau_c, alpha + d_alpha_c)``, ``channel_angles[c] =
-    (d_tau_c, d_alpha_c)`` (rad; docs/ARCHITECTURE.md §4.3); ``None``: as read. A channel beyond the rows of
-    ``channel_angles`` (one that gave the adjustment no feature) is left as read."""
-    if channel_angles is None:
+    angle ``alpha`` at range ``r`` lies at ``r d(tau + d_tau_c, alpha + d_alpha_c + e(alpha))``,
+    ``channel_angles[c] = (d_tau_c, d_alpha_c)`` and ``e(alpha) = encoder_basis(alpha) @ encoder`` (rad;
+    docs/ARCHITECTURE.md §4.3); ``None``: as read. A channel beyond the rows of ``channel_angles`` (one that
+    gave the adjustment no feature) is left as read."""
+    if channel_angles is None and encoder is None:
         return xyz_s
-    angles = np.asarray(channel_angles, dtype=float)
     channel = np.asarray(channel, dtype=np.int64)
-    if channel.size and channel.min() < 0:
-        raise ValueError(f"scanner channel {channel.min()} is negative")
-    if channel.size and channel.max() >= angles.shape[0]:
-        angles = np.vstack([angles, np.zeros((int(channel.max()) + 1 - angles.shape[0], 2))])
     r, tau, alpha = beam_angles(xyz_s)
-    d = angles[channel]
-    return r[:, None] * beam_direction(tau + d[:, 0], alpha + d[:, 1])
+    d_tau, d_alpha = np.zeros_like(r), np.zeros_like(r)
+    if channel_angles is not None:
+        angles = np.asarray(channel_angles, dtype=float)
+        if channel.size and channel.min() < 0:
+            raise ValueError(f"scanner channel {channel.min()} is negative")
+        if channel.size and channel.max() >= angles.shape[0]:
+            angles = np.vstack([angles, np.zeros((int(channel.max()) + 1 - angles.shape[0], 2))])
+        d = angles[channel]
+        d_tau, d_alpha = d[:, 0], d[:, 1]
+    if encoder is not None:
+        d_alpha = d_alpha + encoder_basis(alpha) @ np.asarray(encoder, dtype=float).reshape(ENCODER_TERMS)
+    return r[:, None] * beam_direction(tau + d_tau, alpha + d_alpha)
 
 
 @dataclass(frozen=True)
@@ -231,15 +239,17 @@ class ScannerCalibration:
     """The scanner's own calibration estimated by the G/I/L, taken out of every point before its georeferencing.
 
     ``range``: offset ``r0`` (m) and scale error ``k`` (:func:`calibrated_ranges`), or None;
-    ``channel_angles``: (C, 2) tilt and scan-angle errors per channel (rad; :func:`calibrated_channels`), or None.
+    ``channel_angles``: (C, 2) tilt and scan-angle errors per channel (rad; :func:`calibrated_channels`), or None;
+    ``encoder``: (4,) the encoder error's Legendre coefficients (rad; :func:`calibrated_channels`), or None.
     """
 
     range: tuple[float, float] | None = None
     channel_angles: np.ndarray | None = None
+    encoder: np.ndarray | None = None
 
     def apply(self, xyz_s: np.ndarray, channel: np.ndarray) -> np.ndarray:
         """``xyz_s`` (N, 3) of points of ``channel`` (N,) with the ranges, then the beam angles, corrected."""
-        return calibrated_channels(calibrated_ranges(xyz_s, self.range), channel, self.channel_angles)
+        return calibrated_channels(calibrated_ranges(xyz_s, self.range), channel, self.channel_angles, self.encoder)
 
 
 def calibrated_ranges(xyz_s: np.ndarray, range_calibration: tuple[float, float] | None) -> np.ndarray:

@@ -210,6 +210,21 @@ def encoder_error_rad(scan_angle_rad: np.ndarray, cfg: ScannerConfig) -> np.ndar
     return e
 
 
+def encoder_legendre_terms(cfg: ScannerConfig) -> tuple[float, np.ndarray, float]:
+    """The simulated encoder error as the estimator writes it: ``(mean, terms, residual)`` (rad), its mean over
+    the field of view (a roll of the boresight), its Legendre coefficients (4,)
+    (:func:`~georefine.adjustment.observations.plane.encoder_basis`, least squares over the field of view, taken
+    as ``+-`` :data:`~georefine.adjustment.observations.plane.ENCODER_HALF_WIDTH_DEG`) and the largest part
+    of the error that they do not represent."""
+    from georefine.adjustment.observations.plane import ENCODER_HALF_WIDTH_DEG, encoder_basis
+
+    alpha = np.radians(np.linspace(-ENCODER_HALF_WIDTH_DEG, ENCODER_HALF_WIDTH_DEG, 2001))
+    design = np.column_stack([np.ones_like(alpha), encoder_basis(alpha)])
+    e = encoder_error_rad(alpha, cfg)
+    coef = np.linalg.lstsq(design, e, rcond=None)[0]
+    return float(coef[0]), coef[1:], float(np.abs(design @ coef - e).max())
+
+
 def _recorded_angle(alpha: np.ndarray, cfg: ScannerConfig) -> np.ndarray:
     """The scan angle the unit records for the polygon angle ``alpha``: rounded to the encoder's step."""
     if not cfg.encoder_resolution_mdeg:

@@ -16,6 +16,7 @@ import numpy as np
 from georefine.adjustment.gnss_imu import (
     GnssImuProblem,
     GnssImuResult,
+    block_sigma,
     build_gnss_imu_problem,
     posterior_scale,
     solve_gnss_imu,
@@ -23,7 +24,7 @@ from georefine.adjustment.gnss_imu import (
     trajectory_solver_options,
     with_posterior,
 )
-from georefine.adjustment.observations.plane import PlaneObservation
+from georefine.adjustment.observations.plane import ENCODER_TERMS, PlaneObservation
 from georefine.adjustment.observations.prior import EuclideanPrior, RotationPrior
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.trajectory_prior import TrajectoryPriorProblem, solve_trajectory_prior, with_prior_posterior
@@ -77,12 +78,15 @@ class LidarAdjustment:
     range_calibration_sigma: tuple[float, float] | None = None
     channel_angles: np.ndarray | None = None  # (C, 2) tilt and scan-angle error per channel (rad), where estimated
     channel_angles_sigma: np.ndarray | None = None
+    encoder: np.ndarray | None = None  # (4,) the encoder error's Legendre coefficients (rad), where estimated
+    encoder_sigma: np.ndarray | None = None
 
     def scanner_calibration(self) -> ScannerCalibration | None:
-        """What the final georeferencing takes out of every point (range and channel angles), or None."""
-        if self.range_calibration is None and self.channel_angles is None:
+        """What the final georeferencing takes out of every point (range, channel angles, encoder error), or None."""
+        if self.range_calibration is None and self.channel_angles is None and self.encoder is None:
             return None
-        return ScannerCalibration(range=self.range_calibration, channel_angles=self.channel_angles)
+        return ScannerCalibration(range=self.range_calibration, channel_angles=self.channel_angles,
+                                  encoder=self.encoder)
 
 
 def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
@@ -109,6 +113,8 @@ def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
     if CHANNEL_BLOCK in problem.blocks:
         cov = problem.covariance(CHANNEL_BLOCK, scale_by_variance_factor=False) * vf
         extra["channel_angles_sigma"] = np.vstack([np.zeros((1, 2)), np.sqrt(np.diagonal(cov, axis1=1, axis2=2))])
+    if ENCODER_BLOCK in problem.blocks:
+        extra["encoder_sigma"] = block_sigma(problem, ENCODER_BLOCK, vf)[0]
     return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
 
 
@@ -124,6 +130,10 @@ CHANNEL_BLOCK = "channel_angles"
 """Each scanner channel's facet-tilt and scan-angle error against channel 0's ((C - 1, 2) for channels 1..C-1, rad;
 ``processing.lidar.estimate_channel_angles``). Channel 0's are the boresight's: a scan-angle error common to all
 channels is a scanner roll, which the planes cannot tell from a roll of the trajectory where both passes share it."""
+ENCODER_BLOCK = "encoder_error"
+"""The scan-angle encoder's error across the field of view, the same on every channel: Legendre coefficients ((1, 4),
+rad; :func:`~georefine.adjustment.observations.plane.encoder_basis`; ``processing.lidar.estimate_encoder_error``).
+Their mean over the field of view is zero: a constant scan-angle error is the boresight's roll."""
 
 
 @dataclass
@@ -178,6 +188,7 @@ def build_gil_problem(
     time_offset: TimeOffsetStart | None = None,
     selection: PlaneSelection | None = None,
     range_incidence: bool = False,
+    encoder: bool | None = None,
 ) -> GilProblem:
     """Step 5's problem: the G/I problem started at ``previous`` plus the plane observations.
 
@@ -186,7 +197,8 @@ def build_gil_problem(
     ``plane_params``) and the time offset's observability where several problems share the
     objects; without it they are chosen here (matched, inside the trajectory, at most
     ``max_features_per_minute`` in each ``selection_window_s`` and ``max_features`` in all).
-    ``range_incidence``: estimate the incidence-dependent range bias too (:data:`INCIDENCE_BLOCK`).
+    ``range_incidence``: estimate the incidence-dependent range bias too (:data:`INCIDENCE_BLOCK`);
+    ``encoder``: estimate the encoder error (:data:`ENCODER_BLOCK`); None: as ``processing.lidar.estimate_encoder_error``.
 
     Raises
     ------
@@ -267,13 +279,20 @@ def build_gil_problem(
         P.add_group(EuclideanPrior("channel_angles_prior", CHANNEL_BLOCK, np.arange(n_ch), np.zeros((n_ch, 2)),
                                    np.full(2, sigma)))
         channels = CHANNEL_BLOCK
+    enc = None
+    if lcfg.estimate_encoder_error if encoder is None else encoder:
+        sigma = np.radians(lcfg.encoder_error_prior_mdeg * 1e-3)
+        P.add_block(ENCODER_BLOCK, np.zeros((1, ENCODER_TERMS)))
+        P.add_group(EuclideanPrior("encoder_error_prior", ENCODER_BLOCK, [0], np.zeros((1, ENCODER_TERMS)),
+                                   np.full(ENCODER_TERMS, sigma)))
+        enc = ENCODER_BLOCK
     P.add_group(
         PlaneObservation(
             grid, f.time, f.centre_s, f.axis1_s, f.axis2_s, f.sigma_d_m, f.sigma_slope_rad, obj_index,
             objects.c0[used_objects], objects.k1[used_objects], objects.k2[used_objects], objects.n0[used_objects],
             np.asarray(cfg.scanner.lever_arm_m, dtype=float), R_b_s, boresight=boresight, range_calibration=ranges,
             range_incidence=incidence, channel=f.channel.astype(np.int64) - 1 if channels else None, channel_angles=channels,
-            blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale), **timing,
+            encoder=enc, blocks=built.blocks, loss=make_loss(lcfg.plane_loss, lcfg.plane_loss_scale), **timing,
         )
     )
     return GilProblem(built, int(sel.size), int(used_objects.size), boresight, bool(timing["time_offset"]),
@@ -310,6 +329,7 @@ def step_adjust_gil(
     knot_interval_s: float | None = None,
     time_offset: TimeOffsetStart | None = None,
     range_incidence: bool = False,
+    encoder: bool | None = None,
 ) -> LidarAdjustment:
     """Step 5: the G/I problem started at ``previous`` plus the plane observations, solved.
 
@@ -318,7 +338,7 @@ def step_adjust_gil(
     prior (default ``scanner.time_offset_s`` for both); with
     ``processing.lidar.time_offset.estimate`` the adjustment estimates it
     (:mod:`georefine.workflows.time_offset`). ``range_incidence``: estimate :data:`INCIDENCE_BLOCK` too
-    (the scanner calibration check).
+    (the scanner calibration check); ``encoder``: estimate :data:`ENCODER_BLOCK` (None: as the configuration says).
     The trajectory has knots about ``knot_interval_s`` apart (default
     ``processing.trajectory.knot_interval_s``) over ``previous``'s span, IMU windows in the
     configured proportion to them; ``previous`` on another grid is resampled onto it.
@@ -327,7 +347,7 @@ def step_adjust_gil(
     lcfg = cfg.processing.lidar
     tcfg = cfg.processing.trajectory
     gil = build_gil_problem(nav, previous, features, objects, knot_interval_s, time_offset,
-                            range_incidence=range_incidence)
+                            range_incidence=range_incidence, encoder=encoder)
     built, P = gil.built, gil.built.problem
 
     def report(it) -> None:
@@ -350,7 +370,8 @@ def step_adjust_gil(
         offset += float(P.values(OFFSET_BLOCK)[0, 0])
     ranges = tuple(float(v) for v in P.values(RANGE_BLOCK)[0]) if RANGE_BLOCK in P.blocks else None
     channels = np.vstack([np.zeros((1, 2)), P.values(CHANNEL_BLOCK)]) if CHANNEL_BLOCK in P.blocks else None
+    enc = P.values(ENCODER_BLOCK)[0].copy() if ENCODER_BLOCK in P.blocks else None
     adj = LidarAdjustment(result, gil.features_used, gil.objects_used, bs_deg, None, built,
                           time_offset_s=offset, time_offset_start=gil.time_offset, time_offset_held=gil.offset_held,
-                          range_calibration=ranges, channel_angles=channels)
+                          range_calibration=ranges, channel_angles=channels, encoder=enc)
     return add_posterior(adj) if covariance else adj

@@ -505,7 +505,8 @@ def run_hybrid(project: ProjectLike, out: str | Path, *, case: int = 1, planes: 
                          "the photos with the LiDAR as control and no cloud: `georefine coadjust --case 3`)",
                          found=str(case))
     project = as_project(project)
-    for key, what in (("estimate_range_calibration", "range calibration"), ("estimate_channel_angles", "channel angles")):
+    for key, what in (("estimate_range_calibration", "range calibration"), ("estimate_channel_angles", "channel angles"),
+                      ("estimate_encoder_error", "encoder error")):
         if getattr(project.config.processing.lidar, key):
             raise ConfigError(f"the hybrid adjustment does not take the scanner's {what} yet: its LiDAR points and "
                               "final cloud would be read uncorrected", path=project.root / "project.yaml",

@@ -131,6 +131,12 @@ class WorkflowResult:
                    else np.degrees(self.gil.channel_angles_sigma) * 1e3)
             lines.append("  scanner channel angles against channel 0 (tilt, scan angle; points corrected): " + "; ".join(
                 f"{c}: {a[c, 0]:+.1f} ± {sig[c, 0]:.1f}, {a[c, 1]:+.1f} ± {sig[c, 1]:.1f} mdeg" for c in range(1, len(a))))
+        if self.gil is not None and self.gil.encoder is not None:
+            e = np.degrees(self.gil.encoder) * 1e3
+            sig = (np.full_like(e, np.nan) if self.gil.encoder_sigma is None
+                   else np.degrees(self.gil.encoder_sigma) * 1e3)
+            lines.append("  scanner encoder error, Legendre terms P1..P4 (points corrected): " + ", ".join(
+                f"{v:+.1f} ± {s:.1f}" for v, s in zip(e, sig)) + " mdeg")
         if self.gil is not None and self.gil.time_offset_held is not None:
             lines.append(f"  LiDAR time offset: held at {self.gil.time_offset_s:+.5f} s, not estimated: "
                          f"{self.gil.time_offset_held}")
@@ -418,7 +424,7 @@ def stage_calibration_check(steps: StepRunner, inputs: WorkflowInputs, outer: Ou
 
     if not inputs.nav.config.processing.lidar.check_scanner_calibration:
         return None
-    return steps.cached("calibration_check", StepCache.key("calibration_check", "incidence", outer.key), compute,
+    return steps.cached("calibration_check", StepCache.key("calibration_check", "encoder-boresight", outer.key), compute,
                         timing="calibration_check")
 
 

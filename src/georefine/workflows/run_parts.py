@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from georefine.adjustment.gnss_imu import GnssImuResult
+from georefine.adjustment.observations.plane import ENCODER_HALF_WIDTH_DEG
 from georefine.adjustment.upsampling import high_rate_share
 from georefine.config import ProjectConfig
 from georefine.io.run_metrics import AdjustmentReport, FrameOrigin, LidarTimeOffset
@@ -139,7 +140,8 @@ def adjustment_report(nav: NavigationData, adj: GnssImuResult, solution: str,
         boresight_deg=bs, boresight_sigma_mdeg=bs_sigma, lidar_time_offset=offset,
         project=str(Path(nav.root).resolve()), frame=FrameOrigin.of(nav.frame),
         range_calibration=None if lidar is None else range_calibration_record(lidar),
-        channel_angles=None if lidar is None else channel_angles_record(lidar))
+        channel_angles=None if lidar is None else channel_angles_record(lidar),
+        encoder_error=None if lidar is None else encoder_error_record(lidar))
 
 
 def range_calibration_record(lidar) -> dict | None:
@@ -150,6 +152,17 @@ def range_calibration_record(lidar) -> dict | None:
     return {"offset_m": round(r0, 6), "scale_ppm": round(k * 1e6, 3),
             "offset_sigma_m": None if sig is None else round(sig[0], 6),
             "scale_sigma_ppm": None if sig is None else round(sig[1] * 1e6, 3)}
+
+
+def encoder_error_record(lidar) -> dict | None:
+    """``adjustment.json``'s ``encoder_error`` of a G/I/L that estimated it, else None: the coefficients of the
+    Legendre terms ``P_1 .. P_4`` of ``alpha / half_width_deg`` and their sigma (mdeg)."""
+    if getattr(lidar, "encoder", None) is None:
+        return None
+    e = np.degrees(lidar.encoder) * 1e3
+    sig = None if lidar.encoder_sigma is None else np.degrees(lidar.encoder_sigma) * 1e3
+    return {"terms_mdeg": np.round(e, 4).tolist(), "terms_sigma_mdeg": None if sig is None else np.round(sig, 4).tolist(),
+            "half_width_deg": ENCODER_HALF_WIDTH_DEG}
 
 
 def channel_angles_record(lidar) -> dict | None:
