@@ -174,6 +174,10 @@ def test_flights_refuse_what_a_flight_cannot_be(tmp_path):
     data["processing"] = {"lidar": {"estimate_channel_angles": True}}
     assert ("field 'processing.lidar.estimate_channel_angles': the scanner's channel angles are estimated "
             "for one flight") in _refused(tmp_path, data)
+    data = flights_project()
+    data["processing"] = {"lidar": {"estimate_encoder_error": True}}
+    assert ("field 'processing.lidar.estimate_encoder_error': the scanner's encoder error is estimated "
+            "for one flight") in _refused(tmp_path, data)
 
 
 def test_a_project_without_flights_needs_its_top_level_files(tmp_path):

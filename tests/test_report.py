@@ -166,7 +166,7 @@ def test_an_adjustment_report_reads_back_to_what_was_written(tmp_path, kind):
     # One schema: every key in every file, null where the writer has no such section.
     assert list(d) == ["solution", "project", "frame", "t0_gps", "timings_s", "filter", "adjustment", "imu_errors",
                        "sbet_errors", "gnss_error", "boresight_deg", "boresight_sigma_mdeg", "lidar_time_offset",
-                       "range_calibration", "channel_angles"]
+                       "range_calibration", "channel_angles", "encoder_error"]
     assert (d["adjustment"] is None) == (kind == "filter")
     assert (d["lidar_time_offset"] is None) == (kind in ("filter", "G/I"))
     if d["lidar_time_offset"] is not None:
