@@ -43,7 +43,7 @@ from georefine.geometry.rotation import log_so3
 from georefine.lidar.correspondences import PlanarObjects
 from georefine.lidar.planes import PlanarFeatures
 from georefine.progress import Progress, no_progress
-from georefine.workflows.gil import CHANNEL_BLOCK, ENCODER_BLOCK, INCIDENCE_BLOCK, RANGE_BLOCK, step_adjust_gil
+from georefine.workflows.gil import INCIDENCE_BLOCK, scanner_estimates, step_adjust_gil
 from georefine.workflows.opened import NavigationData
 from georefine.workflows.time_offset import TimeOffsetStart
 
@@ -208,19 +208,16 @@ def check_scanner_calibration(nav: NavigationData, start, features: PlanarFeatur
     if wanted:
         problem, vf, cost = solve(wanted, False)
         out = replace(out, range_cost=cost)
+        found = scanner_estimates(problem, vf)  # also holds what the configuration estimates: only what it left out
         if "estimate_range_calibration" in wanted:
-            out = replace(out, range=tuple(float(v) for v in problem.values(RANGE_BLOCK)[0]),
-                          range_sigma=tuple(float(v) for v in block_sigma(problem, RANGE_BLOCK, vf)[0]))
+            out = replace(out, range=found["range_calibration"], range_sigma=found["range_calibration_sigma"])
         if "estimate_channel_angles" in wanted:
-            zero = np.zeros((1, 2))
-            out = replace(out, channels=np.vstack([zero, problem.values(CHANNEL_BLOCK)]),
-                          channels_sigma=np.vstack([zero, block_sigma(problem, CHANNEL_BLOCK, vf)]))
+            out = replace(out, channels=found["channel_angles"], channels_sigma=found["channel_angles_sigma"])
         if "estimate_encoder_error" in wanted:
+            out = replace(out, encoder=found["encoder"], encoder_sigma=found["encoder_sigma"])
             c = features.centre_s[used]
             alpha = np.arctan2(c[:, 1], c[:, 2])
-            out = replace(out, encoder=problem.values(ENCODER_BLOCK)[0].copy(),
-                          encoder_sigma=block_sigma(problem, ENCODER_BLOCK, vf)[0],
-                          encoder_alpha=tuple(float(v) for v in np.percentile(alpha, [5, 95])) if alpha.size
+            out = replace(out, encoder_alpha=tuple(float(v) for v in np.percentile(alpha, [5, 95])) if alpha.size
                           else (float("nan"), float("nan")))
         if "estimate_boresight" in wanted:
             stated = boresight_matrix(nav.config.scanner.boresight_deg)

@@ -49,7 +49,7 @@ from georefine.workflows.time_offset import (
 )
 
 __all__ = ["GilProblem", "LidarAdjustment", "PlaneSelection", "add_posterior", "boresight_deg_of", "build_gil_problem",
-           "plane_candidates",
+           "plane_candidates", "scanner_estimates",
            "step_adjust_gil"]
 
 
@@ -107,14 +107,7 @@ def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
     if OFFSET_BLOCK in problem.blocks:
         cov = problem.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0] * vf
         extra["time_offset_sigma_s"] = float(np.sqrt(cov))
-    if RANGE_BLOCK in problem.blocks:
-        cov = problem.covariance(RANGE_BLOCK, scale_by_variance_factor=False)[0] * vf
-        extra["range_calibration_sigma"] = tuple(float(v) for v in np.sqrt(np.diag(cov)))
-    if CHANNEL_BLOCK in problem.blocks:
-        cov = problem.covariance(CHANNEL_BLOCK, scale_by_variance_factor=False) * vf
-        extra["channel_angles_sigma"] = np.vstack([np.zeros((1, 2)), np.sqrt(np.diagonal(cov, axis1=1, axis2=2))])
-    if ENCODER_BLOCK in problem.blocks:
-        extra["encoder_sigma"] = block_sigma(problem, ENCODER_BLOCK, vf)[0]
+    extra |= {k: v for k, v in scanner_estimates(problem, vf).items() if k.endswith("_sigma")}
     return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
 
 
@@ -134,6 +127,29 @@ ENCODER_BLOCK = "encoder_error"
 """The scan-angle encoder's error across the field of view, the same on every channel: Legendre coefficients ((1, 4),
 rad; :func:`~georefine.adjustment.observations.plane.encoder_basis`; ``processing.lidar.estimate_encoder_error``).
 Their mean over the field of view is zero: a constant scan-angle error is the boresight's roll."""
+
+
+def scanner_estimates(problem, scale: float | None = None) -> dict:
+    """The scanner calibration a solved G/I/L problem estimated, under :class:`LidarAdjustment`'s names:
+    ``range_calibration`` ``(r0, k)``, ``channel_angles`` (C, 2) with channel 0's row of zeros first, ``encoder``
+    (4,), each where its block is in ``problem``; with ``scale`` (the posterior's factor, :func:`posterior_scale`)
+    also their sigmas (``..._sigma``, channel 0's zero)."""
+    out: dict = {}
+    blocks = problem.blocks
+    if RANGE_BLOCK in blocks:
+        out["range_calibration"] = tuple(float(v) for v in problem.values(RANGE_BLOCK)[0])
+        if scale is not None:
+            out["range_calibration_sigma"] = tuple(float(v) for v in block_sigma(problem, RANGE_BLOCK, scale)[0])
+    if CHANNEL_BLOCK in blocks:
+        zero = np.zeros((1, 2))
+        out["channel_angles"] = np.vstack([zero, problem.values(CHANNEL_BLOCK)])
+        if scale is not None:
+            out["channel_angles_sigma"] = np.vstack([zero, block_sigma(problem, CHANNEL_BLOCK, scale)])
+    if ENCODER_BLOCK in blocks:
+        out["encoder"] = problem.values(ENCODER_BLOCK)[0].copy()
+        if scale is not None:
+            out["encoder_sigma"] = block_sigma(problem, ENCODER_BLOCK, scale)[0]
+    return out
 
 
 @dataclass
@@ -368,10 +384,7 @@ def step_adjust_gil(
     offset = gil.time_offset.features_s
     if gil.estimates_offset:
         offset += float(P.values(OFFSET_BLOCK)[0, 0])
-    ranges = tuple(float(v) for v in P.values(RANGE_BLOCK)[0]) if RANGE_BLOCK in P.blocks else None
-    channels = np.vstack([np.zeros((1, 2)), P.values(CHANNEL_BLOCK)]) if CHANNEL_BLOCK in P.blocks else None
-    enc = P.values(ENCODER_BLOCK)[0].copy() if ENCODER_BLOCK in P.blocks else None
     adj = LidarAdjustment(result, gil.features_used, gil.objects_used, bs_deg, None, built,
                           time_offset_s=offset, time_offset_start=gil.time_offset, time_offset_held=gil.offset_held,
-                          range_calibration=ranges, channel_angles=channels, encoder=enc)
+                          **scanner_estimates(P))
     return add_posterior(adj) if covariance else adj
