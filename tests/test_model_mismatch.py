@@ -268,6 +268,25 @@ def test_an_encoder_error_is_named_by_the_check(terms_mdeg, sigma_mdeg, warned):
         assert "estimate_encoder_error: true" in found[0]
 
 
+def test_the_encoder_finding_gives_the_boresight_roll_below_the_test():
+    """On ``corridor`` the check's boresight roll came out -11.5 +- 2.3 mdeg (the encoder error's mean, 13.7 mdeg, at
+    5.0 sigma: not beyond the test); the encoder's finding gives it, with the setting. Beyond the test the boresight
+    is a finding of its own and the encoder's does not repeat it."""
+    from georefine.workflows.calibration_check import CalibrationCheck
+
+    terms, sigma = np.radians(np.array([17.9, -9.5, -2.0, 0.7]) * 1e-3), np.radians(np.array([0.7, 0.02, 0.2, 0.02]) * 1e-3)
+    below = np.radians(np.array([-11.5, 0.4, 3.3]) * 1e-3), np.radians(np.array([2.3, 2.5, 14.9]) * 1e-3)
+    found = CalibrationCheck(191.0, encoder=terms, encoder_sigma=sigma, encoder_alpha=(-0.84, 0.84),
+                             boresight=below[0], boresight_sigma=below[1]).findings()
+    assert len(found) == 1, found
+    assert "a roll of the boresight, which came out -11.5 ± 2.3 mdeg off the stated one (5.0 sigma" in found[0], found
+    assert "estimate both (processing.lidar.estimate_boresight: true)" in found[0]
+    beyond = np.radians(np.array([-13.7, 0.4, 3.3]) * 1e-3)
+    found = CalibrationCheck(191.0, encoder=terms, encoder_sigma=sigma, encoder_alpha=(-0.84, 0.84),
+                             boresight=beyond, boresight_sigma=below[1]).findings()
+    assert len(found) == 2 and "a roll of the boresight" not in found[0] and "roll -13.7 ± 2.3" in found[1], found
+
+
 @pytest.mark.parametrize(("roll_mdeg", "sigma_mdeg", "warned"), [(13.7, 0.4, True), (13.7, 3.0, False),
                                                                  (0.5, 0.01, False)])
 def test_a_boresight_off_the_stated_is_named_by_the_check(roll_mdeg, sigma_mdeg, warned):
