@@ -6,13 +6,19 @@ most of it. On ``corridor`` a range error of 3 cm + 100 ppm put the G/I/L pitch 
 the clean run's, with variance factors, plane residuals and outer iterations as on a clean run.
 
 So after the last outer iteration the same problem (the last iteration's features and objects) is
-solved once more with what the configuration leaves out, started at its solution: the range calibration,
-the channel angles, the encoder error and the boresight where it does not estimate them
-(``processing.lidar.estimate_range_calibration``, ``estimate_channel_angles``, ``estimate_encoder_error``,
-``estimate_boresight``). The encoder's periodic error shows as a scan-angle error that varies across the field of
-view (:func:`~georefine.adjustment.observations.plane.encoder_basis`), and its mean over the field of view as the
-boresight's roll: on ``corridor`` an error of 20 and 10 mdeg in its first two harmonics, unestimated, put the
-G/I/L roll at 17 times the clean run's, and five warnings named other causes. Where the range calibration is left out it is solved once more with a
+solved once more with what the configuration leaves out, started at its solution: the range calibration
+and the channel angles where it does not estimate them (``processing.lidar.estimate_range_calibration``,
+``estimate_channel_angles``). Where it leaves out the encoder error or the boresight
+(``estimate_encoder_error``, ``estimate_boresight``), a third solve holds them free beside the first one's: the
+encoder's periodic error shows as a scan-angle error that varies across the field of view
+(:func:`~georefine.adjustment.observations.plane.encoder_basis`), its mean as the boresight's roll (on
+``corridor`` 20 and 10 mdeg in its first two harmonics, unestimated, put the G/I/L roll at 17 times the clean
+run's, and five warnings named other causes). A solve of its own, nested on the first: its linear term stretches
+the swath as a range scale error does, so beside them the range calibration's sigma grew by half on
+``corridor-tiny`` and a 5 cm + 100 ppm range error fell below the test, while without the range calibration
+the encoder terms would take that error. Where the third solve finds the encoder error or the boresight, its
+range calibration and channel angles are the ones tested (the first solve's take what the encoder does), and the
+incidence solve below holds them too. Where the range calibration is left out it is solved once more with a
 range bias that grows with the incidence angle, ``b (1 / cos(phi) - 1)``, in its place
 (:data:`~georefine.workflows.gil.INCIDENCE_BLOCK`: the centroid of a return from a surface seen obliquely
 lies in its footprint's far part, and a detector's range walk with a weaker return does the same). Not
@@ -25,7 +31,7 @@ features' median range; the incidence bias at their 95th-percentile incidence) i
 it, its estimate and sigma, and the setting, or, for the incidence bias, which Georefine cannot take
 out of the points (their incidence is unknown where they are georeferenced), what it does to them.
 The check's estimates are not applied: what the products hold is what the configuration asked
-for. It costs one or two more G/I/L solves, each with a factorisation for its covariance (28 and 30 s on
+for. It costs one to three more G/I/L solves, each with a factorisation for its covariance (28 and 30 s on
 ``corridor``; ``processing.lidar.check_scanner_calibration`` switches it off). One flight: the adjustment of several flights does not take these parameters.
 """
 
@@ -131,20 +137,19 @@ class CalibrationCheck:
                 out.append(f"the planes show scanner channels whose beams leave off the recorded angles against "
                            f"channel 0 ({each}; {z.max():.0f} sigma, {np.abs(a).max() * r * 1e3:.0f} mm at {r:.0f} m), "
                            "which the G/I/L did not estimate: set processing.lidar.estimate_channel_angles: true")
-        if self.encoder is not None:
+        if self._encoder_found():
             z = np.abs(self.encoder) / self.encoder_sigma
             top, where = self.encoder_extent()
-            if z.max() > CHECK_SIGMAS and top * r * 1e3 > CHECK_MM:
-                mdeg, sig = np.degrees(self.encoder) * 1e3, np.degrees(self.encoder_sigma) * 1e3
-                terms = ", ".join(f"P{j + 1} {mdeg[j]:+.1f} ± {sig[j]:.{1 if sig[j] >= 0.1 else 2}f}"
-                                  for j in range(mdeg.size))
-                lo, hi = np.degrees(self.encoder_alpha)
-                out.append(f"the planes show a scan-angle error that varies across the field of view, as a scan-angle "
-                           f"encoder's periodic error does, the same on every channel ({terms} mdeg; {z.max():.0f} "
-                           f"sigma): up to {np.degrees(top) * 1e3:.1f} mdeg at a scan angle of {np.degrees(where):+.0f} "
-                           f"degrees between {lo:+.0f} and {hi:+.0f}, {top * r * 1e3:.0f} mm at {r:.0f} m, which the "
-                           "G/I/L did not estimate and has taken into the trajectory: set "
-                           "processing.lidar.estimate_encoder_error: true" + self._encoder_mean())
+            mdeg, sig = np.degrees(self.encoder) * 1e3, np.degrees(self.encoder_sigma) * 1e3
+            terms = ", ".join(f"P{j + 1} {mdeg[j]:+.1f} ± {sig[j]:.{1 if sig[j] >= 0.1 else 2}f}"
+                              for j in range(mdeg.size))
+            lo, hi = np.degrees(self.encoder_alpha)
+            out.append(f"the planes show a scan-angle error that varies across the field of view, as a scan-angle "
+                       f"encoder's periodic error does, the same on every channel ({terms} mdeg; {z.max():.0f} "
+                       f"sigma): up to {np.degrees(top) * 1e3:.1f} mdeg at a scan angle of {np.degrees(where):+.0f} "
+                       f"degrees between {lo:+.0f} and {hi:+.0f}, {top * r * 1e3:.0f} mm at {r:.0f} m, which the "
+                       "G/I/L did not estimate and has taken into the trajectory: set "
+                       "processing.lidar.estimate_encoder_error: true" + self._encoder_mean())
         if self._boresight_found():
             z = np.abs(self.boresight) / self.boresight_sigma
             mdeg, sig = np.degrees(self.boresight) * 1e3, np.degrees(self.boresight_sigma) * 1e3
@@ -166,6 +171,12 @@ class CalibrationCheck:
                        "up to that much; the scanner's range correction for incidence or return strength (its "
                        "manufacturer's calibration) is due")
         return out
+
+    def _encoder_found(self) -> bool:
+        if self.encoder is None:
+            return False
+        z = np.abs(self.encoder) / self.encoder_sigma
+        return bool(z.max() > CHECK_SIGMAS and self.encoder_extent()[0] * self.median_range_m * 1e3 > CHECK_MM)
 
     def _boresight_found(self) -> bool:
         if self.boresight is None:
@@ -209,6 +220,7 @@ def check_scanner_calibration(nav: NavigationData, start, features: PlanarFeatur
     if not wanted:  # nothing left out, nothing to check
         return None
     incidence = "estimate_range_calibration" in wanted
+    first = {k: v for k, v in wanted.items() if k in ("estimate_range_calibration", "estimate_channel_angles")}
 
     def solve(update: dict, with_incidence: bool):
         config = nav.config.model_copy(update={"processing": nav.config.processing.model_copy(
@@ -220,14 +232,18 @@ def check_scanner_calibration(nav: NavigationData, start, features: PlanarFeatur
     used = objects.feature_object >= 0
     median = float(np.median(np.linalg.norm(features.centre_s[used], axis=1))) if np.any(used) else float("nan")
     out = CalibrationCheck(median)
-    if wanted:
-        problem, vf, cost = solve(wanted, False)
+    if first:
+        problem, vf, cost = solve(first, False)
         out = replace(out, range_cost=cost)
         found = scanner_estimates(problem, vf)  # also holds what the configuration estimates: only what it left out
         if "estimate_range_calibration" in wanted:
             out = replace(out, range=found["range_calibration"], range_sigma=found["range_calibration_sigma"])
         if "estimate_channel_angles" in wanted:
             out = replace(out, channels=found["channel_angles"], channels_sigma=found["channel_angles_sigma"])
+    model = first  # what the incidence solve holds beside the incidence bias (and the range cost's solve)
+    if len(wanted) > len(first):  # the encoder error or the boresight, nested on the first solve
+        problem, vf, cost = solve(wanted, False)
+        found = scanner_estimates(problem, vf)
         if "estimate_encoder_error" in wanted:
             out = replace(out, encoder=found["encoder"], encoder_sigma=found["encoder_sigma"])
             c = features.centre_s[used]
@@ -238,8 +254,15 @@ def check_scanner_calibration(nav: NavigationData, start, features: PlanarFeatur
             stated = boresight_matrix(nav.config.scanner.boresight_deg)
             out = replace(out, boresight=log_so3(stated.T @ problem.values("boresight")[0]),
                           boresight_sigma=block_sigma(problem, "boresight", vf)[0])
+        if out._encoder_found() or out._boresight_found():  # the fuller model holds: read the first solve's from it
+            model = wanted
+            out = replace(out, range_cost=cost)
+            if "estimate_range_calibration" in first:
+                out = replace(out, range=found["range_calibration"], range_sigma=found["range_calibration_sigma"])
+            if "estimate_channel_angles" in first:
+                out = replace(out, channels=found["channel_angles"], channels_sigma=found["channel_angles_sigma"])
     if incidence:  # the range calibration held out: with it, the two trade along the GNSS error's height
-        problem, vf, cost = solve({k: v for k, v in wanted.items() if k != "estimate_range_calibration"}, True)
+        problem, vf, cost = solve({k: v for k, v in model.items() if k != "estimate_range_calibration"}, True)
         beam = features.centre_s[used] / np.linalg.norm(features.centre_s[used], axis=1)[:, None]
         g = incidence_term(beam, np.cross(features.axis1_s[used], features.axis2_s[used]))
         out = replace(out, incidence=float(problem.values(INCIDENCE_BLOCK)[0, 0]),
