@@ -42,6 +42,15 @@ def _unstated(project: Path, out: Path) -> Path:
     return out
 
 
+def _estimating(project: Path, out: Path, **lidar: bool) -> Path:
+    """A copy of ``project`` (data linked) whose ``project.yaml`` sets ``processing.lidar``'s ``lidar``."""
+    shutil.copytree(project, out, symlinks=True)
+    cfg = yaml.safe_load((out / "project.yaml").read_text())
+    cfg.setdefault("processing", {}).setdefault("lidar", {}).update(lidar)
+    (out / "project.yaml").write_text(yaml.safe_dump(cfg))
+    return out
+
+
 def _misalignment_z(solution: Path, project: Path) -> np.ndarray:
     """(estimate - truth) / sigma of the twelve misalignment elements (accelerometer, then gyro)."""
     e = json.loads((solution / "adjustment.json").read_text())["imu_errors"]
@@ -337,12 +346,8 @@ def test_the_gil_estimates_the_scanner_range_and_channel_calibration(uncalibrate
     the nadir channel's within 2.5 sigma (six correlated estimates of one draw), the G/I/L attitude within 1.3 times
     the clean run's with honest sigmas; the run's summary names them (the final points are corrected,
     ``tests/test_tiles.py``)."""
-    project = tmp_path / "stated"
-    shutil.copytree(uncalibrated_scanner, project, symlinks=True)
-    cfg = yaml.safe_load((project / "project.yaml").read_text())
-    cfg.setdefault("processing", {}).setdefault("lidar", {}).update(estimate_range_calibration=True,
-                                                                     estimate_channel_angles=True)
-    (project / "project.yaml").write_text(yaml.safe_dump(cfg))
+    project = _estimating(uncalibrated_scanner, tmp_path / "stated", estimate_range_calibration=True,
+                          estimate_channel_angles=True)
     proc = run_georefine("run", str(project), "--out", str(tmp_path / "run"), "--no-points", timeout=1800)
     assert proc.returncode == 0, proc.stderr
     assert "scanner range offset" in proc.stdout and "scanner channel angles" in proc.stdout
@@ -460,12 +465,7 @@ def test_the_gil_estimates_the_encoder_error_with_the_boresight(encoder_error, t
     from georefine.config import boresight_matrix
     from georefine.geometry.rotation import log_so3
 
-    project = tmp_path / "stated"
-    shutil.copytree(encoder_error, project, symlinks=True)
-    cfg = yaml.safe_load((project / "project.yaml").read_text())
-    cfg.setdefault("processing", {}).setdefault("lidar", {}).update(estimate_encoder_error=True,
-                                                                     estimate_boresight=True)
-    (project / "project.yaml").write_text(yaml.safe_dump(cfg))
+    project = _estimating(encoder_error, tmp_path / "stated", estimate_encoder_error=True, estimate_boresight=True)
     proc = run_georefine("run", str(project), "--out", str(tmp_path / "run"), "--no-points", timeout=1800)
     assert proc.returncode == 0, proc.stderr
     assert "scanner encoder error, Legendre terms P1..P4 (points corrected)" in proc.stdout

@@ -147,6 +147,19 @@ def test_range_calibration_jacobians(seed):
     np.testing.assert_allclose(read_long.centres_s({"range": np.array([[0.03, 1e-4]])}), group.centre_s, atol=1e-9)
 
 
+def _calibrated_group_values(seed):
+    """``(rng, grid, values, channel)`` of the scanner-calibration Jacobian tests: knots, object planes, a range
+    calibration ``range`` and channel angles ``ch`` drawn from ``rng`` (seeded), and 25 features' channels."""
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    channel = np.random.default_rng(seed + 100).integers(-1, 3, 25)
+    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
+    values |= {"range": np.array([[rng.normal(0, 0.03), rng.normal(0, 2e-4)]]), "ch": rng.normal(0, 1e-3, (3, 2))}
+    return rng, grid, values, channel
+
+
 @pytest.mark.parametrize("seed", SEEDS)
 def test_range_incidence_jacobians(seed):
     """The incidence-dependent range bias: its column (alone, with the range calibration, and with the channel
@@ -154,14 +167,8 @@ def test_range_incidence_jacobians(seed):
     b (1 / cos(phi) - 1) long is put back."""
     from georefine.adjustment.observations.plane import incidence_term
 
-    rng = np.random.default_rng(seed)
-    K = 12
-    grid = KnotGrid(0.0, 0.1, K)
-    values = random_knots(rng, K)
-    channel = np.random.default_rng(seed + 100).integers(-1, 3, 25)
-    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
-    values |= {"range": np.array([[rng.normal(0, 0.03), rng.normal(0, 2e-4)]]), "ch": rng.normal(0, 1e-3, (3, 2)),
-               "inc": np.array([[rng.normal(0, 0.05)]])}
+    rng, grid, values, channel = _calibrated_group_values(seed)
+    values["inc"] = np.array([[rng.normal(0, 0.05)]])
     for extra in ({}, {"range_calibration": "range"},
                   {"range_calibration": "range", "channel": channel, "channel_angles": "ch"}):
         group = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s",
@@ -500,14 +507,8 @@ def test_encoder_error_jacobians(seed):
     from georefine.adjustment.observations.plane import ENCODER_TERMS, encoder_basis
     from georefine.lidar.georeference import beam_angles, beam_direction
 
-    rng = np.random.default_rng(seed)
-    K = 12
-    grid = KnotGrid(0.0, 0.1, K)
-    values = random_knots(rng, K)
-    channel = np.random.default_rng(seed + 100).integers(-1, 3, 25)
-    values["plane_params"] = np.column_stack([rng.normal(0, 0.5, 4), rng.normal(0, 0.3, 4), rng.normal(0, 0.3, 4)])
-    values |= {"range": np.array([[rng.normal(0, 0.03), rng.normal(0, 2e-4)]]), "ch": rng.normal(0, 1e-3, (3, 2)),
-               "enc": rng.normal(0, 5e-4, (1, ENCODER_TERMS))}
+    rng, grid, values, channel = _calibrated_group_values(seed)
+    values["enc"] = rng.normal(0, 5e-4, (1, ENCODER_TERMS))
     for extra in ({}, {"range_calibration": "range", "channel": channel, "channel_angles": "ch"}):
         group = random_group(np.random.default_rng(seed), grid, boresight="R_b_s", lever_arm="p_b_s",
                              encoder="enc", **extra)

@@ -204,7 +204,6 @@ def build_gil_problem(
     time_offset: TimeOffsetStart | None = None,
     selection: PlaneSelection | None = None,
     range_incidence: bool = False,
-    encoder: bool | None = None,
 ) -> GilProblem:
     """Step 5's problem: the G/I problem started at ``previous`` plus the plane observations.
 
@@ -213,8 +212,7 @@ def build_gil_problem(
     ``plane_params``) and the time offset's observability where several problems share the
     objects; without it they are chosen here (matched, inside the trajectory, at most
     ``max_features_per_minute`` in each ``selection_window_s`` and ``max_features`` in all).
-    ``range_incidence``: estimate the incidence-dependent range bias too (:data:`INCIDENCE_BLOCK`);
-    ``encoder``: estimate the encoder error (:data:`ENCODER_BLOCK`); None: as ``processing.lidar.estimate_encoder_error``.
+    ``range_incidence``: estimate the incidence-dependent range bias too (:data:`INCIDENCE_BLOCK`).
 
     Raises
     ------
@@ -296,7 +294,7 @@ def build_gil_problem(
                                    np.full(2, sigma)))
         channels = CHANNEL_BLOCK
     enc = None
-    if lcfg.estimate_encoder_error if encoder is None else encoder:
+    if lcfg.estimate_encoder_error:
         sigma = np.radians(lcfg.encoder_error_prior_mdeg * 1e-3)
         P.add_block(ENCODER_BLOCK, np.zeros((1, ENCODER_TERMS)))
         P.add_group(EuclideanPrior("encoder_error_prior", ENCODER_BLOCK, [0], np.zeros((1, ENCODER_TERMS)),
@@ -345,7 +343,6 @@ def step_adjust_gil(
     knot_interval_s: float | None = None,
     time_offset: TimeOffsetStart | None = None,
     range_incidence: bool = False,
-    encoder: bool | None = None,
 ) -> LidarAdjustment:
     """Step 5: the G/I problem started at ``previous`` plus the plane observations, solved.
 
@@ -354,7 +351,7 @@ def step_adjust_gil(
     prior (default ``scanner.time_offset_s`` for both); with
     ``processing.lidar.time_offset.estimate`` the adjustment estimates it
     (:mod:`georefine.workflows.time_offset`). ``range_incidence``: estimate :data:`INCIDENCE_BLOCK` too
-    (the scanner calibration check); ``encoder``: estimate :data:`ENCODER_BLOCK` (None: as the configuration says).
+    (the scanner calibration check).
     The trajectory has knots about ``knot_interval_s`` apart (default
     ``processing.trajectory.knot_interval_s``) over ``previous``'s span, IMU windows in the
     configured proportion to them; ``previous`` on another grid is resampled onto it.
@@ -363,7 +360,7 @@ def step_adjust_gil(
     lcfg = cfg.processing.lidar
     tcfg = cfg.processing.trajectory
     gil = build_gil_problem(nav, previous, features, objects, knot_interval_s, time_offset,
-                            range_incidence=range_incidence, encoder=encoder)
+                            range_incidence=range_incidence)
     built, P = gil.built, gil.built.problem
 
     def report(it) -> None:
