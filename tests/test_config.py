@@ -255,3 +255,18 @@ def test_a_project_without_flights_is_one_flight_of_its_top_level_files(tmp_path
     assert validate_model(ProjectConfig, {**minimal_project(), "flights": None}) == cfg
     write_yaml(tmp_path / "project.yaml", cfg)
     assert load_project(tmp_path) == cfg
+
+
+def test_a_stated_multipath_needs_the_correlated_error_it_adds_to(tmp_path):
+    """gnss.multipath is off by default; stated, it validates, and without gnss.correlated_error it is refused with
+    the file and the field."""
+    assert validate_model(ProjectConfig, minimal_project()).gnss.multipath is None
+    data = minimal_project()
+    data["gnss"]["multipath"] = {"sigma_horizontal_m": 0.02}
+    cfg = validate_model(ProjectConfig, data)
+    assert (cfg.gnss.multipath.sigma_horizontal_m, cfg.gnss.multipath.sigma_up_m, cfg.gnss.multipath.time_constant_s) \
+        == (0.02, 0.04, 20.0)
+    data["gnss"]["correlated_error"] = None
+    (tmp_path / "project.yaml").write_text(yaml.safe_dump(data, sort_keys=False))
+    with pytest.raises(ConfigError, match=r"project\.yaml.*gnss.*multipath is estimated beside correlated_error"):
+        load_project(tmp_path)

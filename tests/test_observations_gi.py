@@ -75,6 +75,31 @@ def test_gnss_jacobians_with_a_correlated_error(seed):
 
 
 @pytest.mark.parametrize("seed", SEEDS)
+def test_gnss_jacobians_with_a_multipath_beside_the_correlated_error(seed):
+    """The multipath on knots of its own adds to d(t): Jacobians of both blocks and the sum."""
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    egrid = BiasGrid.covering(0.0, grid.t_end, 0.35)
+    mgrid = BiasGrid.covering(0.0, grid.t_end, 0.12)
+    values["d"] = rng.normal(0, 0.02, (egrid.n_knots, 3))
+    values["m"] = rng.normal(0, 0.02, (mgrid.n_knots, 3))
+    t = np.sort(rng.uniform(0, grid.t_end, 20))
+    cov = np.broadcast_to(np.diag([1e-4, 1e-4, 4e-4]), (20, 3, 3)).copy()
+    lever = np.array([-0.8, 0.1, -1.4])
+    plain = GnssPositionObservation(grid, t, np.zeros((20, 3)), cov, lever).predict(values)
+    group = GnssPositionObservation(grid, t, plain, cov, lever, error_grid=egrid, error_block="d",
+                                    multipath_grid=mgrid, multipath_block="m")
+    np.testing.assert_allclose(group.predict(values) - plain,
+                               egrid.evaluate(values["d"], t) + mgrid.evaluate(values["m"], t), atol=1e-12)
+    chk = check_jacobians(group, values, {**TRAJ_BLOCKS, "d": "euclidean", "m": "euclidean"}, eps=1e-4)
+    assert chk.max_rel_error < 1e-5, chk
+    with pytest.raises(ValueError, match="go together"):
+        GnssPositionObservation(grid, t, plain, cov, lever, multipath_block="m")
+
+
+@pytest.mark.parametrize("seed", SEEDS)
 def test_gnss_jacobians_with_segment_offsets(seed):
     """Epochs of a segment without a fix add its offset; the others do not."""
     rng = np.random.default_rng(seed)
@@ -144,6 +169,26 @@ def test_white_part_of_the_gnss_covariance():
     A = rng.normal(size=(3, 3)) * 0.01
     c = white_gnss_covariance((A @ A.T + np.eye(3) * 1e-4)[None], model, 5.0)[0]
     assert np.all(np.linalg.eigvalsh(c) > 0)  # rescaled axes keep it positive definite
+
+
+def test_white_part_of_the_gnss_covariance_with_a_multipath():
+    """A stated multipath's variance comes off the .pos sigma too (to the same floor), and what its knots miss
+    is added."""
+    from georefine.adjustment.gnss_imu import multipath_knot_interval, white_gnss_covariance
+    from georefine.config import GnssCorrelatedError, GnssMultipath, TrajectoryAdjustmentConfig
+
+    model = GnssCorrelatedError(sigma_horizontal_m=0.015, sigma_up_m=0.03, time_constant_s=300.0)
+    mp = GnssMultipath(sigma_horizontal_m=0.01, sigma_up_m=0.02, time_constant_s=20.0)
+    assert multipath_knot_interval(mp, TrajectoryAdjustmentConfig()) == 5.0
+    assert multipath_knot_interval(mp.model_copy(update={"time_constant_s": 8.0}), TrajectoryAdjustmentConfig()) == 2.0
+    white_part = np.array([0.01, 0.01, 0.02])
+    total = np.sqrt(white_part**2 + np.array([0.015, 0.015, 0.03]) ** 2 + np.array([0.01, 0.01, 0.02]) ** 2)
+    cov = np.diag(total**2)[None].repeat(2, axis=0)
+    cov[1] = np.diag([0.005, 0.005, 0.01]) ** 2
+    white = white_gnss_covariance(cov, model, 5.0, mp, 2.5)
+    chord = np.array([0.015, 0.015, 0.03]) ** 2 * 5.0 / 900.0 + np.array([0.01, 0.01, 0.02]) ** 2 * 2.5 / 60.0
+    np.testing.assert_allclose(np.diag(white[0]), white_part**2 + chord, rtol=1e-12)
+    np.testing.assert_allclose(np.diag(white[1]), (0.3 * np.array([0.005, 0.005, 0.01])) ** 2 + chord, rtol=1e-12)
 
 
 @pytest.mark.parametrize("seed", SEEDS)

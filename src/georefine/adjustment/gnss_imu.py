@@ -37,7 +37,13 @@ from georefine.adjustment.observations.trajectory_prior import GaussMarkovPrior
 from georefine.adjustment.problem import Problem
 from georefine.adjustment.robust import make_loss
 from georefine.adjustment.solver import SolveResult, SolverOptions
-from georefine.config import GnssCorrelatedError, GnssFloatOffset, ImuErrorSpec, TrajectoryAdjustmentConfig
+from georefine.config import (
+    GnssCorrelatedError,
+    GnssFloatOffset,
+    GnssMultipath,
+    ImuErrorSpec,
+    TrajectoryAdjustmentConfig,
+)
 from georefine.errors import InputError
 from georefine.geometry.frames import LocalFrame
 from georefine.geometry.rotation import rph_from_R_n_b
@@ -69,6 +75,9 @@ class GnssImuData:
         The GNSS error that lasts minutes (``gnss.correlated_error``): estimated on its own
         knots, ``gnss_cov_w`` then holds the total of which the white part is what remains;
         None: ``gnss_cov_w`` is white.
+    gnss_multipath : GnssMultipath or None
+        The GNSS error that lasts tens of seconds (``gnss.multipath``), estimated beside
+        ``gnss_correlated`` on knots of its own (:func:`multipath_knot_interval`); None: not modelled.
 
     imu_kind : ``"rates"`` or ``"increments"``
         What an IMU sample is (``ImuData.kind``): the value at its time tag, or the mean over
@@ -106,10 +115,21 @@ class GnssImuData:
     gnss_quality: np.ndarray | None = None
     gnss_float: GnssFloatOffset | None = None
     gnss_jumps: np.ndarray | None = None
+    gnss_multipath: GnssMultipath | None = None
 
 
 GNSS_ERROR_BLOCK = "gnss_error"
 """Block of the correlated GNSS error's knot values ((J, 3), m in ``w``)."""
+
+GNSS_MULTIPATH_BLOCK = "gnss_multipath"
+"""Block of the multipath's knot values ((K, 3), m in ``w``; ``gnss.multipath``)."""
+
+
+def multipath_knot_interval(model: GnssMultipath, cfg: TrajectoryAdjustmentConfig) -> float:
+    """Knot spacing of the multipath (s): the correlated error's, or a quarter of the multipath's
+    correlation time where that is shorter (a piecewise-linear process then follows it to about
+    ``sqrt(1/12)`` of its sigma, the rest taken as white by :func:`white_gnss_covariance`)."""
+    return min(cfg.gnss_error_knot_interval_s, model.time_constant_s / 4.0)
 
 
 @dataclass(frozen=True)
@@ -121,21 +141,32 @@ class GnssErrorEstimate:
     value_w: np.ndarray | None
     sigma_w: np.ndarray | None = None
     segments: GnssSegments | None = None
+    multipath_grid: BiasGrid | None = None
+    """Knots of the multipath (``gnss.multipath``), None where it is not modelled; its values and sigma below."""
+    multipath_w: np.ndarray | None = None
+    multipath_sigma_w: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """``adjustment.json``'s ``gnss_error``: knot times (s from ``t0_gps``), east/north/up values and sigma (m);
-        ``segments``: one record per segment without a fix (:meth:`GnssSegments.to_dict`)."""
+        ``multipath``: the same of the multipath, where modelled; ``segments``: one record per segment without a
+        fix (:meth:`GnssSegments.to_dict`)."""
         out = {}
         if self.grid is not None:
             out = {"knot_times_s": self.grid.times.tolist(), "enu_m": np.round(self.value_w, 5).tolist()}
             if self.sigma_w is not None:
                 out["enu_sigma_m"] = np.round(self.sigma_w, 5).tolist()
+        if self.multipath_grid is not None:
+            out["multipath"] = {"knot_times_s": self.multipath_grid.times.tolist(),
+                                "enu_m": np.round(self.multipath_w, 5).tolist()}
+            if self.multipath_sigma_w is not None:
+                out["multipath"]["enu_sigma_m"] = np.round(self.multipath_sigma_w, 5).tolist()
         if self.segments is not None:
             out["segments"] = self.segments.to_dict()
         return out
 
 
-def white_gnss_covariance(cov_w: np.ndarray, model: GnssCorrelatedError, knot_interval_s: float) -> np.ndarray:
+def white_gnss_covariance(cov_w: np.ndarray, model: GnssCorrelatedError, knot_interval_s: float,
+                          multipath: GnssMultipath | None = None, multipath_interval_s: float | None = None) -> np.ndarray:
     """The white part of the GNSS covariances ``cov_w`` (G, 3, 3) when ``model`` is estimated apart.
 
     Per axis of ``w`` the variance of the correlated part is taken off the epoch's (down to
@@ -143,12 +174,19 @@ def white_gnss_covariance(cov_w: np.ndarray, model: GnssCorrelatedError, knot_in
     ``knot_interval_s`` apart cannot follow is added: a Gauss-Markov process of sigma ``s`` and
     correlation time ``tau`` is locally a random walk of density ``s sqrt(2 / tau)``, whose
     distance from the chord between knots ``dt`` apart has a mean variance of
-    ``s² dt / (3 tau)``. The correlations between axes are kept (the axes are rescaled).
+    ``s² dt / (3 tau)``. The correlations between axes are kept (the axes are rescaled). A stated
+    ``multipath`` on knots ``multipath_interval_s`` apart is a second such process: its variance is
+    taken off too (down to the same floor) and what its knots cannot follow is added.
     """
     cov_w = np.asarray(cov_w, dtype=float)
     var = np.diagonal(cov_w, axis1=1, axis2=2)
     s2 = np.array([model.sigma_horizontal_m, model.sigma_horizontal_m, model.sigma_up_m]) ** 2
-    white = np.maximum(var - s2, model.min_white_fraction**2 * var) + s2 * knot_interval_s / (3.0 * model.time_constant_s)
+    unfollowed = s2 * knot_interval_s / (3.0 * model.time_constant_s)
+    if multipath is not None:
+        m2 = np.array([multipath.sigma_horizontal_m, multipath.sigma_horizontal_m, multipath.sigma_up_m]) ** 2
+        s2 = s2 + m2
+        unfollowed = unfollowed + m2 * multipath_interval_s / (3.0 * multipath.time_constant_s)
+    white = np.maximum(var - s2, model.min_white_fraction**2 * var) + unfollowed
     scale = np.sqrt(white / np.maximum(var, 1e-300))
     return cov_w * scale[:, :, None] * scale[:, None, :]
 
@@ -237,6 +275,7 @@ class GnssImuProblem:
     estimate_misalignment: bool = False
     gnss_segments: GnssSegments | None = None
     spec: ImuErrorSpec | None = None
+    gnss_multipath_grid: BiasGrid | None = None
     detect_jumps: bool = False
     """Search the residuals of the first solve for wrong GNSS fixes (:func:`solve_gnss_imu`)."""
 
@@ -369,7 +408,7 @@ def build_gnss_imu_problem(
     g_in = (data.gnss_time >= span[0]) & (data.gnss_time <= span[1])
     if not np.any(g_in):
         raise InputError("no GNSS epoch inside the trajectory span", field="time")
-    cov, error, egrid = data.gnss_cov_w[g_in], {}, None
+    cov, error, egrid, mgrid = data.gnss_cov_w[g_in], {}, None, None
     segments = non_fix_segments(data.gnss_time[g_in], None if data.gnss_quality is None else data.gnss_quality[g_in],
                                 cov, data.gnss_float, data.gnss_jumps)
     if segments is not None:  # an offset per segment without a fix, with its prior
@@ -377,14 +416,23 @@ def build_gnss_imu_problem(
         problem.add_group(EuclideanPrior("gnss_segment_prior", GNSS_SEGMENT_BLOCK, np.arange(len(segments)),
                                          np.zeros((len(segments), 3)), segments.prior_sigma_w))
         error = {"segment": segments.index, "segment_block": GNSS_SEGMENT_BLOCK}
-    model = data.gnss_correlated
+    model, mp = data.gnss_correlated, data.gnss_multipath
+    if mp is not None and model is None:
+        raise ValueError("the multipath is estimated beside the correlated GNSS error: gnss_correlated is None")
     if model is not None:  # d(t) on its own knots with its Gauss-Markov prior; the epochs keep the white part
         egrid = BiasGrid.covering(span[0], span[1], cfg.gnss_error_knot_interval_s)
-        cov = white_gnss_covariance(cov, model, egrid.dt_s)
+        mgrid = None if mp is None else BiasGrid.covering(span[0], span[1], multipath_knot_interval(mp, cfg))
+        cov = white_gnss_covariance(cov, model, egrid.dt_s, mp, None if mgrid is None else mgrid.dt_s)
         problem.add_block(GNSS_ERROR_BLOCK, np.zeros((egrid.n_knots, 3)))
         sigma = np.array([model.sigma_horizontal_m, model.sigma_horizontal_m, model.sigma_up_m])
         problem.add_group(GaussMarkovPrior("gnss_error_prior", GNSS_ERROR_BLOCK, egrid, sigma, model.time_constant_s))
         error |= {"error_grid": egrid, "error_block": GNSS_ERROR_BLOCK}
+        if mgrid is not None:  # the multipath: a second, short-correlated process on its own knots
+            problem.add_block(GNSS_MULTIPATH_BLOCK, np.zeros((mgrid.n_knots, 3)))
+            sigma = np.array([mp.sigma_horizontal_m, mp.sigma_horizontal_m, mp.sigma_up_m])
+            problem.add_group(GaussMarkovPrior("gnss_multipath_prior", GNSS_MULTIPATH_BLOCK, mgrid, sigma,
+                                               mp.time_constant_s))
+            error |= {"multipath_grid": mgrid, "multipath_block": GNSS_MULTIPATH_BLOCK}
     problem.add_group(
         GnssPositionObservation(
             grid, data.gnss_time[g_in], data.gnss_p_w[g_in], cov, data.p_b_a,
@@ -412,6 +460,7 @@ def build_gnss_imu_problem(
         problem.add_group(EuclideanPrior("acc_misalignment_prior", "acc_misalignment", [0], np.zeros(6), mis[1]))
     return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors, egrid,
                           estimate_misalignment=mis is not None, gnss_segments=segments, spec=spec,
+                          gnss_multipath_grid=mgrid,
                           detect_jumps=bool(data.gnss_float is not None and data.gnss_float.detect_jumps
                                             and data.gnss_jumps is None))
 
@@ -454,6 +503,9 @@ def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
     P = built.problem
     if gnss_error is not None and gnss_error.grid is not None and GNSS_ERROR_BLOCK in P.blocks:
         P.set_values(GNSS_ERROR_BLOCK, gnss_error.value_w)
+    if (gnss_error is not None and gnss_error.multipath_w is not None and GNSS_MULTIPATH_BLOCK in P.blocks
+            and P.values(GNSS_MULTIPATH_BLOCK).shape == gnss_error.multipath_w.shape):
+        P.set_values(GNSS_MULTIPATH_BLOCK, gnss_error.multipath_w)
     own = built.gnss_segments
     if seg is not None and seg.value_w is not None and own is not None:  # the same segments: start at their offsets
         value = P.values(GNSS_SEGMENT_BLOCK)
@@ -496,7 +548,11 @@ def gnss_error_of(built: GnssImuProblem, scale: float | None = None) -> GnssErro
     if built.gnss_error_grid is None:
         return GnssErrorEstimate(None, None, segments=segments)
     s = block_sigma(P, GNSS_ERROR_BLOCK, scale) if scale is not None else None
-    return GnssErrorEstimate(built.gnss_error_grid, P.values(GNSS_ERROR_BLOCK).copy(), s, segments)
+    multipath = {}
+    if built.gnss_multipath_grid is not None:
+        multipath = dict(multipath_grid=built.gnss_multipath_grid, multipath_w=P.values(GNSS_MULTIPATH_BLOCK).copy(),
+                         multipath_sigma_w=block_sigma(P, GNSS_MULTIPATH_BLOCK, scale) if scale is not None else None)
+    return GnssErrorEstimate(built.gnss_error_grid, P.values(GNSS_ERROR_BLOCK).copy(), s, segments, **multipath)
 
 
 def euler_rate_inverse(rph: np.ndarray) -> np.ndarray:
@@ -609,7 +665,7 @@ def posterior_columns(built: "GnssImuProblem") -> int:
     velocity at :func:`sigma_knots`, the IMU errors, the correlated GNSS error, the segments' offsets."""
     P = built.problem
     n = 9 * sigma_knots(built.grid, built.cfg).size + 6 * built.bias_grid.n_knots + 6 + 12 * built.estimate_misalignment
-    for name in (GNSS_ERROR_BLOCK, GNSS_SEGMENT_BLOCK):
+    for name in (GNSS_ERROR_BLOCK, GNSS_MULTIPATH_BLOCK, GNSS_SEGMENT_BLOCK):
         if name in P.blocks:
             n += 3 * P.values(name).shape[0]
     return n

@@ -45,6 +45,7 @@ __all__ = [
     "FlightConfig",
     "GnssCorrelatedError",
     "GnssFileConfig",
+    "GnssMultipath",
     "ImuErrorSpec",
     "ImuFileConfig",
     "LidarAdjustmentConfig",
@@ -96,6 +97,24 @@ class GnssCorrelatedError(StrictModel):
         0.3, gt=0.0, le=1.0, description="The white sigma per axis is at least this fraction of the .pos sigma.")
 
 
+class GnssMultipath(StrictModel):
+    """Multipath: a short-correlated part of the GNSS position error (docs/ARCHITECTURE.md §4.3 GNSS).
+
+    Signals reflected off the airframe, the wings in a bank and, low down, the ground make a
+    position error of a centimetre or two that lasts tens of seconds: too quick for the
+    correlated error's minutes (``gnss.correlated_error``), too slow to average out as white.
+    Where stated, it is a second first-order Gauss-Markov process per axis of ``w``, on knots
+    of its own (``processing.trajectory.gnss_error_knot_interval_s``, or a quarter of its
+    correlation time where that is shorter), added to the correlated error; its variance too
+    is taken off the ``.pos`` sigmas. Off (null) by default; the G/I/L warns when its correlated
+    error fits its prior badly, which an unstated multipath does.
+    """
+
+    sigma_horizontal_m: float = Field(0.02, gt=0.0, description="Stationary sigma per horizontal axis (m).")
+    sigma_up_m: float = Field(0.04, gt=0.0, description="Stationary sigma of the height (m).")
+    time_constant_s: float = Field(20.0, gt=0.0, description="Correlation time (s).")
+
+
 class GnssFloatOffset(StrictModel):
     """An offset per segment of GNSS epochs without a fixed solution (docs/ARCHITECTURE.md §4.3 GNSS).
 
@@ -145,6 +164,9 @@ class GnssFileConfig(StrictModel):
         default_factory=GnssCorrelatedError,
         description="The GNSS error that lasts minutes, estimated on its own knots "
         "(processing.trajectory.gnss_error_knot_interval_s); null: every epoch's error is white.")
+    multipath: GnssMultipath | None = Field(
+        None, description="The GNSS error that lasts tens of seconds (multipath), estimated on its own knots beside "
+        "correlated_error, which it needs; null (the default): not modelled.")
     float_offset: GnssFloatOffset | None = Field(
         default_factory=GnssFloatOffset,
         description="An offset per segment of epochs worse than a fix (RTKLIB Q > 1), estimated with this prior; "
@@ -154,6 +176,9 @@ class GnssFileConfig(StrictModel):
     def _one_sbet(self) -> "GnssFileConfig":
         if self.format == "sbet" and len(self.files) > 1:  # none: ProjectConfig says the file is missing
             raise ValueError(f"format sbet takes one SBET file, got {len(self.files)}")
+        if self.multipath is not None and self.correlated_error is None:
+            raise ValueError("multipath is estimated beside correlated_error: state correlated_error too, or set "
+                             "multipath to null")
         return self
 
 

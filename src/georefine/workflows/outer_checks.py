@@ -186,14 +186,24 @@ def warn_gnss_error_misfit(adj: LidarAdjustment) -> None:
     fix or float solution below what the search finds, a ``.pos`` file whose sigmas are too small). The stated
     position and attitude sigmas then lean optimistic."""
     solve = getattr(adj.result, "solve", None)
-    group = next((g for g in getattr(solve, "groups", ()) if g.name == "gnss_error_prior"), None)
-    if group is None or not group.variance_factor > GNSS_ERROR_FIT_LIMIT:
-        return
-    log.warning(
-        "the G/I/L's correlated GNSS error fits its prior at %.2f per row (warning above %.1f; expected at most 1): "
-        "the planes pull it faster or further than gnss.correlated_error allows, and the stated position and attitude "
-        "sigmas lean optimistic. GNSS errors the model does not hold do this (multipath, a wrong fix or float segment "
-        "the file does not flag, sigmas in the .pos file too small; the G/I/L's estimate is in gil/adjustment.json, "
-        "gnss_error), and so does a LiDAR model that does not fit (then other warnings name it)",
-        group.variance_factor, GNSS_ERROR_FIT_LIMIT,
-    )
+    groups = {g.name: g for g in getattr(solve, "groups", ())}
+    group = groups.get("gnss_error_prior")
+    if group is not None and group.variance_factor > GNSS_ERROR_FIT_LIMIT:
+        multipath = "gnss_multipath_prior" in groups
+        log.warning(
+            "the G/I/L's correlated GNSS error fits its prior at %.2f per row (warning above %.1f; expected at most 1): "
+            "the planes pull it faster or further than gnss.correlated_error allows, and the stated position and "
+            "attitude sigmas lean optimistic. GNSS errors the model does not hold do this (%s, a wrong fix or float "
+            "segment the file does not flag, sigmas in the .pos file too small; the G/I/L's estimate is in "
+            "gil/adjustment.json, gnss_error), and so does a LiDAR model that does not fit (then other warnings name it)",
+            group.variance_factor, GNSS_ERROR_FIT_LIMIT,
+            "multipath beyond the stated gnss.multipath" if multipath
+            else "multipath, which gnss.multipath models where it is stated",
+        )
+    group = groups.get("gnss_multipath_prior")
+    if group is not None and group.variance_factor > GNSS_ERROR_FIT_LIMIT:
+        log.warning(
+            "the G/I/L's multipath fits its prior at %.2f per row (warning above %.1f; expected at most 1): the planes "
+            "pull it faster or further than gnss.multipath allows (its sigmas or correlation time understate it), and "
+            "the stated position and attitude sigmas lean optimistic", group.variance_factor, GNSS_ERROR_FIT_LIMIT,
+        )

@@ -5,7 +5,8 @@ rotated into ``w``: ``r = L (p_w(t) + R_w_b(t) p_b_a + d(t) - p~_w)``. ``d(t)``,
 error that lasts minutes, is optional: piecewise linear on its own knots (a
 :class:`~georefine.adjustment.observations.bias.BiasGrid`, block ``error_block``), with a
 Gauss-Markov prior (:class:`~georefine.adjustment.observations.trajectory_prior.GaussMarkovPrior`)
-added by the problem builder. Epochs of a segment without a fixed solution add that segment's
+added by the problem builder; a second such process, the multipath that lasts tens of seconds
+(``multipath_grid``, ``multipath_block``), adds to it where stated. Epochs of a segment without a fixed solution add that segment's
 offset (block ``segment_block``, (S, 3); :mod:`georefine.adjustment.gnss_segments`). Right perturbation of ``R(t)`` gives
 ``d(R l)/d delta = -R skew(l)``. A robust loss (Huber by default) acts on the squared norm
 of each epoch's whitened 3-vector, against multipath jumps.
@@ -50,6 +51,9 @@ class GnssPositionObservation:
     error_grid, error_block
         Knots and block name ((J, 3), m in ``w``) of the correlated GNSS error ``d(t)``; None:
         the error is white.
+    multipath_grid, multipath_block
+        Knots and block ((K, 3), m in ``w``) of the short-correlated error (multipath), added to
+        ``d(t)``; None: not modelled.
     segment, segment_block
         Segment of each epoch ((M,) int, -1 for none) and the block of the segments' offsets
         ((S, 3), m in ``w``); None: no offsets.
@@ -68,6 +72,8 @@ class GnssPositionObservation:
     error_block: str | None = None
     segment: np.ndarray | None = None
     segment_block: str | None = None
+    multipath_grid: BiasGrid | None = None
+    multipath_block: str | None = None
 
     def __post_init__(self) -> None:
         self.time = np.asarray(self.time, dtype=float)
@@ -83,6 +89,10 @@ class GnssPositionObservation:
             raise ValueError(f"{self.name}: error_grid and error_block go together")
         if self.error_grid is not None:
             self._j, self._lam = self.error_grid.weights(self.time)
+        if (self.multipath_grid is None) != (self.multipath_block is None):
+            raise ValueError(f"{self.name}: multipath_grid and multipath_block go together")
+        if self.multipath_grid is not None:
+            self._jm, self._lamm = self.multipath_grid.weights(self.time)
         if (self.segment is None) != (self.segment_block is None):
             raise ValueError(f"{self.name}: segment and segment_block go together")
         if self.segment is not None:
@@ -95,10 +105,12 @@ class GnssPositionObservation:
         return self._model(P, V, A, R, W, jacobians=False)[0] + self._error(values)
 
     def _error(self, values: Mapping[str, np.ndarray]) -> np.ndarray | float:
-        """The correlated GNSS error ``d(t)`` and the segments' offsets at the epochs (M, 3), or 0."""
+        """The correlated GNSS error ``d(t)``, the multipath and the segments' offsets at the epochs (M, 3), or 0."""
         out = 0.0
         if self.error_block is not None:
             out = self.error_grid.evaluate(np.asarray(values[self.error_block]), self.time)
+        if self.multipath_block is not None:
+            out = out + self.multipath_grid.evaluate(np.asarray(values[self.multipath_block]), self.time)
         if self.segment_block is not None:
             offset = np.zeros((self.time.size, 3))
             k = self._in_segment
@@ -126,6 +138,10 @@ class GnssPositionObservation:
                 lam = self._lam[:, None, None]
                 jac.append(JacobianBlock(self.error_block, self._rows, self._j, L * (1.0 - lam)))
                 jac.append(JacobianBlock(self.error_block, self._rows, self._j + 1, L * lam))
+            if self.multipath_block is not None:
+                lam = self._lamm[:, None, None]
+                jac.append(JacobianBlock(self.multipath_block, self._rows, self._jm, L * (1.0 - lam)))
+                jac.append(JacobianBlock(self.multipath_block, self._rows, self._jm + 1, L * lam))
             if self.segment_block is not None and self._in_segment.size:
                 k = self._in_segment
                 jac.append(JacobianBlock(self.segment_block, self._rows[k], self.segment[k], L[k]))
