@@ -19,7 +19,7 @@ A ``clean`` case (the scenario without the error, same seed) is the reference. K
 | ``lidar-range`` | ``scanner.range_offset_m`` = M m and ``scanner.range_scale_ppm`` = 100 | ``processing.lidar.estimate_range_calibration: true`` / as simulated (not estimated) |
 | ``imu-thermal`` | ``imu.temperature_change_c`` = M deg C over 900 s with bias coefficients of 0.1 deg/h and 10 ug per deg C and a gyro g-sensitivity of 2 deg/h/g (1 sigma) | ``imu.errors``' figures (the bias random walk widened) / removed |
 | ``gnss-jump`` | a wrong fix of 60 s from 20 s into the first pass (``gnss.ambiguity_jumps``; Q=1, fixed sigmas), its offset drawn with M m horizontal and 1.5 M m up | searched for (``gnss.float_offset.detect_jumps``, the default) / not searched |
-| ``gnss-multipath`` | ``gnss.multipath_sigma_horizontal_m`` = M m, ``_up_m`` = 2 M m (20 s correlation) | one case: not modelled |
+| ``gnss-multipath`` | ``gnss.multipath_sigma_horizontal_m`` = M m, ``_up_m`` = 2 M m (20 s correlation) | ``gnss.multipath`` (the simulated figures, estimated beside the correlated error) / removed (not modelled) |
 | ``lidar-channel`` | ``scanner.channel_tilt_error_mdeg`` = (0, M, -M), ``channel_scan_angle_error_mdeg`` = (0, -M/2, M) | ``processing.lidar.estimate_channel_angles: true`` / as simulated (not estimated) |
 | ``gnss-outage`` | no GNSS for M s from 20 s into the first pass (``gnss.outages``): not an error of the model, a direction less observed | one case |
 | ``lidar-incidence`` | ``scanner.range_incidence_bias_m`` = M m: every range B (1/cos(theta) - 1) long at incidence theta | one case: not modelled (the calibration check estimates it) |
@@ -106,6 +106,10 @@ def _without_thermal(cfg: dict) -> None:
         cfg["imu"]["errors"].pop(key, None)
 
 
+def _without_multipath(cfg: dict) -> None:
+    cfg["gnss"].pop("multipath", None)
+
+
 def _float_as_fix(cfg: dict) -> None:
     cfg["gnss"]["float_offset"] = None
 
@@ -119,7 +123,7 @@ KINDS = {  # kind: (simulation overrides for magnitude M given the clean project
                     _without_thermal),
     "gnss-jump": (_jump_overrides, _without_jump_search),
     "gnss-multipath": (lambda m, clean: [f"gnss.multipath_sigma_horizontal_m={m}", f"gnss.multipath_sigma_up_m={2 * m}"],
-                       None),
+                       _without_multipath),
     "lidar-channel": (_channel_overrides, lambda cfg: None),
     "gnss-outage": (lambda m, clean: [f"gnss.outages=[[{_first_pass(clean)[0] + 20.0}, {_first_pass(clean)[0] + 20.0 + m}]]"],
                     None),

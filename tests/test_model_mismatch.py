@@ -1,5 +1,5 @@
-"""Sensor errors beyond the basic model (docs/ARCHITECTURE.md §4.3): a misaligned, non-orthogonal IMU, and GNSS
-epochs whose ambiguities stay float; the scanner's range and channel-angle calibration.
+"""Sensor errors beyond the basic model (docs/ARCHITECTURE.md §4.3): a misaligned, non-orthogonal IMU, GNSS
+epochs whose ambiguities stay float, GNSS multipath; the scanner's range, channel-angle and encoder calibration.
 
 The simulator turns each IMU triad by about half a milliradian (``imu.*_misalignment_mrad``); the
 project states that figure, so the adjustments estimate the misalignment. The same project with the
@@ -177,6 +177,63 @@ def test_check_names_the_float_segment(float_navigation):
     assert "gets an offset of its own (gnss.float_offset)" in proc.stdout
 
 
+MULTIPATH = ["gnss.multipath_sigma_horizontal_m=0.02", "gnss.multipath_sigma_up_m=0.04"]  # 20 s correlation
+
+
+@pytest.fixture(scope="module")
+def multipath_navigation(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("multipath") / "tiny"
+    simulate_project("corridor-tiny", out, seed=21, overrides=FAST_SCAN + MULTIPATH)
+    return out
+
+
+def test_a_stated_multipath_is_estimated_and_its_sigmas_hold(multipath_navigation, tmp_path):
+    """2/4 cm of multipath correlated over 20 s: stated (``gnss.multipath``, as the simulator writes it) the G/I
+    estimates it beside the correlated error and its position sigma holds; left out, the position sigma is
+    optimistic (the 300 s correlated error cannot follow it)."""
+    project = multipath_navigation
+    stated = yaml.safe_load((project / "project.yaml").read_text())["gnss"]["multipath"]
+    assert stated == {"sigma_horizontal_m": 0.02, "sigma_up_m": 0.04, "time_constant_s": 20.0}
+    run_trajectory(project, tmp_path / "stated")
+    mp = json.loads((tmp_path / "stated" / "adjustment.json").read_text())["gnss_error"]["multipath"]
+    t0 = yaml.safe_load((project / "truth" / "scenario.yaml").read_text())["t0_gps"]
+    truth = np.load(project / "truth" / "gnss_errors.npz")
+    tk = np.asarray(mp["knot_times_s"]) + t0
+    inside = (tk >= truth["time_gps"][0]) & (tk <= truth["time_gps"][-1])
+    true_up = -np.interp(tk, truth["time_gps"], truth["multipath_ned"][:, 2])[inside]
+    up, up_sigma = np.asarray(mp["enu_m"])[inside, 2], np.asarray(mp["enu_sigma_m"])[inside, 2]
+    assert np.corrcoef(true_up, up)[0, 1] > 0.4  # measured 0.60
+    assert 0.5 < np.sqrt(np.mean(((up - true_up) / up_sigma) ** 2)) < 2.0  # measured 0.97
+    sbet = tmp_path / "stated" / "trajectory.sbet"
+    _, z_stated = _position_z(sbet, project)
+    assert 0.7 < z_stated < 1.4, z_stated  # measured 1.04
+    for strip in _passes(project):
+        roll_z = truth_pass_accuracy(sbet, project, strip).z_rms[0]
+        assert 0.5 < roll_z < 2.0, (strip, roll_z)  # measured 0.95, 0.78
+
+    left_out = tmp_path / "left-out"
+    shutil.copytree(project, left_out, symlinks=True)
+    cfg = yaml.safe_load((left_out / "project.yaml").read_text())
+    cfg["gnss"].pop("multipath")
+    (left_out / "project.yaml").write_text(yaml.safe_dump(cfg))
+    run_trajectory(left_out, tmp_path / "unstated")
+    _, z_unstated = _position_z(tmp_path / "unstated" / "trajectory.sbet", left_out)
+    assert z_unstated > 1.4 * z_stated, (z_unstated, z_stated)  # measured 1.76 against 1.04
+    assert "multipath" not in json.loads((tmp_path / "unstated" / "adjustment.json").read_text())["gnss_error"]
+
+
+def _position_z(sbet: Path, project: Path) -> tuple[float, float]:
+    """3-D position RMSE (m) and the RMS of error / stated sigma over the axes, pooled."""
+    from georefine.io.trajectory import read_sbet_companion, read_smrmsg, smrmsg_path
+
+    cmp = compare_sbet_files(sbet, project / "truth" / "trajectory.sbet")
+    sig = read_smrmsg(smrmsg_path(sbet), gps_week=read_sbet_companion(sbet).gps_week)
+    t = cmp.t0_gps + cmp.time
+    s = np.column_stack([np.interp(t, sig.time_gps, sig.sigma_ned_m[:, i]) for i in range(3)])
+    d = cmp.d_ned_m
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1)))), float(np.sqrt(np.mean((d / s) ** 2)))
+
+
 def _spline_with_roll(roll_rad: float):
     """A 20 s straight eastward spline whose attitude carries ``roll_rad`` of roll."""
     from georefine.geometry.rotation import exp_so3
@@ -235,7 +292,26 @@ def test_a_correlated_gnss_error_beyond_its_prior_is_a_warning(factor, warned, c
     messages = [r.getMessage() for r in caplog.records]
     assert len(messages) == int(warned), messages
     if warned:
-        assert "fits its prior at 2.38 per row" in messages[0] and "multipath" in messages[0]
+        assert "fits its prior at 2.38 per row" in messages[0] and "gnss.multipath models where it is stated" in messages[0]
+
+
+@pytest.mark.parametrize(("slow", "fast", "warned"), [(0.3, 2.1, ["multipath fits its prior at 2.10"]),
+                                                       (2.38, 0.4, ["beyond the stated gnss.multipath"]),
+                                                       (0.3, 0.5, [])])
+def test_a_stated_multipath_beyond_its_prior_is_a_warning(slow, fast, warned, caplog):
+    """With gnss.multipath stated, each of the two GNSS error processes is tested against its own prior."""
+    from types import SimpleNamespace
+
+    from georefine.workflows.outer_checks import warn_gnss_error_misfit
+
+    groups = (SimpleNamespace(name="gnss_error_prior", variance_factor=slow),
+              SimpleNamespace(name="gnss_multipath_prior", variance_factor=fast))
+    with caplog.at_level("WARNING", logger="georefine.workflows.outer_checks"):
+        warn_gnss_error_misfit(SimpleNamespace(result=SimpleNamespace(solve=SimpleNamespace(groups=groups))))
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == len(warned), messages
+    for text, message in zip(warned, messages):
+        assert text in message
 
 
 

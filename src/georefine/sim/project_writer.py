@@ -35,6 +35,7 @@ from georefine.config import (
     CrsConfig,
     GnssCorrelatedError,
     GnssFileConfig,
+    GnssMultipath,
     ImuErrorSpec,
     ImuFileConfig,
     PhotosFileConfig,
@@ -69,6 +70,16 @@ def stated_gnss_error(gnss: GnssConfig) -> GnssCorrelatedError | None:
     floor = 1e-4  # a sigma must be positive; 0.1 mm is none to speak of
     return GnssCorrelatedError(sigma_horizontal_m=max(h, floor), sigma_up_m=max(u, floor),
                                time_constant_s=gnss.gm_time_constant_s)
+
+
+def stated_gnss_multipath(gnss: GnssConfig) -> GnssMultipath | None:
+    """The multipath project.yaml states: the simulated one, where the correlated error is stated beside it."""
+    h, u = gnss.multipath_sigma_horizontal_m, gnss.multipath_sigma_up_m
+    if stated_gnss_error(gnss) is None or max(h, u) <= 0.0:
+        return None
+    floor = 1e-4
+    return GnssMultipath(sigma_horizontal_m=max(h, floor), sigma_up_m=max(u, floor),
+                         time_constant_s=gnss.multipath_time_constant_s)
 
 
 def fly(cfg: Any, frame: LocalFrame, terrain_height, flight: FlightConfig | None = None) -> TrueTrajectory:
@@ -202,7 +213,8 @@ def _project_config(cfg: Any, sorties: list[Sortie], ext: str) -> ProjectConfig:
         name=cfg.name,
         crs=CrsConfig(output_epsg=cfg.output_epsg),
         gnss=GnssFileConfig(files=["gnss/rover.pos"] if single else [], lever_arm_m=cfg.gnss_lever_arm_m,
-                            correlated_error=stated_gnss_error(cfg.gnss)),
+                            correlated_error=stated_gnss_error(cfg.gnss),
+                            multipath=stated_gnss_multipath(cfg.gnss)),
         imu=ImuFileConfig(file="imu/imu.csv" if single else None, format="csv", rate_hz=cfg.imu.rate_hz,
                           errors=errors),
         scanner=ScannerFileConfig(
