@@ -126,6 +126,49 @@ def test_csv_wrong_field_count(tmp_path):
         read_imu_csv(path)
 
 
+@pytest.mark.parametrize("kind", ["rates", "increments"])
+def test_csv_temperature_column_round_trips_and_is_optional(tmp_path, kind):
+    """A last ``temperature_c`` column (deg C) is read where it is; files without it read as before (None)."""
+    from dataclasses import replace
+
+    data = _imu(3, kind=kind)
+    temperature = 20.0 + np.linspace(0.0, 7.5, len(data))
+    path = write_imu_csv(tmp_path / "imu.csv", replace(data, temperature_c=temperature))
+    assert path.read_text().splitlines()[0].endswith(",temperature_c")
+    back = read_imu_csv(path, rate_hz=RATE)
+    np.testing.assert_allclose(back.temperature_c, temperature, atol=5e-5)  # written with 4 decimals
+    np.testing.assert_allclose(back.gyro, data.gyro, rtol=1e-9, atol=1e-12)
+    assert read_imu_csv(write_imu_csv(tmp_path / "plain.csv", data), rate_hz=RATE).temperature_c is None
+
+
+def test_csv_implausible_temperature_names_line_and_field(tmp_path):
+    path = tmp_path / "imu.csv"
+    path.write_text("time,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z,temperature_c\n"
+                    "1.0,0,0,0,0,0,-9.8,21.5\n1.005,0,0,0,0,0,-9.8,2150\n")
+    with pytest.raises(InputError, match=r"line 3, field 'temperature_c': implausible IMU temperature.*2150"):
+        read_imu_csv(path)
+    path.write_text("time,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z,temperature_c,extra\n1.0,0,0,0,0,0,-9.8,21.5,0\n")
+    with pytest.raises(InputError, match=r"line 1: unknown IMU CSV header.*optionally followed by ',temperature_c'"):
+        read_imu_csv(path)
+
+
+def test_bridged_samples_get_the_interpolated_temperature():
+    from dataclasses import replace
+
+    from georefine.io.imu_gaps import bridge_imu_gaps
+
+    data = _imu(4)
+    keep = np.ones(len(data), dtype=bool)
+    keep[100:104] = False
+    temperature = 20.0 + 0.01 * np.arange(len(data))
+    gappy = ImuData(data.time_gps[keep], data.gyro[keep], data.acc[keep], RATE, temperature_c=temperature[keep])
+    bridged, too_long = bridge_imu_gaps(gappy, max_gap_s=1.0)
+    assert too_long is None and len(bridged.data) == len(data)
+    np.testing.assert_allclose(bridged.data.temperature_c, np.interp(bridged.data.time_gps, gappy.time_gps,
+                                                                     gappy.temperature_c))
+    assert replace(gappy, temperature_c=None).temperature_c is None
+
+
 # --- IMR ----------------------------------------------------------------------
 
 

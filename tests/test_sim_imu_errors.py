@@ -160,3 +160,19 @@ def test_the_project_truth_holds_quantisation_and_vibration(flight):
     np.testing.assert_array_equal(on["quantisation_acc"], imu.quantisation_acc)
     np.testing.assert_array_equal(on["vibration_bias_acc"], imu.vibration_rectification * (0.5 * G0) ** 2)
     np.testing.assert_array_equal(on["vibration_phase"], imu.vibration_phase)
+
+
+def test_the_imu_file_logs_the_temperature_where_it_changes(flight, tmp_path):
+    """The written CSV carries the unit's temperature (20 deg C at the first sample plus the simulated change) where
+    the grade changes it, and no such column where it does not."""
+    from georefine.io.imu import read_imu_csv
+    from georefine.sim.writers import write_imu
+
+    warm = imu_grade("mems").model_copy(update={"temperature_change_c": 15.0, "gyro_temperature_deg_per_h_per_c": 0.1})
+    imu = simulate_imu(flight, warm, 0.0, 2.0, np.random.default_rng(5))
+    write_imu(tmp_path / "warm.csv", imu)
+    back = read_imu_csv(tmp_path / "warm.csv")
+    np.testing.assert_allclose(back.temperature_c, 20.0 + imu.temperature_c, atol=5e-5)
+    assert back.temperature_c[0] == 20.0 and back.temperature_c[-1] > 20.0
+    write_imu(tmp_path / "plain.csv", simulate_imu(flight, imu_grade("mems"), 0.0, 2.0, np.random.default_rng(5)))
+    assert read_imu_csv(tmp_path / "plain.csv").temperature_c is None

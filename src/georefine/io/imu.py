@@ -23,7 +23,10 @@ conversions are exact inverses.
 CSV
     Header ``time,gyro_x,gyro_y,gyro_z,acc_x,acc_y,acc_z`` (GPS seconds, rad/s,
     m/s², FRD) or ``time,dtheta_x,dtheta_y,dtheta_z,dv_x,dv_y,dv_z`` (rad and m/s
-    over the interval ending at ``time``). Lines starting with ``#`` are comments.
+    over the interval ending at ``time``), either optionally followed by
+    ``temperature_c``: the unit's temperature (deg C), as IMUs log it beside their readings,
+    against which the adjustment can estimate the biases' temperature coefficients. Lines
+    starting with ``#`` are comments.
 
 IMR (Inertial Explorer raw IMU)
     512-byte header then 32-byte records ``double time; int32 gx, gy, gz, ax, ay, az``
@@ -43,7 +46,7 @@ IMR (Inertial Explorer raw IMU)
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal
 
@@ -71,6 +74,8 @@ _log = logging.getLogger(__name__)
 
 RATE_COLUMNS = ("time", "gyro_x", "gyro_y", "gyro_z", "acc_x", "acc_y", "acc_z")
 INCREMENT_COLUMNS = ("time", "dtheta_x", "dtheta_y", "dtheta_z", "dv_x", "dv_y", "dv_z")
+TEMPERATURE_COLUMN = "temperature_c"
+"""The optional last CSV column: the unit's temperature (deg C)."""
 
 # R_FRD_RFU: x_FRD = y_RFU, y_FRD = x_RFU, z_FRD = -z_RFU (det = +1).
 R_FRD_RFU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
@@ -107,6 +112,8 @@ class ImuData:
     kind
         ``"rates"`` (values at the time tag) or ``"increments"`` (averages over
         the interval ending at the time tag).
+    temperature_c
+        (N,) the unit's temperature at each sample (deg C), or None where the file has none.
     """
 
     time_gps: np.ndarray
@@ -114,6 +121,7 @@ class ImuData:
     acc: np.ndarray
     rate_hz: float
     kind: Literal["rates", "increments"] = "rates"
+    temperature_c: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         t = np.ascontiguousarray(self.time_gps, dtype=np.float64)
@@ -132,6 +140,11 @@ class ImuData:
             raise ValueError(f"rate_hz must be positive, got {self.rate_hz}")
         if self.kind not in ("rates", "increments"):
             raise ValueError(f"kind must be 'rates' or 'increments', got {self.kind!r}")
+        if self.temperature_c is not None:
+            temp = np.ascontiguousarray(self.temperature_c, dtype=np.float64)
+            if temp.shape != t.shape or not np.all(np.isfinite(temp)):
+                raise ValueError(f"temperature_c must be finite with shape {t.shape}, got {temp.shape}")
+            object.__setattr__(self, "temperature_c", temp)
         object.__setattr__(self, "time_gps", t)
         object.__setattr__(self, "rate_hz", float(self.rate_hz))
 
@@ -214,10 +227,12 @@ def read_imu_csv(
         raise InputError("no IMU samples", path=path, expected="a header and data lines", found="none")
     header_line = int(numbers[0])
     header = tuple(t.strip().lower() for t in rows[0].split(","))
-    if header not in (RATE_COLUMNS, INCREMENT_COLUMNS):
+    temperature = header[-1:] == (TEMPERATURE_COLUMN,)
+    if header[:7] not in (RATE_COLUMNS, INCREMENT_COLUMNS) or len(header) != 7 + temperature:
         raise InputError(
             "unknown IMU CSV header", path=path, line=header_line,
-            expected=f"'{','.join(RATE_COLUMNS)}' or '{','.join(INCREMENT_COLUMNS)}'", found=repr(rows[0]),
+            expected=f"'{','.join(RATE_COLUMNS)}' or '{','.join(INCREMENT_COLUMNS)}', either optionally followed by "
+            f"',{TEMPERATURE_COLUMN}'", found=repr(rows[0]),
         )
     rows, numbers = rows[1:], numbers[1:]
     if not rows:
@@ -226,11 +241,19 @@ def read_imu_csv(
     t = v[:, 0]
     raise_if_not_increasing(path, t, numbers, "time", formatter=lambda x: f"{x:.9f}")
     rate = rate_hz or _nominal_rate(t)
-    if header == RATE_COLUMNS:
+    if header[:7] == RATE_COLUMNS:
         data = ImuData(t, v[:, 1:4], v[:, 4:7], rate, "rates")
     else:
         data = ImuData.from_increments(t, v[:, 1:4], v[:, 4:7], rate, max_gap_factor)
-    _check_magnitudes(path, data.gyro, data.acc, numbers, header[1:], max_gyro_rad_s, max_acc_m_s2, "line")
+    _check_magnitudes(path, data.gyro, data.acc, numbers, header[1:7], max_gyro_rad_s, max_acc_m_s2, "line")
+    if temperature:
+        temp = v[:, 7]
+        bad = np.flatnonzero((temp < -60.0) | (temp > 125.0))  # beyond any IMU's operating range
+        if bad.size:
+            raise InputError("implausible IMU temperature", path=path, line=int(numbers[bad[0]]),
+                             field=TEMPERATURE_COLUMN, expected="deg C within -60 .. 125",
+                             found=f"{temp[bad[0]]:g}")
+        data = replace(data, temperature_c=temp)
     _log.info("read %d IMU samples (%s, %.1f Hz) from %s", len(data), data.kind, rate, path)
     return data
 
@@ -258,6 +281,9 @@ def write_imu_csv(
         raise ValueError(f"kind must be 'rates' or 'increments', got {kind!r}")
     fmt = "%.9f" + ",%.10e" * 6 + "\n"
     table = np.column_stack([data.time_gps, a, b])
+    if data.temperature_c is not None:
+        columns, fmt = (*columns, TEMPERATURE_COLUMN), fmt[:-1] + ",%.4f\n"
+        table = np.column_stack([table, data.temperature_c])
     with atomic_output(path, "w", protect=protect) as fh:
         fh.write(",".join(columns) + "\n")
         fh.writelines(fmt % tuple(r) for r in table.tolist())

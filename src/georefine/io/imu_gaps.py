@@ -154,5 +154,6 @@ def bridge_imu_gaps(imu: ImuData, max_gap_s: float, max_gap_factor: float = 1.5)
         sg_parts.append(np.full(gap.missing, sigmas[0]))
         sa_parts.append(np.full(gap.missing, sigmas[1]))
     t = np.concatenate(t_parts)
-    data = ImuData(t, np.concatenate(g_parts), np.concatenate(a_parts), imu.rate_hz, imu.kind)
+    temperature = None if imu.temperature_c is None else np.interp(t, imu.time_gps, imu.temperature_c)
+    data = ImuData(t, np.concatenate(g_parts), np.concatenate(a_parts), imu.rate_hz, imu.kind, temperature)
     return BridgedImu(data, np.concatenate(sg_parts), np.concatenate(sa_parts), tuple(gaps)), None

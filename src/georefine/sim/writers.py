@@ -49,10 +49,22 @@ def write_gnss(path: Path, gnss: SimulatedGnss) -> None:
     write_pos(path, solution, time_format="calendar", position_format="llh", time_decimals=3)
 
 
+CABIN_TEMPERATURE_C = 20.0
+"""The simulated IMU's temperature at its first sample (deg C)."""
+
+
 def write_imu(path: Path, imu: SimulatedImu, imr_path: Path | None = None) -> None:
-    """IMU CSV (instantaneous rates, body FRD) and optionally a NovAtel ``.imr`` file."""
+    """IMU CSV (instantaneous rates, body FRD) and optionally a NovAtel ``.imr`` file.
+
+    Where the unit's temperature changes (``imu.temperature_change_c``), the CSV carries it as its
+    last column, from a cabin's 20 deg C at the first sample, as units log it; ``.imr`` has no
+    such field."""
+    temperature = None
+    if imu.temperature_c is not None and np.any(imu.temperature_c):
+        temperature = CABIN_TEMPERATURE_C + imu.temperature_c
     data = ImuData(
-        time_gps=imu.t0_gps + imu.time, gyro=imu.gyro, acc=imu.acc, rate_hz=imu.grade.rate_hz, kind="rates"
+        time_gps=imu.t0_gps + imu.time, gyro=imu.gyro, acc=imu.acc, rate_hz=imu.grade.rate_hz, kind="rates",
+        temperature_c=temperature,
     )
     write_imu_csv(path, data)
     if imr_path is not None:
