@@ -65,6 +65,19 @@ def test_the_figures_compare_the_adjustment_with_the_truth_at_its_knots(tmp_path
     assert ImuErrorFigures.from_dict(f.to_dict()) == f
     assert imu_error_figures(AdjustmentReport("G/I/L", t0), path) is None
 
+    # Temperature coefficients estimated: the knots hold the walk's part, the temperature part is added back at the
+    # truth's temperature change before the comparison.
+    temperature_c = np.linspace(0.0, 12.0, t.size)
+    np.savez(tmp_path / "warm.npz", **dict(np.load(path)), temperature_c=temperature_c)
+    d_t = np.interp(t0 + knots, t, temperature_c)[:, None]
+    k_g, k_a = np.array([0.1, -0.2, 0.05]), np.array([10.0, 5.0, -8.0])
+    warm = AdjustmentReport("G/I/L", t0, imu_errors=adjustment.imu_errors | {
+        "acc_bias_ug": (acc_true + acc_err - d_t * k_a).tolist(), "gyro_bias_deg_per_h": (gyro_true - 0.5 - d_t * k_g).tolist(),
+        "gyro_temperature_deg_per_h_per_c": k_g.tolist(), "acc_temperature_ug_per_c": k_a.tolist()})
+    w = imu_error_figures(warm, tmp_path / "warm.npz")
+    np.testing.assert_allclose(w.acc_bias_rms_error_ug, np.abs(acc_err), rtol=1e-9)
+    np.testing.assert_allclose(w.gyro_bias_rms_error_deg_per_h, [0.5] * 3, rtol=1e-9)
+
     b = boresight_figures(AdjustmentReport("G/I/L", t0, boresight_deg=(0.062, -0.021, 0.030),
                                            boresight_sigma_mdeg=(2.0, 2.1, 9.0)),
                           [0.060, -0.020, 0.034], [0.010, -0.020, 0.034])

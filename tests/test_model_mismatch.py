@@ -1,5 +1,6 @@
 """Sensor errors beyond the basic model (docs/ARCHITECTURE.md §4.3): a misaligned, non-orthogonal IMU, GNSS
-epochs whose ambiguities stay float, GNSS multipath; the scanner's range, channel-angle and encoder calibration.
+epochs whose ambiguities stay float, GNSS multipath, biases that drift with the unit's temperature; the scanner's
+range, channel-angle and encoder calibration.
 
 The simulator turns each IMU triad by about half a milliradian (``imu.*_misalignment_mrad``); the
 project states that figure, so the adjustments estimate the misalignment. The same project with the
@@ -220,6 +221,67 @@ def test_a_stated_multipath_is_estimated_and_its_sigmas_hold(multipath_navigatio
     _, z_unstated = _position_z(tmp_path / "unstated" / "trajectory.sbet", left_out)
     assert z_unstated > 1.4 * z_stated, (z_unstated, z_stated)  # measured 1.76 against 1.04
     assert "multipath" not in json.loads((tmp_path / "unstated" / "adjustment.json").read_text())["gnss_error"]
+
+
+WARM_UP = ["imu.temperature_change_c=30", "imu.temperature_time_constant_s=300",
+           "imu.gyro_temperature_deg_per_h_per_c=0.5", "imu.acc_temperature_ug_per_c=50"]
+"""A MEMS unit warming by 30 deg C over five minutes with bias coefficients of 0.5 deg/h and 50 ug per deg C."""
+
+
+@pytest.fixture(scope="module")
+def warming_navigation(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("warming") / "tiny"
+    simulate_project("corridor-tiny", out, seed=21, overrides=FAST_SCAN + WARM_UP)
+    return out
+
+
+def test_the_gi_estimates_the_biases_temperature_coefficients_from_the_logged_temperature(warming_navigation, tmp_path):
+    """The IMU file logs the temperature and the datasheet states the coefficients: the G/I estimates them
+    (``estimate_temperature_coefficients: auto``) within 2.5 sigma of the truth, well inside their prior where the
+    drift shows; without them (the bias walk widened for the stated change instead) pass 2's pitch is five times
+    worse and its sigmas pessimistic."""
+    project = warming_navigation
+    assert (project / "imu" / "imu.csv").read_text().partition("\n")[0].endswith(",temperature_c")
+    run_trajectory(project, tmp_path / "estimated")
+    e = json.loads((tmp_path / "estimated" / "adjustment.json").read_text())["imu_errors"]
+    truth = np.load(project / "truth" / "imu_errors.npz")
+    deg_per_h, ug = np.pi / 180.0 / 3600.0, 9.80665e-6
+    z_g = (np.asarray(e["gyro_temperature_deg_per_h_per_c"]) - truth["temperature_gyro"] / deg_per_h) \
+        / np.asarray(e["gyro_temperature_sigma_deg_per_h_per_c"])
+    z_a = (np.asarray(e["acc_temperature_ug_per_c"]) - truth["temperature_acc"] / ug) \
+        / np.asarray(e["acc_temperature_sigma_ug_per_c"])
+    assert np.all(np.abs(np.concatenate([z_g, z_a])) < 2.5), (z_g, z_a)  # measured 0.16 -2.02 -0.45, -0.05 1.40 1.37
+    assert np.all(np.asarray(e["gyro_temperature_sigma_deg_per_h_per_c"])[:2] < 0.3 * 0.5)  # 0.10-0.11 of 0.5
+    assert e["acc_temperature_sigma_ug_per_c"][2] < 0.1 * 50.0  # 2.6 of 50: the vertical drift shows most
+    estimated = [truth_pass_accuracy(tmp_path / "estimated" / "trajectory.sbet", project, s) for s in _passes(project)]
+    for a in estimated:
+        assert 0.5 < a.z_rms[0] < 2.0, a.z_rms  # roll: measured 1.24, 1.43
+
+    walk = _estimating(project, tmp_path / "walk-project")
+    cfg = yaml.safe_load((walk / "project.yaml").read_text())
+    cfg["processing"]["trajectory"] = {"estimate_temperature_coefficients": False}
+    (walk / "project.yaml").write_text(yaml.safe_dump(cfg))
+    run_trajectory(walk, tmp_path / "walk")
+    assert json.loads((tmp_path / "walk" / "adjustment.json").read_text())["imu_errors"][
+        "gyro_temperature_deg_per_h_per_c"] is None
+    widened = [truth_pass_accuracy(tmp_path / "walk" / "trajectory.sbet", project, s) for s in _passes(project)]
+    assert estimated[1].rmse_mdeg[1] < 0.4 * widened[1].rmse_mdeg[1], (estimated[1], widened[1])  # 3.4 against 17.3
+
+
+def test_check_lists_the_logged_temperature_and_refuses_a_missing_one(warming_navigation, float_navigation, tmp_path):
+    proc = run_georefine_here("check", str(warming_navigation))
+    assert proc.returncode == 0, proc.stderr
+    assert "gaps, temperature 20.0 .. " in proc.stdout, proc.stdout
+    wanting = _estimating(float_navigation, tmp_path / "wanting")
+    cfg = yaml.safe_load((wanting / "project.yaml").read_text())
+    cfg["processing"]["trajectory"] = {"estimate_temperature_coefficients": True}
+    (wanting / "project.yaml").write_text(yaml.safe_dump(cfg))
+    for command in ("check", "trajectory"):
+        args = (command, str(wanting)) + (("--out", str(tmp_path / "out")) if command == "trajectory" else ())
+        proc = run_georefine_here(*args)
+        assert proc.returncode == 2, (command, proc.stdout, proc.stderr)
+        assert "the IMU file logs no temperature" in proc.stderr and "temperature_c" in proc.stderr, proc.stderr
+        assert "Traceback" not in proc.stderr
 
 
 def _position_z(sbet: Path, project: Path) -> tuple[float, float]:
@@ -566,3 +628,33 @@ def test_the_gil_estimates_the_encoder_error_with_the_boresight(encoder_error, t
         # roll 1.46 / 0.97, pitch 0.89 / 0.70, yaw 0.13 / 0.14 (the boresight's yaw sigma, 13 mdeg); none beyond 3.
         assert a.rmse_mdeg[0] < 6.0 and a.rmse_mdeg[1] < 4.0 and a.rmse_mdeg[2] < 2.6, (strip, a)
         assert np.all(a.z_rms[:2] > 0.5) and np.all(a.z_rms < 2.0) and np.all(a.beyond_3_sigma <= 0.01), (strip, a)
+
+
+@pytest.mark.parametrize(("mode", "logged", "stated", "expected"), [
+    ("auto", True, True, (0.5, 50.0)), ("auto", True, False, None), ("auto", False, True, None),
+    (True, True, False, (0.1, 10.0)), (False, True, True, None)])
+def test_the_temperature_coefficients_are_estimated_where_the_file_logs_a_temperature(mode, logged, stated, expected):
+    """auto: where the IMU file logs a temperature and the datasheet states a coefficient (its figure the prior);
+    true: wherever the file logs one (the configured prior where the datasheet states none); true without a
+    temperature column is an input error that names the column."""
+    from types import SimpleNamespace
+
+    from georefine.adjustment.gnss_imu import DEG_PER_H, MICRO_G, temperature_prior
+    from georefine.config import ImuErrorSpec, TrajectoryAdjustmentConfig
+    from georefine.errors import InputError
+
+    base = dict(gyro_arw_deg_per_sqrt_h=0.1, gyro_bias_instability_deg_per_h=1.0, gyro_turn_on_bias_deg_per_h=10.0,
+                gyro_scale_factor_ppm=100.0, acc_vrw_m_per_s_per_sqrt_h=0.05, acc_bias_instability_ug=50.0,
+                acc_turn_on_bias_ug=500.0, acc_scale_factor_ppm=300.0)
+    spec = ImuErrorSpec(**base, **(dict(gyro_temperature_deg_per_h_per_c=0.5, acc_temperature_ug_per_c=50.0)
+                                   if stated else {}))
+    cfg = TrajectoryAdjustmentConfig(estimate_temperature_coefficients=mode)
+    data = SimpleNamespace(imu_temperature=np.full(10, 20.0) if logged else None)
+    prior = temperature_prior(spec, cfg, data)
+    if expected is None:
+        assert prior is None
+    else:
+        np.testing.assert_allclose(prior, (expected[0] * DEG_PER_H, expected[1] * MICRO_G))
+    with pytest.raises(InputError, match="logs no temperature.*temperature_c"):
+        temperature_prior(spec, TrajectoryAdjustmentConfig(estimate_temperature_coefficients=True),
+                          SimpleNamespace(imu_temperature=None))

@@ -248,6 +248,42 @@ def test_imu_jacobians_with_misalignment(seed, kind):
     assert m_f[0, 1] == values["acc_mis"][0, 0] and m_f[2, 1] == values["acc_mis"][0, 5]
 
 
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("kind", ["rates", "increments"])
+def test_imu_jacobians_with_temperature_coefficients(seed, kind):
+    """The biases' temperature coefficients: Jacobians beside the misalignment, and ``k (T - T_ref)`` adds to each
+    window's modelled mean."""
+    rng = np.random.default_rng(seed)
+    K = 12
+    grid = KnotGrid(0.0, 0.1, K)
+    values = random_knots(rng, K)
+    rate = 200.0
+    t = np.arange(0.01, grid.t_end - 0.01, 1 / rate)
+    wins = make_imu_windows(t, rng.normal(0, 0.1, (t.size, 3)), rng.normal(0, 1, (t.size, 3)) + [0, 0, -9.8],
+                            rate, 10 / rate, kind=kind)
+    bg = BiasGrid(0.0, 0.5, 4)
+    temperature = rng.uniform(0.0, 20.0, len(wins))
+    values |= {"acc_bias": rng.normal(0, 0.01, (4, 3)), "gyro_bias": rng.normal(0, 1e-4, (4, 3)),
+               "acc_scale": rng.normal(0, 1e-3, (1, 3)), "gyro_scale": rng.normal(0, 1e-3, (1, 3)),
+               "acc_mis": rng.normal(0, 1e-3, (1, 6)), "gyro_mis": rng.normal(0, 1e-3, (1, 6)),
+               "acc_temp": rng.normal(0, 1e-4, (1, 3)), "gyro_temp": rng.normal(0, 1e-6, (1, 3))}
+    group = ImuObservation(grid, wins, FRAME, bg, bg, sigma_acc=0.01, sigma_gyro=1e-4, nodes=3,
+                           acc_misalignment="acc_mis", gyro_misalignment="gyro_mis", temperature=temperature,
+                           acc_temperature="acc_temp", gyro_temperature="gyro_temp")
+    blocks = dict(TRAJ_BLOCKS, acc_bias="euclidean", gyro_bias="euclidean", acc_scale="euclidean",
+                  gyro_scale="euclidean", acc_mis="euclidean", gyro_mis="euclidean", acc_temp="euclidean",
+                  gyro_temp="euclidean")
+    chk = check_jacobians(group, values, blocks, eps=1e-4)
+    assert chk.max_rel_error < 1e-6, chk
+    plain = ImuObservation(grid, wins, FRAME, bg, bg, sigma_acc=0.01, sigma_gyro=1e-4, nodes=3,
+                           acc_misalignment="acc_mis", gyro_misalignment="gyro_mis")
+    (f0, w0), (f1, w1) = plain.predict(values), group.predict(values)
+    np.testing.assert_allclose(f1 - f0, temperature[:, None] * values["acc_temp"], rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(w1 - w0, temperature[:, None] * values["gyro_temp"], rtol=1e-9, atol=1e-18)
+    with pytest.raises(ValueError, match="go together"):
+        ImuObservation(grid, wins, FRAME, bg, bg, sigma_acc=0.01, sigma_gyro=1e-4, temperature=temperature)
+
+
 def _readings(grid, values, t, kind, rate):
     """Noise-free readings of the spline at ``t``: its value at each time tag (rates) or its mean
     over the interval that ends there (increments, 5-point Gauss-Legendre per interval)."""

@@ -75,6 +75,9 @@ class GnssImuData:
         The GNSS error that lasts minutes (``gnss.correlated_error``): estimated on its own
         knots, ``gnss_cov_w`` then holds the total of which the white part is what remains;
         None: ``gnss_cov_w`` is white.
+    imu_temperature : (N,) or None
+        The unit's temperature at each IMU sample (deg C, ``ImuData.temperature_c``), against which the
+        biases' temperature coefficients are estimated (:func:`temperature_prior`); None: not logged.
     gnss_multipath : GnssMultipath or None
         The GNSS error that lasts tens of seconds (``gnss.multipath``), estimated beside
         ``gnss_correlated`` on knots of its own (:func:`multipath_knot_interval`); None: not modelled.
@@ -116,6 +119,7 @@ class GnssImuData:
     gnss_float: GnssFloatOffset | None = None
     gnss_jumps: np.ndarray | None = None
     gnss_multipath: GnssMultipath | None = None
+    imu_temperature: np.ndarray | None = None
 
 
 GNSS_ERROR_BLOCK = "gnss_error"
@@ -210,6 +214,11 @@ class ImuErrorEstimate:
     gyro_misalignment: np.ndarray | None = None
     acc_misalignment_sigma: np.ndarray | None = None
     gyro_misalignment_sigma: np.ndarray | None = None
+    acc_temperature: np.ndarray | None = None
+    """The biases' temperature coefficients (m/s² and rad/s per deg C), where estimated, and their sigma."""
+    gyro_temperature: np.ndarray | None = None
+    acc_temperature_sigma: np.ndarray | None = None
+    gyro_temperature_sigma: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         def arr(x, f=1.0):
@@ -229,6 +238,10 @@ class ImuErrorEstimate:
             "gyro_misalignment_mrad": arr(self.gyro_misalignment, 1e3),
             "acc_misalignment_sigma_mrad": arr(self.acc_misalignment_sigma, 1e3),
             "gyro_misalignment_sigma_mrad": arr(self.gyro_misalignment_sigma, 1e3),
+            "acc_temperature_ug_per_c": arr(self.acc_temperature, 1 / MICRO_G),
+            "gyro_temperature_deg_per_h_per_c": arr(self.gyro_temperature, 1 / DEG_PER_H),
+            "acc_temperature_sigma_ug_per_c": arr(self.acc_temperature_sigma, 1 / MICRO_G),
+            "gyro_temperature_sigma_deg_per_h_per_c": arr(self.gyro_temperature_sigma, 1 / DEG_PER_H),
         }
 
 
@@ -276,6 +289,8 @@ class GnssImuProblem:
     gnss_segments: GnssSegments | None = None
     spec: ImuErrorSpec | None = None
     gnss_multipath_grid: BiasGrid | None = None
+    estimate_temperature: bool = False
+    """The biases' temperature coefficients are estimated (blocks ``acc_temperature``, ``gyro_temperature``)."""
     detect_jumps: bool = False
     """Search the residuals of the first solve for wrong GNSS fixes (:func:`solve_gnss_imu`)."""
 
@@ -300,11 +315,13 @@ def spline_from_problem(problem: Problem, blocks: TrajectoryBlocks, grid: KnotGr
     )
 
 
-def _densities(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> dict[str, float]:
+def _densities(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig, temperature_modelled: bool = False
+               ) -> dict[str, float]:
     """White-noise and bias random-walk densities in SI units, with the configured floors."""
     arw = max(spec.gyro_arw_deg_per_sqrt_h, cfg.min_gyro_noise_deg_per_sqrt_h)
     vrw = max(spec.acc_vrw_m_per_s_per_sqrt_h, cfg.min_acc_noise_m_per_s_per_sqrt_h)
-    q_g, q_a = spec.bias_random_walk_si()  # widened where a temperature change is stated
+    # widened where a temperature change is stated and the coefficients are not estimated
+    q_g, q_a = spec.bias_random_walk_si(temperature_modelled=temperature_modelled)
     return {
         "gyro_noise": np.radians(arw) / 60.0,  # rad/s/sqrt(Hz)
         "acc_noise": vrw / 60.0,  # m/s²/sqrt(Hz)
@@ -325,6 +342,30 @@ def misalignment_prior(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> t
         return None
     return tuple((v if v > 0 else cfg.misalignment_prior_mrad) * 1e-3
                  for v in (spec.gyro_misalignment_mrad, spec.acc_misalignment_mrad))
+
+
+def temperature_prior(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig, data: GnssImuData
+                      ) -> tuple[float, float] | None:
+    """Prior sigma of the gyro (rad/s per deg C) and the accelerometer (m/s² per deg C) temperature
+    coefficients, or None where they are not estimated (``cfg.estimate_temperature_coefficients``: ``auto``
+    where the IMU file logs a temperature and ``spec`` states a coefficient; ``true`` where it logs one).
+
+    Raises
+    ------
+    InputError
+        ``true`` with an IMU file that logs no temperature.
+    """
+    stated = spec.gyro_temperature_deg_per_h_per_c > 0 or spec.acc_temperature_ug_per_c > 0
+    mode = cfg.estimate_temperature_coefficients
+    if mode is True and data.imu_temperature is None:
+        raise InputError("the IMU file logs no temperature", field="temperature_c",
+                         expected="a temperature_c column where processing.trajectory."
+                         "estimate_temperature_coefficients is true", found="none")
+    if mode is False or data.imu_temperature is None or (mode == "auto" and not stated):
+        return None
+    g = spec.gyro_temperature_deg_per_h_per_c or cfg.temperature_prior_gyro_deg_per_h_per_c
+    a = spec.acc_temperature_ug_per_c or cfg.temperature_prior_acc_ug_per_c
+    return g * DEG_PER_H, a * MICRO_G
 
 
 def cleaning_redundancy(data: GnssImuData, inside: np.ndarray, window_s: float, densities: dict,
@@ -376,7 +417,8 @@ def build_gnss_imu_problem(
     inside = (data.imu_time - before >= span[0]) & (data.imu_time + after <= span[1])
     if inside.sum() < 2:
         raise InputError("no IMU samples inside the trajectory span", field="time")
-    d = _densities(spec, cfg)
+    temp = temperature_prior(spec, cfg, data)
+    d = _densities(spec, cfg, temperature_modelled=temp is not None)
     windows = make_imu_windows(
         data.imu_time[inside], data.imu_gyro[inside], data.imu_acc[inside], data.imu_rate_hz, cfg.imu_window_s,
         gyro_sigma=None if data.imu_gyro_sigma is None else data.imu_gyro_sigma[inside],
@@ -404,6 +446,13 @@ def build_gnss_imu_problem(
     if mis is not None:
         problem.add_block("acc_misalignment", np.zeros((1, 6)))
         problem.add_block("gyro_misalignment", np.zeros((1, 6)))
+    temperature = {}
+    if temp is not None:  # the windows' temperature against the file's first sample
+        problem.add_block("acc_temperature", np.zeros((1, 3)))
+        problem.add_block("gyro_temperature", np.zeros((1, 3)))
+        mid = 0.5 * (windows.t_start + windows.t_end)
+        temperature = dict(temperature=np.interp(mid, data.imu_time, data.imu_temperature) - data.imu_temperature[0],
+                           acc_temperature="acc_temperature", gyro_temperature="gyro_temperature")
 
     g_in = (data.gnss_time >= span[0]) & (data.gnss_time <= span[1])
     if not np.any(g_in):
@@ -443,7 +492,7 @@ def build_gnss_imu_problem(
         grid, windows, data.frame, bias_grid, bias_grid, sigma_acc=sigma_a, sigma_gyro=sigma_g,
         nodes=cfg.quadrature_nodes if np.any(windows.n_samples > 1) else 1, blocks=blocks,
         consumed_redundancy=consumed, acc_misalignment="acc_misalignment" if mis else None,
-        gyro_misalignment="gyro_misalignment" if mis else None,
+        gyro_misalignment="gyro_misalignment" if mis else None, **temperature,
     )
     imu, change = fewest_nodes(imu, {name: b.values for name, b in problem.blocks.items()})
     logger.debug("IMU windows: %d nodes each (one fewer moves a window mean by up to %.2g sigma)", imu.nodes, change)
@@ -458,9 +507,12 @@ def build_gnss_imu_problem(
     if mis is not None:
         problem.add_group(EuclideanPrior("gyro_misalignment_prior", "gyro_misalignment", [0], np.zeros(6), mis[0]))
         problem.add_group(EuclideanPrior("acc_misalignment_prior", "acc_misalignment", [0], np.zeros(6), mis[1]))
+    if temp is not None:
+        problem.add_group(EuclideanPrior("gyro_temperature_prior", "gyro_temperature", [0], np.zeros(3), temp[0]))
+        problem.add_group(EuclideanPrior("acc_temperature_prior", "acc_temperature", [0], np.zeros(3), temp[1]))
     return GnssImuProblem(problem, grid, bias_grid, blocks, data, cfg, cfg.estimate_scale_factors, egrid,
                           estimate_misalignment=mis is not None, gnss_segments=segments, spec=spec,
-                          gnss_multipath_grid=mgrid,
+                          gnss_multipath_grid=mgrid, estimate_temperature=temp is not None,
                           detect_jumps=bool(data.gnss_float is not None and data.gnss_float.detect_jumps
                                             and data.gnss_jumps is None))
 
@@ -521,6 +573,9 @@ def start_imu_errors(built: GnssImuProblem, errors: ImuErrorEstimate,
     for name, value in (("acc_misalignment", errors.acc_misalignment), ("gyro_misalignment", errors.gyro_misalignment)):
         if name in P.blocks and value is not None:
             P.set_values(name, np.asarray(value, dtype=float).reshape(1, 6))
+    for name, value in (("acc_temperature", errors.acc_temperature), ("gyro_temperature", errors.gyro_temperature)):
+        if name in P.blocks and value is not None:
+            P.set_values(name, np.asarray(value, dtype=float).reshape(1, 3))
     return built
 
 
@@ -531,6 +586,9 @@ def imu_errors_of(built: GnssImuProblem) -> ImuErrorEstimate:
     if built.estimate_misalignment:
         mis = dict(acc_misalignment=p.values("acc_misalignment")[0].copy(),
                    gyro_misalignment=p.values("gyro_misalignment")[0].copy())
+    if built.estimate_temperature:
+        mis |= dict(acc_temperature=p.values("acc_temperature")[0].copy(),
+                    gyro_temperature=p.values("gyro_temperature")[0].copy())
     return ImuErrorEstimate(built.bias_grid, p.values("acc_bias"), p.values("gyro_bias"), p.values("acc_scale")[0],
                             p.values("gyro_scale")[0], **mis)
 
@@ -664,7 +722,8 @@ def posterior_columns(built: "GnssImuProblem") -> int:
     """About how many unit columns of ``N^-1`` :func:`with_posterior` asks for: attitude, position and
     velocity at :func:`sigma_knots`, the IMU errors, the correlated GNSS error, the segments' offsets."""
     P = built.problem
-    n = 9 * sigma_knots(built.grid, built.cfg).size + 6 * built.bias_grid.n_knots + 6 + 12 * built.estimate_misalignment
+    n = (9 * sigma_knots(built.grid, built.cfg).size + 6 * built.bias_grid.n_knots + 6 + 12 * built.estimate_misalignment
+         + 6 * built.estimate_temperature)
     for name in (GNSS_ERROR_BLOCK, GNSS_MULTIPATH_BLOCK, GNSS_SEGMENT_BLOCK):
         if name in P.blocks:
             n += 3 * P.values(name).shape[0]
@@ -739,6 +798,9 @@ def with_posterior(built: GnssImuProblem, result: GnssImuResult) -> GnssImuResul
         acc_misalignment=e.acc_misalignment, gyro_misalignment=e.gyro_misalignment,
         acc_misalignment_sigma=block_sigma(p, "acc_misalignment", vf)[0] if built.estimate_misalignment else None,
         gyro_misalignment_sigma=block_sigma(p, "gyro_misalignment", vf)[0] if built.estimate_misalignment else None,
+        acc_temperature=e.acc_temperature, gyro_temperature=e.gyro_temperature,
+        acc_temperature_sigma=block_sigma(p, "acc_temperature", vf)[0] if built.estimate_temperature else None,
+        gyro_temperature_sigma=block_sigma(p, "gyro_temperature", vf)[0] if built.estimate_temperature else None,
     )
     # The posterior's own J and N (where the solve did not leave them formed) count as assembly
     # and normal matrix, not as covariance: BENCHMARKS.md's phases.

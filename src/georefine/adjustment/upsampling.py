@@ -50,11 +50,17 @@ def _inside(data: GnssImuData, hf_or_span) -> np.ndarray:
 
 
 def corrected_imu(data: GnssImuData, errors: ImuErrorEstimate, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Angular rate and specific force of samples ``sel`` with biases, scale factors and misalignments removed."""
+    """Angular rate and specific force of samples ``sel`` with biases (their temperature part too, where estimated),
+    scale factors and misalignments removed."""
     t = data.imu_time[sel]
     grid = errors.bias_grid
-    gyro = _unsense(data.imu_gyro[sel] - grid.evaluate(errors.gyro_bias, t), errors.gyro_scale, errors.gyro_misalignment)
-    acc = _unsense(data.imu_acc[sel] - grid.evaluate(errors.acc_bias, t), errors.acc_scale, errors.acc_misalignment)
+    b_g, b_a = grid.evaluate(errors.gyro_bias, t), grid.evaluate(errors.acc_bias, t)
+    if errors.gyro_temperature is not None and data.imu_temperature is not None:
+        dT = (data.imu_temperature[sel] - data.imu_temperature[0])[:, None]
+        b_g = b_g + dT * np.asarray(errors.gyro_temperature).reshape(1, 3)
+        b_a = b_a + dT * np.asarray(errors.acc_temperature).reshape(1, 3)
+    gyro = _unsense(data.imu_gyro[sel] - b_g, errors.gyro_scale, errors.gyro_misalignment)
+    acc = _unsense(data.imu_acc[sel] - b_a, errors.acc_scale, errors.acc_misalignment)
     return gyro, acc
 
 

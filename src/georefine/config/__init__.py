@@ -222,7 +222,8 @@ class ImuErrorSpec(StrictModel):
     acc_temperature_ug_per_c: float = Field(
         0.0, ge=0.0, description="The same for the accelerometer biases (micro-g per deg C).")
 
-    def bias_random_walk_si(self, gyro_floor_deg_per_h: float = 0.0, acc_floor_ug: float = 0.0) -> tuple[float, float]:
+    def bias_random_walk_si(self, gyro_floor_deg_per_h: float = 0.0, acc_floor_ug: float = 0.0,
+                            temperature_modelled: bool = False) -> tuple[float, float]:
         """The gyro (rad/s/sqrt(s)) and accelerometer (m/s^2/sqrt(s)) bias random-walk densities.
 
         ``q = B sqrt(2 / tau)`` from the bias instability ``B`` (at least the floor) over its
@@ -231,12 +232,15 @@ class ImuErrorSpec(StrictModel):
         deviation of a random walk of density ``D / sqrt(2 tau_T)`` (its rate ``D / tau_T exp(-t / tau_T)``
         squared and integrated is ``D^2 / (2 tau_T)``, the walk's chi-square ``q^2`` per second); the two
         add in variance. A drift that is smooth, not random, is so covered without a temperature
-        record (docs/ARCHITECTURE.md §4.3).
+        record (docs/ARCHITECTURE.md §4.3). ``temperature_modelled``: the adjustment estimates the
+        coefficients against the unit's logged temperature, so the walk is not widened.
         """
         deg_per_h, ug = np.pi / 180.0 / 3600.0, 9.80665e-6
         q_g = max(self.gyro_bias_instability_deg_per_h, gyro_floor_deg_per_h) * deg_per_h * np.sqrt(
             2.0 / self.gyro_bias_correlation_time_s)
         q_a = max(self.acc_bias_instability_ug, acc_floor_ug) * ug * np.sqrt(2.0 / self.acc_bias_correlation_time_s)
+        if temperature_modelled:
+            return float(q_g), float(q_a)
         root_tau = np.sqrt(2.0 * self.temperature_time_constant_s)
         d_g = self.gyro_temperature_deg_per_h_per_c * abs(self.temperature_change_c) * deg_per_h / root_tau
         d_a = self.acc_temperature_ug_per_c * abs(self.temperature_change_c) * ug / root_tau
@@ -607,6 +611,17 @@ class TrajectoryAdjustmentConfig(StrictModel):
         "where the datasheet states one; true with none stated: misalignment_prior_mrad. The rotation common to "
         "both triads is a turn of the whole IMU, which GNSS and IMU cannot tell from attitude: in the G/I its "
         "prior widens the attitude sigma, in the G/I/L the planes observe it through the scanner.")
+    estimate_temperature_coefficients: Literal["auto"] | bool = Field(
+        "auto",
+        description="Estimate the biases' temperature coefficients (three per triad: b += k (T - T_first)) against "
+        "the temperature the IMU file logs (its temperature_c column), with the datasheet's "
+        "imu.errors.*_temperature_* as prior. auto: where the file logs a temperature and the datasheet states a "
+        "coefficient; true: wherever the file logs one (temperature_prior_* where the datasheet states none). "
+        "Estimated, the bias random walk is not widened for the temperature change.")
+    temperature_prior_gyro_deg_per_h_per_c: float = Field(
+        0.1, gt=0.0, description="Prior sigma of the gyro coefficients where the datasheet states none.")
+    temperature_prior_acc_ug_per_c: float = Field(
+        10.0, gt=0.0, description="Prior sigma of the accelerometer coefficients where the datasheet states none.")
     misalignment_prior_mrad: float = Field(
         1.0, gt=0.0, description="Prior sigma of the misalignment where estimate_misalignment is true and the "
         "datasheet states none (mrad; MEMS datasheets give up to 1).")

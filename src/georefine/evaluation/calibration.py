@@ -106,6 +106,17 @@ def _true_biases(truth: dict[str, np.ndarray], times_gps: np.ndarray) -> tuple[n
     return acc, gyro
 
 
+def _temperature_part(e: dict, times_gps: np.ndarray, truth: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """The estimated biases' temperature part ``k (T - T_first)`` at ``times_gps`` (micro-g and deg/h, ``(K, 3)``,
+    keyed as the biases in ``imu_errors`` ``e``), at the truth's temperature change (the file's ``T - T_first``);
+    empty where the coefficients were not estimated. The biases on the knots are then the walk's part only."""
+    if e.get("gyro_temperature_deg_per_h_per_c") is None or "temperature_c" not in truth:
+        return {}
+    d_t = np.interp(times_gps, truth["time_gps"], truth["temperature_c"])[:, None]
+    return {"gyro_bias_deg_per_h": d_t * np.asarray(e["gyro_temperature_deg_per_h_per_c"], dtype=float),
+            "acc_bias_ug": d_t * np.asarray(e["acc_temperature_ug_per_c"], dtype=float)}
+
+
 def imu_error_figures(adjustment: AdjustmentReport, truth_npz: Path) -> ImuErrorFigures | None:
     """Figures of one ``adjustment.json`` (its ``imu_errors`` and ``t0_gps``) against ``truth_npz``;
     None where either has no IMU errors."""
@@ -121,8 +132,10 @@ def imu_error_figures(adjustment: AdjustmentReport, truth_npz: Path) -> ImuError
     def rms(a: np.ndarray) -> tuple[float, float, float]:
         return tuple(np.sqrt(np.mean(np.asarray(a, dtype=float) ** 2, axis=0)))  # type: ignore[return-value]
 
+    temp_part = _temperature_part(e, times[inside], truth)
+
     def est(name: str) -> np.ndarray:
-        return np.asarray(e[name], dtype=float)[inside]
+        return np.asarray(e[name], dtype=float)[inside] + temp_part.get(name, 0.0)
 
     nan3 = (math.nan,) * 3
     off = ~np.eye(3, dtype=bool)
@@ -178,7 +191,8 @@ def plot_imu_errors(adjustments: dict[str, AdjustmentReport], truth_npz: Path, p
                 if key not in e:
                     continue
                 t = float(adj.t0_gps) + np.asarray(e["bias_knot_times_s"]) - t0
-                v, s = np.asarray(e[key])[:, i], np.asarray(e[key.replace("_bias_", "_bias_sigma_")])[:, i]
+                part = _temperature_part(e, t + t0, truth).get(key, np.zeros((t.size, 3)))
+                v, s = np.asarray(e[key])[:, i] + part[:, i], np.asarray(e[key.replace("_bias_", "_bias_sigma_")])[:, i]
                 ax.plot(t, v, color=colour, lw=1.0, label=label)
                 ax.fill_between(t, v - 2 * s, v + 2 * s, color=colour, alpha=0.15, lw=0)
             ax.set_title(f"{'accelerometer' if row == 0 else 'gyro'} bias {axis} ({unit})", fontsize=10)

@@ -94,6 +94,8 @@ class ProjectSummary:
     delivered: tuple[int, float, bool] | None = None
     """A delivered trajectory (docs/ARCHITECTURE.md §4.9): SBET records, their rate (Hz), whether an smrmsg is given."""
     flights: tuple[FlightSummary, ...] = ()
+    imu_temperature_c: tuple[float, float] | None = None
+    """The lowest and highest temperature the IMU file logs (deg C; a single flight), None where it logs none."""
 
     def summary(self) -> str:
         g0, g1 = self.gnss_span_gps
@@ -115,7 +117,9 @@ class ProjectSummary:
         else:
             lines += [
                 f"  GNSS: {self.gnss_epochs:,} epochs ({self.gnss_usable_epochs:,} usable), {g1 - g0:.1f} s",
-                f"  IMU:  {self.imu_samples:,} samples at {self.imu_rate_hz:g} Hz, {i1 - i0:.1f} s, {len(self.imu_gaps)} gaps",
+                f"  IMU:  {self.imu_samples:,} samples at {self.imu_rate_hz:g} Hz, {i1 - i0:.1f} s, {len(self.imu_gaps)} gaps"
+                + ("" if self.imu_temperature_c is None else
+                   ", temperature {:.1f} .. {:.1f} deg C".format(*self.imu_temperature_c)),
             ]
         for s in self.strips:
             per = ", ".join(f"ch{k}: {v:,}" for k, v in sorted(s.points_per_channel.items()))
@@ -152,6 +156,7 @@ class _Navigation:
     imu_rate_hz: float
     imu_gaps: np.ndarray
     delivered: tuple[int, float, bool] | None = None
+    imu_temperature_c: tuple[float, float] | None = None
 
     @property
     def span(self) -> tuple[float, float]:
@@ -184,8 +189,15 @@ def _check_navigation(root: Path, cfg: ProjectConfig, warnings: list[str], prefi
                         f"longest {g_gaps[k, 1] - g_gaps[k, 0]:.1f} s from {g_gaps[k, 0]:.1f} GPS s: bridged on the "
                         "IMU alone")
     warnings.extend(prefix + w for w in non_fix_warnings(gnss, usable, cfg))
+    temperature = None
+    if imu.temperature_c is not None:
+        temperature = (float(imu.temperature_c.min()), float(imu.temperature_c.max()))
+    elif cfg.processing.trajectory.estimate_temperature_coefficients is True:
+        raise InputError("the IMU file logs no temperature", path=root / cfg.imu.file, field="temperature_c",
+                         expected="a temperature_c column where processing.trajectory."
+                         "estimate_temperature_coefficients is true", found="none")
     return _Navigation(g_span, i_span, int(gnss.time_gps.size), int(usable.sum()), int(imu.time_gps.size),
-                       float(imu.rate_hz), gaps)
+                       float(imu.rate_hz), gaps, imu_temperature_c=temperature)
 
 
 _QUALITY_NAMES = {1: "fix", 2: "float", 3: "SBAS", 4: "DGPS", 5: "single", 6: "PPP"}
@@ -403,4 +415,5 @@ def inspect_project(
         gnss_span_gps=g_span, imu_samples=totals.imu_samples, imu_rate_hz=totals.imu_rate_hz,
         imu_span_gps=i_span, imu_gaps=totals.imu_gaps, strips=tuple(strips), reference_surfaces=n_ref,
         warnings=tuple(warnings), photos=photos, delivered=totals.delivered, flights=tuple(flights),
+        imu_temperature_c=totals.imu_temperature_c if cfg.flights is None else None,
     )

@@ -319,7 +319,7 @@ def load_navigation(project: ProjectLike) -> NavigationData:
         imu_acc_sigma=bridged.acc_sigma if bridged.gaps else None,
         gnss_correlated=cfg.gnss.correlated_error, imu_kind=imu.kind,
         gnss_quality=gnss.quality[gnss.quality <= cfg.gnss.min_quality], gnss_float=cfg.gnss.float_offset,
-        gnss_multipath=cfg.gnss.multipath,
+        gnss_multipath=cfg.gnss.multipath, imu_temperature=imu.temperature_c,
     )
     return NavigationData(cfg, root, frame, t0, imu, data)
 

@@ -7,7 +7,10 @@ At time ``t`` the model of the accelerometer and gyro readings is
 
 with piecewise-linear biases on their own knots, constant diagonal scale factors ``S`` and,
 where estimated, each triad's constant misalignment ``A``: its six off-diagonal elements
-(:data:`OFF_DIAGONAL` order), the triad's turn and shear against the body frame.
+(:data:`OFF_DIAGONAL` order), the triad's turn and shear against the body frame; and where
+the IMU logs its temperature and the coefficients are estimated, each bias has a part
+``k (T - T_ref)`` more, a coefficient per axis times the window's temperature against the
+file's first (``temperature``).
 
 Down-sampling (Pöppl et al. 2025): consecutive samples are averaged over windows
 (``processing.trajectory.imu_window_s``, default 0.02 s; the G/I's ``gnss_imu_window_s``, 0.1 s)
@@ -173,6 +176,10 @@ class ImuObservation:
     acc_misalignment, gyro_misalignment
         Names of the (1, 6) misalignment blocks (:data:`OFF_DIAGONAL`), or None (the default) to
         leave them out.
+    temperature, acc_temperature, gyro_temperature
+        The unit's temperature over each window against its reference, ``T - T_ref`` ((W,), deg
+        C), and the names of the (1, 3) blocks of the biases' temperature coefficients (per deg
+        C): each window's bias is ``b(t) + k (T - T_ref)``; None (the default) leaves them out.
     nodes
         Gauss-Legendre nodes per window of increments (1 for single samples). Windows of
         rates are averaged at their samples (module docstring).
@@ -202,6 +209,9 @@ class ImuObservation:
     name: str = "imu"
     consumed_redundancy: float = 0.0
     sample_rule: bool = True
+    temperature: np.ndarray | None = None
+    acc_temperature: str | None = None
+    gyro_temperature: str | None = None
 
     def __post_init__(self) -> None:
         w = self.windows
@@ -228,6 +238,10 @@ class ImuObservation:
         self._rows_f, self._rows_g = rows[:, :3], rows[:, 3:]
         self._obs = np.repeat(np.arange(2 * n), 3)
         self._n = n
+        if (self.temperature is None) != (self.acc_temperature is None and self.gyro_temperature is None):
+            raise ValueError(f"{self.name}: temperature and the temperature coefficient blocks go together")
+        if self.temperature is not None:
+            self.temperature = np.asarray(self.temperature, dtype=float).reshape(n)
 
     @property
     def n_nodes(self) -> int:
@@ -266,16 +280,25 @@ class ImuObservation:
         weighted = node_values * self._q[:, None]
         return np.column_stack([np.bincount(self._win, weights=weighted[:, c], minlength=self._n) for c in range(3)])
 
+    def _temperature_bias(self, values: Mapping[str, np.ndarray], name: str | None) -> np.ndarray | float:
+        """``k (T - T_ref)`` per window (W, 3), or 0 without the block."""
+        if not name:
+            return 0.0
+        return self.temperature[:, None] * np.asarray(values[name]).reshape(1, 3)
+
     def predict(self, values: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Modelled window means ``(acc (W,3), gyro (W,3))``."""
         terms = self._node_terms(values, jacobians=False)
-        return self._average(terms["f"]), self._average(terms["w"])
+        return (self._average(terms["f"]) + self._temperature_bias(values, self.acc_temperature),
+                self._average(terms["w"]) + self._temperature_bias(values, self.gyro_temperature))
 
     def linearize(self, values: Mapping[str, np.ndarray], jacobians: bool = True) -> Linearization:
         terms = self._node_terms(values, jacobians)
         wins = self.windows
-        r_f = (self._average(terms["f"]) - wins.acc) / self._sa[:, None]
-        r_g = (self._average(terms["w"]) - wins.gyro) / self._sg[:, None]
+        f = self._average(terms["f"]) + self._temperature_bias(values, self.acc_temperature)
+        w = self._average(terms["w"]) + self._temperature_bias(values, self.gyro_temperature)
+        r_f = (f - wins.acc) / self._sa[:, None]
+        r_g = (w - wins.gyro) / self._sg[:, None]
         r = np.concatenate([r_f, r_g], axis=1).ravel()
         jac: list[JacobianBlock] = []
         if jacobians:
@@ -327,6 +350,11 @@ class ImuObservation:
                 val = np.zeros((win.size, 3, 6))
                 val[:, OFF_DIAGONAL[0], np.arange(6)] = d[:, OFF_DIAGONAL[1]]
                 out.append(JacobianBlock(name, rows, zeros, c * val))
+        for name, rows, sigma in ((self.acc_temperature, self._rows_f, self._sa),
+                                  (self.gyro_temperature, self._rows_g, self._sg)):
+            if name:  # per window, not per node: the temperature is the window's
+                val = (self.temperature / sigma)[:, None, None] * eye
+                out.append(JacobianBlock(name, rows, np.zeros(self._n, dtype=np.int64), val))
         return out
 
 
