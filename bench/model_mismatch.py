@@ -17,7 +17,7 @@ A ``clean`` case (the scenario without the error, same seed) is the reference. K
 |---|---|---|
 | ``imu-misalignment`` | ``imu.gyro_misalignment_mrad``, ``imu.acc_misalignment_mrad`` = M mrad (each off-diagonal element, 1 sigma) | ``imu.errors.*_misalignment_mrad`` / removed |
 | ``lidar-range`` | ``scanner.range_offset_m`` = M m and ``scanner.range_scale_ppm`` = 100 | ``processing.lidar.estimate_range_calibration: true`` / as simulated (not estimated) |
-| ``imu-thermal`` | ``imu.temperature_change_c`` = M deg C over 900 s with bias coefficients of 0.1 deg/h and 10 ug per deg C and a gyro g-sensitivity of 2 deg/h/g (1 sigma) | ``imu.errors``' figures (the bias random walk widened) / removed |
+| ``imu-thermal`` | ``imu.temperature_change_c`` = M deg C over 900 s with bias coefficients of 0.1 deg/h and 10 ug per deg C and a gyro g-sensitivity of 2 deg/h/g (1 sigma) | ``imu.errors``' figures (the coefficients estimated against the temperature the IMU file logs) / removed (not modelled) |
 | ``gnss-jump`` | a wrong fix of 60 s from 20 s into the first pass (``gnss.ambiguity_jumps``; Q=1, fixed sigmas), its offset drawn with M m horizontal and 1.5 M m up | searched for (``gnss.float_offset.detect_jumps``, the default) / not searched |
 | ``gnss-multipath`` | ``gnss.multipath_sigma_horizontal_m`` = M m, ``_up_m`` = 2 M m (20 s correlation) | ``gnss.multipath`` (the simulated figures, estimated beside the correlated error) / removed (not modelled) |
 | ``lidar-channel`` | ``scanner.channel_tilt_error_mdeg`` = (0, M, -M), ``channel_scan_angle_error_mdeg`` = (0, -M/2, M) | ``processing.lidar.estimate_channel_angles: true`` / as simulated (not estimated) |
@@ -179,7 +179,7 @@ def _position(sbet: Path, project: Path, window: tuple[float, float] | None = No
 
 def _calibration_z(solution: Path, project: Path) -> list[float] | None:
     """RMS and largest |estimate - truth| / sigma of what the solution calibrated: the IMU misalignment's twelve
-    elements, the scanner's range offset and scale, the channels' angles (against channel 0's), the encoder error's
+    elements, the biases' six temperature coefficients, the scanner's range offset and scale, the channels' angles (against channel 0's), the encoder error's
     Legendre terms (the truth's least-squares terms, :func:`~georefine.sim.scanner.encoder_legendre_terms`) and the
     boresight's roll (the stated plus the encoder error's mean); None: none."""
     report = json.loads((solution / "adjustment.json").read_text())
@@ -191,6 +191,12 @@ def _calibration_z(solution: Path, project: Path) -> list[float] | None:
         off = ~np.eye(3, dtype=bool)
         z += [(np.asarray(e[f"{t}_misalignment_mrad"]) - truth[f"misalignment_{t}"][off] * 1e3)
               / np.asarray(e[f"{t}_misalignment_sigma_mrad"]) for t in ("acc", "gyro")]
+    if e.get("gyro_temperature_deg_per_h_per_c") is not None:  # the biases' temperature coefficients
+        truth = np.load(project / "truth" / "imu_errors.npz")
+        z += [(np.asarray(e["gyro_temperature_deg_per_h_per_c"]) - truth["temperature_gyro"] / (np.pi / 180 / 3600))
+              / np.asarray(e["gyro_temperature_sigma_deg_per_h_per_c"]),
+              (np.asarray(e["acc_temperature_ug_per_c"]) - truth["temperature_acc"] / 9.80665e-6)
+              / np.asarray(e["acc_temperature_sigma_ug_per_c"])]
     rc = report.get("range_calibration")
     if rc:
         z.append(np.array([(rc["offset_m"] - scenario["range_offset_m"]) / rc["offset_sigma_m"],
