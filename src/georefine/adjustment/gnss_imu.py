@@ -131,8 +131,9 @@ GNSS_MULTIPATH_BLOCK = "gnss_multipath"
 
 def multipath_knot_interval(model: GnssMultipath, cfg: TrajectoryAdjustmentConfig) -> float:
     """Knot spacing of the multipath (s): the correlated error's, or a quarter of the multipath's
-    correlation time where that is shorter (a piecewise-linear process then follows it to about
-    ``sqrt(1/12)`` of its sigma, the rest taken as white by :func:`white_gnss_covariance`)."""
+    correlation time where that is shorter. Between knots a quarter of the correlation time apart,
+    the chords miss about ``sqrt(1/12)`` of its sigma, which :func:`white_gnss_covariance` adds to
+    the white part."""
     return min(cfg.gnss_error_knot_interval_s, model.time_constant_s / 4.0)
 
 
