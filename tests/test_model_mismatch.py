@@ -22,6 +22,7 @@ import yaml
 
 from cli_helpers import run_georefine, run_georefine_here
 from georefine.evaluation.trajectory_files import compare_sbet_files, truth_pass_accuracy
+from georefine.geometry.rotation import exp_so3, log_so3
 from georefine.sim.scenarios import simulate_project
 from georefine.workflows import run_trajectory
 
@@ -375,6 +376,57 @@ def test_a_stated_multipath_beyond_its_prior_is_a_warning(slow, fast, warned, ca
     for text, message in zip(warned, messages):
         assert text in message
 
+
+
+def test_the_boresight_sigma_about_the_body_axes_follows_the_mount():
+    """A scanner turned 90 degrees about z has its x-axis sigma about the body's y axis; against finite turns of the
+    scanner, ``R_b_s Exp(eps)`` moves the body frame by ``R_b_s eps``."""
+    from georefine.workflows.gil import boresight_body_sigma_mdeg
+
+    cov = np.diag(np.radians([3.0e-3, 1.0e-3, 10.0e-3]) ** 2)
+    np.testing.assert_allclose(boresight_body_sigma_mdeg(np.eye(3), cov), [3.0, 1.0, 10.0], rtol=1e-12)
+    R = exp_so3(np.array([0.0, 0.0, np.pi / 2]))
+    np.testing.assert_allclose(boresight_body_sigma_mdeg(R, cov), [1.0, 3.0, 10.0], rtol=1e-12)
+    rng = np.random.default_rng(5)
+    R = exp_so3(rng.normal(size=3))
+    eps = rng.multivariate_normal(np.zeros(3), cov, size=20000)
+    turned = log_so3(R @ exp_so3(eps) @ R.T)  # the body-frame turn of each draw
+    np.testing.assert_allclose(np.degrees(turned.std(axis=0)) * 1e3, boresight_body_sigma_mdeg(R, cov), rtol=0.03)
+
+
+@pytest.mark.parametrize(("boresight_mdeg", "gil_mdeg", "warned"), [
+    ((2.26, 0.5, 0.3), (2.4, 3.3, 15.0), "in roll: the boresight is known to roll ± 2.26 mdeg, 0.94 of the G/I/L's"),
+    ((2.26, 2.4, 15.0), (2.4, 3.3, 15.0), "in roll, pitch, heading: the boresight is known to roll ± 2.26 mdeg, "
+                                          "pitch ± 2.40 mdeg, heading ± 15.00 mdeg, 0.94/0.73/1.00 of"),
+    ((0.3, 0.2, 1.0), (0.35, 0.3, 1.2), None),
+    ((2.26, 2.4, 15.0), (24.0, 33.0, 150.0), None)])
+def test_a_boresight_the_strips_do_not_separate_is_a_warning(boresight_mdeg, gil_mdeg, warned, caplog):
+    """The encoder case on ``corridor`` (boresight roll ± 2.26 mdeg, the G/I/L's roll sigma 2.4, the G/I's 4.2)
+    warns with the figures, on each axis where the boresight is most of the G/I/L's sigma and not far below the
+    G/I's; a boresight far below the G/I's sigma does not, though it is most of the G/I/L's (strips at several
+    headings and cross strips); nor one far below the G/I/L's own sigma. Several flights pool their epochs."""
+    from types import SimpleNamespace
+
+    from georefine.workflows.outer_checks import boresight_separation, warn_boresight_separation
+
+    tk = np.arange(0.0, 20.01, 5.0)
+
+    def sigmas(mdeg):
+        return SimpleNamespace(sigma_time=tk, sigma_rph_rad=np.tile(np.radians(np.array(mdeg) * 1e-3), (tk.size, 1)))
+
+    gi = sigmas((4.2, 4.1, 46.0))
+    adj = SimpleNamespace(result=sigmas(gil_mdeg), boresight_body_sigma_mdeg=np.array(boresight_mdeg))
+    sep = boresight_separation([gi, gi], [adj, adj])
+    np.testing.assert_allclose(np.degrees(sep) * 1e3, np.column_stack([boresight_mdeg, gil_mdeg, (4.2, 4.1, 46.0)]),
+                               rtol=1e-12)
+    with caplog.at_level("WARNING", logger="georefine.workflows.outer_checks"):
+        warn_boresight_separation(gi, adj)
+        warn_boresight_separation(gi, SimpleNamespace(result=adj.result, boresight_body_sigma_mdeg=None))
+    messages = [r.getMessage() for r in caplog.records]
+    assert len(messages) == int(warned is not None), messages
+    if warned:
+        assert warned in messages[0] and "processing.lidar.estimate_boresight: false" in messages[0], messages
+        assert "0.54 (4.20 mdeg)" in messages[0], messages
 
 
 @pytest.mark.parametrize(("b_mm", "sigma_mm", "warned"), [(30.0, 2.0, True), (30.0, 8.0, False), (1.0, 0.1, False)])

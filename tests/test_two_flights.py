@@ -9,6 +9,7 @@ flights' attitude together is as good as alone, with honest sigmas.
 from __future__ import annotations
 
 import json
+import logging
 import shutil
 from pathlib import Path
 
@@ -47,7 +48,15 @@ def runs(project, tmp_path_factory) -> Path:
     """The joint run and each flight alone, sharing the G/I of each flight through one cache."""
     out = tmp_path_factory.mktemp("two_flights_runs")
     opened = open_project(project)
-    run_flights(opened, out / "joint", cache_dir=out / "cache", scheduler="sync")
+    warnings: list[str] = []
+    handler = logging.Handler(logging.WARNING)
+    handler.emit = lambda record: warnings.append(record.getMessage())
+    logging.getLogger("georefine").addHandler(handler)
+    try:
+        run_flights(opened, out / "joint", cache_dir=out / "cache", scheduler="sync")
+    finally:
+        logging.getLogger("georefine").removeHandler(handler)
+    (out / "joint_warnings.json").write_text(json.dumps(warnings))
     for flight in opened.flights:
         run_workflow(opened.flight_project(flight.id), out / f"alone_{flight.id}", cache_dir=out / "cache",
                      scheduler="sync")
@@ -90,6 +99,14 @@ def test_one_boresight_within_three_sigma(runs, project):
     for flight in STRIPS:
         alone = read_adjustment_report(runs / f"alone_{flight}" / "gil" / "adjustment.json")
         assert np.all(np.array(reports[0].boresight_sigma_mdeg) < np.array(alone.boresight_sigma_mdeg))
+
+
+def test_a_boresight_the_strips_do_not_separate_is_named_once(runs):
+    """Both flights are two passes along one line: the joint boresight's roll is known only beside each pass's
+    roll, and the joint run says so once, pooling both flights' epochs, with the boresight's sigma."""
+    report = read_adjustment_report(runs / "joint" / "gil" / "flight_1" / "adjustment.json")
+    found = [w for w in json.loads((runs / "joint_warnings.json").read_text()) if "do not separate the boresight" in w]
+    assert len(found) == 1 and f"roll ± {report.boresight_sigma_mdeg[0]:.2f} mdeg" in found[0], found
 
 
 def test_one_time_offset_within_two_sigma(runs):

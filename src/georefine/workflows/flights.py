@@ -81,6 +81,7 @@ from georefine.workflows.cache import StepCache, StepRunner, file_stamp
 from georefine.workflows.gil import (
     LidarAdjustment,
     PlaneSelection,
+    boresight_body_sigma_mdeg,
     boresight_deg_of,
     build_gil_problem,
     plane_candidates,
@@ -91,7 +92,13 @@ from georefine.workflows.navigation import (
     write_trajectory_products,
 )
 from georefine.workflows.opened import Flight, Project, open_workspace
-from georefine.workflows.outer_checks import outer_converged, trajectory_change, warn_plane_misfit, warn_unconverged
+from georefine.workflows.outer_checks import (
+    outer_converged,
+    trajectory_change,
+    warn_boresight_separation,
+    warn_plane_misfit,
+    warn_unconverged,
+)
 from georefine.workflows.precision import pass_precision, precision_lines
 from georefine.workflows.run_parts import adjustment_report, outer_knot_interval, stage_gnss_imu, vibrating
 from georefine.workflows.strips import StripFile, read_strips, sort_features, step_features
@@ -305,6 +312,7 @@ def add_flights_posterior(adj: FlightsAdjustment) -> FlightsAdjustment:
         if a.boresight_deg is not None:
             cov = b.problem.covariance(BORESIGHT_BLOCK, scale_by_variance_factor=False)[0] * vf
             extra["boresight_sigma_mdeg"] = np.degrees(np.sqrt(np.diag(cov))) * 1e3
+            extra["boresight_body_sigma_mdeg"] = boresight_body_sigma_mdeg(b.problem.values(BORESIGHT_BLOCK)[0], cov)
         if OFFSET_BLOCK in b.problem.blocks:
             cov = b.problem.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0] * vf
             extra["time_offset_sigma_s"] = float(np.sqrt(cov))
@@ -627,6 +635,7 @@ def run_flights(
         warn_time_offset(cfg, g0.time_offset_s, g0.time_offset_sigma_s, g0.time_offset_gnss_sigma_s or 0.0)
         for f, gi, g in zip(flights, gis, gils):
             warn_plane_misfit(gi, g, outcome.records, f.nav)
+        warn_boresight_separation(gis, gils)
         (ws.out / "features").mkdir(exist_ok=True)
         used = np.flatnonzero(outcome.objects.feature_object >= 0)
         write_features(ws.out / "features" / "features.csv", outcome.features.select(used))

@@ -48,7 +48,8 @@ from georefine.workflows.time_offset import (
     add_time_offset,
 )
 
-__all__ = ["GilProblem", "LidarAdjustment", "PlaneSelection", "add_posterior", "boresight_deg_of", "build_gil_problem",
+__all__ = ["GilProblem", "LidarAdjustment", "PlaneSelection", "add_posterior", "boresight_body_sigma_mdeg",
+           "boresight_deg_of", "build_gil_problem",
            "plane_candidates", "scanner_estimates",
            "step_adjust_gil"]
 
@@ -80,6 +81,7 @@ class LidarAdjustment:
     channel_angles_sigma: np.ndarray | None = None
     encoder: np.ndarray | None = None  # (4,) the encoder error's Legendre coefficients (rad), where estimated
     encoder_sigma: np.ndarray | None = None
+    boresight_body_sigma_mdeg: np.ndarray | None = None  # the boresight's sigma about the body's x, y, z axes
 
     def scanner_calibration(self) -> ScannerCalibration | None:
         """What the final georeferencing takes out of every point (range, channel angles, encoder error), or None."""
@@ -99,16 +101,25 @@ def add_posterior(adj: LidarAdjustment) -> LidarAdjustment:
         result = with_posterior(adj.built, adj.result)
     problem = adj.built.problem
     vf = posterior_scale(result.solve)  # as the trajectory's: the variance factor where it exceeds 1
-    bs_sig = None
+    bs_sig, extra = None, {}
     if adj.boresight_deg is not None:
         cov = problem.covariance("boresight", scale_by_variance_factor=False)[0] * vf
         bs_sig = np.degrees(np.sqrt(np.diag(cov))) * 1e3
-    extra = {}
+        extra["boresight_body_sigma_mdeg"] = boresight_body_sigma_mdeg(problem.values("boresight")[0], cov)
     if OFFSET_BLOCK in problem.blocks:
         cov = problem.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0] * vf
         extra["time_offset_sigma_s"] = float(np.sqrt(cov))
     extra |= {k: v for k, v in scanner_estimates(problem, vf).items() if k.endswith("_sigma")}
     return replace(adj, result=result, boresight_sigma_mdeg=bs_sig, **extra)
+
+
+def boresight_body_sigma_mdeg(R_b_s: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """The boresight's sigma (mdeg) about the body's x, y and z axes from its covariance ``cov`` (3, 3; rad^2) in the
+    scanner's tangent (``R_b_s <- R_b_s Exp(eps)``): a turn ``eps`` of the scanner is ``R_b_s eps`` in the body, so
+    its covariance there is ``R_b_s cov R_b_s^T``. About the body's axes a scanner mounted turned (a sideways or
+    backwards head) is compared with the trajectory's roll, pitch and heading."""
+    R = np.asarray(R_b_s, dtype=float)
+    return np.degrees(np.sqrt(np.diag(R @ np.asarray(cov, dtype=float) @ R.T))) * 1e3
 
 
 RANGE_BLOCK = "range_calibration"

@@ -64,6 +64,7 @@ from georefine.workflows.opened import Project, ProjectLike, Workspace, as_proje
 from georefine.workflows.outer_checks import (
     outer_converged,
     trajectory_change,
+    warn_boresight_separation,
     warn_gi_tilt,
     warn_gnss_error_misfit,
     warn_plane_misfit,
@@ -444,6 +445,7 @@ def lidar_stages(steps: StepRunner, inputs: WorkflowInputs, gi: GnssImuResult, k
                      posterior.gil.time_offset_gnss_sigma_s or 0.0)
     warn_plane_misfit(gi, posterior.gil, outer.records, inputs.nav)
     warn_gi_tilt(gi, posterior.gil, inputs.nav.frame)
+    warn_boresight_separation(gi, posterior.gil)
     warn_gnss_error_misfit(posterior.gil)
     warn_calibration(stage_calibration_check(steps, inputs, outer, posterior, progress))
     stage_gil_products(inputs, posterior)

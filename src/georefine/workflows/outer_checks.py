@@ -22,8 +22,9 @@ from georefine.workflows.navigation import NavigationData
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GI_TILT_SIGMAS", "GNSS_PULL_RATIO", "gi_tilt", "outer_converged", "trajectory_change", "warn_gi_tilt",
-           "warn_plane_misfit", "warn_unconverged"]
+__all__ = ["BORESIGHT_GI_SHARE", "BORESIGHT_SHARE", "GI_TILT_SIGMAS", "GNSS_PULL_RATIO", "boresight_separation", "gi_tilt",
+           "outer_converged", "trajectory_change", "warn_boresight_separation", "warn_gi_tilt", "warn_plane_misfit",
+           "warn_unconverged"]
 
 
 def trajectory_change(a, b, *, statistic: str = "rms") -> tuple[float, float]:
@@ -167,6 +168,66 @@ def warn_gi_tilt(gi: GnssImuResult, adj: LidarAdjustment, frame: LocalFrame) -> 
         ", ".join(f"{n} {np.degrees(m) * 1e3:+.2f} mdeg" for n, m in zip(names, mean)),
         "/".join(f"{r:.1f}" for r in ratio) + " times",
         "/".join(f"{np.degrees(s) * 1e3:.2f}" for s in sigma) + " mdeg", GI_TILT_SIGMAS,
+    )
+
+
+BORESIGHT_SHARE = 0.7
+"""Warn when an estimated boresight's sigma about a body axis is at least this share of the G/I/L's stated attitude
+sigma about it (RMS over the flight): at least half the trajectory's variance there is then the boresight's, one
+turn the planes cannot tell from a turn of every strip. Measured on ``corridor-tiny`` (seed 4, two passes along one
+line, a 50 mdeg roll error estimated): roll 0.74, heading 0.91."""
+BORESIGHT_GI_SHARE = 0.2
+"""... and at least this share of the G/I's stated attitude sigma: the planes know the boresight no better than a
+fifth of what GNSS and IMU know of each epoch (on ``corridor-tiny`` roll 0.66, heading 0.49). A boresight that
+strips at several headings and cross strips separate sits far below it, and then a small sigma of the trajectory
+is no fault."""
+
+
+def boresight_separation(gi, adj) -> np.ndarray | None:
+    """(3, 3): per body axis (roll, pitch, heading) the boresight's sigma, the G/I/L's stated attitude sigma and the
+    G/I's (RMS over their sigma epochs; rad), or None where the boresight is not estimated or there is no
+    posterior. ``gi`` and ``adj`` are one flight's results or the sequences of several flights' (one boresight;
+    the sigmas of all their epochs pooled)."""
+    gis = tuple(gi) if isinstance(gi, (list, tuple)) else (gi,)
+    adjs = tuple(adj) if isinstance(adj, (list, tuple)) else (adj,)
+    body = getattr(adjs[0], "boresight_body_sigma_mdeg", None)
+    if body is None or any(a.result.sigma_time.size == 0 for a in adjs) or any(g.sigma_time.size == 0 for g in gis):
+        return None
+    gil = np.sqrt(np.mean(np.vstack([a.result.sigma_rph_rad for a in adjs])**2, axis=0))
+    gi_sigma = np.sqrt(np.mean(np.vstack([g.sigma_rph_rad for g in gis])**2, axis=0))
+    return np.column_stack([np.radians(np.asarray(body, dtype=float) * 1e-3), gil, gi_sigma])
+
+
+def warn_boresight_separation(gi, adj) -> None:
+    """Warn, with the figures, where the flight's strips do not separate the estimated boresight from the
+    trajectory's attitude (:data:`BORESIGHT_SHARE`, :data:`BORESIGHT_GI_SHARE`): two passes along one line see
+    a roll of the scanner as a roll of each pass, known absolutely only as well as the G/I knows them; what the
+    G/I/L states about that angle is then the boresight's sigma, and its accuracy no better. The direction is
+    not observable from this flight; the stated sigmas hold it (docs/ARCHITECTURE.md §4.4). ``gi``, ``adj``: as
+    :func:`boresight_separation` takes them."""
+    sep = boresight_separation(gi, adj)
+    if sep is None:
+        return
+    share, gi_share = sep[:, 0] / np.maximum(sep[:, 1], 1e-15), sep[:, 0] / np.maximum(sep[:, 2], 1e-15)
+    weak = (share >= BORESIGHT_SHARE) & (gi_share >= BORESIGHT_GI_SHARE)
+    if not np.any(weak):
+        return
+    names = ("roll", "pitch", "heading")
+    mdeg = np.degrees(sep) * 1e3
+    log.warning(
+        "the strips do not separate the boresight from the trajectory's attitude in %s: the boresight is known to "
+        "%s, %s of the G/I/L's stated sigma and %s of the G/I's (warning from %.1f and %.1f). The "
+        "planes see a turn of the scanner as a turn of every strip (two passes along one line see a scanner roll "
+        "only beside each pass's roll, which GNSS and IMU know to the G/I's sigma), so the G/I/L's attitude there is "
+        "only as good as this boresight, and its stated sigmas say so. Strips at other headings and cross strips, "
+        "several flights sharing the boresight, or a boresight calibrated on such a flight and held "
+        "(scanner.boresight_deg, processing.lidar.estimate_boresight: false) narrow it. A scan-angle encoder's "
+        "mean error and a scan-angle error common to every channel are a boresight roll",
+        ", ".join(n for n, w in zip(names, weak) if w),
+        ", ".join(f"{n} ± {mdeg[i, 0]:.2f} mdeg" for i, n in enumerate(names) if weak[i]),
+        "/".join(f"{share[i]:.2f}" for i in range(3) if weak[i]),
+        "/".join(f"{gi_share[i]:.2f} ({mdeg[i, 2]:.2f} mdeg)" for i in range(3) if weak[i]),
+        BORESIGHT_SHARE, BORESIGHT_GI_SHARE,
     )
 
 
