@@ -395,16 +395,17 @@ def test_the_boresight_sigma_about_the_body_axes_follows_the_mount():
 
 
 @pytest.mark.parametrize(("boresight_mdeg", "gil_mdeg", "warned"), [
-    ((2.26, 0.5, 0.3), (2.4, 3.3, 15.0), "in roll: the boresight is known to roll ± 2.26 mdeg, 0.94 of the G/I/L's"),
-    ((2.26, 2.4, 15.0), (2.4, 3.3, 15.0), "in roll, pitch, heading: the boresight is known to roll ± 2.26 mdeg, "
-                                          "pitch ± 2.40 mdeg, heading ± 15.00 mdeg, 0.94/0.73/1.00 of"),
+    ((2.26, 2.51, 14.95), (2.97, 3.30, 14.95), "in roll, pitch, heading: the boresight is known to roll ± 2.26 mdeg, "
+                                               "pitch ± 2.51 mdeg, heading ± 14.95 mdeg, 0.76/0.76/1.00 of the G/I/L's"),
+    ((2.26, 0.5, 0.3), (2.97, 3.30, 14.95), "in roll: the boresight is known to roll ± 2.26 mdeg, 0.76 of the G/I/L's"),
     ((0.3, 0.2, 1.0), (0.35, 0.3, 1.2), None),
-    ((2.26, 2.4, 15.0), (24.0, 33.0, 150.0), None)])
+    ((2.26, 2.51, 14.95), (24.0, 33.0, 150.0), None)])
 def test_a_boresight_the_strips_do_not_separate_is_a_warning(boresight_mdeg, gil_mdeg, warned, caplog):
-    """The encoder case on ``corridor`` (boresight roll ± 2.26 mdeg, the G/I/L's roll sigma 2.4, the G/I's 4.2)
-    warns with the figures, on each axis where the boresight is most of the G/I/L's sigma and not far below the
-    G/I's; a boresight far below the G/I's sigma does not, though it is most of the G/I/L's (strips at several
-    headings and cross strips); nor one far below the G/I/L's own sigma. Several flights pool their epochs."""
+    """The encoder case on ``corridor`` (the boresight free: ± 2.26 / 2.51 / 14.95 mdeg against the G/I/L's
+    stated 2.97 / 3.30 / 14.95 and the G/I's 3.85 / 4.21 / 33.39) warns with the figures, on each axis where the
+    boresight is most of the G/I/L's sigma and not far below the G/I's; a boresight far below the G/I's sigma does
+    not, though it is most of the G/I/L's (strips at several headings and cross strips); nor one far below the
+    G/I/L's own sigma. Several flights pool their epochs."""
     from types import SimpleNamespace
 
     from georefine.workflows.outer_checks import boresight_separation, warn_boresight_separation
@@ -414,10 +415,10 @@ def test_a_boresight_the_strips_do_not_separate_is_a_warning(boresight_mdeg, gil
     def sigmas(mdeg):
         return SimpleNamespace(sigma_time=tk, sigma_rph_rad=np.tile(np.radians(np.array(mdeg) * 1e-3), (tk.size, 1)))
 
-    gi = sigmas((4.2, 4.1, 46.0))
+    gi = sigmas((3.85, 4.21, 33.39))
     adj = SimpleNamespace(result=sigmas(gil_mdeg), boresight_body_sigma_mdeg=np.array(boresight_mdeg))
     sep = boresight_separation([gi, gi], [adj, adj])
-    np.testing.assert_allclose(np.degrees(sep) * 1e3, np.column_stack([boresight_mdeg, gil_mdeg, (4.2, 4.1, 46.0)]),
+    np.testing.assert_allclose(np.degrees(sep) * 1e3, np.column_stack([boresight_mdeg, gil_mdeg, (3.85, 4.21, 33.39)]),
                                rtol=1e-12)
     with caplog.at_level("WARNING", logger="georefine.workflows.outer_checks"):
         warn_boresight_separation(gi, adj)
@@ -426,7 +427,7 @@ def test_a_boresight_the_strips_do_not_separate_is_a_warning(boresight_mdeg, gil
     assert len(messages) == int(warned is not None), messages
     if warned:
         assert warned in messages[0] and "processing.lidar.estimate_boresight: false" in messages[0], messages
-        assert "0.54 (4.20 mdeg)" in messages[0], messages
+        assert "0.59 (3.85 mdeg)" in messages[0], messages
 
 
 @pytest.mark.parametrize(("b_mm", "sigma_mm", "warned"), [(30.0, 2.0, True), (30.0, 8.0, False), (1.0, 0.1, False)])
