@@ -395,9 +395,11 @@ def test_the_boresight_sigma_about_the_body_axes_follows_the_mount():
 
 
 @pytest.mark.parametrize(("boresight_mdeg", "gil_mdeg", "warned"), [
-    ((2.26, 2.51, 14.95), (2.97, 3.30, 14.95), "in roll, pitch, heading: the boresight is known to roll ± 2.26 mdeg, "
-                                               "pitch ± 2.51 mdeg, heading ± 14.95 mdeg, 0.76/0.76/1.00 of the G/I/L's"),
-    ((2.26, 0.5, 0.3), (2.97, 3.30, 14.95), "in roll: the boresight is known to roll ± 2.26 mdeg, 0.76 of the G/I/L's"),
+    ((2.26, 2.51, 14.95), (2.97, 3.30, 14.95),
+     "in roll, pitch, heading: the boresight is known to roll ± 2.26 mdeg, pitch ± 2.51 mdeg, heading ± 14.95 mdeg, "
+     "0.76/0.76/1.00 of the G/I/L's"),
+    ((2.26, 0.5, 0.3), (2.97, 3.30, 14.95),
+     "in roll: the boresight is known to roll ± 2.26 mdeg, 0.76 of the G/I/L's"),
     ((0.3, 0.2, 1.0), (0.35, 0.3, 1.2), None),
     ((2.26, 2.51, 14.95), (24.0, 33.0, 150.0), None)])
 def test_a_boresight_the_strips_do_not_separate_is_a_warning(boresight_mdeg, gil_mdeg, warned, caplog):

@@ -22,9 +22,9 @@ from georefine.workflows.navigation import NavigationData
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BORESIGHT_GI_SHARE", "BORESIGHT_SHARE", "GI_TILT_SIGMAS", "GNSS_PULL_RATIO", "boresight_separation", "gi_tilt",
-           "outer_converged", "trajectory_change", "warn_boresight_separation", "warn_gi_tilt", "warn_plane_misfit",
-           "warn_unconverged"]
+__all__ = ["BORESIGHT_GI_SHARE", "BORESIGHT_SHARE", "GI_TILT_SIGMAS", "GNSS_PULL_RATIO", "boresight_separation",
+           "gi_tilt", "outer_converged", "trajectory_change", "warn_boresight_separation", "warn_gi_tilt",
+           "warn_plane_misfit", "warn_unconverged"]
 
 
 def trajectory_change(a, b, *, statistic: str = "rms") -> tuple[float, float]:
@@ -182,8 +182,8 @@ the four passes' square root: unseparated, and clear of this threshold where hal
 BORESIGHT_GI_SHARE = 0.2
 """... and at least this share of the G/I's stated attitude sigma: the planes know the boresight no better than a
 fifth of what GNSS and IMU know of each epoch (``corridor`` 0.59 / 0.60 / 0.45; ``corridor-tiny`` roll 0.66,
-heading 0.49; ``two-flights-tiny`` about 0.47 / 0.43 / 0.35). A boresight that strips at several headings and cross strips separate sits far below it, and then a
-small sigma of the trajectory is no fault."""
+heading 0.49; ``two-flights-tiny`` about 0.47 / 0.43 / 0.35). A boresight that strips at several headings and
+cross strips separate sits far below it, and then a small sigma of the trajectory is no fault."""
 
 
 def boresight_separation(gi, adj) -> np.ndarray | None:
