@@ -176,13 +176,13 @@ BORESIGHT_SHARE = 0.5
 sigma about it (RMS over the flight): at least a quarter of the trajectory's variance there is then the boresight's,
 one turn the planes cannot tell from a turn of every strip. Measured with two passes along one line: ``corridor``
 (seed 42, the encoder error's case) roll / pitch / heading 0.76 / 0.76 / 1.00; ``corridor-tiny`` (seed 4, a 50 mdeg
-roll error estimated) roll 0.74, heading 0.91; ``two-flights-tiny`` (seed 42, both flights' boresight one) about
-0.62 / 0.56 / 0.77 from the knots' sigmas, where the boresight's roll (1.93 mdeg) is the G/I's per pass (4.1) over
-the four passes' square root: unseparated, and clear of this threshold where half the variance (0.71) would not be."""
+roll error estimated) roll 0.74, heading 0.91; ``two-flights-tiny`` (seed 42, both flights' boresight one) 0.60 /
+0.55 / 0.77, where the boresight's roll (1.93 mdeg) is the G/I's per pass (4.18) over the four passes' square root:
+unseparated, and clear of this threshold where half the variance (0.71) would not be."""
 BORESIGHT_GI_SHARE = 0.2
 """... and at least this share of the G/I's stated attitude sigma: the planes know the boresight no better than a
 fifth of what GNSS and IMU know of each epoch (``corridor`` 0.59 / 0.60 / 0.45; ``corridor-tiny`` roll 0.66,
-heading 0.49; ``two-flights-tiny`` about 0.47 / 0.43 / 0.35). A boresight that strips at several headings and
+heading 0.49; ``two-flights-tiny`` 0.46 / 0.42 / 0.35). A boresight that strips at several headings and
 cross strips separate sits far below it, and then a small sigma of the trajectory is no fault."""
 
 
