@@ -213,12 +213,8 @@ def test_imu_jacobians(seed, window_samples, kind):
     assert chk.max_rel_error < 1e-6, chk
 
 
-@pytest.mark.parametrize("seed", SEEDS)
-@pytest.mark.parametrize("kind", ["rates", "increments"])
-def test_imu_jacobians_with_misalignment(seed, kind):
-    """Both triads' misalignment blocks, and the trajectory and scale Jacobians through the full
-    sensitivity matrix ``I + S + A``."""
-    rng = np.random.default_rng(seed)
+def _misaligned_setup(rng, kind: str):
+    """Knots, 10-sample IMU windows at 200 Hz and a bias grid for the misalignment and temperature Jacobian tests."""
     K = 12
     grid = KnotGrid(0.0, 0.1, K)
     values = random_knots(rng, K)
@@ -226,7 +222,16 @@ def test_imu_jacobians_with_misalignment(seed, kind):
     t = np.arange(0.01, grid.t_end - 0.01, 1 / rate)
     wins = make_imu_windows(t, rng.normal(0, 0.1, (t.size, 3)), rng.normal(0, 1, (t.size, 3)) + [0, 0, -9.8],
                             rate, 10 / rate, kind=kind)
-    bg = BiasGrid(0.0, 0.5, 4)
+    return grid, values, wins, BiasGrid(0.0, 0.5, 4)
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("kind", ["rates", "increments"])
+def test_imu_jacobians_with_misalignment(seed, kind):
+    """Both triads' misalignment blocks, and the trajectory and scale Jacobians through the full
+    sensitivity matrix ``I + S + A``."""
+    rng = np.random.default_rng(seed)
+    grid, values, wins, bg = _misaligned_setup(rng, kind)
     values |= {"acc_bias": rng.normal(0, 0.01, (4, 3)), "gyro_bias": rng.normal(0, 1e-4, (4, 3)),
                "acc_scale": rng.normal(0, 1e-3, (1, 3)), "gyro_scale": rng.normal(0, 1e-3, (1, 3)),
                "acc_mis": rng.normal(0, 1e-3, (1, 6)), "gyro_mis": rng.normal(0, 1e-3, (1, 6))}
@@ -254,14 +259,7 @@ def test_imu_jacobians_with_temperature_coefficients(seed, kind):
     """The biases' temperature coefficients: Jacobians beside the misalignment, and ``k (T - T_ref)`` adds to each
     window's modelled mean."""
     rng = np.random.default_rng(seed)
-    K = 12
-    grid = KnotGrid(0.0, 0.1, K)
-    values = random_knots(rng, K)
-    rate = 200.0
-    t = np.arange(0.01, grid.t_end - 0.01, 1 / rate)
-    wins = make_imu_windows(t, rng.normal(0, 0.1, (t.size, 3)), rng.normal(0, 1, (t.size, 3)) + [0, 0, -9.8],
-                            rate, 10 / rate, kind=kind)
-    bg = BiasGrid(0.0, 0.5, 4)
+    grid, values, wins, bg = _misaligned_setup(rng, kind)
     temperature = rng.uniform(0.0, 20.0, len(wins))
     values |= {"acc_bias": rng.normal(0, 0.01, (4, 3)), "gyro_bias": rng.normal(0, 1e-4, (4, 3)),
                "acc_scale": rng.normal(0, 1e-3, (1, 3)), "gyro_scale": rng.normal(0, 1e-3, (1, 3)),
