@@ -27,6 +27,7 @@ A ``clean`` case (the scenario without the error, same seed) is the reference. K
 | ``lidar-encoder`` | ``scanner.encoder_error_mdeg`` = (M, M/2) at phases (30, 60) deg: the scan-angle encoder's periodic error | ``processing.lidar.estimate_encoder_error`` and ``estimate_boresight: true`` / as simulated (not estimated) |
 | ``imu-vibration`` | 0.5 g rms of 70 Hz vibration (``imu.vibration_g_rms``), rectified with M ug/g^2 (``imu.acc_vibration_rectification_ug_per_g2``) | one case: not modelled |
 | ``imu-quantisation`` | M times an LN-200's output steps (1.9 urad, 0.061 mm/s: ``imu.*_quantisation_*``) | one case: not modelled |
+| ``imu-unit`` | the ``stim300`` unit preset (``mems`` with the datasheet's misalignment, g-sensitivity and temperature coefficients; ``sim/imu.py``), warming by M deg C over 900 s | ``imu.errors`` as the preset states them (misalignment and temperature coefficients estimated) / those figures removed |
 | ``gnss-float`` | a 60 s float segment from 20 s into the first pass (``gnss.float_segments``; Q=2, 5/5/10 cm stated), its offset drawn with M m horizontal and 1.5 M m up (1 sigma) | ``gnss.float_offset`` (an offset per segment) / ``null`` (taken as fixes) |
 
 Printed per case and solution (G/I, G/I/L), each pass compared with the truth (1 s inset;
@@ -135,6 +136,8 @@ KINDS = {  # kind: (simulation overrides for magnitude M given the clean project
                       None),
     "imu-quantisation": (lambda m, clean: [f"imu.gyro_quantisation_urad={1.9 * m}",
                                            f"imu.acc_quantisation_mm_per_s={0.061 * m}"], None),
+    "imu-unit": (lambda m, clean: ["imu=stim300", f"imu.temperature_change_c={m}"],
+                 lambda cfg: (_without_misalignment(cfg), _without_thermal(cfg))),
 }
 STATE = {  # how the stated run's project.yaml differs from the simulated one, where it does
     "lidar-range": lambda cfg: cfg.setdefault("processing", {}).setdefault("lidar", {}).update(
@@ -147,7 +150,8 @@ STATE = {  # how the stated run's project.yaml differs from the simulated one, w
 DEFAULT_MAGNITUDES = {"imu-misalignment": [0.25, 0.5, 1.0], "gnss-float": [0.1, 0.2, 0.4], "lidar-range": [0.01, 0.03],
                       "imu-thermal": [10.0, 20.0], "gnss-jump": [0.1, 0.2], "gnss-multipath": [0.01, 0.02],
                       "lidar-channel": [20.0, 50.0], "gnss-outage": [60.0], "lidar-incidence": [0.05],
-                      "lidar-walk": [0.01], "lidar-encoder": [20.0], "imu-vibration": [100.0], "imu-quantisation": [1.0]}
+                      "lidar-walk": [0.01], "lidar-encoder": [20.0], "imu-vibration": [100.0], "imu-quantisation": [1.0],
+                      "imu-unit": [10.0]}
 
 
 def _unstate(project: Path, out: Path, unstate) -> Path:

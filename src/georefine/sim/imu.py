@@ -98,6 +98,23 @@ Presets (:data:`IMU_PRESETS`)
     (Figures as transcribed in the IS4S NavToolkit ``ImuModel`` documentation, which cites
     the manufacturers' datasheets.)
 
+    The grades above hold only the errors the estimator models (docs/ARCHITECTURE.md §4.3):
+    their datasheets' further figures are left out so that a grade is the model's own world.
+    A *unit* preset is a real unit with every error its datasheet states:
+
+    ``stim300``     ``mems`` plus the STIM300 datasheet's further terms (the same transcription,
+                    which lists them as "not modelled" there): gyro and accelerometer
+                    misalignment 1 mrad (each off-diagonal element, taken as 1 sigma); gyro
+                    bias from acceleration 1 deg/h/g (with the unit's g-compensation); residual
+                    temperature coefficients linearised from the bias over the -40..85 deg C
+                    range (gyro 5 deg/h rms, accelerometer 2 mg rms; a uniform spread over the
+                    125 deg C range has an rms of 36 deg C: 0.14 deg/h and 55 micro-g per deg C).
+                    The unit's warm-up is an assumption, not a datasheet figure: 10 deg C over
+                    a 900 s time constant (a unit dissipating 1.5-2 W, powered on in the
+                    aircraft). Its output resolution (0.22 deg/h) is far below its noise and
+                    not simulated; vibration is the installation's, not the unit's (set
+                    ``imu.vibration_g_rms``).
+
 Default grade: ``mems`` (:data:`DEFAULT_IMU_GRADE`). Paper 000's G/I solution differs from
 the G/I/L reference by 8 / 4 / 20 mdeg RMS (roll / pitch / yaw) on a helicopter system with
 an integrated ALS-class navigation unit. On a straight corridor leg heading is unobservable
@@ -251,14 +268,28 @@ IMU_PRESETS: dict[str, ImuGrade] = {
     ),
     "ideal": ImuGrade(name="ideal", source="no errors"),
 }
-"""IMU grades by name; see the module docstring for sources."""
+IMU_PRESETS["stim300"] = IMU_PRESETS["mems"].model_copy(update=dict(
+    name="stim300",
+    source="Safran Sensonor STIM300 datasheet TS1524 r9 (10 g accelerometers), every stated error; "
+           "warm-up assumed",
+    gyro_misalignment_mrad=1.0,
+    acc_misalignment_mrad=1.0,
+    gyro_g_sensitivity_deg_per_h_per_g=1.0,
+    gyro_temperature_deg_per_h_per_c=round(5.0 / (125.0 / 12.0 ** 0.5), 3),
+    acc_temperature_ug_per_c=round(2000.0 / (125.0 / 12.0 ** 0.5), 1),
+    temperature_change_c=10.0,
+    temperature_time_constant_s=900.0,
+))
+"""IMU grades and units by name; see the module docstring for sources. The grades (``navigation``,
+``tactical``, ``mems``) hold the errors the estimator models; a unit (``stim300``) every error its
+datasheet states."""
 
 DEFAULT_IMU_GRADE = "mems"
 """Default grade (STIM300 class high-end MEMS): reproduces paper 000's G/I attitude errors."""
 
 
 def imu_grade(name: str) -> ImuGrade:
-    """Preset by name (``navigation``, ``tactical``, ``mems``, ``ideal``)."""
+    """Preset by name (``navigation``, ``tactical``, ``mems``, ``ideal``, ``stim300``)."""
     try:
         return IMU_PRESETS[name]
     except KeyError:
