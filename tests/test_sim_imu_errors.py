@@ -176,3 +176,26 @@ def test_the_imu_file_logs_the_temperature_where_it_changes(flight, tmp_path):
     assert back.temperature_c[0] == 20.0 and back.temperature_c[-1] > 20.0
     write_imu(tmp_path / "plain.csv", simulate_imu(flight, imu_grade("mems"), 0.0, 2.0, np.random.default_rng(5)))
     assert read_imu_csv(tmp_path / "plain.csv").temperature_c is None
+
+
+def test_the_stim300_unit_is_the_mems_grade_with_every_error_its_datasheet_states(flight, tmp_path):
+    """The ``stim300`` unit preset keeps the ``mems`` grade's modelled figures and adds the datasheet's misalignment,
+    g-sensitivity and temperature coefficients with a warm-up; simulated, it draws each of them. ``--set imu=stim300``
+    names it as it names a grade (the bench's ``imu-unit`` kind)."""
+    from georefine.sim.scenarios import resolve_scenario
+
+    mems, unit = imu_grade("mems"), imu_grade("stim300")
+    extra = {"gyro_misalignment_mrad": 1.0, "acc_misalignment_mrad": 1.0, "gyro_g_sensitivity_deg_per_h_per_g": 1.0,
+             "gyro_temperature_deg_per_h_per_c": 0.139, "acc_temperature_ug_per_c": 55.4, "temperature_change_c": 10.0}
+    assert {k: getattr(unit, k) for k in extra} == extra
+    assert all(getattr(mems, k) == 0.0 for k in extra)
+    same = set(ImuGrade.model_fields) - set(extra) - {"name", "source"}
+    assert {k: getattr(unit, k) for k in same} == {k: getattr(mems, k) for k in same}
+    imu = simulate_imu(flight, unit, 0.0, 300.0, np.random.default_rng(11))
+    off = ~np.eye(3, dtype=bool)
+    for a in (imu.misalignment_gyro, imu.misalignment_acc):
+        assert np.all(a[off] != 0) and np.all(np.abs(a[off]) < 5e-3) and not np.any(np.diag(a))
+    assert np.all(imu.g_sensitivity != 0) and np.all(imu.temperature_gyro != 0) and np.all(imu.temperature_acc != 0)
+    np.testing.assert_allclose(imu.temperature_c, temperature_profile(imu.time, 10.0, 900.0))
+    cfg = resolve_scenario("corridor-tiny", seed_overrides=["imu=stim300", "imu.temperature_change_c=20"])
+    assert cfg.imu.name == "stim300" and cfg.imu.temperature_change_c == 20.0 and cfg.imu.gyro_misalignment_mrad == 1.0
