@@ -84,7 +84,7 @@ def simulate(scenario: str, out: PathLike, *, seed: int = 42, overrides: Sequenc
 
     ``scenario``: ``corridor``, ``corridor-tiny``, ``corridor-paper``, ``corridor-paper-full``, ``block``, ``area`` or ``area-tiny``;
     ``overrides``: ``"key.sub=value"`` strings; ``config_file``: a YAML file of overrides;
-    ``imu_grade`` (``navigation``, ``tactical``, ``mems``, ``ideal``) and ``gnss_grade`` (``ppk``,
+    ``imu_grade`` (``navigation``, ``tactical``, ``mems``, ``ideal``, or the unit ``stim300``) and ``gnss_grade`` (``ppk``,
     ``ideal``): presets; ``write_imr``: the IMU also as a NovAtel ``.imr`` file. The same seed
     gives the same files. ``scheduler`` defaults to ``sync``: the ray caster and the LAZ encoder
     already use every core.

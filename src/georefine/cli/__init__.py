@@ -66,7 +66,7 @@ def simulate(
     seed: int = typer.Option(42, "--seed", help="Random seed; the same seed gives the same files."),
     set_: Optional[list[str]] = typer.Option(None, "--set", help="Override a parameter: key.sub=value (repeatable)."),
     config: Optional[Path] = typer.Option(None, "--config", help="YAML file with parameter overrides."),
-    imu_grade: Optional[str] = typer.Option(None, "--imu-grade", help="IMU grade: navigation, tactical, mems or ideal."),
+    imu_grade: Optional[str] = typer.Option(None, "--imu-grade", help="IMU grade: navigation, tactical, mems or ideal; or the unit stim300 (mems with every error its datasheet states)."),
     gnss_grade: Optional[str] = typer.Option(None, "--gnss-grade", help="GNSS grade: ppk (default) or ideal."),
     imr: bool = typer.Option(False, "--imr", help="Also write the IMU data as a NovAtel .imr file."),
     # sync: Embree and the LAZ encoder already use both cores (BENCHMARKS.md, "Scenario simulation").
