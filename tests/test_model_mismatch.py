@@ -352,10 +352,14 @@ def test_a_correlated_gnss_error_beyond_its_prior_is_a_warning(factor, warned, c
     with caplog.at_level("WARNING", logger="georefine.workflows.outer_checks"):
         warn_gnss_error_misfit(adjustment((SimpleNamespace(name="gnss", variance_factor=1.2), group)))
         warn_gnss_error_misfit(adjustment((SimpleNamespace(name="gnss", variance_factor=9.0),)))
+        # Several flights adjusted together: each flight's own GNSS error, under the part's own group names.
+        warn_gnss_error_misfit(adjustment((group,)), "flight 2's G/I/L")
     messages = [r.getMessage() for r in caplog.records]
-    assert len(messages) == int(warned), messages
+    assert len(messages) == 2 * int(warned), messages
     if warned:
-        assert "fits its prior at 2.38 per row" in messages[0] and "gnss.multipath models where it is stated" in messages[0]
+        assert messages[0].startswith("the G/I/L's correlated GNSS error fits its prior at 2.38 per row"), messages[0]
+        assert "gnss.multipath models where it is stated" in messages[0]
+        assert messages[1].startswith("flight 2's G/I/L's correlated GNSS error fits its prior at 2.38"), messages[1]
 
 
 @pytest.mark.parametrize(("slow", "fast", "warned"), [(0.3, 2.1, ["multipath fits its prior at 2.10"]),

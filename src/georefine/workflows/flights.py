@@ -96,6 +96,7 @@ from georefine.workflows.outer_checks import (
     outer_converged,
     trajectory_change,
     warn_boresight_separation,
+    warn_gnss_error_misfit,
     warn_plane_misfit,
     warn_unconverged,
 )
@@ -635,6 +636,7 @@ def run_flights(
         warn_time_offset(cfg, g0.time_offset_s, g0.time_offset_sigma_s, g0.time_offset_gnss_sigma_s or 0.0)
         for f, gi, g in zip(flights, gis, gils):
             warn_plane_misfit(gi, g, outcome.records, f.nav)
+            warn_gnss_error_misfit(g, f"flight {f.flight.id}'s G/I/L")
         warn_boresight_separation(gis, gils)
         (ws.out / "features").mkdir(exist_ok=True)
         used = np.flatnonzero(outcome.objects.feature_object >= 0)

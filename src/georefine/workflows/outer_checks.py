@@ -244,30 +244,31 @@ misalignment, a temperature drift or a range error left unstated; 2.38 with 2/4 
 angles left out (``corridor-tiny``: 0.14 with range and channels estimated, 3.20 with neither)."""
 
 
-def warn_gnss_error_misfit(adj: LidarAdjustment) -> None:
+def warn_gnss_error_misfit(adj: LidarAdjustment, who: str = "the G/I/L") -> None:
     """Warn, with the figures, when the G/I/L's correlated GNSS error moves faster or further than its prior
     (``gnss.correlated_error``) allows: the planes see GNSS errors the model does not hold (multipath, a wrong
     fix or float solution below what the search finds, a ``.pos`` file whose sigmas are too small). The stated
-    position and attitude sigmas then lean optimistic."""
+    position and attitude sigmas then lean optimistic. ``who`` names the solution (a flight's, where several
+    flights are adjusted together: each has its own GNSS errors and groups)."""
     solve = getattr(adj.result, "solve", None)
     groups = {g.name: g for g in getattr(solve, "groups", ())}
     group = groups.get("gnss_error_prior")
     if group is not None and group.variance_factor > GNSS_ERROR_FIT_LIMIT:
         multipath = "gnss_multipath_prior" in groups
         log.warning(
-            "the G/I/L's correlated GNSS error fits its prior at %.2f per row (warning above %.1f; expected at most 1): "
+            "%s's correlated GNSS error fits its prior at %.2f per row (warning above %.1f; expected at most 1): "
             "the planes pull it faster or further than gnss.correlated_error allows, and the stated position and "
             "attitude sigmas lean optimistic. GNSS errors the model does not hold do this (%s, a wrong fix or float "
             "segment the file does not flag, sigmas in the .pos file too small; the G/I/L's estimate is in "
             "gil/adjustment.json, gnss_error), and so does a LiDAR model that does not fit (then other warnings name it)",
-            group.variance_factor, GNSS_ERROR_FIT_LIMIT,
+            who, group.variance_factor, GNSS_ERROR_FIT_LIMIT,
             "multipath beyond the stated gnss.multipath" if multipath
             else "multipath, which gnss.multipath models where it is stated",
         )
     group = groups.get("gnss_multipath_prior")
     if group is not None and group.variance_factor > GNSS_ERROR_FIT_LIMIT:
         log.warning(
-            "the G/I/L's multipath fits its prior at %.2f per row (warning above %.1f; expected at most 1): the planes "
+            "%s's multipath fits its prior at %.2f per row (warning above %.1f; expected at most 1): the planes "
             "pull it faster or further than gnss.multipath allows (its sigmas or correlation time understate it), and "
-            "the stated position and attitude sigmas lean optimistic", group.variance_factor, GNSS_ERROR_FIT_LIMIT,
+            "the stated position and attitude sigmas lean optimistic", who, group.variance_factor, GNSS_ERROR_FIT_LIMIT,
         )
