@@ -269,10 +269,43 @@ def test_the_gi_estimates_the_biases_temperature_coefficients_from_the_logged_te
     assert estimated[1].rmse_mdeg[1] < 0.4 * widened[1].rmse_mdeg[1], (estimated[1], widened[1])  # 3.4 against 17.3
 
 
+def test_a_logged_temperature_change_without_coefficients_is_named():
+    """The temperature the IMU file logs changes by 3 deg C or more and no coefficient is estimated: named with the
+    change and the drift at the default priors; not where the datasheet states one, ``true`` estimates them, ``false``
+    leaves them out on purpose, the change is small or no temperature is logged."""
+    from georefine.adjustment.gnss_imu import unmodelled_temperature
+    from georefine.config import ImuErrorSpec, TrajectoryAdjustmentConfig
+
+    warming = 20.0 + 10.0 * (1.0 - np.exp(-np.linspace(0.0, 620.0, 500) / 900.0))
+    from georefine.sim.imu import imu_grade
+
+    mems = {k: v for k, v in imu_grade("mems").model_dump().items() if k in ImuErrorSpec.model_fields}
+    plain, auto = ImuErrorSpec(**mems), TrajectoryAdjustmentConfig()
+    note = unmodelled_temperature(warming, plain, auto)
+    assert note is not None and note.startswith("the IMU file logs its temperature changing by 5.0 deg C (20.0 .. 25.0)")
+    assert "drift by 0.50 deg/h and 50 micro-g" in note and "estimate_temperature_coefficients: true" in note, note
+    stated = ImuErrorSpec(**{**mems, "acc_temperature_ug_per_c": 10.0})
+    for spec, cfg, temperature in ((stated, auto, warming),
+                                   (plain, auto.model_copy(update={"estimate_temperature_coefficients": True}), warming),
+                                   (plain, auto.model_copy(update={"estimate_temperature_coefficients": False}), warming),
+                                   (plain, auto, 20.0 + 0.5 * (warming - 20.0)),
+                                   (plain, auto, None)):
+        assert unmodelled_temperature(temperature, spec, cfg) is None
+
+
 def test_check_lists_the_logged_temperature_and_refuses_a_missing_one(warming_navigation, float_navigation, tmp_path):
     proc = run_georefine_here("check", str(warming_navigation))
     assert proc.returncode == 0, proc.stderr
     assert "gaps, temperature 20.0 .. " in proc.stdout, proc.stdout
+    assert "the biases' temperature coefficients are not estimated" not in proc.stdout  # stated: estimated
+    unstated = _estimating(warming_navigation, tmp_path / "unstated")
+    cfg = yaml.safe_load((unstated / "project.yaml").read_text())
+    for key in ("gyro_temperature_deg_per_h_per_c", "acc_temperature_ug_per_c"):
+        cfg["imu"]["errors"].pop(key, None)
+    (unstated / "project.yaml").write_text(yaml.safe_dump(cfg))
+    proc = run_georefine_here("check", str(unstated))
+    assert proc.returncode == 0, proc.stderr
+    assert "warning: the IMU file logs its temperature changing by" in proc.stdout, proc.stdout
     wanting = _estimating(float_navigation, tmp_path / "wanting")
     cfg = yaml.safe_load((wanting / "project.yaml").read_text())
     cfg["processing"]["trajectory"] = {"estimate_temperature_coefficients": True}

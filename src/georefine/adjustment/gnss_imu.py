@@ -369,6 +369,37 @@ def temperature_prior(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig, data:
     return g * DEG_PER_H, a * MICRO_G
 
 
+TEMPERATURE_CHANGE_NOTE_C = 3.0
+"""The logged temperature change (deg C) from which :func:`unmodelled_temperature` names coefficients left out: at
+the default priors (0.1 deg/h and 10 micro-g per deg C) 3 deg C drift the biases by 0.3 deg/h and 30 micro-g, about
+a MEMS unit's bias instability (0.5 deg/h, 50 micro-g)."""
+
+
+def unmodelled_temperature(temperature_c: np.ndarray | None, spec: ImuErrorSpec,
+                           cfg: TrajectoryAdjustmentConfig) -> str | None:
+    """What ``check`` and ``run`` say where the IMU file logs a temperature that changes by
+    :data:`TEMPERATURE_CHANGE_NOTE_C` or more and the biases' temperature coefficients are not estimated
+    (``auto`` with no coefficient in the datasheet): the change, the drift it makes at the default priors, and
+    the setting that estimates them; else None. Left out, such a drift is not the bias walk the model holds: on
+    ``corridor`` a 20 deg C warm-up cost the G/I/L's roll 1.36 times the clean run's with honest sigmas, 1.24
+    estimated (BENCHMARKS.md, "Sensors beyond the model")."""
+    if temperature_c is None or not np.size(temperature_c) or cfg.estimate_temperature_coefficients is False:
+        return None
+    t = np.asarray(temperature_c, dtype=float)
+    change = float(t.max() - t.min())
+    stated = spec.gyro_temperature_deg_per_h_per_c > 0 or spec.acc_temperature_ug_per_c > 0
+    if change < TEMPERATURE_CHANGE_NOTE_C or cfg.estimate_temperature_coefficients is True or stated:
+        return None
+    g, a = cfg.temperature_prior_gyro_deg_per_h_per_c, cfg.temperature_prior_acc_ug_per_c
+    return (f"the IMU file logs its temperature changing by {change:.1f} deg C ({t.min():.1f} .. {t.max():.1f}), and "
+            "the biases' temperature coefficients are not estimated (imu.errors states none): at "
+            f"{g:g} deg/h and {a:g} micro-g per deg C the biases drift by {g * change:.2f} deg/h and {a * change:.0f} "
+            "micro-g over it, smoothly, which the bias walk does not model; processing.trajectory."
+            "estimate_temperature_coefficients: true estimates them against the logged temperature "
+            "(priors temperature_prior_gyro_deg_per_h_per_c, temperature_prior_acc_ug_per_c), or state the "
+            "datasheet's imu.errors.gyro_temperature_deg_per_h_per_c, acc_temperature_ug_per_c")
+
+
 def cleaning_redundancy(data: GnssImuData, inside: np.ndarray, window_s: float, densities: dict,
                         sigma_gyro: np.ndarray, sigma_acc: np.ndarray) -> float:
     """The redundancy of the IMU windows that the cleaning of the readings consumed.

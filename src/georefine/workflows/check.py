@@ -18,6 +18,7 @@ from typing import Callable
 
 import numpy as np
 
+from georefine.adjustment.gnss_imu import unmodelled_temperature
 from georefine.adjustment.gnss_segments import non_fix_segments
 from georefine.config import FlightConfig, GnssFloatOffset, ProjectConfig
 from georefine.errors import InputError
@@ -192,6 +193,9 @@ def _check_navigation(root: Path, cfg: ProjectConfig, warnings: list[str], prefi
     temperature = None
     if imu.temperature_c is not None:
         temperature = (float(imu.temperature_c.min()), float(imu.temperature_c.max()))
+        note = unmodelled_temperature(imu.temperature_c, cfg.imu.errors, cfg.processing.trajectory)
+        if note is not None:
+            warnings.append(prefix + note)
     elif cfg.processing.trajectory.estimate_temperature_coefficients is True:
         raise InputError("the IMU file logs no temperature", path=root / cfg.imu.file, field="temperature_c",
                          expected="a temperature_c column where processing.trajectory."

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from georefine.adjustment.gnss_imu import GnssImuResult
+from georefine.adjustment.gnss_imu import GnssImuResult, unmodelled_temperature
 from georefine.adjustment.observations.plane import ENCODER_HALF_WIDTH_DEG
 from georefine.adjustment.upsampling import high_rate_share
 from georefine.config import ProjectConfig
@@ -78,6 +78,10 @@ def stage_gnss_imu(steps: StepRunner, nav: NavigationData, progress: Progress = 
         progress("G/I adjustment", 1, 1)  # it reports iterations of its limit; it ended here
         return result
 
+    note = None if nav.prior is not None else unmodelled_temperature(
+        nav.gnss.imu_temperature, nav.config.imu.errors, nav.config.processing.trajectory)
+    if note is not None:  # said whether the G/I is computed or read from the cache
+        log.warning(note)
     key = navigation_key(nav.config, nav.root)
     return steps.cached("gi", key, compute, timing="gi_adjustment"), key
 
