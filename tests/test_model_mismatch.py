@@ -363,11 +363,13 @@ def test_a_gi_attitude_off_the_gil_beyond_its_sigma_is_a_warning(sigma_mdeg, war
     np.testing.assert_allclose(np.degrees(stated) * 1e3, [sigma_mdeg] * 3, rtol=1e-9)
     with caplog.at_level("WARNING", logger="georefine.workflows.outer_checks"):
         warn_gi_tilt(gi, SimpleNamespace(result=gil), frame)
+        warn_gi_tilt(gi, SimpleNamespace(result=gil), frame, who="flight 2: ")  # several flights: each its own
     messages = [r.getMessage() for r in caplog.records]
-    assert bool(messages) is warned, messages
+    assert len(messages) == 2 * int(warned), messages
     if warned:
-        assert "roll +10.00 mdeg" in messages[0] and "5.0/0.0/0.0 times its stated sigma" in messages[0]
-        assert "misalignment_mrad" in messages[0]
+        assert messages[0].startswith("the G/I attitude differs from the G/I/L's on average by roll +10.00 mdeg")
+        assert "5.0/0.0/0.0 times its stated sigma" in messages[0] and "misalignment_mrad" in messages[0]
+        assert messages[1] == "flight 2: " + messages[0]
 
 
 @pytest.mark.parametrize(("factor", "warned"), [(2.38, True), (0.46, False)])

@@ -141,12 +141,13 @@ def gi_tilt(gi: GnssImuResult, gil: GnssImuResult, frame: LocalFrame) -> tuple[n
     return d.mean(axis=0), np.sqrt(np.mean(sigma**2, axis=0))
 
 
-def warn_gi_tilt(gi: GnssImuResult, adj: LidarAdjustment, frame: LocalFrame) -> None:
+def warn_gi_tilt(gi: GnssImuResult, adj: LidarAdjustment, frame: LocalFrame, who: str = "") -> None:
     """Warn, with the figures, when the G/I's attitude differs from the G/I/L's on average by more than
     :data:`GI_TILT_SIGMAS` of the G/I's stated sigma: GNSS and IMU alone see a tilt or heading that the
     planes do not, which the G/I's model does not hold (an unmodelled IMU misalignment, a wrong GNSS lever
     arm), or the planes see through a boresight the G/I/L holds at a wrong value. Either way one of the two
-    states sigmas its data contradict."""
+    states sigmas its data contradict. ``who`` leads the message (``"flight 2: "`` where several flights are
+    adjusted together, each with its own IMU and G/I)."""
     if getattr(adj.result, "sbet_errors", None) is not None or gi.imu_errors is None:
         return
     found = gi_tilt(gi, adj.result, frame)
@@ -158,14 +159,14 @@ def warn_gi_tilt(gi: GnssImuResult, adj: LidarAdjustment, frame: LocalFrame) -> 
         return
     names = ("roll", "pitch", "heading")
     log.warning(
-        "the G/I attitude differs from the G/I/L's on average by %s, %s its stated sigma (%s; warning above %.0f): "
+        "%sthe G/I attitude differs from the G/I/L's on average by %s, %s its stated sigma (%s; warning above %.0f): "
         "GNSS and IMU alone see an attitude the planes do not, and the G/I's sigmas do not hold it. An IMU whose "
         "triads are misaligned (imu.errors.gyro_misalignment_mrad, acc_misalignment_mrad with "
         "processing.trajectory.estimate_misalignment) or a wrong gnss.lever_arm_m does this; the G/I/L "
         "holds its attitude to the planes, but the same misfit can reach it. So does a scanner boresight off the "
         "stated one where the G/I/L does not estimate it (scanner.boresight_deg, processing.lidar.estimate_boresight; "
         "the scanner calibration check tests it): then the G/I/L's attitude is the one that is off",
-        ", ".join(f"{n} {np.degrees(m) * 1e3:+.2f} mdeg" for n, m in zip(names, mean)),
+        who, ", ".join(f"{n} {np.degrees(m) * 1e3:+.2f} mdeg" for n, m in zip(names, mean)),
         "/".join(f"{r:.1f}" for r in ratio) + " times",
         "/".join(f"{np.degrees(s) * 1e3:.2f}" for s in sigma) + " mdeg", GI_TILT_SIGMAS,
     )
