@@ -166,18 +166,16 @@ def test_flights_refuse_what_a_flight_cannot_be(tmp_path):
     del data["gnss"], data["imu"]
     data["trajectory"] = {"sbet": "t.sbet", "gps_week": 2314}
     assert "field 'flights': flights need the sections gnss and imu" in _refused(tmp_path, data)
+
+
+def test_flights_take_the_scanner_calibration_of_their_one_scanner(tmp_path):
+    """The range calibration, channel angles and encoder error are the one scanner's: several flights estimate them
+    together (:mod:`georefine.workflows.flights`), so ``project.yaml`` may ask for them."""
     data = flights_project()
-    data["processing"] = {"lidar": {"estimate_range_calibration": True}}
-    assert ("field 'processing.lidar.estimate_range_calibration': the scanner's range calibration is estimated "
-            "for one flight") in _refused(tmp_path, data)
-    data = flights_project()
-    data["processing"] = {"lidar": {"estimate_channel_angles": True}}
-    assert ("field 'processing.lidar.estimate_channel_angles': the scanner's channel angles are estimated "
-            "for one flight") in _refused(tmp_path, data)
-    data = flights_project()
-    data["processing"] = {"lidar": {"estimate_encoder_error": True}}
-    assert ("field 'processing.lidar.estimate_encoder_error': the scanner's encoder error is estimated "
-            "for one flight") in _refused(tmp_path, data)
+    data["processing"] = {"lidar": {"estimate_range_calibration": True, "estimate_channel_angles": True,
+                                    "estimate_encoder_error": True}}
+    lidar = load_project(_write(tmp_path, data)).processing.lidar
+    assert lidar.estimate_range_calibration and lidar.estimate_channel_angles and lidar.estimate_encoder_error
 
 
 def test_a_project_without_flights_needs_its_top_level_files(tmp_path):

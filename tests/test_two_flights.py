@@ -1,8 +1,9 @@
 """Two flights adjusted together in one G/I/L (georefine.workflows.flights, docs/ARCHITECTURE.md §3, §4.5).
 
 ``two-flights-tiny`` (corridor-tiny flown on two days: strips 1, 2 in flight 1, 3, 4 in flight 2) with a
-boresight error in ``project.yaml`` that the runs estimate: the joint run estimates one boresight and
-one LiDAR time offset for both flights near the truth with sigmas below each flight's alone, and the
+boresight error in ``project.yaml`` and a scanner reading 3 cm + 100 ppm long, which the runs estimate with
+the channel angles and the encoder error: the joint run estimates one boresight, one LiDAR time offset and
+one scanner calibration for both flights near the truth with sigmas below each flight's alone, and the
 flights' attitude together is as good as alone, with honest sigmas.
 """
 
@@ -29,16 +30,21 @@ pytestmark = pytest.mark.slow
 
 PROJECT_BORESIGHT_DEG = (0.05, -0.06, 0.08)
 STRIPS = {1: (1, 2), 2: (3, 4)}
+RANGE_OFFSET_M, RANGE_SCALE_PPM = 0.03, 100.0
 
 
 @pytest.fixture(scope="module")
 def project(tmp_path_factory) -> Path:
-    """two-flights-tiny with a boresight error of about 40 mdeg per angle, estimated by the runs."""
+    """two-flights-tiny with a boresight error of about 40 mdeg per angle and a range error, estimated by the runs
+    with the channel angles and the encoder error (neither simulated)."""
     out = tmp_path_factory.mktemp("two_flights") / "p"
     simulate_project("two-flights-tiny", out, seed=42,
-                     overrides=["project_boresight_deg=[" + ",".join(map(str, PROJECT_BORESIGHT_DEG)) + "]"])
+                     overrides=["project_boresight_deg=[" + ",".join(map(str, PROJECT_BORESIGHT_DEG)) + "]",
+                                f"scanner.range_offset_m={RANGE_OFFSET_M}", f"scanner.range_scale_ppm={RANGE_SCALE_PPM}"])
     cfg = yaml.safe_load((out / "project.yaml").read_text())
-    cfg.setdefault("processing", {}).setdefault("lidar", {})["estimate_boresight"] = True
+    cfg.setdefault("processing", {}).setdefault("lidar", {}).update(
+        estimate_boresight=True, estimate_range_calibration=True, estimate_channel_angles=True,
+        estimate_encoder_error=True)
     (out / "project.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
     return out
 
@@ -53,10 +59,11 @@ def runs(project, tmp_path_factory) -> Path:
     handler.emit = lambda record: warnings.append(record.getMessage())
     logging.getLogger("georefine").addHandler(handler)
     try:
-        run_flights(opened, out / "joint", cache_dir=out / "cache", scheduler="sync")
+        joint = run_flights(opened, out / "joint", cache_dir=out / "cache", scheduler="sync")
     finally:
         logging.getLogger("georefine").removeHandler(handler)
     (out / "joint_warnings.json").write_text(json.dumps(warnings))
+    (out / "joint_summary.txt").write_text(joint.summary())
     for flight in opened.flights:
         run_workflow(opened.flight_project(flight.id), out / f"alone_{flight.id}", cache_dir=out / "cache",
                      scheduler="sync")
@@ -107,6 +114,51 @@ def test_a_boresight_the_strips_do_not_separate_is_named_once(runs):
     report = read_adjustment_report(runs / "joint" / "gil" / "flight_1" / "adjustment.json")
     found = [w for w in json.loads((runs / "joint_warnings.json").read_text()) if "do not separate the boresight" in w]
     assert len(found) == 1 and f"roll ± {report.boresight_sigma_mdeg[0]:.2f} mdeg" in found[0], found
+
+
+def test_one_scanner_calibration_for_both_flights(runs):
+    """One scanner: its range offset and scale, channel angles and encoder error are the same in both flights'
+    reports, within 3 sigma of the truth (3 cm + 100 ppm; no channel or encoder error); the joint run prints them
+    once for all flights and corrects every flight's points. The range's sigma is about each flight's alone (measured
+    10.3 mm and 32 ppm against 10.2 and 34): an object keeps at most ``max_features_per_object`` (12) features, so
+    the objects both flights see carry the plane rows of about one flight (55,854 rows against 54,528 alone)."""
+    reports = [json.loads((runs / "joint" / "gil" / f"flight_{f}" / "adjustment.json").read_text()) for f in STRIPS]
+    for key in ("range_calibration", "channel_angles", "encoder_error"):
+        assert reports[0][key] is not None and reports[0][key] == reports[1][key], key
+    rc = reports[0]["range_calibration"]
+    z = [(rc["offset_m"] - RANGE_OFFSET_M) / rc["offset_sigma_m"], (rc["scale_ppm"] - RANGE_SCALE_PPM) / rc["scale_sigma_ppm"]]
+    assert np.all(np.abs(z) <= 3.0), (rc, z)
+    ch = reports[0]["channel_angles"]
+    for key in ("tilt", "scan_angle"):
+        z_ch = np.asarray(ch[f"{key}_mdeg"])[1:] / np.asarray(ch[f"{key}_sigma_mdeg"])[1:]
+        assert np.all(np.abs(z_ch) <= 3.0), (key, ch)
+    enc = reports[0]["encoder_error"]
+    assert np.all(np.abs(np.asarray(enc["terms_mdeg"]) / np.asarray(enc["terms_sigma_mdeg"])) <= 3.0), enc
+    for flight in STRIPS:
+        alone = json.loads((runs / f"alone_{flight}" / "gil" / "adjustment.json").read_text())["range_calibration"]
+        assert rc["offset_sigma_m"] < 1.1 * alone["offset_sigma_m"], (rc, alone)
+        assert rc["scale_sigma_ppm"] < 1.1 * alone["scale_sigma_ppm"], (rc, alone)
+    summary = (runs / "joint_summary.txt").read_text()
+    assert summary.count("scanner range offset (all flights)") == 1, summary
+    assert "scanner channel angles (all flights)" in summary and "scanner encoder error (all flights)" in summary
+
+
+def test_every_flights_points_are_corrected_for_the_range(runs, project):
+    """The joint run's points against the truth, return by return: the range error (4.6-4.9 cm along the beam at
+    160-190 m) is taken out of every flight's strips. The truth file holds each measured return (its range error
+    in) with the true pose, so the surface is ``range_error_m`` further up the beam: about ``cos(scan angle)`` of it
+    in height; uncorrected, the points would sit that far below it."""
+    import laspy
+
+    for strip in (1, 3):
+        with laspy.open(runs / "joint" / "points" / f"strip_{strip}.laz") as f:
+            out = f.read()
+        with laspy.open(project / "truth" / f"strip_{strip}.laz") as f:
+            truth = f.read()
+        error = np.asarray(truth["range_error_m"], dtype=float)
+        surface_z = np.asarray(truth.z) + error * np.cos(np.radians(np.asarray(truth.scan_angle) * 0.006))
+        off = np.median(np.asarray(out.z) - surface_z)
+        assert abs(off) < 0.015 and np.median(error) > 0.045, (strip, off, np.median(error))
 
 
 def test_one_time_offset_within_two_sigma(runs):

@@ -501,21 +501,21 @@ class LidarAdjustmentConfig(StrictModel):
     estimate_range_calibration: bool = Field(
         False, description="Estimate the scanner's range offset and scale error (the unit reads (1 + k) r + r0 of a "
         "range r; docs/ARCHITECTURE.md §4.3) from the planes, as RiPROCESS and TerraMatch calibrate them; the "
-        "final points are corrected with them. One flight, outside the hybrid adjustment.")
+        "final points are corrected with them. Several flights share one; not in the hybrid adjustment.")
     range_offset_prior_m: float = Field(0.05, gt=0.0, description="Prior sigma of the range offset r0 (m).")
     range_scale_prior_ppm: float = Field(200.0, gt=0.0, description="Prior sigma of the range scale error k (ppm).")
     estimate_channel_angles: bool = Field(
         False, description="Estimate each scanner channel's facet-tilt and scan-angle error against channel 0's (its "
         "beams leave at angles the unit does not record; docs/ARCHITECTURE.md §4.3) from the planes, as RiPROCESS and "
         "TerraMatch calibrate a mirror's facets; the final points are corrected with them. Channel 0's own errors are "
-        "the boresight's (estimate_boresight). One flight, outside the hybrid adjustment.")
+        "the boresight's (estimate_boresight). Several flights share one; not in the hybrid adjustment.")
     channel_angle_prior_mdeg: float = Field(
         20.0, gt=0.0, description="Prior sigma of each channel's tilt and scan-angle error (mdeg).")
     estimate_encoder_error: bool = Field(
         False, description="Estimate the scan-angle encoder's error across the field of view, the same on every "
         "channel (four Legendre terms of the scan angle; docs/ARCHITECTURE.md §4.3), from the planes; the final "
         "points are corrected with it. Its mean over the field of view is the boresight's roll "
-        "(estimate_boresight). One flight, outside the hybrid adjustment.")
+        "(estimate_boresight). Several flights share one; not in the hybrid adjustment.")
     encoder_error_prior_mdeg: float = Field(
         20.0, gt=0.0, description="Prior sigma of each of the encoder error's four terms (mdeg).")
     check_scanner_calibration: bool = Field(
@@ -816,18 +816,6 @@ class ProjectConfig(StrictModel):
         if self.scanner.files:
             raise _rule_error(("scanner", "files"), "strips " + both.format("strips", "scanner.files"),
                               self.scanner.files)
-        if self.processing.lidar.estimate_range_calibration:
-            raise _rule_error(("processing", "lidar", "estimate_range_calibration"), "the scanner's range calibration "
-                              "is estimated for one flight; the adjustment of several flights does not take it yet",
-                              True)
-        if self.processing.lidar.estimate_channel_angles:
-            raise _rule_error(("processing", "lidar", "estimate_channel_angles"), "the scanner's channel angles are "
-                              "estimated for one flight; the adjustment of several flights does not take them yet",
-                              True)
-        if self.processing.lidar.estimate_encoder_error:
-            raise _rule_error(("processing", "lidar", "estimate_encoder_error"), "the scanner's encoder error is "
-                              "estimated for one flight; the adjustment of several flights does not take it yet",
-                              True)
         if self.gnss.format == "sbet":
             raise _rule_error(("gnss", "format"), "gnss.format sbet takes the one delivered SBET of a single-flight "
                               "project: with flights, each flight's gnss_files are RTKLIB .pos files (format pos)",

@@ -32,7 +32,8 @@ it, its estimate and sigma, and the setting, or, for the incidence bias, which G
 out of the points (their incidence is unknown where they are georeferenced), what it does to them.
 The check's estimates are not applied: what the products hold is what the configuration asked
 for. It costs one to three more G/I/L solves, each with a factorisation for its covariance (28 and 30 s on
-``corridor``; ``processing.lidar.check_scanner_calibration`` switches it off). One flight: the adjustment of several flights does not take these parameters.
+``corridor``; ``processing.lidar.check_scanner_calibration`` switches it off). One flight: a run of several flights estimates what ``project.yaml`` asks of
+these parameters (one scanner for all flights) but does not check for the rest yet.
 """
 
 from __future__ import annotations

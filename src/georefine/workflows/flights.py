@@ -16,7 +16,10 @@ time epoch -- and the flights are tied by what they share:
   same configured values (a flight with its own boresight or time offset in ``project.yaml`` gets
   its own block). The time offset search runs over all strips of all flights (any two strips
   with different tracks show an offset, whichever flight flew them), and the offset's
-  observability is judged over all of them too.
+  observability is judged over all of them too. The scanner's range calibration, channel angles
+  and encoder error (``processing.lidar.estimate_range_calibration``, ``estimate_channel_angles``,
+  ``estimate_encoder_error``) are the one unit's: one block each for all flights, their priors
+  once, and every flight's points corrected with them.
 
 Each outer iteration builds every flight's G/I/L problem as the single-flight run does
 (:func:`~georefine.workflows.gil.build_gil_problem` with the joint selection), merges them into
@@ -79,12 +82,14 @@ from georefine.tasks import DEFAULT_SCHEDULER, TaskRunner
 from georefine.trajectory.sampled import Trajectory
 from georefine.workflows.cache import StepCache, StepRunner, file_stamp
 from georefine.workflows.gil import (
+    CALIBRATION_PRIORS,
     LidarAdjustment,
     PlaneSelection,
     boresight_body_sigma_mdeg,
     boresight_deg_of,
     build_gil_problem,
     plane_candidates,
+    scanner_estimates,
 )
 from georefine.workflows.navigation import (
     NavigationData,
@@ -96,6 +101,7 @@ from georefine.workflows.outer_checks import (
     outer_converged,
     trajectory_change,
     warn_boresight_separation,
+    warn_gi_tilt,
     warn_gnss_error_misfit,
     warn_plane_misfit,
     warn_unconverged,
@@ -258,11 +264,14 @@ def step_adjust_flights(
     used = np.unique(objects.feature_object[every])
     gils = [build_gil_problem(f.nav, p, features, objects, knot, start, selection=PlaneSelection(s, used, held))
             for f, p, knot, start, s in zip(flights, previous, knot_intervals_s, time_offsets, sel)]
-    shared = [PLANES_BLOCK] + ([BORESIGHT_BLOCK] if share_bs else []) + ([OFFSET_BLOCK] if share_offset else [])
+    # One scanner: its range, channel and encoder calibration are every flight's, as the planes are.
+    calibration = [b for b in CALIBRATION_PRIORS if b in gils[0].built.problem.blocks]
+    shared = [PLANES_BLOCK] + ([BORESIGHT_BLOCK] if share_bs else []) + ([OFFSET_BLOCK] if share_offset else []) \
+        + calibration
     prefixes = [flight_prefix(f.flight) for f in flights]
     joint = merge_problems([g.built.problem for g in gils], prefixes, shared=shared,
                            shared_groups=[g for g, b in ((BORESIGHT_PRIOR, BORESIGHT_BLOCK), (OFFSET_PRIOR, OFFSET_BLOCK))
-                                          if b in shared])
+                                          if b in shared] + [CALIBRATION_PRIORS[b] for b in calibration])
 
     def report(it) -> None:
         progress("G/I/L adjustment of the flights", getattr(it, "iteration", 0), tcfg.max_iterations)
@@ -284,7 +293,7 @@ def step_adjust_flights(
             offset += float(view.values(OFFSET_BLOCK)[0, 0])
         out.append(LidarAdjustment(result, g.features_used, g.objects_used, bs_deg, None, built,
                                    time_offset_s=offset, time_offset_start=g.time_offset,
-                                   time_offset_held=g.offset_held))
+                                   time_offset_held=g.offset_held, **scanner_estimates(view)))
     adj = FlightsAdjustment(tuple(out), solve, int(every.size), int(used.size), joint, tuple(shared))
     return add_flights_posterior(adj) if covariance else adj
 
@@ -317,6 +326,7 @@ def add_flights_posterior(adj: FlightsAdjustment) -> FlightsAdjustment:
         if OFFSET_BLOCK in b.problem.blocks:
             cov = b.problem.covariance(OFFSET_BLOCK, scale_by_variance_factor=False)[0, 0, 0] * vf
             extra["time_offset_sigma_s"] = float(np.sqrt(cov))
+        extra |= {k: v for k, v in scanner_estimates(b.problem, vf).items() if k.endswith("_sigma")}
         flights.append(replace(a, result=result, built=None, **extra))
     solve = flights[0].result.solve
     solve = replace(adj.solve, variance_components=solve.variance_components)
@@ -478,6 +488,7 @@ class FlightsResult:
                          f"{g.time_offset_sigma_s * 1e3:.3f} ms")
         if g.time_offset_held is not None:
             lines.append(f"  LiDAR time offset: held at {g.time_offset_s:+.5f} s: {g.time_offset_held}")
+        lines += g.calibration_lines(" (all flights)")
         lines += precision_lines(m.pass_precision)
         if m.resumed:
             lines.append("  resumed from the cache: " + ", ".join(m.resumed))
@@ -556,7 +567,8 @@ def _outer_iterations(flights: list[FlightInputs], gis: list[GnssImuResult], ste
 
 def _write_points(flights: list[FlightInputs], gils: tuple[LidarAdjustment, ...], project: Project, out: Path,
                   runner: TaskRunner, progress: Progress) -> tuple[PointsWritten, ...]:
-    """Step 6: every strip in the output CRS with its own flight's trajectory, boresight and time offset."""
+    """Step 6: every strip in the output CRS with its own flight's trajectory, boresight and time offset, and the
+    scanner calibration the flights share."""
     folder = out / "points"
     folder.mkdir(parents=True, exist_ok=True)
     written = []
@@ -572,7 +584,8 @@ def _write_points(flights: list[FlightInputs], gils: tuple[LidarAdjustment, ...]
         paths = [folder / (s.path.stem + ".laz") for s in strips]
         results = georeference_strips([s.plan for s in strips], paths, runner.share(interpolator), nav.t0_gps, p_b_s,
                                       R_b_s, nav.frame, project.crs, runner=runner, progress=progress,
-                                      protect=(project.root,), time_offset_s=offset, heights=project.heights)
+                                      protect=(project.root,), time_offset_s=offset, heights=project.heights,
+                                      calibration=g.scanner_calibration())
         written += [PointsWritten.from_dict({"strip": s.strip_id, "file": path.name, "points": r.points_written,
                                              "outside_trajectory": r.points_outside})
                     for s, path, r in zip(f.strips, paths, results)]
@@ -636,6 +649,7 @@ def run_flights(
         warn_time_offset(cfg, g0.time_offset_s, g0.time_offset_sigma_s, g0.time_offset_gnss_sigma_s or 0.0)
         for f, gi, g in zip(flights, gis, gils):
             warn_plane_misfit(gi, g, outcome.records, f.nav)
+            warn_gi_tilt(gi, g, f.nav.frame, who=f"flight {f.flight.id}: ")
             warn_gnss_error_misfit(g, f"flight {f.flight.id}'s G/I/L")
         warn_boresight_separation(gis, gils)
         (ws.out / "features").mkdir(exist_ok=True)

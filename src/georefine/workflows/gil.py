@@ -83,6 +83,28 @@ class LidarAdjustment:
     encoder_sigma: np.ndarray | None = None
     boresight_body_sigma_mdeg: np.ndarray | None = None  # the boresight's sigma about the body's x, y, z axes
 
+    def calibration_lines(self, scope: str = "") -> list[str]:
+        """What ``run`` prints of the scanner calibration it estimated (range, channel angles, encoder error), each
+        with its sigma; ``scope`` follows the name (``" (all flights)"``)."""
+        lines = []
+        if self.range_calibration is not None:
+            (r0, k), sig = self.range_calibration, self.range_calibration_sigma or (np.nan, np.nan)
+            lines.append(f"  scanner range offset{scope} {r0 * 1e3:+.1f} ± {sig[0] * 1e3:.1f} mm, scale {k * 1e6:+.1f} "
+                         f"± {sig[1] * 1e6:.1f} ppm (points corrected)")
+        if self.channel_angles is not None:
+            a = np.degrees(self.channel_angles) * 1e3
+            sig = (np.full_like(a, np.nan) if self.channel_angles_sigma is None
+                   else np.degrees(self.channel_angles_sigma) * 1e3)
+            lines.append(f"  scanner channel angles{scope} against channel 0 (tilt, scan angle; points corrected): "
+                         + "; ".join(f"{c}: {a[c, 0]:+.1f} ± {sig[c, 0]:.1f}, {a[c, 1]:+.1f} ± {sig[c, 1]:.1f} mdeg"
+                                     for c in range(1, len(a))))
+        if self.encoder is not None:
+            e = np.degrees(self.encoder) * 1e3
+            sig = np.full_like(e, np.nan) if self.encoder_sigma is None else np.degrees(self.encoder_sigma) * 1e3
+            lines.append(f"  scanner encoder error{scope}, Legendre terms P1..P4 (points corrected): "
+                         + ", ".join(f"{v:+.1f} ± {s:.1f}" for v, s in zip(e, sig)) + " mdeg")
+        return lines
+
     def scanner_calibration(self) -> ScannerCalibration | None:
         """What the final georeferencing takes out of every point (range, channel angles, encoder error), or None."""
         if self.range_calibration is None and self.channel_angles is None and self.encoder is None:
@@ -138,6 +160,10 @@ ENCODER_BLOCK = "encoder_error"
 """The scan-angle encoder's error across the field of view, the same on every channel: Legendre coefficients ((1, 4),
 rad; :func:`~georefine.adjustment.observations.plane.encoder_basis`; ``processing.lidar.estimate_encoder_error``).
 Their mean over the field of view is zero: a constant scan-angle error is the boresight's roll."""
+CALIBRATION_PRIORS = {RANGE_BLOCK: "range_calibration_prior", CHANNEL_BLOCK: "channel_angles_prior",
+                      ENCODER_BLOCK: "encoder_error_prior"}
+"""The prior group of each scanner calibration block: one scanner's, shared where several flights are adjusted
+together (:mod:`georefine.workflows.flights`)."""
 
 
 def scanner_estimates(problem, scale: float | None = None) -> dict:
@@ -287,7 +313,7 @@ def build_gil_problem(
     ranges = None
     if lcfg.estimate_range_calibration:
         P.add_block(RANGE_BLOCK, np.zeros((1, 2)))
-        P.add_group(EuclideanPrior("range_calibration_prior", RANGE_BLOCK, [0], np.zeros((1, 2)),
+        P.add_group(EuclideanPrior(CALIBRATION_PRIORS[RANGE_BLOCK], RANGE_BLOCK, [0], np.zeros((1, 2)),
                                    np.array([lcfg.range_offset_prior_m, lcfg.range_scale_prior_ppm * 1e-6])))
         ranges = RANGE_BLOCK
     incidence = None
@@ -298,17 +324,18 @@ def build_gil_problem(
         incidence = INCIDENCE_BLOCK
     channels = None
     if lcfg.estimate_channel_angles:  # channel 0 is the reference, whose angles are the boresight's
-        n_ch = max(int(f.channel.max()), 1)
+        # Where several problems share the block (the flights), its rows are every problem's channels.
+        n_ch = max(int((features.channel if selection is not None else f.channel).max()), 1)
         sigma = np.radians(lcfg.channel_angle_prior_mdeg * 1e-3)
         P.add_block(CHANNEL_BLOCK, np.zeros((n_ch, 2)))
-        P.add_group(EuclideanPrior("channel_angles_prior", CHANNEL_BLOCK, np.arange(n_ch), np.zeros((n_ch, 2)),
+        P.add_group(EuclideanPrior(CALIBRATION_PRIORS[CHANNEL_BLOCK], CHANNEL_BLOCK, np.arange(n_ch), np.zeros((n_ch, 2)),
                                    np.full(2, sigma)))
         channels = CHANNEL_BLOCK
     enc = None
     if lcfg.estimate_encoder_error:
         sigma = np.radians(lcfg.encoder_error_prior_mdeg * 1e-3)
         P.add_block(ENCODER_BLOCK, np.zeros((1, ENCODER_TERMS)))
-        P.add_group(EuclideanPrior("encoder_error_prior", ENCODER_BLOCK, [0], np.zeros((1, ENCODER_TERMS)),
+        P.add_group(EuclideanPrior(CALIBRATION_PRIORS[ENCODER_BLOCK], ENCODER_BLOCK, [0], np.zeros((1, ENCODER_TERMS)),
                                    np.full(ENCODER_TERMS, sigma)))
         enc = ENCODER_BLOCK
     P.add_group(

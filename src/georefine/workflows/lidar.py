@@ -122,22 +122,8 @@ class WorkflowResult:
             gnss = self.gil.time_offset_gnss_sigma_s
             lines.append(f"  LiDAR time offset: {self.gil.time_offset_s:+.5f} s ± {self.gil.time_offset_sigma_s * 1e3:.3f} ms"
                          + (f" (± {gnss * 1e3:.2f} ms from GNSS errors that last a pass)" if gnss else ""))
-        if self.gil is not None and self.gil.range_calibration is not None:
-            (r0, k), sig = self.gil.range_calibration, self.gil.range_calibration_sigma or (np.nan, np.nan)
-            lines.append(f"  scanner range offset {r0 * 1e3:+.1f} ± {sig[0] * 1e3:.1f} mm, scale {k * 1e6:+.1f} ± "
-                         f"{sig[1] * 1e6:.1f} ppm (points corrected)")
-        if self.gil is not None and self.gil.channel_angles is not None:
-            a = np.degrees(self.gil.channel_angles) * 1e3
-            sig = (np.full_like(a, np.nan) if self.gil.channel_angles_sigma is None
-                   else np.degrees(self.gil.channel_angles_sigma) * 1e3)
-            lines.append("  scanner channel angles against channel 0 (tilt, scan angle; points corrected): " + "; ".join(
-                f"{c}: {a[c, 0]:+.1f} ± {sig[c, 0]:.1f}, {a[c, 1]:+.1f} ± {sig[c, 1]:.1f} mdeg" for c in range(1, len(a))))
-        if self.gil is not None and self.gil.encoder is not None:
-            e = np.degrees(self.gil.encoder) * 1e3
-            sig = (np.full_like(e, np.nan) if self.gil.encoder_sigma is None
-                   else np.degrees(self.gil.encoder_sigma) * 1e3)
-            lines.append("  scanner encoder error, Legendre terms P1..P4 (points corrected): " + ", ".join(
-                f"{v:+.1f} ± {s:.1f}" for v, s in zip(e, sig)) + " mdeg")
+        if self.gil is not None:
+            lines += self.gil.calibration_lines()
         if self.gil is not None and self.gil.time_offset_held is not None:
             lines.append(f"  LiDAR time offset: held at {self.gil.time_offset_s:+.5f} s, not estimated: "
                          f"{self.gil.time_offset_held}")
