@@ -27,7 +27,7 @@ def flight():
 
 # ---------------------------------------------------------------------------- IMU
 def test_presets():
-    assert set(IMU_PRESETS) == {"navigation", "tactical", "mems", "ideal"}
+    assert set(IMU_PRESETS) == {"navigation", "tactical", "mems", "ideal", "stim300"}  # four grades, one unit
     assert DEFAULT_IMU_GRADE in IMU_PRESETS
     for name, g in IMU_PRESETS.items():
         assert g.name == name and g.source and g.rate_hz == 200.0
