@@ -345,6 +345,11 @@ def misalignment_prior(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig) -> t
                  for v in (spec.gyro_misalignment_mrad, spec.acc_misalignment_mrad))
 
 
+def _temperature_stated(spec: ImuErrorSpec) -> bool:
+    """Whether the datasheet states a temperature coefficient (``auto`` then estimates them)."""
+    return spec.gyro_temperature_deg_per_h_per_c > 0 or spec.acc_temperature_ug_per_c > 0
+
+
 def temperature_prior(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig, data: GnssImuData
                       ) -> tuple[float, float] | None:
     """Prior sigma of the gyro (rad/s per deg C) and the accelerometer (m/s² per deg C) temperature
@@ -356,7 +361,7 @@ def temperature_prior(spec: ImuErrorSpec, cfg: TrajectoryAdjustmentConfig, data:
     InputError
         ``true`` with an IMU file that logs no temperature.
     """
-    stated = spec.gyro_temperature_deg_per_h_per_c > 0 or spec.acc_temperature_ug_per_c > 0
+    stated = _temperature_stated(spec)
     mode = cfg.estimate_temperature_coefficients
     if mode is True and data.imu_temperature is None:
         raise InputError("the IMU file logs no temperature", field="temperature_c",
@@ -387,8 +392,7 @@ def unmodelled_temperature(temperature_c: np.ndarray | None, spec: ImuErrorSpec,
         return None
     t = np.asarray(temperature_c, dtype=float)
     change = float(t.max() - t.min())
-    stated = spec.gyro_temperature_deg_per_h_per_c > 0 or spec.acc_temperature_ug_per_c > 0
-    if change < TEMPERATURE_CHANGE_NOTE_C or cfg.estimate_temperature_coefficients is True or stated:
+    if change < TEMPERATURE_CHANGE_NOTE_C or cfg.estimate_temperature_coefficients is True or _temperature_stated(spec):
         return None
     g, a = cfg.temperature_prior_gyro_deg_per_h_per_c, cfg.temperature_prior_acc_ug_per_c
     return (f"the IMU file logs its temperature changing by {change:.1f} deg C ({t.min():.1f} .. {t.max():.1f}), and "
